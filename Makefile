@@ -1,0 +1,50 @@
+# Two entry points on a fresh Debian 12 machine:
+#   make run   installs what is missing, generates the demo city and runs the workflow
+#   make test  installs what is missing and runs the whole test suite
+SHELL := /bin/bash
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+LEAFLET := build/node_modules/leaflet/dist/leaflet.js
+APT_PACKAGES := python3-venv python3-dev build-essential gdal-bin libgdal-dev libegl1 libegl-mesa0 \
+                libgl1-mesa-dri libgles2
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+PYTHON ?= python3
+
+.PHONY: run test deps sysdeps clean-results
+
+run: deps
+	$(PY) -m pipeline25d demo-city resources/demo
+	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(VENV)/bin/snakemake -j2
+
+test: deps
+	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(PY) -m pytest -q; rc=$$?; \
+	  if [ $$rc -eq 5 ]; then echo "pytest collected no tests"; exit 1; fi; exit $$rc
+
+deps: sysdeps $(STAMP) $(LEAFLET)
+
+# System packages: installed only when a tool or library is missing.
+sysdeps:
+	@missing=""; \
+	for pkg in $(APT_PACKAGES); do dpkg -s $$pkg >/dev/null 2>&1 || missing="$$missing $$pkg"; done; \
+	command -v npm >/dev/null 2>&1 || missing="$$missing npm"; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing system packages:$$missing"; \
+	  $(SUDO) apt-get update -qq && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq $$missing; \
+	fi
+
+# GDAL's bindings must match the system GDAL and need numpy at build time.
+$(STAMP): requirements.txt pyproject.toml
+	[ -x $(PY) ] || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip setuptools wheel numpy==2.4.6
+	$(PY) -m pip install -q --no-build-isolation --no-cache-dir GDAL==$$(gdal-config --version)
+	$(PY) -m pip install -q -r requirements.txt
+	$(PY) -m pip install -q --no-deps -e .
+	$(PY) -c "from osgeo import gdal_array; import moderngl, fast_simplification, trimesh"
+	touch $@
+
+$(LEAFLET):
+	mkdir -p build && npm install --no-save --no-audit --no-fund --prefix build leaflet@1.9.4
+
+clean-results:
+	rm -rf results .snakemake

@@ -1,0 +1,83 @@
+"""Command line: ``python -m pipeline25d <command>`` (per-chunk and per-tile rules use it)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+from .errors import Pipeline25dError
+
+
+def _lod(args) -> None:
+    from .stages import build_lod
+
+    build_lod(args.chunk, args.out_npz, args.out_json, args.max_error, args.max_levels)
+
+
+def _render_tile(args) -> None:
+    from .stages import render_tile
+
+    render_tile(args.plan, args.row, args.col, args.lod_dir, args.out_tif, args.out_gcps)
+
+
+def _demo_city(args) -> None:
+    from .demo import main as demo_main
+
+    argv = [args.out_dir, "--seed", str(args.seed), "--buildings", str(args.buildings), "--scale", str(args.scale)]
+    sys.exit(demo_main(argv))
+
+
+def _gl_info(args) -> None:
+    from .render import create_context, renderer_info
+
+    ctx = create_context()
+    for key, value in renderer_info(ctx).items():
+        print(f"{key}: {value}")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="pipeline25d", description=__doc__)
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("demo-city", help="generate the built-in demo city")
+    p.add_argument("out_dir")
+    p.add_argument("--seed", type=int, default=7)
+    p.add_argument("--buildings", type=int, default=320)
+    p.add_argument("--scale", type=float, default=1.0)
+    p.set_defaults(func=_demo_city)
+
+    p = sub.add_parser("lod", help="build one chunk's LOD pyramid")
+    p.add_argument("chunk")
+    p.add_argument("out_npz")
+    p.add_argument("out_json")
+    p.add_argument("--max-error", type=float, required=True, help="metres")
+    p.add_argument("--max-levels", type=int, default=6)
+    p.set_defaults(func=_lod)
+
+    p = sub.add_parser("render-tile", help="render one tile of a perspective's plan")
+    p.add_argument("--plan", required=True)
+    p.add_argument("--row", type=int, required=True)
+    p.add_argument("--col", type=int, required=True)
+    p.add_argument("--lod-dir", required=True)
+    p.add_argument("--out-tif", required=True)
+    p.add_argument("--out-gcps", required=True)
+    p.add_argument("--spec-hash", help="ignored; in the command so Snakemake re-runs when the tile's spec changes")
+    p.set_defaults(func=_render_tile)
+
+    p = sub.add_parser("gl-info", help="print the OpenGL renderer EGL gives us")
+    p.set_defaults(func=_gl_info)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    try:
+        args.func(args)
+    except Pipeline25dError as exc:
+        print(f"pipeline25d: error: {exc}", file=sys.stderr)
+        return 1
+    return 0

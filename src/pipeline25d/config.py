@@ -1,0 +1,89 @@
+"""Configuration: schema validation with defaults, then checks the schema cannot express.
+
+Both run before any job, so a bad config stops the run with a message naming the key
+or file, and nothing is written.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from .crs import check_scene_crs, parse_crs
+from .errors import ConfigError, CRSError, InputFileError
+from .perspectives import Perspective, expand
+
+SCHEMA_PATH = Path(__file__).resolve().parents[2] / "config" / "schema.yaml"
+
+
+def validate_schema(config: dict[str, Any], schema_path: Path = SCHEMA_PATH) -> dict[str, Any]:
+    """Validate ``config`` in place against the JSON schema, filling defaults.
+
+    Uses Snakemake's validator (the same one the Snakefile calls); raises ConfigError
+    with the offending key path.
+    """
+    import jsonschema
+    from snakemake.utils import validate
+
+    try:
+        validate(config, str(schema_path), set_default=True)
+    except Exception as exc:  # WorkflowError wrapping jsonschema.ValidationError
+        cause = exc.__cause__ or exc.__context__ or exc
+        if isinstance(cause, jsonschema.ValidationError):
+            if cause.context:  # oneOf/anyOf: report the most relevant branch's error
+                cause = max(cause.context, key=lambda e: (len(e.absolute_path), e.validator != "type"))
+            key = ".".join(str(p) for p in cause.absolute_path) or "<top level>"
+            raise ConfigError(f"config key {key}: {cause.message}") from None
+        raise ConfigError(f"config is invalid: {exc}") from None
+    return config
+
+
+def check_semantics(config: dict[str, Any], base_dir: Path = Path(".")) -> None:
+    """Checks beyond the schema: CRSs exist and the scene CRS is projected; input files exist."""
+    try:
+        check_scene_crs(config["crs"])
+    except CRSError as exc:
+        raise ConfigError(f"config key crs: {exc}") from None
+    for name, spec in config["inputs"].items():
+        if "crs" in spec:
+            try:
+                parse_crs(spec["crs"])
+            except CRSError as exc:
+                raise ConfigError(f"config key inputs.{name}.crs: {exc}") from None
+        for key in ("path", "metadata"):
+            if key in spec:
+                _check_readable(base_dir / spec[key], f"inputs.{name}.{key}")
+    for key, value in (("terrain", config["terrain"]), ("gcp.source", config["gcp"]["source"])):
+        if value not in ("auto", "flat"):
+            _check_readable(base_dir / value, key)
+
+
+def _check_readable(path: Path, key: str) -> None:
+    if not path.exists():
+        raise InputFileError(path, f"does not exist (config key {key})")
+    if not os.access(path, os.R_OK):
+        raise InputFileError(path, f"is not readable (config key {key})")
+    if path.is_file() and path.stat().st_size == 0:
+        raise InputFileError(path, f"is empty (config key {key})")
+
+
+def load_config(path: str | Path) -> dict[str, Any]:
+    """Read, validate and check a YAML config file (for the CLI and tests)."""
+    path = Path(path)
+    try:
+        config = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise ConfigError(f"{path}: cannot read config: {exc}") from None
+    if not isinstance(config, dict):
+        raise ConfigError(f"{path}: config must be a mapping")
+    validate_schema(config)
+    check_semantics(config)
+    return config
+
+
+def perspectives(config: dict[str, Any]) -> list[Perspective]:
+    """The validated config's perspectives."""
+    return expand(config["perspectives"])

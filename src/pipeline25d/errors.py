@@ -1,0 +1,40 @@
+"""Project exceptions: one base class, small named subclasses.
+
+Callers catch :class:`Pipeline25dError`; tests assert the exact class. Each error
+that concerns a file names the file, so the message alone tells a user what to fix.
+"""
+
+from __future__ import annotations
+
+
+class Pipeline25dError(Exception):
+    """Base class of every error raised on purpose by pipeline25d."""
+
+
+class ConfigError(Pipeline25dError, ValueError):
+    """The configuration is invalid (schema violation, unknown CRS, bad value)."""
+
+
+class InputFileError(Pipeline25dError, OSError):
+    """An input file is missing, unreadable, truncated or corrupt."""
+
+    def __init__(self, path: object, problem: str):
+        self.path = str(path)
+        self.problem = problem
+        super().__init__(f"{self.path}: {problem}")
+
+
+class UnsupportedFeatureError(InputFileError):
+    """An input uses a feature pipeline25d cannot honour (e.g. a required glTF extension)."""
+
+
+class CRSError(Pipeline25dError, ValueError):
+    """A CRS is unknown, not projected, or cannot be transformed to the scene CRS."""
+
+
+class RenderError(Pipeline25dError, RuntimeError):
+    """The OpenGL context could not be created or a render failed."""
+
+
+class GdalToolError(Pipeline25dError, RuntimeError):
+    """A GDAL command-line tool exited with an error."""

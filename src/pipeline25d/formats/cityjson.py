@@ -1,0 +1,428 @@
+"""CityJSON 1.0 / 1.1 / 2.0 and CityJSONSeq (``.jsonl``) reader.
+
+Each CityObject contributes the geometry of one LOD (its highest by default). Surfaces
+are triangulated in float64: polygons with holes are projected onto the plane of their
+Newell normal and cut with earcut (``mapbox_earcut``); triangles pass straight through.
+Triangles keep the orientation of their polygon.
+
+Colours come from a small palette keyed by semantic surface type, or by CityObject type
+when a surface has no semantics. Buildings without semantics get roof / wall / ground
+colours from the surface normal (up-facing, vertical, down-facing), so LOD1 blocks still
+show roofs from above. One :class:`MeshPart` (RGBA vertex colours) per colour class.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import CRSError, InputFileError
+from ..mesh import Mesh, MeshPart
+from .tiles3d import reproject_parts
+
+#: RGBA per colour class.
+PALETTE: dict[str, tuple[int, int, int, int]] = {
+    "roof": (168, 72, 52, 255),         # red-brown
+    "wall": (232, 222, 198, 255),       # light beige
+    "ground": (140, 140, 140, 255),     # grey
+    "water": (66, 122, 204, 255),       # blue
+    "vegetation": (76, 146, 60, 255),   # green
+    "road": (88, 88, 88, 255),          # dark grey
+    "landuse": (178, 214, 142, 255),    # light green
+    "terrain": (206, 182, 136, 255),    # tan
+    "other": (190, 190, 190, 255),      # light grey: bridges, tunnels, furniture, generic objects
+}
+
+_SEMANTIC_CLASS = {
+    "RoofSurface": "roof",
+    "GroundSurface": "ground",
+    **{t: "wall" for t in ("WallSurface", "OuterCeilingSurface", "OuterFloorSurface", "ClosureSurface",
+                           "Window", "Door", "InteriorWallSurface", "CeilingSurface", "FloorSurface")},
+    **{t: "water" for t in ("WaterSurface", "WaterGroundSurface", "WaterClosureSurface")},
+    **{t: "road" for t in ("TrafficArea", "AuxiliaryTrafficArea", "TransportationMarking", "TransportationHole")},
+}
+
+#: "building": colour from the surface normal when the surface has no semantics.
+_OBJECT_CLASS = {
+    **{t: "building" for t in ("Building", "BuildingPart", "BuildingInstallation", "BuildingConstructiveElement",
+                               "BuildingFurniture", "BuildingRoom", "BuildingStorey", "BuildingUnit")},
+    **{t: "road" for t in ("Road", "Railway", "TransportationSquare")},
+    **{t: "water" for t in ("WaterBody", "Waterway")},
+    **{t: "vegetation" for t in ("PlantCover", "SolitaryVegetationObject")},
+    "LandUse": "landuse",
+    "TINRelief": "terrain",
+}
+
+#: Ground-level object types used as terrain when a file has no TINRelief. 3dfier output
+#: (e.g. Delft) models its terrain this way. PlantCover (raised to canopy height by 3dfier:
+#: Delft's reaches 16.8 m), GenericCityObject (walls, fences) and Bridge are not ground.
+GROUND_TYPES = frozenset({"LandUse", "Road", "Railway", "TransportationSquare", "WaterBody"})
+
+_SURFACE_DEPTH = {"MultiSurface": 1, "CompositeSurface": 1, "Solid": 2, "MultiSolid": 3, "CompositeSolid": 3}
+_ROOF_NZ = 0.2  # |normal z| above which a building surface counts as roof (up) or ground (down)
+
+
+def load_cityjson(path: str | Path, scene_crs: str, lod: str | None = None, src_crs: str | None = None,
+                  include_terrain: bool = True) -> Mesh:
+    """Triangulated, coloured CityJSON/CityJSONSeq in ``scene_crs``.
+
+    ``lod``: per object the geometry of that LOD, else its highest LOD below it, else
+    (so no object disappears) its lowest LOD; None takes each object's highest LOD.
+    ``src_crs`` overrides ``metadata.referenceSystem``. ``include_terrain=False`` drops
+    the objects :func:`load_cityjson_terrain` returns.
+    """
+    model = _read_model(Path(path))
+    terrain = _terrain_types(model)
+    keep = (lambda t: True) if include_terrain else (lambda t: t not in terrain)
+    return _build_mesh(model, scene_crs, src_crs, lod, keep)
+
+
+def load_cityjson_terrain(path: str | Path, scene_crs: str, src_crs: str | None = None) -> Mesh:
+    """The terrain of a CityJSON file: its TINRelief objects.
+
+    A file without TINRelief (3dfier output such as Delft models the ground as LandUse,
+    Road, WaterBody ... polygons) yields its ground-level objects instead:
+    :data:`GROUND_TYPES`. PlantCover is left out because 3dfier lifts it to vegetation
+    height, which would bias terrain/GCP heights.
+    """
+    model = _read_model(Path(path))
+    terrain = _terrain_types(model)
+    return _build_mesh(model, scene_crs, src_crs, None, lambda t: t in terrain)
+
+
+# --------------------------------------------------------------------------- reading
+
+
+@dataclass
+class _Chunk:
+    """CityObjects sharing one vertex list (the whole file, or one CityJSONSeq feature)."""
+
+    objects: dict
+    vertices: np.ndarray
+
+    def add_vertices(self, v: np.ndarray) -> np.ndarray:
+        """Append vertices (a placed GeometryInstance template); return their indices."""
+        start = len(self.vertices)
+        self.vertices = np.concatenate([self.vertices, v])
+        return np.arange(start, start + len(v))
+
+
+@dataclass
+class _Model:
+    path: Path
+    header: dict
+    chunks: list[_Chunk]
+    templates: list
+    template_vertices: np.ndarray
+
+
+def _read_model(path: Path) -> _Model:
+    """Read a CityJSON file or a CityJSONSeq stream into chunks of real-coordinate vertices."""
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise InputFileError(path, "CityJSON file is missing") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputFileError(path, f"cannot read CityJSON: {exc}") from None
+    docs = _parse_json_documents(text, path)
+    header = docs[0]
+    if not isinstance(header, dict) or header.get("type") != "CityJSON":
+        raise InputFileError(path, "not CityJSON (first object lacks \"type\": \"CityJSON\")")
+    transform = header.get("transform")
+    if len(docs) > 1:  # CityJSONSeq: the header line's (empty) lists may be left out
+        header = {"CityObjects": {}, "vertices": [], **header}
+    chunks = [_chunk(header, transform, path, "file" if len(docs) == 1 else "line 1")]
+    for i, feature in enumerate(docs[1:], start=2):
+        if not isinstance(feature, dict) or feature.get("type") != "CityJSONFeature":
+            raise InputFileError(path, f"line {i}: not a CityJSONFeature")
+        chunks.append(_chunk(feature, transform, path, f"line {i}"))
+    templates = header.get("geometry-templates") or {}
+    tverts = np.asarray(templates.get("vertices-templates", []), dtype=np.float64).reshape(-1, 3)
+    return _Model(path, header, chunks, templates.get("templates", []), tverts)
+
+
+def _parse_json_documents(text: str, path: Path) -> list:
+    """One JSON document, or (CityJSONSeq) one per non-empty line."""
+    try:
+        return [json.loads(text)]
+    except json.JSONDecodeError as whole_error:
+        lines = [ln for ln in text.splitlines() if ln.strip()]
+        if len(lines) < 2:
+            raise InputFileError(path, f"invalid JSON: {whole_error}") from None
+        docs = []
+        for n, line in enumerate(lines, start=1):
+            try:
+                docs.append(json.loads(line))
+            except json.JSONDecodeError as exc:
+                raise InputFileError(path, f"invalid JSON on line {n}: {exc}") from None
+        return docs
+
+
+def _chunk(doc: dict, transform: dict | None, path: Path, where: str) -> _Chunk:
+    """Vertices (transform applied, float64) and CityObjects of one document."""
+    if "vertices" not in doc:
+        raise InputFileError(path, f"{where}: no \"vertices\" array")
+    objects = doc.get("CityObjects")
+    if not isinstance(objects, dict):
+        raise InputFileError(path, f"{where}: no \"CityObjects\" object")
+    try:
+        v = np.asarray(doc["vertices"], dtype=np.float64).reshape(-1, 3)
+    except (ValueError, TypeError):
+        raise InputFileError(path, f"{where}: \"vertices\" is not a list of [x, y, z]") from None
+    if transform:
+        v = v * np.asarray(transform.get("scale", [1, 1, 1]), dtype=np.float64) \
+            + np.asarray(transform.get("translate", [0, 0, 0]), dtype=np.float64)
+    return _Chunk(objects, v)
+
+
+def source_crs(header: dict, path: Path) -> str:
+    """'AUTH:CODE' of ``metadata.referenceSystem`` (OGC URL or URN), or of 0.x ``crs.epsg``."""
+    meta = header.get("metadata") or {}
+    ref = meta.get("referenceSystem")
+    if ref is None and isinstance(meta.get("crs"), dict) and "epsg" in meta["crs"]:
+        return f"EPSG:{int(meta['crs']['epsg'])}"
+    if not ref:
+        raise CRSError(f"{path}: no metadata.referenceSystem; pass src_crs")
+    ref = str(ref).strip()
+    if "/def/crs/" in ref:  # https://www.opengis.net/def/crs/EPSG/0/7415
+        bits = ref.rstrip("/").split("/")
+        return f"{bits[-3]}:{bits[-1]}"
+    if ref.lower().startswith("urn:ogc:def:crs:"):  # urn:ogc:def:crs:EPSG::7415
+        bits = ref.split(":")
+        return f"{bits[4]}:{bits[-1]}"
+    return ref
+
+
+# --------------------------------------------------------------------------- geometry
+
+
+def _build_mesh(model: _Model, scene_crs: str, src_crs: str | None, lod: str | None, keep) -> Mesh:
+    """Triangulate the kept objects, group by colour class, reproject to the scene CRS."""
+    src = src_crs or source_crs(model.header, model.path)
+    by_class: dict[str, list[np.ndarray]] = {}
+    for chunk in model.chunks:
+        tris: dict[str, list[np.ndarray]] = {}
+        for obj in chunk.objects.values():
+            if isinstance(obj, dict) and keep(obj.get("type")):
+                _object_triangles(obj, lod, chunk, model, tris)
+        verts = chunk.vertices
+        for cls, faces in tris.items():
+            faces = np.concatenate(faces)
+            if faces.size and (faces.min() < 0 or faces.max() >= len(verts)):
+                bad = faces.max() if faces.max() >= len(verts) else faces.min()
+                raise InputFileError(model.path, f"vertex index {bad} out of range ({len(verts)} vertices)")
+            used, inv = np.unique(faces, return_inverse=True)
+            by_class.setdefault(cls, []).append((verts[used], inv.reshape(-1, 3)))
+    parts = [_class_part(cls, pieces) for cls, pieces in sorted(by_class.items())]
+    return Mesh(reproject_parts(parts, src, scene_crs, model.path), source=str(model.path))
+
+
+def _class_part(cls: str, pieces: list) -> MeshPart:
+    """One MeshPart of all triangles of colour class ``cls``."""
+    offsets = np.cumsum([0] + [len(v) for v, _ in pieces])
+    vertices = np.concatenate([v for v, _ in pieces])
+    faces = np.concatenate([f + o for (_, f), o in zip(pieces, offsets)])
+    colors = np.tile(np.array(PALETTE[cls], dtype=np.uint8), (len(vertices), 1))
+    return MeshPart(vertices, faces, colors=colors, name=cls)
+
+
+def _lod_key(lod) -> tuple[int, ...]:
+    """Sortable key of a LOD ("2.2" -> (2, 2); 1.0's numeric 2 -> (2,))."""
+    text = f"{lod:g}" if isinstance(lod, (int, float)) else str(lod)
+    try:
+        return tuple(int(p) for p in text.split("."))
+    except ValueError:
+        return (-1,)
+
+
+def _geometry_lod(geom: dict, model: _Model) -> tuple[int, ...]:
+    """LOD key of a geometry; a GeometryInstance has the LOD of its template."""
+    if geom.get("type") == "GeometryInstance":
+        try:
+            return _lod_key(model.templates[int(geom["template"])].get("lod", -1))
+        except (KeyError, IndexError, TypeError, ValueError, AttributeError):
+            return (-1,)
+    return _lod_key(geom.get("lod", -1))
+
+
+def _pick_geometries(geoms: list, lod: str | None, model: _Model) -> list:
+    """Geometries of the chosen LOD: requested, else highest below, else lowest."""
+    if not geoms:
+        return []
+    keyed = [(_geometry_lod(g, model), g) for g in geoms]
+    keys = sorted({k for k, _ in keyed})
+    if lod is None:
+        chosen = keys[-1]
+    else:
+        below = [k for k in keys if k <= _lod_key(lod)]
+        chosen = below[-1] if below else keys[0]
+    return [g for k, g in keyed if k == chosen]
+
+
+def _object_triangles(obj: dict, lod: str | None, chunk: _Chunk, model: _Model, out: dict) -> None:
+    """Append the triangles of one CityObject to ``out[colour class]``."""
+    obj_class = _OBJECT_CLASS.get(str(obj.get("type", "")), "other")
+    geoms = [g for g in obj.get("geometry") or [] if isinstance(g, dict)]
+    for geom in _pick_geometries(geoms, lod, model):
+        if geom.get("type") == "GeometryInstance":
+            geom = _instantiate(geom, chunk, model)
+        if geom is not None:
+            _geometry_triangles(geom, obj_class, chunk, model.path, out)
+
+
+def _instantiate(inst: dict, chunk: _Chunk, model: _Model) -> dict | None:
+    """A GeometryInstance as a plain geometry on new vertices (template, matrix, anchor)."""
+    try:
+        template = dict(model.templates[int(inst["template"])])
+        anchor = chunk.vertices[int(inst["boundaries"][0])]
+        matrix = np.asarray(inst.get("transformationMatrix", np.eye(4).ravel()), dtype=np.float64).reshape(4, 4)
+    except (KeyError, IndexError, TypeError, ValueError) as exc:
+        warnings.warn(f"{model.path}: GeometryInstance skipped ({exc!r})", stacklevel=4)
+        return None
+    used = sorted({i for i in _flatten(template.get("boundaries", []))})
+    if not used or max(used) >= len(model.template_vertices):
+        warnings.warn(f"{model.path}: GeometryInstance with bad template vertices skipped", stacklevel=4)
+        return None
+    local = model.template_vertices[used]
+    placed = local @ matrix[:3, :3].T + matrix[:3, 3] + anchor
+    new_index = dict(zip(used, chunk.add_vertices(placed).tolist()))
+    template["boundaries"] = _remap(template["boundaries"], new_index)
+    return template
+
+
+def _flatten(b):
+    if isinstance(b, list):
+        for x in b:
+            yield from _flatten(x)
+    else:
+        yield int(b)
+
+
+def _remap(b, mapping: dict):
+    return [_remap(x, mapping) for x in b] if isinstance(b, list) else mapping[int(b)]
+
+
+def _geometry_triangles(geom: dict, obj_class: str, chunk: _Chunk, path: Path, out: dict) -> None:
+    """Triangulate every surface of a (Multi/Composite)Surface/Solid geometry.
+
+    Surfaces that are already triangles (3dfier TINs: the common case) are handled
+    together in numpy; other polygons go through :func:`triangulate_polygon`.
+    """
+    depth = _SURFACE_DEPTH.get(geom.get("type"))
+    if depth is None:
+        return  # points, lines: nothing to draw
+    semantics = geom.get("semantics") or {}
+    sem_surfaces = semantics.get("surfaces") or []
+    verts = chunk.vertices
+    tris, values = [], []
+    try:
+        for rings, value in _iter_surfaces(geom.get("boundaries") or [], semantics.get("values"), depth):
+            if len(rings) == 1 and len(rings[0]) == 3:
+                tris.append(rings[0])
+                values.append(value)
+                continue
+            poly, normal = triangulate_polygon(rings, verts)
+            if len(poly):
+                out.setdefault(_surface_classes(sem_surfaces, [value], obj_class, normal[None])[0], []).append(poly)
+        if tris:
+            tris = np.asarray(tris, dtype=np.int64)
+            p = verts[tris]
+            normals = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+            classes = _surface_classes(sem_surfaces, values, obj_class, normals)
+            for cls in set(classes):
+                out.setdefault(cls, []).append(tris[classes == cls])
+    except (TypeError, ValueError, KeyError) as exc:
+        raise InputFileError(path, f"malformed geometry boundaries: {exc!r}") from None
+    except IndexError:
+        raise InputFileError(path, f"vertex index out of range ({len(verts)} vertices)") from None
+
+
+def _iter_surfaces(boundaries: list, values, depth: int):
+    """(rings, semantic value) of each surface, walking ``depth`` nesting levels."""
+    for i, item in enumerate(boundaries):
+        value = values[i] if isinstance(values, list) and i < len(values) else None
+        if depth == 1:
+            yield item, value
+        else:
+            yield from _iter_surfaces(item, value, depth - 1)
+
+
+def _surface_classes(sem_surfaces: list, values: list, obj_class: str, normals: np.ndarray) -> np.ndarray:
+    """Colour class per surface: semantic type, else object type, else (buildings) normal."""
+    out = np.empty(len(values), dtype=object)
+    for i, value in enumerate(values):
+        cls = None
+        if isinstance(value, int) and 0 <= value < len(sem_surfaces):
+            cls = _SEMANTIC_CLASS.get(sem_surfaces[value].get("type"))
+        out[i] = cls or obj_class
+    derive = out == "building"
+    if derive.any():
+        n = normals[derive]
+        length = np.linalg.norm(n, axis=1)
+        nz = np.divide(n[:, 2], length, out=np.zeros(len(n)), where=length > 0)
+        out[derive] = np.where(nz > _ROOF_NZ, "roof", np.where(nz < -_ROOF_NZ, "ground", "wall"))
+    return out
+
+
+def triangulate_polygon(rings: list[list[int]], vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """((k, 3) int64 vertex indices, Newell normal) of a planar polygon with holes.
+
+    ``rings``: outer ring first, then holes, as indices into ``vertices``. Projects onto
+    the coordinate plane most parallel to the polygon (affine, so topology is kept),
+    triangulates with earcut, and orients every triangle like the polygon.
+    """
+    outer_ring = _clean_ring(rings[0]) if rings else []
+    if len(outer_ring) < 3:
+        return np.empty((0, 3), np.int64), np.zeros(3)
+    clean = [outer_ring] + [r for r in (_clean_ring(ring) for ring in rings[1:]) if len(r) >= 3]
+    outer = vertices[outer_ring]
+    normal = _newell(outer)
+    if len(clean) == 1 and len(clean[0]) == 3:
+        return np.asarray([clean[0]], dtype=np.int64), normal
+    if not normal.any():
+        return np.empty((0, 3), np.int64), normal
+    import mapbox_earcut
+
+    index = np.concatenate([np.asarray(r, dtype=np.int64) for r in clean])
+    pts = vertices[index]
+    drop = int(np.argmax(np.abs(normal)))
+    flat = np.delete(pts - outer.mean(axis=0), drop, axis=1)
+    ends = np.cumsum([len(r) for r in clean]).astype(np.uint32)
+    local = mapbox_earcut.triangulate_float64(np.ascontiguousarray(flat), ends).astype(np.int64).reshape(-1, 3)
+    if not len(local):
+        return np.empty((0, 3), np.int64), normal
+    tri = pts[local]
+    facing = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]) @ normal
+    local[facing < 0] = local[facing < 0][:, [0, 2, 1]]
+    return index[local], normal
+
+
+def _clean_ring(ring: list[int]) -> list[int]:
+    """Ring without consecutive repeats and without a closing repeat of the first vertex."""
+    out = [int(i) for k, i in enumerate(ring) if k == 0 or i != ring[k - 1]]
+    while len(out) > 1 and out[-1] == out[0]:
+        out.pop()
+    return out
+
+
+def _newell(points: np.ndarray) -> np.ndarray:
+    """Newell normal (area-weighted, unnormalised) of a closed 3D ring."""
+    p = points - points.mean(axis=0)
+    q = np.roll(p, -1, axis=0)
+    return np.array([
+        np.sum((p[:, 1] - q[:, 1]) * (p[:, 2] + q[:, 2])),
+        np.sum((p[:, 2] - q[:, 2]) * (p[:, 0] + q[:, 0])),
+        np.sum((p[:, 0] - q[:, 0]) * (p[:, 1] + q[:, 1])),
+    ])
+
+
+def _terrain_types(model: _Model) -> frozenset[str]:
+    """{'TINRelief'} when the file has TINRelief objects, else :data:`GROUND_TYPES`."""
+    for chunk in model.chunks:
+        if any(isinstance(o, dict) and o.get("type") == "TINRelief" for o in chunk.objects.values()):
+            return frozenset({"TINRelief"})
+    return GROUND_TYPES

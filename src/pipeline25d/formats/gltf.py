@@ -1,0 +1,427 @@
+"""glTF 2.0 / GLB reader producing :class:`~pipeline25d.mesh.MeshPart` lists.
+
+A small direct reader (numpy views on buffer views) rather than trimesh, because the
+3D Tiles content this pipeline meets needs what trimesh ignores: the ``CESIUM_RTC``
+centre, ``KHR_draco_mesh_compression`` and float64 placement of ECEF-sized offsets.
+
+What is honoured: the node hierarchy (matrix or TRS), the glTF y-up -> 3D Tiles z-up
+rotation ((x, y, z) -> (x, -z, y), optional), ``CESIUM_RTC``, Draco (DracoPy),
+``KHR_mesh_quantization`` (normalised/integer accessors), sparse accessors, base colour
+textures (GLB buffer views, ``data:`` URIs, files relative to the glTF), base colour
+factor and ``COLOR_0`` as vertex colours of untextured parts. Only triangle lists
+(mode 4) are read; other primitive modes are skipped with a warning.
+
+One :class:`MeshPart` per primitive instance, its vertices compacted to the ones its
+triangles use. UVs are flipped to the GL convention (v = 0 is the bottom image row).
+Colours are the 8-bit values of the glTF factors as written (no linear->sRGB step),
+which is how generators such as pg2b3dm author them.
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import json
+import struct
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from urllib.parse import unquote
+
+import numpy as np
+
+from ..errors import InputFileError, UnsupportedFeatureError
+from ..mesh import MeshPart
+
+#: Extensions this reader honours (or may safely ignore) when a file lists them as required.
+SUPPORTED_EXTENSIONS = frozenset({
+    "CESIUM_RTC",
+    "KHR_draco_mesh_compression",
+    "KHR_materials_unlit",
+    "KHR_mesh_quantization",
+    "EXT_mesh_features",
+    "EXT_structural_metadata",
+})
+
+#: 3D Tiles convention: glTF is y-up, tiles are z-up; (x, y, z) -> (x, -z, y).
+Y_UP_TO_Z_UP = np.array([[1, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]], dtype=np.float64)
+
+_GLB_MAGIC = b"glTF"
+_CHUNK_JSON = 0x4E4F534A
+_CHUNK_BIN = 0x004E4942
+_COMPONENT_DTYPES = {
+    5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32, 5126: np.float32,
+}
+_TYPE_SIZES = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
+_TRIANGLES = 4
+
+
+def load_gltf(path: str | Path, y_up_to_z_up: bool = True) -> list[MeshPart]:
+    """Read a ``.gltf`` or ``.glb`` file into parts in the model frame (float64).
+
+    ``y_up_to_z_up`` applies the 3D Tiles / GIS rotation after the node hierarchy;
+    the ``CESIUM_RTC`` centre (z-up, ECEF) is added after that rotation.
+    """
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise InputFileError(path, f"cannot read glTF file: {exc.strerror or exc}") from None
+    return parse_gltf_bytes(data, path, y_up_to_z_up)
+
+
+def parse_gltf_bytes(data: bytes, path: str | Path, y_up_to_z_up: bool = True) -> list[MeshPart]:
+    """Parts of a GLB or JSON glTF held in ``data``.
+
+    ``path`` names the file in messages and anchors relative URIs (for GLB embedded in
+    b3dm/i3dm it is the tile file, as 3D Tiles resolves glTF URIs relative to the tile).
+    """
+    doc = _Document.parse(bytes(data), Path(path))
+    world = Y_UP_TO_Z_UP if y_up_to_z_up else np.eye(4)
+    rtc = doc.json.get("extensions", {}).get("CESIUM_RTC", {}).get("center")
+    if rtc is not None:
+        world = _translation(np.asarray(rtc, dtype=np.float64)) @ world
+    parts: list[MeshPart] = []
+    skipped_modes: set[int] = set()
+    for mesh_index, node_matrix, node_name in doc.mesh_instances():
+        mesh = doc.item("meshes", mesh_index)
+        for k, prim in enumerate(mesh.get("primitives", [])):
+            mode = int(prim.get("mode", _TRIANGLES))
+            if mode != _TRIANGLES:
+                skipped_modes.add(mode)
+                continue
+            name = mesh.get("name") or node_name or f"mesh{mesh_index}"
+            part = _primitive_part(doc, prim, world @ node_matrix, f"{name}/{k}")
+            if part is not None:
+                parts.append(part)
+    if skipped_modes:
+        warnings.warn(f"{path}: skipped primitives with mode {sorted(skipped_modes)} (only triangles are read)",
+                      stacklevel=2)
+    return parts
+
+
+# --------------------------------------------------------------------------- container
+
+
+@dataclass
+class _Document:
+    """A parsed glTF: the JSON, the GLB binary chunk and lazily loaded buffers/images."""
+
+    json: dict
+    path: Path
+    glb_bin: bytes | None
+    _buffers: dict[int, bytes] = field(default_factory=dict)
+    _images: dict[int, bytes | None] = field(default_factory=dict)
+
+    @classmethod
+    def parse(cls, data: bytes, path: Path) -> "_Document":
+        """Split GLB chunks or parse JSON glTF; check version and required extensions."""
+        if data[:4] == _GLB_MAGIC:
+            doc_json, glb_bin = _split_glb(data, path)
+        else:
+            try:
+                doc_json, glb_bin = json.loads(data.decode("utf-8-sig")), None
+            except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+                raise InputFileError(path, f"neither GLB nor valid glTF JSON ({exc})") from None
+        if not isinstance(doc_json, dict):
+            raise InputFileError(path, "glTF JSON is not an object")
+        version = str(doc_json.get("asset", {}).get("version", ""))
+        if not version.startswith("2"):
+            raise UnsupportedFeatureError(path, f"glTF version {version or '?'} is not supported (2.0 only)")
+        unsupported = [e for e in doc_json.get("extensionsRequired", []) if e not in SUPPORTED_EXTENSIONS]
+        if unsupported:
+            raise UnsupportedFeatureError(path, f"glTF requires unsupported extension(s) {', '.join(unsupported)}")
+        return cls(doc_json, path, glb_bin)
+
+    def item(self, kind: str, index: int) -> dict:
+        """``json[kind][index]`` or InputFileError when the reference dangles."""
+        try:
+            return self.json[kind][int(index)]
+        except (KeyError, IndexError, TypeError, ValueError):
+            raise InputFileError(self.path, f"glTF references missing {kind}[{index}]") from None
+
+    def mesh_instances(self):
+        """(mesh index, 4x4 world matrix, node name) for every node with a mesh in the scene."""
+        scenes = self.json.get("scenes")
+        if scenes:
+            roots = self.item("scenes", self.json.get("scene", 0)).get("nodes", [])
+        else:
+            nodes = self.json.get("nodes", [])
+            children = {c for n in nodes for c in n.get("children", [])}
+            roots = [i for i in range(len(nodes)) if i not in children]
+        stack = [(int(i), np.eye(4), 0) for i in reversed(roots)]
+        while stack:
+            index, parent, depth = stack.pop()
+            if depth > 256:
+                raise InputFileError(self.path, "glTF node hierarchy is cyclic or too deep")
+            node = self.item("nodes", index)
+            matrix = parent @ _node_matrix(node)
+            if "mesh" in node:
+                yield int(node["mesh"]), matrix, node.get("name", "")
+            stack.extend((int(c), matrix, depth + 1) for c in reversed(node.get("children", [])))
+
+    def buffer(self, index: int) -> bytes:
+        """Bytes of buffer ``index``: the GLB chunk, a data: URI or a file next to the glTF."""
+        if index not in self._buffers:
+            buf = self.item("buffers", index)
+            uri = buf.get("uri")
+            if uri is None:
+                if self.glb_bin is None:
+                    raise InputFileError(self.path, f"buffer {index} has no uri and there is no GLB binary chunk")
+                data = self.glb_bin
+            else:
+                data = self._uri_bytes(uri, f"buffer {index}")
+                if data is None:
+                    raise InputFileError(self.path, f"buffer file {unquote(uri)!r} is missing")
+            if len(data) < int(buf.get("byteLength", 0)):
+                raise InputFileError(self.path, f"buffer {index} holds {len(data)} bytes, "
+                                                f"byteLength says {buf.get('byteLength')} (truncated?)")
+            self._buffers[index] = data
+        return self._buffers[index]
+
+    def view(self, index: int) -> tuple[bytes, int, int, int | None]:
+        """(buffer bytes, start offset, length, byteStride) of buffer view ``index``."""
+        view = self.item("bufferViews", index)
+        data = self.buffer(int(view.get("buffer", 0)))
+        start, length = int(view.get("byteOffset", 0)), int(view["byteLength"])
+        if start + length > len(data):
+            raise InputFileError(self.path, f"bufferView {index} reads past the end of its buffer")
+        return data, start, length, view.get("byteStride")
+
+    def view_bytes(self, index: int) -> bytes:
+        data, start, length, _ = self.view(index)
+        return data[start:start + length]
+
+    def accessor(self, index: int) -> np.ndarray:
+        """(count, components) array of accessor ``index`` in its stored dtype (sparse applied)."""
+        acc = self.item("accessors", index)
+        dtype = np.dtype(_COMPONENT_DTYPES.get(acc.get("componentType"), np.float32)).newbyteorder("<")
+        n = _TYPE_SIZES.get(acc.get("type"), 1)
+        count = int(acc["count"])
+        if "bufferView" in acc:
+            data, start, length, stride = self.view(int(acc["bufferView"]))
+            offset = start + int(acc.get("byteOffset", 0))
+            stride = int(stride or dtype.itemsize * n)
+            needed = (count - 1) * stride + dtype.itemsize * n if count else 0
+            if offset + needed > start + length:
+                raise InputFileError(self.path, f"accessor {index} reads past the end of its bufferView")
+            out = np.ndarray((count, n), dtype, buffer=data, offset=offset,
+                             strides=(stride, dtype.itemsize)).copy()
+        else:
+            out = np.zeros((count, n), dtype)
+        sparse = acc.get("sparse")
+        if sparse:
+            out = self._apply_sparse(out, sparse, dtype, n)
+        return out
+
+    def _apply_sparse(self, out: np.ndarray, sparse: dict, dtype: np.dtype, n: int) -> np.ndarray:
+        """Overwrite the sparse-listed elements of ``out``."""
+        k = int(sparse["count"])
+        ind, val = sparse["indices"], sparse["values"]
+        ind_dtype = np.dtype(_COMPONENT_DTYPES[ind["componentType"]]).newbyteorder("<")
+        data, start, _, _ = self.view(int(ind["bufferView"]))
+        idx = np.frombuffer(data, ind_dtype, k, start + int(ind.get("byteOffset", 0))).astype(np.int64)
+        data, start, _, _ = self.view(int(val["bufferView"]))
+        values = np.frombuffer(data, dtype, k * n, start + int(val.get("byteOffset", 0))).reshape(k, n)
+        if len(idx) and (idx.max() >= len(out) or idx.min() < 0):
+            raise InputFileError(self.path, "sparse accessor index out of range")
+        out[idx] = values
+        return out
+
+    def image(self, index: int) -> bytes | None:
+        """Encoded PNG/JPEG bytes of image ``index``, or None (with a warning) when unusable."""
+        if index not in self._images:
+            img = self.item("images", index)
+            if "bufferView" in img:
+                data: bytes | None = self.view_bytes(int(img["bufferView"]))
+            else:
+                data = self._uri_bytes(img.get("uri", ""), f"image {index}")
+                if data is None:
+                    warnings.warn(f"{self.path}: image {unquote(img.get('uri', ''))!r} is missing; "
+                                  "its parts are drawn untextured", stacklevel=4)
+            if data is not None and not (data[:8] == b"\x89PNG\r\n\x1a\n" or data[:3] == b"\xff\xd8\xff"):
+                warnings.warn(f"{self.path}: image {index} is neither PNG nor JPEG; its parts are drawn untextured",
+                              stacklevel=4)
+                data = None
+            self._images[index] = data
+        return self._images[index]
+
+    def _uri_bytes(self, uri: str, what: str) -> bytes | None:
+        """Bytes of a data: URI or a relative file; None when the file does not exist."""
+        if uri.startswith("data:"):
+            try:
+                return base64.b64decode(uri.split(",", 1)[1], validate=False)
+            except (IndexError, binascii.Error):
+                raise InputFileError(self.path, f"{what}: malformed data URI") from None
+        if "://" in uri:
+            raise UnsupportedFeatureError(self.path, f"{what}: remote URI {uri!r} is not supported")
+        target = self.path.parent / unquote(uri)
+        try:
+            return target.read_bytes()
+        except FileNotFoundError:
+            return None
+        except OSError as exc:
+            raise InputFileError(target, f"cannot read {what}: {exc.strerror or exc}") from None
+
+
+def _split_glb(data: bytes, path: Path) -> tuple[dict, bytes | None]:
+    """JSON and BIN chunks of a GLB container, checking the header and chunk lengths."""
+    if len(data) < 20:
+        raise InputFileError(path, "GLB is truncated (shorter than its header)")
+    _, version, length = struct.unpack_from("<4sII", data, 0)
+    if version != 2:
+        raise UnsupportedFeatureError(path, f"GLB version {version} is not supported (glTF 2.0 only)")
+    if length > len(data):
+        raise InputFileError(path, f"GLB header says {length} bytes but only {len(data)} are present (truncated)")
+    doc_json, glb_bin, pos = None, None, 12
+    while pos + 8 <= length:
+        chunk_len, chunk_type = struct.unpack_from("<II", data, pos)
+        chunk = data[pos + 8:pos + 8 + chunk_len]
+        if len(chunk) < chunk_len:
+            raise InputFileError(path, "GLB chunk runs past the end of the file (truncated)")
+        if chunk_type == _CHUNK_JSON and doc_json is None:
+            try:
+                doc_json = json.loads(chunk.decode("utf-8"))
+            except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+                raise InputFileError(path, f"GLB JSON chunk is invalid: {exc}") from None
+        elif chunk_type == _CHUNK_BIN and glb_bin is None:
+            glb_bin = chunk
+        pos += 8 + chunk_len
+    if doc_json is None:
+        raise InputFileError(path, "GLB has no JSON chunk")
+    return doc_json, glb_bin
+
+
+# --------------------------------------------------------------------------- geometry
+
+
+def _node_matrix(node: dict) -> np.ndarray:
+    """Local 4x4 matrix of a node: ``matrix`` (column-major) or T * R * S."""
+    if "matrix" in node:
+        return np.asarray(node["matrix"], dtype=np.float64).reshape(4, 4).T
+    m = np.eye(4)
+    if "scale" in node:
+        m = np.diag([*map(float, node["scale"]), 1.0]) @ m
+    if "rotation" in node:
+        r = np.eye(4)
+        r[:3, :3] = _quaternion_matrix(np.asarray(node["rotation"], dtype=np.float64))
+        m = r @ m
+    if "translation" in node:
+        m = _translation(np.asarray(node["translation"], dtype=np.float64)) @ m
+    return m
+
+
+def _quaternion_matrix(q: np.ndarray) -> np.ndarray:
+    """3x3 rotation of a unit quaternion stored (x, y, z, w) as glTF does."""
+    x, y, z, w = q / (np.linalg.norm(q) or 1.0)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def _translation(t: np.ndarray) -> np.ndarray:
+    m = np.eye(4)
+    m[:3, 3] = t
+    return m
+
+
+def _as_float(values: np.ndarray, accessor: dict) -> np.ndarray:
+    """float64 copy of accessor data, undoing ``normalized`` integer encodings."""
+    out = values.astype(np.float64)
+    if accessor.get("normalized") and values.dtype.kind in "iu":
+        out /= float(np.iinfo(values.dtype).max)
+        if values.dtype.kind == "i":
+            np.maximum(out, -1.0, out=out)
+    return out
+
+
+def _primitive_attributes(doc: _Document, prim: dict) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Attribute arrays (float64, by glTF name) and (m, 3) int64 faces of a primitive."""
+    draco = prim.get("extensions", {}).get("KHR_draco_mesh_compression")
+    if draco is not None:
+        return _draco_attributes(doc, prim, draco)
+    attrs = {name: _as_float(doc.accessor(i), doc.item("accessors", i))
+             for name, i in prim.get("attributes", {}).items()
+             if name in ("POSITION", "COLOR_0") or name.startswith("TEXCOORD_")}
+    if "POSITION" not in attrs:
+        raise InputFileError(doc.path, "primitive without POSITION attribute")
+    if "indices" in prim:
+        indices = doc.accessor(int(prim["indices"])).reshape(-1).astype(np.int64)
+    else:
+        indices = np.arange(len(attrs["POSITION"]), dtype=np.int64)
+    return attrs, indices[: len(indices) - len(indices) % 3].reshape(-1, 3)
+
+
+def _draco_attributes(doc: _Document, prim: dict, draco: dict) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Decode a KHR_draco_mesh_compression primitive with DracoPy."""
+    import DracoPy
+
+    try:
+        mesh = DracoPy.decode(doc.view_bytes(int(draco["bufferView"])))
+    except Exception as exc:  # DracoPy raises its own and ValueError types
+        raise InputFileError(doc.path, f"Draco decoding failed: {exc}") from None
+    attrs = {}
+    for name, uid in draco.get("attributes", {}).items():
+        if not (name in ("POSITION", "COLOR_0") or name.startswith("TEXCOORD_")):
+            continue
+        attr = mesh.get_attribute_by_unique_id(int(uid))
+        if attr is None:
+            raise InputFileError(doc.path, f"Draco stream lacks attribute {name} (id {uid})")
+        acc = doc.item("accessors", prim["attributes"][name]) if name in prim.get("attributes", {}) else {}
+        data = np.asarray(attr["data"])
+        attrs[name] = _as_float(data.reshape(len(data), -1), acc)
+    if "POSITION" not in attrs:
+        raise InputFileError(doc.path, "Draco primitive without POSITION attribute")
+    return attrs, np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
+
+
+def _primitive_part(doc: _Document, prim: dict, matrix: np.ndarray, name: str) -> MeshPart | None:
+    """One triangle primitive placed by ``matrix``, with texture or vertex colours."""
+    attrs, faces = _primitive_attributes(doc, prim)
+    positions = attrs["POSITION"][:, :3]
+    if len(faces) == 0:
+        return None
+    if faces.min() < 0 or faces.max() >= len(positions):
+        raise InputFileError(doc.path, f"primitive {name}: index {faces.max()} out of range "
+                                       f"({len(positions)} vertices)")
+    used, faces = np.unique(faces, return_inverse=True)
+    faces = faces.reshape(-1, 3)
+    if np.linalg.det(matrix[:3, :3]) < 0:  # mirroring transform: keep front faces front
+        faces = faces[:, [0, 2, 1]]
+    vertices = positions[used] @ matrix[:3, :3].T + matrix[:3, 3]
+    material = doc.item("materials", prim["material"]) if "material" in prim else {}
+    pbr = material.get("pbrMetallicRoughness", {})
+    texture, uv = _base_color_texture(doc, pbr, attrs)
+    colors = None
+    if texture is None:
+        colors = _vertex_colors(pbr, attrs.get("COLOR_0"), len(positions))[used]
+    else:
+        uv = uv[used]
+    return MeshPart(vertices, faces, colors=colors, uv=uv, texture=texture,
+                    name=material.get("name") or name)
+
+
+def _base_color_texture(doc: _Document, pbr: dict, attrs: dict) -> tuple[bytes | None, np.ndarray | None]:
+    """(image bytes, GL-convention UVs) of the base colour texture, or (None, None)."""
+    info = pbr.get("baseColorTexture")
+    if info is None:
+        return None, None
+    uv = attrs.get(f"TEXCOORD_{int(info.get('texCoord', 0))}")
+    source = doc.item("textures", info["index"]).get("source")
+    if uv is None or source is None:
+        return None, None
+    image = doc.image(int(source))
+    if image is None:
+        return None, None
+    return image, np.column_stack([uv[:, 0], 1.0 - uv[:, 1]])
+
+
+def _vertex_colors(pbr: dict, color0: np.ndarray | None, n: int) -> np.ndarray:
+    """(n, 4) uint8 RGBA: COLOR_0 (if any) times baseColorFactor."""
+    factor = np.asarray(pbr.get("baseColorFactor", [1.0, 1.0, 1.0, 1.0]), dtype=np.float64)
+    rgba = np.ones((n, 4))
+    if color0 is not None:
+        rgba[:, : min(4, color0.shape[1])] = color0[:, :4]
+    return np.rint(np.clip(rgba * factor, 0.0, 1.0) * 255.0).astype(np.uint8)

@@ -1,0 +1,96 @@
+"""LOD pyramid per chunk with fast-simplification, each level with its measured error.
+
+Level 0 is the chunk as ingested; level k keeps about 2^-k of the triangles. Open borders
+(chunk seams) are never collapsed, so adjacent chunks do not crack. The error of a level is
+the largest distance (metres) from a sample of level-0 vertices to the level's
+surface. Building stops at the first level whose error exceeds ``max_error`` (the
+coarsest error any configured pixel size can use), so no level finer than needed and no
+level too coarse to use is kept. UVs and vertex colours ride through the collapses: each
+new vertex takes the mean of the original vertices merged into it.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from .mesh import Mesh, MeshPart
+
+log = logging.getLogger(__name__)
+
+MIN_TRIANGLES = 64          # parts smaller than this are kept as they are
+ERROR_SAMPLE = 4000         # level-0 vertices sampled per part to measure error
+MIN_GAIN = 0.85             # a level must have at most this share of the previous level's triangles
+
+
+def simplify_part(part: MeshPart, reduction: float) -> MeshPart:
+    """``part`` with about ``reduction`` of its triangles removed (attributes carried)."""
+    import fast_simplification
+
+    if part.n_triangles < MIN_TRIANGLES or reduction <= 0:
+        return part
+    # Simplify relative to the part's centre: quadrics of UTM-sized coordinates lose precision.
+    centre = part.vertices.mean(axis=0)
+    local = part.vertices - centre
+    points, faces, collapses = fast_simplification.simplify(
+        local, part.faces, target_reduction=reduction, return_collapses=True, preserve_border=True)
+    _, _, mapping = fast_simplification.replay_simplification(local, part.faces, collapses)
+    return MeshPart(vertices=points + centre, faces=faces,
+                    colors=_carry(part.colors, mapping, len(points), np.uint8),
+                    uv=_carry(part.uv, mapping, len(points), np.float32),
+                    texture=part.texture, name=part.name)
+
+
+def _carry(values: np.ndarray | None, mapping: np.ndarray, n_new: int, dtype) -> np.ndarray | None:
+    """Average per-vertex ``values`` over the originals that map to each new vertex."""
+    if values is None:
+        return None
+    sums = np.zeros((n_new, values.shape[1]), dtype=np.float64)
+    counts = np.zeros(n_new, dtype=np.float64)
+    np.add.at(sums, mapping, values.astype(np.float64))
+    np.add.at(counts, mapping, 1.0)
+    mean = sums / np.maximum(counts, 1)[:, None]
+    return np.round(mean).astype(dtype) if dtype == np.uint8 else mean.astype(dtype)
+
+
+def surface_error(original: MeshPart, simplified: MeshPart, rng: np.random.Generator) -> float:
+    """Max distance (m) from sampled original vertices to the simplified surface."""
+    import trimesh
+
+    if simplified is original:
+        return 0.0
+    verts = original.vertices[np.unique(original.faces)]
+    if len(verts) > ERROR_SAMPLE:
+        verts = verts[rng.choice(len(verts), ERROR_SAMPLE, replace=False)]
+    origin = verts.mean(axis=0)
+    target = trimesh.Trimesh(simplified.vertices - origin, simplified.faces, process=False)
+    if len(target.faces) == 0:
+        return float("inf")
+    _, dist, _ = trimesh.proximity.closest_point(target, verts - origin)
+    return float(dist.max())
+
+
+def build_levels(mesh: Mesh, max_error: float, max_levels: int, seed: int = 0) -> list[tuple[list[MeshPart], float]]:
+    """[(parts, error_m), ...] from level 0 (error 0) to the coarsest usable level."""
+    rng = np.random.default_rng(seed)
+    levels = [(mesh.parts, 0.0)]
+    for k in range(1, max_levels):
+        reduction = 1.0 - 0.5 ** k
+        parts, error = [], 0.0
+        for part in mesh.parts:
+            simple = simplify_part(part, reduction)
+            error = max(error, surface_error(part, simple, rng))
+            parts.append(simple)
+        n_prev = sum(p.n_triangles for p in levels[-1][0])
+        n_new = sum(p.n_triangles for p in parts)
+        if error > max_error or n_new > MIN_GAIN * n_prev:
+            break
+        levels.append((parts, error))
+    return levels
+
+
+def choose_level(errors: list[float], max_error: float) -> int:
+    """Index of the coarsest level whose error is at most ``max_error`` (0 if none)."""
+    ok = [k for k, e in enumerate(errors) if e <= max_error]
+    return max(ok) if ok else 0

@@ -1,0 +1,132 @@
+"""Plan one perspective: the non-empty tiles, each with its chunks, LODs and GCPs.
+
+Tiles lie on a global grid: tile (row, col) covers map x in [col·S, (col+1)·S) and y in
+[row·S, (row+1)·S) with S = tile_size·gsd, so rows count northward. A tile's id and
+extent therefore do not depend on the rest of the scene: adding or changing a district
+leaves the other tiles' jobs untouched. A tile that no chunk's projected bounding box
+touches is empty and gets no job. Each tile carries its own depth range (from its
+chunks) and the GCP candidates whose projected centre it holds.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from functools import lru_cache
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from .camera import Extent, project, projected_box
+from .lod import choose_level
+from .perspectives import Perspective
+
+DEPTH_MARGIN_M = 1.0   # keeps surfaces at a tile's depth range ends off its near/far planes
+
+
+class TileKey(NamedTuple):
+    """A render job's address: stable across runs and scene changes."""
+
+    perspective: str
+    row: int
+    col: int
+
+
+def tile_span(gsd: float, tile_size: int) -> float:
+    return gsd * tile_size
+
+
+def tile_extent(plan: dict, row: int, col: int, margin_px: int = 0) -> Extent:
+    """Map extent of tile (row, col), optionally grown by ``margin_px`` on every side."""
+    gsd, span = plan["gsd"], tile_span(plan["gsd"], plan["tile_size"])
+    m = margin_px * gsd
+    return Extent(col * span - m, row * span - m, (col + 1) * span + m, (row + 1) * span + m)
+
+
+def tile_geotransform(plan: dict, row: int, col: int) -> tuple[float, ...]:
+    """GDAL geotransform of tile (row, col) (top-left corner, north up)."""
+    e = tile_extent(plan, row, col)
+    return (e.xmin, plan["gsd"], 0.0, e.ymax, 0.0, -plan["gsd"])
+
+
+def _index_range(lo: float, hi: float, span: float) -> range:
+    return range(math.floor(lo / span), math.floor(hi / span) + 1)
+
+
+def plan_perspective(p: Perspective, chunks: list[dict], candidates: list[dict], z0: float, gsd: float,
+                     tile_size: int, max_error_px: float, crs: str, render: dict) -> dict:
+    """The plan of perspective ``p`` as a JSON-able dict.
+
+    ``chunks``: [{"id", "district", "bounds" (2,3), "errors": [m per level]}, ...];
+    ``candidates``: GCP candidates [{"id", "x", "y", "z", "role"}, ...];
+    ``render``: render settings that, when changed, must re-render (part of each tile's spec).
+    """
+    span = tile_span(gsd, tile_size)
+    tiles: dict[tuple[int, int], dict] = {}
+    for chunk in chunks:
+        box, depth = projected_box(np.array(chunk["bounds"]), p, z0)
+        entry = {"id": chunk["id"], "district": chunk["district"],
+                 "lod": choose_level(chunk["errors"], max_error_px * gsd)}
+        for r in _index_range(box.ymin, box.ymax, span):
+            for c in _index_range(box.xmin, box.xmax, span):
+                tile = tiles.setdefault((r, c), {"row": r, "col": c, "chunks": [], "depth_range": [math.inf, -math.inf]})
+                tile["chunks"].append(entry)
+                tile["depth_range"] = [min(tile["depth_range"][0], depth[0] - DEPTH_MARGIN_M),
+                                       max(tile["depth_range"][1], depth[1] + DEPTH_MARGIN_M)]
+    if not tiles:
+        raise ValueError(f"{p.id}: no chunks to plan")
+    _assign_gcps(tiles, candidates, p, z0, span)
+    rows = [r for r, _ in tiles]
+    cols = [c for _, c in tiles]
+    total = (max(rows) - min(rows) + 1) * (max(cols) - min(cols) + 1)
+    out_tiles = []
+    for key in sorted(tiles, key=lambda k: (-k[0], k[1])):
+        tile = tiles[key]
+        tile["chunks"].sort(key=lambda t: (t["district"], t["id"]))
+        tile["render"] = render
+        tile["spec_hash"] = hashlib.sha256(json.dumps(tile, sort_keys=True).encode()).hexdigest()[:16]
+        out_tiles.append(tile)
+    return {
+        "perspective": {"id": p.id, "azimuth": p.azimuth, "elevation": p.elevation},
+        "crs": crs, "z0": z0, "gsd": gsd, "tile_size": tile_size,
+        "tiles": out_tiles,
+        "n_tiles_total": total,
+        "n_tiles_skipped": total - len(out_tiles),
+    }
+
+
+def _assign_gcps(tiles: dict, candidates: list[dict], p: Perspective, z0: float, span: float) -> None:
+    """Give each candidate to the tile holding its projected centre (if that tile exists)."""
+    for tile in tiles.values():
+        tile["gcps"] = []
+    if not candidates:
+        return
+    xyz = np.array([[c["x"], c["y"], c["z"]] for c in candidates])
+    m = project(xyz, p, z0)
+    rows, cols = np.floor(m[:, 1] / span).astype(int), np.floor(m[:, 0] / span).astype(int)
+    for cand, r, c in zip(candidates, rows, cols):
+        if (r, c) in tiles:
+            tiles[(r, c)]["gcps"].append({k: cand[k] for k in ("id", "x", "y", "z", "role")})
+
+
+@lru_cache(maxsize=256)
+def _read_plan_cached(path: str, mtime_ns: int) -> dict:
+    plan = json.loads(Path(path).read_text())
+    plan["_lookup"] = {(t["row"], t["col"]): t for t in plan["tiles"]}
+    return plan
+
+
+def read_plan(path: str | Path) -> dict:
+    """A plan JSON, cached per file version (Snakemake asks once per tile job)."""
+    path = Path(path)
+    return _read_plan_cached(str(path), path.stat().st_mtime_ns)
+
+
+def plan_tile(plan: dict, row: int, col: int) -> dict:
+    """The plan's entry for tile (row, col): chunks, depth range, gcps, spec hash."""
+    lookup = plan.get("_lookup") or {(t["row"], t["col"]): t for t in plan["tiles"]}
+    if (row, col) not in lookup:
+        raise KeyError(f"tile ({row}, {col}) is not in the plan of {plan['perspective']['id']}")
+    return lookup[(row, col)]

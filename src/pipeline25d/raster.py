@@ -1,0 +1,86 @@
+"""GDAL raster helpers: GeoTIFF writing (atomic) and DTM sampling.
+
+``gdal.UseExceptions()`` is called once here, so GDAL errors raise instead of returning None.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from .atomic import atomic_path
+from .errors import InputFileError
+
+
+@lru_cache(maxsize=1)
+def gdal():
+    """The osgeo.gdal module with exceptions enabled (imported on first use)."""
+    from osgeo import gdal as _gdal
+
+    _gdal.UseExceptions()
+    return _gdal
+
+
+def write_rgba_geotiff(path: str | Path, rgba: np.ndarray, geotransform: tuple, wkt: str) -> None:
+    """Write an (h, w, 4) uint8 image as a tiled, deflated RGBA GeoTIFF, atomically."""
+    g = gdal()
+    h, w, _ = rgba.shape
+    with atomic_path(path) as tmp:
+        ds = g.GetDriverByName("GTiff").Create(
+            str(tmp), w, h, 4, g.GDT_Byte,
+            ["COMPRESS=DEFLATE", "TILED=YES", "PHOTOMETRIC=RGB", "ALPHA=UNASSOCIATED"])
+        ds.SetGeoTransform(geotransform)
+        ds.SetProjection(wkt)
+        for b, interp in enumerate((g.GCI_RedBand, g.GCI_GreenBand, g.GCI_BlueBand, g.GCI_AlphaBand)):
+            band = ds.GetRasterBand(b + 1)
+            band.SetColorInterpretation(interp)
+            band.WriteArray(rgba[:, :, b])
+        ds.FlushCache()
+        ds = None
+
+
+class DTM:
+    """A terrain GeoTIFF sampled bilinearly in the scene CRS.
+
+    Points are transformed to the raster's CRS first (pyproj), so a DTM in any CRS GDAL
+    reads works. Cells equal to nodata give NaN.
+    """
+
+    def __init__(self, path: str | Path, scene_crs: str):
+        g = gdal()
+        self.path = Path(path)
+        try:
+            ds = g.Open(str(path))
+        except RuntimeError as exc:
+            raise InputFileError(path, f"cannot open as a raster: {exc}") from None
+        band = ds.GetRasterBand(1)
+        self.values = band.ReadAsArray().astype(np.float64)
+        nodata = band.GetNoDataValue()
+        if nodata is not None:
+            self.values[self.values == nodata] = np.nan
+        self.gt = ds.GetGeoTransform()
+        if self.gt[2] or self.gt[4]:
+            raise InputFileError(path, "rotated geotransforms are not supported")
+        self.crs_wkt = ds.GetProjection()
+        self.scene_crs = scene_crs
+
+    def sample(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Bilinear heights at scene-CRS (x, y); NaN outside the raster or on nodata."""
+        from .crs import transform_points
+
+        pts = np.column_stack([x, y, np.zeros(len(x))])
+        if self.crs_wkt:
+            pts = transform_points(pts, self.scene_crs, self.crs_wkt)
+        col = (pts[:, 0] - self.gt[0]) / self.gt[1] - 0.5
+        row = (pts[:, 1] - self.gt[3]) / self.gt[5] - 0.5
+        h, w = self.values.shape
+        c0, r0 = np.floor(col).astype(int), np.floor(row).astype(int)
+        ok = (c0 >= 0) & (r0 >= 0) & (c0 + 1 < w) & (r0 + 1 < h)
+        out = np.full(len(x), np.nan)
+        c0, r0, fc, fr = c0[ok], r0[ok], col[ok] - c0[ok], row[ok] - r0[ok]
+        v = self.values
+        out[ok] = ((v[r0, c0] * (1 - fc) + v[r0, c0 + 1] * fc) * (1 - fr)
+                   + (v[r0 + 1, c0] * (1 - fc) + v[r0 + 1, c0 + 1] * fc) * fr)
+        return out

@@ -1,0 +1,121 @@
+"""Report: per perspective accuracy at check points, tiles rendered/skipped, sizes, timings."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+from .atomic import write_json, write_text
+from .perspectives import Perspective
+from .raster import gdal
+
+
+def _size(path: Path) -> int:
+    if path.is_file():
+        return path.stat().st_size
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file()) if path.exists() else 0
+
+
+def input_size(config: dict) -> int:
+    """Bytes of the model inputs (a tileset counts its folder)."""
+    total = 0
+    for spec in config["inputs"].values():
+        path = Path(spec["path"])
+        total += _size(path.parent) if path.name.endswith("tileset.json") else _size(path)
+    return total
+
+
+def stage_timings(results: Path) -> dict[str, dict]:
+    """Sum of wall seconds and max RSS (MB) per stage from Snakemake benchmark files."""
+    out: dict[str, dict] = {}
+    for tsv in sorted((results / "benchmarks").rglob("*.tsv")):
+        stage = tsv.relative_to(results / "benchmarks").parts[0].removesuffix(".tsv")
+        with open(tsv) as fh:
+            row = next(csv.DictReader(fh, delimiter="\t"))
+        rec = out.setdefault(stage, {"jobs": 0, "seconds": 0.0, "max_rss_mb": 0.0})
+        rec["jobs"] += 1
+        rec["seconds"] += float(row["s"])
+        rss = row.get("max_rss", "NA")
+        if rss not in ("NA", "-", ""):
+            rec["max_rss_mb"] = max(rec["max_rss_mb"], float(rss))
+    return out
+
+
+def lonlat_bounds(cog: Path) -> list[float]:
+    """[west, south, east, north] of a map in EPSG:4326 (for the viewer)."""
+    from .crs import transform_points
+    import numpy as np
+
+    ds = gdal().Open(str(cog))
+    gt, w, h = ds.GetGeoTransform(), ds.RasterXSize, ds.RasterYSize
+    xs = [gt[0], gt[0] + w * gt[1]]
+    ys = [gt[3] + h * gt[5], gt[3]]
+    pts = np.array([[x, y, 0.0] for x in xs for y in ys])
+    ll = transform_points(pts, ds.GetProjection(), "EPSG:4326")
+    return [float(ll[:, 0].min()), float(ll[:, 1].min()), float(ll[:, 0].max()), float(ll[:, 1].max())]
+
+
+def build_report(config: dict, results: str | Path) -> dict:
+    results = Path(results)
+    scene = json.loads((results / "scene.json").read_text())
+    persp = []
+    for pid in sorted(p.stem for p in (results / "plans").glob("*.json")):
+        plan = json.loads((results / "plans" / f"{pid}.json").read_text())
+        warp = json.loads((results / "maps" / f"{pid}.json").read_text())
+        cog = results / "maps" / f"{pid}.tif"
+        p = Perspective.from_id(pid)
+        persp.append({
+            "id": pid, "azimuth": p.azimuth, "elevation": p.elevation,
+            "tiles_rendered": len(plan["tiles"]), "tiles_skipped": plan["n_tiles_skipped"],
+            "gcps_observed": warp["n_observed"], "n_gcp": warp["n_gcp"], "n_check": warp["n_check"],
+            "warp": {"method": warp["method"], "order": warp["order"]},
+            "relief_px": warp["relief_px"],
+            "rmsd_m": warp["rmsd_m"], "rmsd_px": warp["rmsd_px"], "max_m": warp["max_m"],
+            "unwarped_rmsd_m": warp["candidates"][0]["rmsd_m"],
+            "candidates": warp["candidates"],
+            "map_bytes": _size(cog), "tms_bytes": _size(results / "tms" / pid),
+            "lonlat_bounds": lonlat_bounds(cog),
+        })
+    model = input_size(config)
+    maps = sum(p["map_bytes"] for p in persp)
+    tms = sum(p["tms_bytes"] for p in persp)
+    return {
+        "scene": config["scene"], "crs": config["crs"], "gsd": config["gsd"], "z0": scene["z0"],
+        "perspectives": persp,
+        "sizes": {"model_bytes": model, "maps_bytes": maps, "tms_bytes": tms,
+                  "model_to_maps": model / maps if maps else None},
+        "timings": stage_timings(results),
+    }
+
+
+def render_markdown(rep: dict) -> str:
+    def fmt(v, nd=3):
+        return "–" if v is None else f"{v:.{nd}f}"
+
+    lines = [f"# pipeline25d report: {rep['scene']}", "",
+             f"Scene CRS {rep['crs']}, gsd {rep['gsd']} m, reference plane z0 = {rep['z0']:.2f} m.", "",
+             "| perspective | tiles rendered | skipped | GCPs | checks | warp | RMSD m | RMSD px | max m | unwarped RMSD m |",
+             "|---|---:|---:|---:|---:|---|---:|---:|---:|---:|"]
+    for p in rep["perspectives"]:
+        warp = p["warp"]["method"] + (f" {p['warp']['order']}" if p["warp"]["method"] == "polynomial" else "")
+        lines.append(f"| {p['id']} | {p['tiles_rendered']} | {p['tiles_skipped']} | {p['n_gcp']} | {p['n_check']} | "
+                     f"{warp} | {fmt(p['rmsd_m'])} | {fmt(p['rmsd_px'], 2)} | {fmt(p['max_m'])} | "
+                     f"{fmt(p['unwarped_rmsd_m'])} |")
+    s = rep["sizes"]
+    lines += ["", "## Sizes", "",
+              f"- model inputs: {s['model_bytes'] / 1e6:.2f} MB",
+              f"- maps (COG): {s['maps_bytes'] / 1e6:.2f} MB"
+              + (f" (model : maps = {s['model_to_maps']:.1f} : 1)" if s["model_to_maps"] else ""),
+              f"- web tiles: {s['tms_bytes'] / 1e6:.2f} MB", "", "## Stage timings", "",
+              "| stage | jobs | seconds (sum) | max RSS MB |", "|---|---:|---:|---:|"]
+    for stage, t in rep["timings"].items():
+        lines.append(f"| {stage} | {t['jobs']} | {t['seconds']:.1f} | {t['max_rss_mb']:.0f} |")
+    return "\n".join(lines) + "\n"
+
+
+def write_report(config: dict, results: str | Path, out_json: str | Path, out_md: str | Path) -> dict:
+    rep = build_report(config, results)
+    write_json(out_json, rep)
+    write_text(out_md, render_markdown(rep))
+    return rep

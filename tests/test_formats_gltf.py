@@ -1,0 +1,256 @@
+"""glTF reader: real sample files plus tiny synthetic glTFs that pin each convention."""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline25d.errors import InputFileError, UnsupportedFeatureError
+from pipeline25d.formats.gltf import load_gltf, parse_gltf_bytes
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+SAMPLES = DATA / "3dtiles-samples"
+
+
+def _need(path: Path) -> Path:
+    if not path.exists():
+        pytest.skip(f"test data {path} not present")
+    return path
+
+
+# ----------------------------------------------------------------------------- synthetic glTF helpers
+
+TRI = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=np.float32)
+TRI_UV = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 0.25]], dtype=np.float32)
+
+
+def _png_bytes() -> bytes:
+    from PIL import Image
+
+    out = io.BytesIO()
+    Image.new("RGB", (4, 4), (255, 0, 0)).save(out, format="PNG")
+    return out.getvalue()
+
+
+def _gltf(node: dict | None = None, material: dict | None = None, extra: dict | None = None,
+          mode: int = 4, image: dict | None = None, color0: np.ndarray | None = None) -> tuple[dict, bytes]:
+    """A one-triangle glTF (JSON, binary buffer) with optional node, material, texture."""
+    blobs = [TRI.tobytes(), np.array([0, 1, 2], np.uint16).tobytes() + b"\0\0", TRI_UV.tobytes()]
+    attributes = {"POSITION": 0, "TEXCOORD_0": 2}
+    accessors = [
+        {"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3"},
+        {"bufferView": 1, "componentType": 5123, "count": 3, "type": "SCALAR"},
+        {"bufferView": 2, "componentType": 5126, "count": 3, "type": "VEC2"},
+    ]
+    if color0 is not None:
+        blobs.append(np.asarray(color0, np.uint8).tobytes())
+        accessors.append({"bufferView": 3, "componentType": 5121, "normalized": True, "count": 3, "type": "VEC4"})
+        attributes["COLOR_0"] = 3
+    views, offset = [], 0
+    for blob in blobs:
+        views.append({"buffer": 0, "byteOffset": offset, "byteLength": len(blob)})
+        offset += len(blob)
+    doc = {
+        "asset": {"version": "2.0"},
+        "scene": 0,
+        "scenes": [{"nodes": [0]}],
+        "nodes": [dict(node or {}, mesh=0)],
+        "meshes": [{"primitives": [{"attributes": attributes, "indices": 1, "mode": mode, "material": 0}]}],
+        "materials": [material or {}],
+        "accessors": accessors,
+        "bufferViews": views,
+        "buffers": [{"byteLength": offset}],
+    }
+    if image is not None:
+        doc["images"] = [image]
+        doc["textures"] = [{"source": 0}]
+    doc.update(extra or {})
+    return doc, b"".join(blobs)
+
+
+def _write_gltf(path: Path, doc: dict, binary: bytes) -> Path:
+    doc = json.loads(json.dumps(doc))
+    doc["buffers"][0]["uri"] = "data:application/octet-stream;base64," + base64.b64encode(binary).decode()
+    path.write_text(json.dumps(doc))
+    return path
+
+
+def _glb(doc: dict, binary: bytes) -> bytes:
+    js = json.dumps(doc).encode()
+    js += b" " * (-len(js) % 4)
+    binary += b"\0" * (-len(binary) % 4)
+    total = 12 + 8 + len(js) + 8 + len(binary)
+    return (struct.pack("<4sII", b"glTF", 2, total) + struct.pack("<II", len(js), 0x4E4F534A) + js
+            + struct.pack("<II", len(binary), 0x004E4942) + binary)
+
+
+# ----------------------------------------------------------------------------- conventions
+
+
+def test_y_up_to_z_up_and_colour_factor(tmp_path):
+    doc, binary = _gltf(material={"pbrMetallicRoughness": {"baseColorFactor": [1.0, 0.5, 0.0, 1.0]}})
+    parts = load_gltf(_write_gltf(tmp_path / "t.gltf", doc, binary))
+    assert len(parts) == 1 and parts[0].n_triangles == 1
+    # (x, y, z) -> (x, -z, y): the glTF y axis becomes z
+    np.testing.assert_allclose(np.sort(parts[0].vertices, axis=0), [[0, 0, 0], [0, 0, 0], [1, 0, 1]])
+    assert parts[0].texture is None and parts[0].uv is None
+    np.testing.assert_array_equal(parts[0].colors, [[255, 128, 0, 255]] * 3)
+    raw = load_gltf(tmp_path / "t.gltf", y_up_to_z_up=False)[0]
+    np.testing.assert_allclose(raw.vertices[raw.faces[0]], TRI)
+
+
+def test_node_trs_and_cesium_rtc_glb(tmp_path):
+    # rotation 90 deg about z (quaternion x, y, z, w), scale 2, translation (10, 0, 0), then RTC centre
+    s = np.sqrt(0.5)
+    node = {"rotation": [0, 0, s, s], "scale": [2, 2, 2], "translation": [10, 0, 0]}
+    center = [6378137.0, 1000.0, 2000.0]
+    doc, binary = _gltf(node=node, extra={"extensionsUsed": ["CESIUM_RTC"], "extensionsRequired": ["CESIUM_RTC"],
+                                          "extensions": {"CESIUM_RTC": {"center": center}}})
+    part = parse_gltf_bytes(_glb(doc, binary), tmp_path / "x.glb")[0]
+    tri = part.vertices[part.faces[0]]
+    # glTF: (1,0,0) -> scale (2,0,0) -> rot (0,2,0) -> +T (10,2,0); z-up: (10, 0, 2); + centre
+    node_space = np.array([[10, 0, 0], [10, 2, 0], [8, 0, 0]], dtype=np.float64)
+    expected = np.column_stack([node_space[:, 0], -node_space[:, 2], node_space[:, 1]]) + center
+    np.testing.assert_allclose(tri, expected, atol=1e-9)
+    assert part.vertices.dtype == np.float64
+
+
+def test_node_matrix_hierarchy(tmp_path):
+    doc, binary = _gltf(node={"children": [1]})
+    doc["nodes"] = [{"matrix": [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 5, 6, 7, 1], "children": [1]},
+                    {"translation": [1, 1, 1], "mesh": 0}]
+    part = load_gltf(_write_gltf(tmp_path / "h.gltf", doc, binary), y_up_to_z_up=False)[0]
+    np.testing.assert_allclose(part.vertices[part.faces[0]], TRI + [6, 7, 8])
+
+
+def test_embedded_texture_uv_flipped(tmp_path):
+    png = _png_bytes()
+    doc, binary = _gltf(material={"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}})
+    doc["bufferViews"].append({"buffer": 0, "byteOffset": len(binary), "byteLength": len(png)})
+    doc["buffers"][0]["byteLength"] = len(binary) + len(png)
+    doc["images"] = [{"bufferView": 3, "mimeType": "image/png"}]
+    doc["textures"] = [{"source": 0}]
+    part = parse_gltf_bytes(_glb(doc, binary + png), tmp_path / "t.glb")[0]
+    assert part.texture == png
+    uv = part.uv
+    # glTF v -> 1 - v: the set of v values {0, 0, 0.25} becomes {1, 1, 0.75}
+    assert sorted(np.round(uv[:, 1], 6).tolist()) == [0.75, 1.0, 1.0]
+    assert sorted(np.round(uv[:, 0], 6).tolist()) == [0.0, 0.0, 1.0]
+
+
+def test_data_uri_and_external_image(tmp_path):
+    png = _png_bytes()
+    material = {"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}
+    doc, binary = _gltf(material=material, image={"uri": "data:image/png;base64," + base64.b64encode(png).decode()})
+    assert load_gltf(_write_gltf(tmp_path / "a.gltf", doc, binary))[0].texture == png
+    (tmp_path / "tex dir").mkdir()
+    (tmp_path / "tex dir" / "wall.png").write_bytes(png)
+    doc, binary = _gltf(material=material, image={"uri": "tex%20dir/wall.png"})
+    assert load_gltf(_write_gltf(tmp_path / "b.gltf", doc, binary))[0].texture == png
+
+
+def test_missing_external_image_warns_and_drops_texture(tmp_path):
+    material = {"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}, "baseColorFactor": [0, 0, 1, 1]}}
+    doc, binary = _gltf(material=material, image={"uri": "nowhere.jpg"})
+    with pytest.warns(UserWarning, match="nowhere.jpg"):
+        part = load_gltf(_write_gltf(tmp_path / "m.gltf", doc, binary))[0]
+    assert part.texture is None and part.uv is None
+    np.testing.assert_array_equal(part.colors[0], [0, 0, 255, 255])
+
+
+def test_color0_times_factor(tmp_path):
+    material = {"pbrMetallicRoughness": {"baseColorFactor": [1.0, 1.0, 1.0, 0.5]}}
+    doc, binary = _gltf(material=material, color0=np.array([[255, 0, 0, 255], [0, 255, 0, 255], [0, 0, 255, 255]]))
+    part = load_gltf(_write_gltf(tmp_path / "c.gltf", doc, binary))[0]
+    got = {tuple(c) for c in part.colors}
+    assert got == {(255, 0, 0, 128), (0, 255, 0, 128), (0, 0, 255, 128)}
+
+
+def test_non_triangle_primitives_skipped(tmp_path):
+    doc, binary = _gltf(mode=1)
+    with pytest.warns(UserWarning, match="mode"):
+        assert load_gltf(_write_gltf(tmp_path / "l.gltf", doc, binary)) == []
+
+
+def test_unsupported_required_extension(tmp_path):
+    doc, binary = _gltf(extra={"extensionsRequired": ["KHR_texture_basisu"]})
+    path = _write_gltf(tmp_path / "basis.gltf", doc, binary)
+    with pytest.raises(UnsupportedFeatureError) as err:
+        load_gltf(path)
+    assert "KHR_texture_basisu" in str(err.value) and "basis.gltf" in str(err.value)
+
+
+def test_broken_files(tmp_path):
+    doc, binary = _gltf()
+    glb = _glb(doc, binary)
+    (tmp_path / "trunc.glb").write_bytes(glb[:-8])
+    with pytest.raises(InputFileError, match="trunc"):
+        load_gltf(tmp_path / "trunc.glb")
+    (tmp_path / "junk.gltf").write_text("{not json")
+    with pytest.raises(InputFileError, match="junk.gltf"):
+        load_gltf(tmp_path / "junk.gltf")
+    doc["accessors"][0]["count"] = 300  # reads past its buffer view
+    with pytest.raises(InputFileError, match="accessor 0"):
+        parse_gltf_bytes(_glb(doc, binary), tmp_path / "bad.glb")
+
+
+# ----------------------------------------------------------------------------- sample files
+
+
+def test_feature_id_attribute_gltf():
+    parts = load_gltf(_need(SAMPLES / "FeatureIdAttribute" / "FeatureIdAttribute.gltf"))
+    assert sum(p.n_triangles for p in parts) == 8  # SOURCE.txt
+    np.testing.assert_array_equal(parts[0].colors[0], [128, 255, 128, 255])  # baseColorFactor 0.5, 1, 0.5
+    b = parts[0].bounds()
+    np.testing.assert_allclose(b, [[0, 0, 0], [1, 0, 1]])  # unit quads in glTF x/y -> x/z
+
+
+def test_cdb_glb_with_metadata_extensions_and_missing_textures():
+    glb = _need(SAMPLES / "cdb-yemen-cut" / "Tiles" / "N12" / "E045" / "GSModels" / "1_1"
+                / "N12E045_D300_S001_T001_LC5_U0_R0.glb")
+    with pytest.warns(UserWarning, match="FENCE_TEXT2.png"):
+        parts = load_gltf(glb)
+    assert sum(p.n_triangles for p in parts) == 58  # SOURCE.txt
+    assert all(p.texture is None and p.colors is not None for p in parts)
+    # ECEF placement comes from the node translation: |p| is an Earth radius
+    r = np.linalg.norm(parts[0].vertices, axis=1)
+    assert 6.37e6 < r.min() and r.max() < 6.39e6
+
+
+def test_draco_primitive_by_attribute_id(tmp_path):
+    import DracoPy
+
+    pts = np.array([[0, 0, 0], [2, 0, 0], [0, 3, 0], [2, 3, 0]], dtype=np.float64)
+    uv = np.array([[0, 0], [1, 0], [0, 1], [1, 1]], dtype=np.float64)
+    stream = DracoPy.encode(pts, np.array([[0, 1, 2], [1, 3, 2]], np.uint32), tex_coord=uv, preserve_order=True)
+    ids = {a["attribute_type"]: a["unique_id"] for a in DracoPy.decode(stream).attributes}
+    png = _png_bytes()
+    doc = {
+        "asset": {"version": "2.0"},
+        "extensionsUsed": ["KHR_draco_mesh_compression"], "extensionsRequired": ["KHR_draco_mesh_compression"],
+        "nodes": [{"mesh": 0}],
+        "meshes": [{"primitives": [{
+            "attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2, "material": 0,
+            "extensions": {"KHR_draco_mesh_compression": {
+                "bufferView": 0, "attributes": {"POSITION": ids[0], "TEXCOORD_0": ids[3]}}}}]}],
+        "materials": [{"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}],
+        "textures": [{"source": 0}], "images": [{"bufferView": 1, "mimeType": "image/png"}],
+        "accessors": [{"componentType": 5126, "count": 4, "type": "VEC3"},
+                      {"componentType": 5126, "count": 4, "type": "VEC2"},
+                      {"componentType": 5123, "count": 6, "type": "SCALAR"}],
+        "bufferViews": [{"buffer": 0, "byteOffset": 0, "byteLength": len(stream)},
+                        {"buffer": 0, "byteOffset": len(stream), "byteLength": len(png)}],
+        "buffers": [{"byteLength": len(stream) + len(png)}],
+    }
+    part = parse_gltf_bytes(_glb(doc, stream + png), tmp_path / "d.glb", y_up_to_z_up=False)[0]
+    assert part.n_triangles == 2 and part.texture == png
+    np.testing.assert_allclose(part.bounds(), [[0, 0, 0], [2, 3, 0]], atol=1e-3)
+    # every vertex's UV is (x / 2, 1 - y / 3): UVs travel with their vertices, v flipped
+    np.testing.assert_allclose(part.uv, np.column_stack([part.vertices[:, 0] / 2, 1 - part.vertices[:, 1] / 3]),
+                               atol=1e-3)

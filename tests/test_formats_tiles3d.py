@@ -1,0 +1,238 @@
+"""3D Tiles reader against the numbers measured in shared/data/*/SOURCE.txt.
+
+Bounds are compared in EPSG:4979 (lon, lat, ellipsoidal h), as SOURCE.txt states them:
+1e-5 degrees where SOURCE gives 6 decimals, 1e-4 where it gives 4; heights to 0.2 m or
+to the rounding of SOURCE's figure.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline25d.errors import CRSError, InputFileError, UnsupportedFeatureError
+from pipeline25d.formats.tiles3d import load_b3dm, load_tileset, read_content
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+SAMPLES = DATA / "3dtiles-samples"
+GEO = "EPSG:4979"
+
+
+def _need(path: Path) -> Path:
+    if not path.exists():
+        pytest.skip(f"test data {path} not present")
+    return path
+
+
+def _assert_bounds(mesh, lon, lat, h=None, deg=1e-5, metres=0.2):
+    b = mesh.bounds()
+    np.testing.assert_allclose(b[:, 0], lon, atol=deg, rtol=0)
+    np.testing.assert_allclose(b[:, 1], lat, atol=deg, rtol=0)
+    if h is not None:
+        np.testing.assert_allclose(b[:, 2], h, atol=metres, rtol=0)
+
+
+# ----------------------------------------------------------------------------- LOD selection
+
+
+def test_tileset_uniform_full_detail():
+    mesh = load_tileset(_need(SAMPLES / "TilesetUniform" / "tileset.json"), GEO)
+    assert mesh.n_triangles == 1836  # 8 level-1 leaves + 9 level-2 tiles, 108 each
+    _assert_bounds(mesh, (-75.613179, -75.611009), (40.041697, 40.043365))
+    assert mesh.bounds()[0, 2] == pytest.approx(0.0, abs=0.2)
+
+
+@pytest.mark.parametrize("g, triangles", [(1000, 108), (120, 108), (60, 972), (59.9, 1836), (0, 1836)])
+def test_tileset_uniform_levels(g, triangles):
+    """REPLACE: a refined tile is not drawn; the external tileset2.json is always entered."""
+    mesh = load_tileset(_need(SAMPLES / "TilesetUniform" / "tileset.json"), GEO, max_geometric_error=g)
+    assert mesh.n_triangles == triangles
+
+
+def test_tileset_uniform_root_level_height():
+    root = load_tileset(_need(SAMPLES / "TilesetUniform" / "tileset.json"), GEO, max_geometric_error=120)
+    full = load_tileset(SAMPLES / "TilesetUniform" / "tileset.json", GEO)
+    lo = min(root.bounds()[0, 2], full.bounds()[0, 2])
+    hi = max(root.bounds()[1, 2], full.bounds()[1, 2])
+    assert (lo, hi) == (pytest.approx(0.0, abs=0.2), pytest.approx(22.2, abs=0.06))  # "h 0.0..22.2 m"
+
+
+def test_tileset_with_transforms():
+    path = _need(SAMPLES / "TilesetWithTransforms" / "tileset.json")
+    b3dm_only = load_tileset(path, GEO, max_geometric_error=70)  # root (ADD, ge 70) only
+    assert b3dm_only.n_triangles == 120
+    _assert_bounds(b3dm_only, (-75.613037, -75.610940), (40.041630, 40.043288), (0.0, 13.4), metres=0.06)
+    full = load_tileset(path, GEO)
+    assert full.n_triangles == 420  # + i3dm: 25 instances x 12
+    # the i3dm child (rotated 45 deg, scaled 0.5, lifted 5 m) stays inside the root's footprint
+    _assert_bounds(full, (-75.613037, -75.610940), (40.041630, 40.043288), (0.0, 13.4), metres=0.06)
+
+
+def test_i3dm_instances_positions_only():
+    parts = read_content(_need(SAMPLES / "TilesetWithTransforms" / "instances.i3dm"))
+    assert sum(p.n_triangles for p in parts) == 300
+    # 20 m cubes at 25 positions on a grid spanning +-80 m (tile frame, before the tile transform)
+    b = np.array([np.min([p.bounds()[0] for p in parts], 0), np.max([p.bounds()[1] for p in parts], 0)])
+    np.testing.assert_allclose(b, [[-90, -90, -10], [90, 90, 10]], atol=1e-4)
+
+
+def test_tileset_of_tilesets():
+    path = _need(SAMPLES / "TilesetOfTilesets" / "tileset.json")
+    mesh = load_tileset(path, GEO)
+    assert mesh.n_triangles == 600
+    _assert_bounds(mesh, (-75.614410, -75.610011), (40.041064, 40.044320), (0.0, 85.4), metres=0.06)
+    assert load_tileset(path, GEO, max_geometric_error=70).n_triangles == 120  # parent.b3dm only
+
+
+def test_batched_textured():
+    mesh = load_tileset(_need(SAMPLES / "BatchedTextured" / "tileset.json"), GEO)
+    assert mesh.n_triangles == 120
+    textured = [p for p in mesh.parts if p.texture is not None]
+    assert len(textured) == 1 and textured[0].n_triangles == 120
+    assert textured[0].texture[:3] == b"\xff\xd8\xff"  # the embedded JPEG, as stored
+    assert textured[0].uv.min() >= 0.0 and textured[0].uv.max() <= 1.0
+    _assert_bounds(mesh, (-75.613037, -75.610940), (40.041630, 40.043288), (0.0, 13.4), metres=0.06)
+
+
+def test_cdb_yemen_tolerates_missing_textures():
+    with pytest.warns(UserWarning, match="missing"):
+        mesh = load_tileset(_need(SAMPLES / "cdb-yemen-cut" / "tileset.json"), GEO)
+    assert mesh.n_triangles == 60
+    assert all(p.texture is None for p in mesh.parts)
+    _assert_bounds(mesh, (44.0, 45.034206), (12.832536, 14.0), (-6.6, 1.1), metres=0.06)
+
+
+def test_sparse_implicit_quadtree():
+    path = _need(SAMPLES / "SparseImplicitQuadtree" / "tileset.json")
+    mesh = load_tileset(path, "EPSG:4978", src_crs="EPSG:4978")  # not georeferenced: stay in ECEF
+    assert mesh.n_triangles == 64  # 32 level-5 glb files, 2 triangles each
+    np.testing.assert_allclose(mesh.bounds()[:, :2], [[0, 0], [1, 1]], atol=1e-9)
+    assert load_tileset(path, "EPSG:4978", 1.0, "EPSG:4978").n_triangles == 64  # level 5 has ge 1.0
+    with pytest.warns(UserWarning, match="no triangles"):  # content only at level 5
+        assert load_tileset(path, "EPSG:4978", 2.0, "EPSG:4978").n_triangles == 0
+
+
+def test_feature_id_attribute_tileset():
+    mesh = load_tileset(_need(SAMPLES / "FeatureIdAttribute" / "tileset.json"), "EPSG:4978", src_crs="EPSG:4978")
+    assert mesh.n_triangles == 8
+
+
+# ----------------------------------------------------------------------------- real cities
+
+
+def test_amsterdam_in_rd_new():
+    mesh = load_tileset(_need(DATA / "amsterdam-3dtiles" / "tileset.json"), "EPSG:28992")
+    assert mesh.n_triangles == 35102  # nothing clipped by the (too small) bounding boxes
+    b = mesh.bounds()
+    np.testing.assert_allclose(b[:, 0], [120948, 125938], atol=1.0)
+    np.testing.assert_allclose(b[:, 1], [487113, 490896], atol=1.0)
+
+
+def test_amsterdam_lonlat():
+    mesh = load_tileset(_need(DATA / "amsterdam-3dtiles" / "tileset.json"), GEO)
+    _assert_bounds(mesh, (4.88713, 4.96033), (52.37090, 52.40505), (39.4, 85.3), deg=1e-5, metres=0.06)
+
+
+def test_tokyo_cesium_rtc_textured():
+    mesh = load_b3dm(_need(DATA / "tokyo-chiyoda-b3dm" / "cesium-rtc-extension.b3dm"), GEO)
+    assert mesh.n_triangles == 14756
+    textured = [p for p in mesh.parts if p.texture is not None]
+    assert len(textured) >= 28
+    assert all(p.texture[:3] == b"\xff\xd8\xff" for p in textured)
+    assert all(p.uv.min() >= -1e-6 and p.uv.max() <= 1 + 1e-6 for p in textured)
+    _assert_bounds(mesh, (139.7386, 139.7625), (35.6696, 35.7000), (36.8, 236.3), deg=1e-4, metres=0.06)
+
+
+def test_tokyo_in_japan_plane_ix():
+    from pyproj import Transformer
+
+    mesh = load_b3dm(_need(DATA / "tokyo-chiyoda-b3dm" / "cesium-rtc-extension.b3dm"), "EPSG:6677")
+    to_plane = Transformer.from_crs("EPSG:4326", "EPSG:6677", always_xy=True)
+    lon = np.array([139.7386, 139.7625, 139.7386, 139.7625])
+    lat = np.array([35.6696, 35.6696, 35.7000, 35.7000])
+    x, y = to_plane.transform(lon, lat)
+    b = mesh.bounds()
+    # corners of SOURCE's 4-decimal lon/lat box, projected independently; grid convergence
+    # and the rounding (about 5 m) allow a few metres
+    np.testing.assert_allclose(b[:, 0], [x.min(), x.max()], atol=10)
+    np.testing.assert_allclose(b[:, 1], [y.min(), y.max()], atol=10)
+
+
+def test_new_york_draco():
+    mesh = load_b3dm(_need(SAMPLES / "NewYorkDracoB3dm" / "1.b3dm"), GEO)
+    assert mesh.n_triangles == 16762
+    assert sum(len(p.vertices) for p in mesh.parts) == 34702
+    _assert_bounds(mesh, (-74.177713, -74.165637), (40.528322, 40.534266), (-24.6, 5.5), metres=0.06)
+
+
+# ----------------------------------------------------------------------------- bad input
+
+
+def test_tokyo_outside_rd_new_area():
+    with pytest.raises(CRSError, match="area of use"):
+        load_b3dm(_need(DATA / "tokyo-chiyoda-b3dm" / "cesium-rtc-extension.b3dm"), "EPSG:28992")
+
+
+def test_truncated_b3dm(tmp_path):
+    data = _need(SAMPLES / "BatchedTextured" / "batchedTextured.b3dm").read_bytes()
+    (tmp_path / "cut.b3dm").write_bytes(data[: len(data) // 2])
+    with pytest.raises(InputFileError, match="truncated") as err:
+        load_b3dm(tmp_path / "cut.b3dm", GEO)
+    assert "cut.b3dm" in str(err.value)
+
+
+def test_bad_magic(tmp_path):
+    (tmp_path / "junk.b3dm").write_bytes(b"XXXX" + bytes(100))
+    with pytest.raises(InputFileError, match="magic"):
+        load_b3dm(tmp_path / "junk.b3dm", GEO)
+
+
+def test_missing_content_is_named(tmp_path):
+    src = _need(SAMPLES / "TilesetOfTilesets")
+    shutil.copy(src / "tileset2.json", tmp_path / "tileset2.json")
+    shutil.copy(src / "parent.b3dm", tmp_path / "parent.b3dm")  # tileset3/ and the leaves are absent
+    with pytest.raises(InputFileError) as err:
+        load_tileset(tmp_path / "tileset2.json", GEO)
+    assert "tileset3.json" in str(err.value) and "tileset2.json" in str(err.value)
+
+
+def test_invalid_tileset_json(tmp_path):
+    (tmp_path / "tileset.json").write_text('{"asset": {"version": "1.0"}, "root": ')
+    with pytest.raises(InputFileError, match="invalid JSON"):
+        load_tileset(tmp_path / "tileset.json", GEO)
+
+
+def test_unsupported_gltf_extension_in_tileset(tmp_path):
+    gltf = {"asset": {"version": "2.0"}, "extensionsRequired": ["EXT_meshopt_compression"]}
+    (tmp_path / "c.gltf").write_text(json.dumps(gltf))
+    tileset = {"asset": {"version": "1.1"}, "geometricError": 1,
+               "root": {"geometricError": 0, "refine": "ADD", "content": {"uri": "c.gltf"},
+                        "boundingVolume": {"sphere": [0, 0, 0, 1]}}}
+    (tmp_path / "tileset.json").write_text(json.dumps(tileset))
+    with pytest.raises(UnsupportedFeatureError, match="EXT_meshopt_compression") as err:
+        load_tileset(tmp_path / "tileset.json", GEO)
+    assert "c.gltf" in str(err.value)
+
+
+def test_cyclic_external_tileset(tmp_path):
+    tileset = {"asset": {"version": "1.0"}, "geometricError": 1,
+               "root": {"geometricError": 1, "refine": "ADD", "content": {"uri": "tileset.json"},
+                        "boundingVolume": {"sphere": [0, 0, 0, 1]}}}
+    (tmp_path / "tileset.json").write_text(json.dumps(tileset))
+    with pytest.raises(InputFileError, match="cycle"):
+        load_tileset(tmp_path / "tileset.json", GEO)
+
+
+def test_composite_tile(tmp_path):
+    import struct
+
+    b3dm = _need(SAMPLES / "BatchedTextured" / "batchedTextured.b3dm").read_bytes()
+    cmpt = struct.pack("<4sIII", b"cmpt", 1, 16 + 2 * len(b3dm), 2) + b3dm + b3dm
+    (tmp_path / "two.cmpt").write_bytes(cmpt)
+    mesh = load_b3dm(tmp_path / "two.cmpt", GEO)
+    assert mesh.n_triangles == 240
+    _assert_bounds(mesh, (-75.613037, -75.610940), (40.041630, 40.043288))

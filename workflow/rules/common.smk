@@ -1,0 +1,69 @@
+# Config validation (before any job), constants, wildcard constraints and input functions.
+import json
+from pathlib import Path
+
+from snakemake.exceptions import WorkflowError
+from snakemake.utils import validate
+
+from pipeline25d.config import check_semantics, perspectives
+from pipeline25d.errors import Pipeline25dError
+from pipeline25d.ingest import CHUNK_ID_PATTERN
+from pipeline25d.perspectives import ID_PATTERN
+from pipeline25d.plan import read_plan
+
+validate(config, "../../config/schema.yaml")
+try:
+    check_semantics(config)
+except Pipeline25dError as exc:
+    raise WorkflowError(f"invalid configuration: {exc}") from None
+
+RESULTS = f"results/{config['scene']}"
+DISTRICTS = sorted(config["inputs"])
+PERSPECTIVE_IDS = [p.id for p in perspectives(config)]
+MAX_LOD_ERROR = config["gsd"] * config["lod"]["max_error_px"]
+TERRAIN_FILE = [] if config["terrain"] in ("auto", "flat") else [config["terrain"]]
+GCP_FILE = [] if config["gcp"]["source"] == "auto" else [config["gcp"]["source"]]
+RENDER_SETTINGS = {**config["render"], "marker_px": config["gcp"]["marker_px"],
+                   "depth_bias": config["gcp"]["depth_bias"]}
+
+
+wildcard_constraints:
+    pid=ID_PATTERN,
+    row=r"-?\d+",
+    col=r"-?\d+",
+    district=r"[A-Za-z0-9-]+",
+    chunk=CHUNK_ID_PATTERN,
+
+
+def district_inputs(wildcards):
+    spec = config["inputs"][wildcards.district]
+    return [spec[k] for k in ("path", "metadata") if k in spec]
+
+
+def chunk_ids(district):
+    """Chunk ids of a district, known once its ingest checkpoint has run."""
+    index = checkpoints.ingest.get(district=district).output.index
+    return sorted(json.loads(Path(index).read_text())["chunks"])
+
+
+def all_lod_meta(wildcards):
+    return [f"{RESULTS}/lod/{d}/{c}.json" for d in DISTRICTS for c in chunk_ids(d)]
+
+
+def plan_of(pid):
+    return read_plan(checkpoints.plan.get(pid=pid).output.plan)
+
+
+def tile_lods(wildcards):
+    """The LOD files a tile draws: a tile depends on its own chunks only."""
+    tile = plan_of(wildcards.pid)["_lookup"][(int(wildcards.row), int(wildcards.col))]
+    return [f"{RESULTS}/lod/{c['district']}/{c['id']}.npz" for c in tile["chunks"]]
+
+
+def tile_spec_hash(wildcards):
+    return plan_of(wildcards.pid)["_lookup"][(int(wildcards.row), int(wildcards.col))]["spec_hash"]
+
+
+def perspective_tiles(wildcards, suffix):
+    plan = plan_of(wildcards.pid)
+    return [f"{RESULTS}/tiles/{wildcards.pid}/{t['row']}_{t['col']}{suffix}" for t in plan["tiles"]]

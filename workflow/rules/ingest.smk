@@ -1,0 +1,19 @@
+# Ingest: one district file -> chunks (float64 origin + float32 local), unchanged chunks untouched.
+
+
+checkpoint ingest:
+    input:
+        district_inputs,
+    output:
+        index=f"{RESULTS}/chunks/{{district}}/index.json",
+    params:
+        spec=lambda wc: config["inputs"][wc.district],
+        crs=config["crs"],
+        chunk_size=config["chunk_size"],
+        max_error=MAX_LOD_ERROR,
+    log:
+        f"{RESULTS}/logs/ingest/{{district}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/ingest/{{district}}.tsv"
+    script:
+        "../scripts/ingest.py"

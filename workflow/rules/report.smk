@@ -1,0 +1,32 @@
+# Report (accuracy, tiles, sizes, timings) and the web viewer.
+
+
+rule report:
+    input:
+        maps=expand(f"{RESULTS}/maps/{{pid}}.json", pid=PERSPECTIVE_IDS),
+        cogs=expand(f"{RESULTS}/maps/{{pid}}.tif", pid=PERSPECTIVE_IDS),
+        plans=expand(f"{RESULTS}/plans/{{pid}}.json", pid=PERSPECTIVE_IDS),
+        tms=expand(f"{RESULTS}/tms/{{pid}}", pid=PERSPECTIVE_IDS),
+        scene=rules.scene.output.scene,
+    output:
+        json=f"{RESULTS}/report/report.json",
+        md=f"{RESULTS}/report/report.md",
+    params:
+        config=config,
+        results=RESULTS,
+    log:
+        f"{RESULTS}/logs/report.log",
+    script:
+        "../scripts/report.py"
+
+
+rule viewer:
+    input:
+        report=rules.report.output.json,
+        tms=expand(f"{RESULTS}/tms/{{pid}}", pid=PERSPECTIVE_IDS),
+    output:
+        f"{RESULTS}/viewer/index.html",
+    log:
+        f"{RESULTS}/logs/viewer.log",
+    script:
+        "../scripts/viewer.py"

@@ -1,0 +1,17 @@
+# gdal2tiles XYZ pyramid per perspective.
+
+
+rule tms:
+    input:
+        rules.warp.output.cog,
+    output:
+        directory(f"{RESULTS}/tms/{{pid}}"),
+    params:
+        zoom=config["tms"]["zoom"],
+    threads: 2
+    log:
+        f"{RESULTS}/logs/tms/{{pid}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/tms/{{pid}}.tsv"
+    script:
+        "../scripts/tms.py"

@@ -1,0 +1,19 @@
+# Orthorectify: the warp with the lowest check-point error (or none), written as a COG.
+
+
+rule warp:
+    input:
+        mosaic=rules.mosaic.output[0],
+        gcps=rules.gcps.output[0],
+        plan=f"{RESULTS}/plans/{{pid}}.json",
+    output:
+        cog=f"{RESULTS}/maps/{{pid}}.tif",
+        meta=f"{RESULTS}/maps/{{pid}}.json",
+    params:
+        warp=config["warp"],
+    log:
+        f"{RESULTS}/logs/warp/{{pid}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/warp/{{pid}}.tsv"
+    script:
+        "../scripts/warp.py"

@@ -1,0 +1,6 @@
+from pipeline25d.logsetup import log_to
+from pipeline25d.stages import ingest
+
+log_to(snakemake.log[0])
+ingest(dict(snakemake.params.spec), snakemake.wildcards.district, snakemake.params.crs,
+       snakemake.params.chunk_size, snakemake.params.max_error, snakemake.output.index)
