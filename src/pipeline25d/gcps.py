@@ -62,16 +62,16 @@ def read_csv(path: str | Path) -> list[dict]:
 
 def observations(candidates: list[dict], full: np.ndarray, sums: np.ndarray,
                  top_left: tuple[float, float], gsd: float) -> list[dict]:
-    """GCPs whose marker is seen whole, with their centroid as map coordinates.
+    """GCPs whose marker is seen whole and lies on model surface, with its centroid as map coordinates.
 
-    ``full``: pixels per marker alone; ``sums``: (count, Σcol, Σrow) with the model drawn
+    ``full``: pixels per marker alone; ``sums``: (count, Σcol, Σrow, on_model) with the model drawn
     (pixel centres at +0.5, row 0 at the top); ``top_left``: map (x, y) of the render's
     top-left corner. Map coordinates, not pixels, so tiles and mosaics need not share an
     origin.
     """
     out = []
-    for cand, n_full, (n, scol, srow) in zip(candidates, full, sums):
-        if n_full > 0 and n == n_full:
+    for cand, n_full, (n, scol, srow, on_model) in zip(candidates, full, sums):
+        if n_full > 0 and n == n_full and on_model == n:
             out.append({**cand, "map_x": top_left[0] + scol / n * gsd, "map_y": top_left[1] - srow / n * gsd,
                         "n_pixels": int(n)})
     return out

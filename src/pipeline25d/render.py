@@ -196,8 +196,10 @@ class TileRenderer:
                        points: np.ndarray, radius_m: float, depth_bias_m: float) -> tuple[np.ndarray, np.ndarray]:
         """Marker pixel statistics for (n, 3) GCPs: (counts_full, sums).
 
-        counts_full[i]: pixels of marker i with nothing else drawn; sums[i] = (count, Σcol, Σrow)
-        with the model drawn in black first (pixel centres at +0.5, row 0 = north).
+        counts_full[i]: pixels of marker i with nothing else drawn; sums[i] = (count, Σcol, Σrow,
+        on_model) with the model drawn in black first (pixel centres at +0.5, row 0 = north);
+        on_model counts the marker's pixels that lie over model surface, so a GCP floating
+        over a hole in the model (no ground there) can be told apart.
         """
         import moderngl
 
@@ -228,8 +230,9 @@ class TileRenderer:
         full = _marker_stats(fbo, w, h, n)[:, 0]
         ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         self._draw_chunks(chunks, view, black=True)
+        coverage = np.frombuffer(fbo.read(components=4), dtype=np.uint8).reshape(h, w, 4)[::-1, :, 3] > 0
         draw_markers()
-        sums = _marker_stats(fbo, w, h, n)
+        sums = _marker_stats(fbo, w, h, n, coverage)
         fbo.release()
         return full, sums
 
@@ -254,15 +257,18 @@ def marker_geometry(centres: np.ndarray, radius: float) -> tuple[np.ndarray, np.
     return verts, faces, colors
 
 
-def _marker_stats(fbo, w: int, h: int, n: int) -> np.ndarray:
-    """(n, 3) float64 per marker: pixel count, Σ(col + 0.5), Σ(row + 0.5), row 0 = north."""
+def _marker_stats(fbo, w: int, h: int, n: int, coverage: np.ndarray | None = None) -> np.ndarray:
+    """(n, 4) float64 per marker: pixel count, Σ(col + 0.5), Σ(row + 0.5) (row 0 = north), and
+    the count of its pixels where ``coverage`` (model drawn underneath) is true."""
     rgba = np.frombuffer(fbo.read(components=4), dtype=np.uint8).reshape(h, w, 4)[::-1]
     ids = rgba[..., 0].astype(np.int64) | (rgba[..., 1].astype(np.int64) << 8) | (rgba[..., 2].astype(np.int64) << 16)
     rows, cols = np.nonzero(ids)
     which = ids[rows, cols] - 1
-    stats = np.zeros((n, 3))
+    stats = np.zeros((n, 4))
     if n:
         stats[:, 0] = np.bincount(which, minlength=n)[:n]
+        if coverage is not None:
+            stats[:, 3] = np.bincount(which, weights=coverage[rows, cols].astype(float), minlength=n)[:n]
         stats[:, 1] = np.bincount(which, weights=cols + 0.5, minlength=n)[:n]
         stats[:, 2] = np.bincount(which, weights=rows + 0.5, minlength=n)[:n]
     return stats

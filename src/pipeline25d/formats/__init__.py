@@ -18,11 +18,13 @@ def detect_format(path: Path) -> str:
     if suffix in MESH_SUFFIXES:
         return MESH_SUFFIXES[suffix]
     if suffix == ".json":
-        with open(path, "rb") as fh:
-            head = fh.read(4096).decode("utf-8", errors="replace")
-        if '"CityJSON"' in head:
+        try:
+            doc = json.loads(path.read_bytes())
+        except (OSError, ValueError) as exc:
+            raise InputFileError(path, f"is not valid JSON: {exc}") from None
+        if isinstance(doc, dict) and doc.get("type") in ("CityJSON", "CityJSONFeature"):
             return "cityjson"
-        if '"asset"' in head or '"root"' in head or path.name == "tileset.json":
+        if isinstance(doc, dict) and "asset" in doc and "root" in doc:
             return "3dtiles"
     raise InputFileError(path, "unknown model format (set the input's format key)")
 

@@ -1,0 +1,66 @@
+"""Config validation: defaults, and bad values that must stop the run naming the key or file."""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+
+from pipeline25d.config import check_semantics, validate_schema
+from pipeline25d.errors import ConfigError, InputFileError
+from pipeline25d.perspectives import Perspective, expand
+
+BASE = {"scene": "t", "crs": "EPSG:25832", "inputs": {"a": {"path": "model.obj"}}}
+
+
+def with_(**changes):
+    cfg = copy.deepcopy(BASE)
+    cfg.update(changes)
+    return cfg
+
+
+def test_three_keys_run_with_every_default_filled():
+    cfg = validate_schema(copy.deepcopy(BASE))
+    assert cfg["gsd"] == 0.25 and cfg["tile_size"] == 1024 and cfg["perspectives"] == "eight-45+nadir"
+    assert cfg["gcp"] == {"source": "auto", "spacing": 20, "holdout": 0.2, "seed": 0, "marker_px": 6,
+                          "depth_bias": 0.3}
+    assert cfg["warp"] == {"method": "auto", "order": 3}
+
+
+@pytest.mark.parametrize("changes, key", [
+    ({"gsdd": 1}, "gsdd"),
+    ({"gsd": 0}, "gsd"),
+    ({"gsd": -1}, "gsd"),
+    ({"perspectives": [{"azimuth": 0, "elevation": 0}]}, "perspectives.0.elevation"),
+    ({"perspectives": [{"azimuth": 0, "elevation": 91}]}, "perspectives.0.elevation"),
+    ({"perspectives": [{"azimuth": 0, "elevation": 4}]}, "perspectives.0.elevation"),
+    ({"perspectives": "sideways"}, "perspectives"),
+    ({"warp": {"method": "magic"}}, "warp.method"),
+])
+def test_schema_errors_name_the_key(changes, key):
+    with pytest.raises(ConfigError) as err:
+        validate_schema(with_(**changes))
+    assert key in str(err.value)
+
+
+def test_unknown_and_unprojected_crs_are_rejected(tmp_path):
+    (tmp_path / "model.obj").write_text("v 0 0 0\n")
+    for crs in ("EPSG:999999", "EPSG:4326"):
+        cfg = validate_schema(with_(crs=crs))
+        with pytest.raises(ConfigError, match="crs"):
+            check_semantics(cfg, tmp_path)
+
+
+def test_missing_input_file_is_named(tmp_path):
+    cfg = validate_schema(copy.deepcopy(BASE))
+    with pytest.raises(InputFileError) as err:
+        check_semantics(cfg, tmp_path)
+    assert "model.obj" in str(err.value) and "inputs.a.path" in str(err.value)
+
+
+def test_perspective_presets_and_ids():
+    ids = [p.id for p in expand("eight-45+nadir")]
+    assert ids == [f"az{a:03d}_el45" for a in range(0, 360, 45)] + ["az000_el90"]
+    assert Perspective.from_id("az135_el30") == Perspective(135, 30)
+    # every nadir is the same view: one id
+    assert [p.id for p in expand([{"azimuth": 90, "elevation": 90}, {"azimuth": 0, "elevation": 90}])] == ["az000_el90"]

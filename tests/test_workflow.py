@@ -1,0 +1,143 @@
+"""The Snakemake DAG: dry-run job counts, and the full pipeline on a small demo city."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+from collections import Counter
+from pathlib import Path
+
+import pytest
+import yaml
+
+from conftest import REPO
+from pipeline25d.demo import generate_demo_city
+
+SMALL_PERSPECTIVES = [{"azimuth": 0, "elevation": 90}, {"azimuth": 45, "elevation": 45},
+                      {"azimuth": 200, "elevation": 30}]
+
+
+def snakemake(workdir: Path, *args: str, check: bool = True) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}:{os.environ.get('PATH', '')}"}
+    cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"), "--directory", str(workdir),
+           "--configfile", str(workdir / "config.yaml"), "-j2", *args]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"snakemake {' '.join(args)} failed:\n{proc.stdout[-4000:]}\n{proc.stderr[-4000:]}")
+    return proc
+
+
+def job_counts(dry_run_output: str) -> dict[str, int]:
+    """The 'Job stats' table of a dry run as {rule: count}."""
+    table = dry_run_output.split("Job stats:")[1]
+    counts = {}
+    for line in table.splitlines()[3:]:
+        m = re.match(r"^(\w+)\s+(\d+)$", line.strip())
+        if not m:
+            break
+        counts[m.group(1)] = int(m.group(2))
+    return counts
+
+
+def make_scene(workdir: Path, config: dict, scale: float = 0.3, buildings: int = 30) -> None:
+    generate_demo_city(workdir / "resources" / "demo", seed=3, n_buildings=buildings, scale=scale)
+    (workdir / "config.yaml").write_text(yaml.safe_dump(config))
+
+
+def test_dry_run_of_the_default_config_counts_jobs_per_rule(tmp_path):
+    config = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    make_scene(tmp_path, config)
+    out = snakemake(tmp_path, "-n").stdout
+    assert job_counts(out) == {"ingest": 4, "scene": 1, "plan": 9, "gcps": 9, "mosaic": 9, "warp": 9,
+                               "tms": 9, "report": 1, "viewer": 1, "all": 1, "total": 53}
+    # Once the plans exist the tile jobs are known: one per non-empty tile, none for empty ones.
+    pids = [f"az{a:03d}_el45" for a in range(0, 360, 45)] + ["az000_el90"]
+    snakemake(tmp_path, *[f"results/demo/plans/{pid}.json" for pid in pids])
+    counts = job_counts(snakemake(tmp_path, "-n").stdout)
+    plans = [json.loads(p.read_text()) for p in (tmp_path / "results" / "demo" / "plans").glob("*.json")]
+    assert len(plans) == 9
+    assert counts["render_tile"] == sum(len(p["tiles"]) for p in plans)
+    assert sum(p["n_tiles_skipped"] for p in plans) > 0      # the demo's empty blocks
+
+
+def test_bad_config_stops_before_any_job(tmp_path):
+    config = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    make_scene(tmp_path, {**config, "gsd": -1})
+    proc = snakemake(tmp_path, "-n", check=False)
+    assert proc.returncode != 0 and "gsd" in proc.stdout + proc.stderr
+    make_scene(tmp_path, {**config, "inputs": {"d0": {"path": "resources/demo/missing.obj"}}})
+    proc = snakemake(tmp_path, "-n", check=False)
+    assert proc.returncode != 0 and "missing.obj" in proc.stdout + proc.stderr
+    assert not (tmp_path / "results").exists()
+
+
+@pytest.fixture(scope="module")
+def small_run(tmp_path_factory):
+    workdir = tmp_path_factory.mktemp("small")
+    config = {"scene": "small", "crs": "EPSG:25832",
+              "inputs": {f"d{i}": {"path": f"resources/demo/d{i}.obj"} for i in range(4)},
+              "terrain": "resources/demo/dtm.tif", "gsd": 0.5, "tile_size": 256, "chunk_size": 80,
+              "perspectives": SMALL_PERSPECTIVES, "gcp": {"spacing": 12}, "tms": {"zoom": "14-17"}}
+    make_scene(workdir, config, scale=0.35, buildings=40)
+    snakemake(workdir)
+    return workdir, workdir / "results" / "small"
+
+
+def test_full_pipeline_outputs(small_run):
+    from osgeo import gdal, osr
+
+    _, results = small_run
+    report = json.loads((results / "report" / "report.json").read_text())
+    ids = {p["id"] for p in report["perspectives"]}
+    assert ids == {"az000_el90", "az045_el45", "az200_el30"}
+    scene_srs = osr.SpatialReference()
+    scene_srs.ImportFromEPSG(25832)
+    for pid in ids:
+        ds = gdal.Open(str(results / "maps" / f"{pid}.tif"))
+        assert ds.GetMetadata("IMAGE_STRUCTURE").get("LAYOUT") == "COG"
+        assert osr.SpatialReference(ds.GetProjection()).IsSame(scene_srs)
+        assert ds.RasterCount == 4 and ds.GetGeoTransform()[2] == 0 and ds.GetGeoTransform()[5] < 0
+        assert any((results / "tms" / pid).rglob("*.png"))
+    assert (results / "viewer" / "index.html").exists() and (results / "viewer" / "leaflet" / "leaflet.js").exists()
+    assert (results / "report" / "report.md").read_text().startswith("# pipeline25d report: small")
+
+
+def test_ground_at_check_points_within_one_pixel(small_run):
+    _, results = small_run
+    report = json.loads((results / "report" / "report.json").read_text())
+    for p in report["perspectives"]:
+        assert p["n_check"] >= 5, p
+        assert p["rmsd_px"] < 1.0, p
+        if p["elevation"] < 90:
+            # the oblique views need the warp: unwarped ground is off by metres on this terrain
+            assert p["unwarped_rmsd_m"] > 2 * report["gsd"] and p["warp"]["method"] != "none"
+
+
+def test_warped_map_puts_check_points_on_the_ground(small_run):
+    """Independent of the warp's own scoring: sample the final COG where check points should be."""
+    from osgeo import gdal
+
+    from pipeline25d.gcps import read_csv
+
+    _, results = small_run
+    pid = "az045_el45"
+    checks = [r for r in read_csv(results / "gcps" / f"{pid}.csv") if r["role"] == "check"]
+    ds = gdal.Open(str(results / "maps" / f"{pid}.tif"))
+    gt = ds.GetGeoTransform()
+    alpha = ds.GetRasterBand(4).ReadAsArray()
+    inside = [alpha[int((c["y"] - gt[3]) / gt[5]), int((c["x"] - gt[0]) / gt[1])] for c in checks]
+    assert min(inside) == 255   # every check point lands on rendered (opaque) map
+
+
+def test_rerun_does_nothing_and_a_lost_tile_reruns_alone(small_run):
+    workdir, results = small_run
+    assert "Nothing to be done" in snakemake(workdir, "-n").stdout
+    tile = sorted((results / "tiles" / "az045_el45").glob("*.tif"))[0]
+    tile.unlink()
+    counts = job_counts(snakemake(workdir, "-n").stdout)
+    assert counts["render_tile"] == 1
+    assert "ingest" not in counts and "lod" not in counts
