@@ -133,11 +133,38 @@ def test_warped_map_puts_check_points_on_the_ground(small_run):
     assert min(inside) == 255   # every check point lands on rendered (opaque) map
 
 
-def test_rerun_does_nothing_and_a_lost_tile_reruns_alone(small_run):
+def _tile_mtimes(results: Path) -> dict[str, int]:
+    return {str(p.relative_to(results / "tiles")): p.stat().st_mtime_ns for p in (results / "tiles").rglob("*.tif")}
+
+
+def test_rerun_does_nothing_and_a_changed_district_rerenders_only_its_tiles(small_run):
     workdir, results = small_run
     assert "Nothing to be done" in snakemake(workdir, "-n").stdout
-    tile = sorted((results / "tiles" / "az045_el45").glob("*.tif"))[0]
-    tile.unlink()
-    counts = job_counts(snakemake(workdir, "-n").stdout)
-    assert counts["render_tile"] == 1
-    assert "ingest" not in counts and "lod" not in counts
+    before = _tile_mtimes(results)
+    lod_before = {p: p.stat().st_mtime_ns for p in (results / "lod").rglob("*.npz")}
+
+    # Touching a district re-ingests it, but its chunks are unchanged: nothing re-renders.
+    obj = workdir / "resources" / "demo" / "d3.obj"
+    os.utime(obj)
+    snakemake(workdir)
+    assert _tile_mtimes(results) == before
+    assert {p: p.stat().st_mtime_ns for p in (results / "lod").rglob("*.npz")} == lod_before
+
+    # A real change to one chunk of d3 re-renders exactly the tiles that draw that chunk.
+    index = json.loads((results / "chunks" / "d3" / "index.json").read_text())
+    cid, info = sorted(index["chunks"].items())[0]
+    (lo, hi) = info["bounds"]
+    cx, cy, top = (lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, hi[2] + 5
+    with open(obj, "a") as fh:   # a small coloured triangle floating over that chunk
+        fh.write(f"v {cx:.3f} {cy:.3f} {top:.3f} 1 0 0\nv {cx + 1:.3f} {cy:.3f} {top:.3f} 1 0 0\n"
+                 f"v {cx:.3f} {cy + 1:.3f} {top:.3f} 1 0 0\nf -3 -2 -1\n")
+    snakemake(workdir)
+    after = _tile_mtimes(results)
+    changed = {k for k in after if after[k] != before.get(k)}
+    expected = set()
+    for plan_file in (results / "plans").glob("*.json"):
+        plan = json.loads(plan_file.read_text())
+        for t in plan["tiles"]:
+            if any(c["district"] == "d3" and c["id"] == cid for c in t["chunks"]):
+                expected.add(f"{plan_file.stem}/{t['row']}_{t['col']}.tif")
+    assert changed == expected and 0 < len(changed) < len(after)
