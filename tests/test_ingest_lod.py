@@ -1,0 +1,108 @@
+"""Ingest (mesh files, chunking, unchanged chunks untouched), LOD errors, and DTM sampling."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from conftest import DATA, box_part
+from pipeline25d.formats import load_district
+from pipeline25d.ingest import split_into_chunks, write_chunks
+from pipeline25d.lod import build_levels, choose_level
+from pipeline25d.mesh import Mesh, MeshPart
+
+
+def grid_part(n: int = 40, step: float = 2.0, bump: float = 0.0) -> MeshPart:
+    x, y = np.meshgrid(np.arange(n) * step, np.arange(n) * step)
+    z = 10 + bump * np.sin(x / 7.0) * np.cos(y / 5.0)
+    verts = np.column_stack([x.ravel() + 500000.0, y.ravel() + 5800000.0, z.ravel()])
+    faces = []
+    for i in range(n - 1):
+        for j in range(n - 1):
+            a = i * n + j
+            faces += [[a, a + 1, a + n + 1], [a, a + n + 1, a + n]]
+    return MeshPart(verts, np.array(faces), colors=np.full((len(verts), 4), 128, np.uint8))
+
+
+def test_chunking_keeps_every_triangle_once():
+    part = grid_part()
+    chunks = split_into_chunks(Mesh([part]), chunk_size=25.0)
+    assert sum(p.n_triangles for ps in chunks.values() for p in ps) == part.n_triangles
+    assert len(chunks) == 16   # 78 m square over a 25 m grid starting on a cell edge: 4 × 4
+
+
+def test_unchanged_chunks_keep_their_files(tmp_path):
+    mesh = Mesh([grid_part()])
+    write_chunks(mesh, "a", 25.0, tmp_path, tmp_path / "index.json")
+    mtimes = {p.name: p.stat().st_mtime_ns for p in tmp_path.glob("c*.npz")}
+    (tmp_path / "index.json").unlink()            # as Snakemake does before re-running
+    moved = Mesh([grid_part()])
+    moved.parts[0].vertices[0, 2] += 1.0            # one vertex of the first chunk changes
+    write_chunks(moved, "a", 25.0, tmp_path, tmp_path / "index.json")
+    changed = [p.name for p in tmp_path.glob("c*.npz") if p.stat().st_mtime_ns != mtimes[p.name]]
+    assert len(changed) == 1
+
+
+def test_lod_errors_are_measured_and_levels_chosen_by_pixel_size():
+    flat = build_levels(Mesh([grid_part(bump=0.0)]), max_error=0.1, max_levels=5)
+    assert len(flat) >= 3 and all(e < 1e-6 for _, e in flat)          # a plane simplifies exactly
+    bumpy = build_levels(Mesh([grid_part(bump=2.0)]), max_error=10.0, max_levels=5)
+    errors = [e for _, e in bumpy]
+    assert errors[0] == 0 and all(b >= a for a, b in zip(errors, errors[1:])) and errors[-1] > 0.01
+    # independent check of the last level's error: densely sampled original surface vs level
+    orig, simple = bumpy[0][0][0], bumpy[-1][0][0]
+    target = trimesh.Trimesh(simple.vertices - 500000, simple.faces)
+    _, d, _ = trimesh.proximity.closest_point(target, orig.vertices - 500000)
+    assert errors[-1] == pytest.approx(d.max(), rel=0.05)
+    assert choose_level([0.0, 0.1, 0.3, 0.9], 0.25) == 1 and choose_level([0.0, 0.5], 0.1) == 0
+
+
+def test_dae_and_glb_load_through_the_dispatcher(tmp_path):
+    box = box_part((10, 20, 0), (30, 25, 12))
+    for suffix in (".dae", ".glb"):
+        verts = box.vertices
+        if suffix == ".glb":   # glTF is y-up: store (x, z, -y), the reader turns it back to z-up
+            verts = np.column_stack([verts[:, 0], verts[:, 2], -verts[:, 1]])
+        tm = trimesh.Trimesh(verts, box.faces, vertex_colors=box.colors, process=False)
+        path = tmp_path / f"box{suffix}"
+        tm.export(path)
+        mesh = load_district({"path": str(path), "offset": [1000.0, 2000.0, 5.0]}, "EPSG:25832")
+        assert mesh.n_triangles == 12
+        np.testing.assert_allclose(mesh.bounds(), [[1010, 2020, 5], [1030, 2025, 17]], atol=1e-4)
+
+
+needs_data = pytest.mark.skipif(not DATA.exists(), reason="shared data absent")
+
+
+@needs_data
+def test_delft_obj_bounds_and_faces_match_source():
+    mesh = load_district({"path": str(DATA / "delft/obj/testarea.obj"), "crs": "EPSG:28992"}, "EPSG:28992")
+    assert mesh.n_triangles == 28619
+    lo, hi = mesh.bounds()
+    np.testing.assert_allclose([lo[0], hi[0], lo[1], hi[1]], [84616, 85141, 447423, 447751], atol=1.0)
+
+
+@needs_data
+def test_delft_lidar_mesh_bounds_and_triangles_match_source():
+    mesh = load_district({"path": str(DATA / "delft/delft_dsm_mesh.ply")}, "EPSG:28992")
+    assert mesh.n_triangles == 483648
+    lo, hi = mesh.bounds()
+    # Vertices sit at the 0.5 m cell centres; SOURCE.txt gives the cell edges: 0.25 m apart.
+    np.testing.assert_allclose([lo[0], hi[0], lo[1], hi[1]], [84808, 85072.5, 447412, 447641.5], atol=0.26)
+    np.testing.assert_allclose([lo[2], hi[2]], [-0.47, 26.33], atol=0.005)
+    assert mesh.parts[0].colors is not None
+
+
+@needs_data
+def test_dtm_samples_the_same_ground_from_another_crs():
+    from pipeline25d.crs import transform_points
+    from pipeline25d.raster import DTM
+
+    rd = DTM(DATA / "delft/delft_dtm.tif", "EPSG:28992")
+    utm = DTM(DATA / "delft/delft_dtm.tif", "EPSG:25831")
+    pts = np.array([[84900.0, 447500.0, 0.0], [84950.0, 447450.0, 0.0], [85010.0, 447520.0, 0.0]])
+    z_rd = rd.sample(pts[:, 0], pts[:, 1])
+    p_utm = transform_points(pts, "EPSG:28992", "EPSG:25831")
+    np.testing.assert_allclose(utm.sample(p_utm[:, 0], p_utm[:, 1]), z_rd, atol=1e-3)  # mm round trip
+    assert np.isfinite(z_rd).all() and (z_rd > -3).all() and (z_rd < 5).all()
