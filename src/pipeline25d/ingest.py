@@ -62,6 +62,8 @@ def write_chunks(mesh: Mesh, district: str, chunk_size: float, out_dir: Path, in
     Returns the index: {district, source, n_triangles, chunk_size, chunks: {id: {...}}}.
     """
     out_dir.mkdir(parents=True, exist_ok=True)
+    sidecar = index_path.with_suffix(".hashes.json")
+    previous = _previous_hashes(sidecar)
     chunks = split_into_chunks(mesh, chunk_size)
     index = {"district": district, "source": mesh.source, "chunk_size": chunk_size,
              "n_triangles": mesh.n_triangles, "chunks": {}}
@@ -72,24 +74,20 @@ def write_chunks(mesh: Mesh, district: str, chunk_size: float, out_dir: Path, in
         arrays["origin"] = origin
         digest = content_hash(arrays)
         path = out_dir / f"{cid}.npz"
-        old = _existing_hash(index_path, cid)
-        if old != digest or not path.exists():
+        n_triangles = sum(p.n_triangles for p in parts)
+        if previous.get(cid) != digest or not path.exists():
             save_npz(path, arrays)
-            log.info("chunk %s/%s written (%d triangles)", district, cid, sum(p.n_triangles for p in parts))
-        index["chunks"][cid] = {"bounds": bounds.tolist(), "n_triangles": sum(p.n_triangles for p in parts),
-                                "hash": digest}
+            log.info("chunk %s/%s written (%d triangles)", district, cid, n_triangles)
+        index["chunks"][cid] = {"bounds": bounds.tolist(), "n_triangles": n_triangles, "hash": digest}
     for stale in out_dir.glob("c*.npz"):
         if stale.stem not in index["chunks"]:
             stale.unlink()
-    write_json(index_path.with_suffix(".hashes.json"), {k: v["hash"] for k, v in index["chunks"].items()})
+    write_json(sidecar, {k: v["hash"] for k, v in index["chunks"].items()})
     write_json(index_path, index)
     return index
 
 
-def _existing_hash(index_path: Path, cid: str) -> str | None:
-    """The hash a previous run recorded for ``cid`` (kept in a sidecar that survives reruns)."""
-    sidecar = index_path.with_suffix(".hashes.json")
-    if not sidecar.exists():
-        return None
-    return json.loads(sidecar.read_text()).get(cid)
-
+def _previous_hashes(sidecar: Path) -> dict[str, str]:
+    """Chunk hashes a previous run recorded, kept beside the index because Snakemake
+    deletes the index itself before re-running ingest."""
+    return json.loads(sidecar.read_text()) if sidecar.exists() else {}

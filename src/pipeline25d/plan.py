@@ -15,7 +15,6 @@ import json
 import math
 from functools import lru_cache
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 
@@ -24,14 +23,6 @@ from .lod import choose_level
 from .perspectives import Perspective
 
 DEPTH_MARGIN_M = 1.0   # keeps surfaces at a tile's depth range ends off its near/far planes
-
-
-class TileKey(NamedTuple):
-    """A render job's address: stable across runs and scene changes."""
-
-    perspective: str
-    row: int
-    col: int
 
 
 def tile_span(gsd: float, tile_size: int) -> float:
@@ -126,7 +117,7 @@ def read_plan(path: str | Path) -> dict:
 
 def plan_tile(plan: dict, row: int, col: int) -> dict:
     """The plan's entry for tile (row, col): chunks, depth range, gcps, spec hash."""
-    lookup = plan.get("_lookup") or {(t["row"], t["col"]): t for t in plan["tiles"]}
+    lookup = plan.get("_lookup") or {(t["row"], t["col"]): t for t in plan["tiles"]}   # uncached plans
     if (row, col) not in lookup:
         raise KeyError(f"tile ({row}, {col}) is not in the plan of {plan['perspective']['id']}")
     return lookup[(row, col)]

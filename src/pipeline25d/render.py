@@ -111,24 +111,23 @@ class TileRenderer:
         self.ambient = ambient
         self.samples = min(samples, ctx.max_samples) if samples else 0
         self.prog = ctx.program(vertex_shader=VERTEX_SHADER, fragment_shader=FRAGMENT_SHADER)
-        self._textures: dict[int, object] = {}
+        self._textures: dict[bytes, object] = {}
 
     # -- resources -----------------------------------------------------------
     def _texture(self, data: bytes):
-        key = hash(data)
-        if key not in self._textures:
+        """A GL texture for encoded image bytes, uploaded once per distinct image."""
+        if data not in self._textures:
+            import moderngl
             from PIL import Image
 
             img = Image.open(io.BytesIO(data)).convert("RGBA").transpose(Image.Transpose.FLIP_TOP_BOTTOM)
             tex = self.ctx.texture(img.size, 4, img.tobytes())
             tex.build_mipmaps()
             tex.repeat_x = tex.repeat_y = True
-            import moderngl
-
             # Trilinear only: llvmpipe's anisotropic filter blurs even 1:1 texel-to-pixel mappings.
             tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
-            self._textures[key] = tex
-        return self._textures[key]
+            self._textures[data] = tex
+        return self._textures[data]
 
     def _vao(self, positions: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None,
              uv: np.ndarray | None = None):
@@ -187,7 +186,7 @@ class TileRenderer:
         ctx.disable(moderngl.CULL_FACE)
         self._draw_chunks(chunks, view)
         ctx.copy_framebuffer(fbo, fbo_ms)
-        rgba = np.frombuffer(fbo.read(components=4), dtype=np.uint8).reshape(h, w, 4)[::-1]
+        rgba = _read_rgba(fbo, w, h)
         for obj in (fbo_ms, fbo):
             obj.release()
         return unpremultiply(rgba)
@@ -230,7 +229,7 @@ class TileRenderer:
         full = _marker_stats(fbo, w, h, n)[:, 0]
         ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         self._draw_chunks(chunks, view, black=True)
-        coverage = np.frombuffer(fbo.read(components=4), dtype=np.uint8).reshape(h, w, 4)[::-1, :, 3] > 0
+        coverage = _read_rgba(fbo, w, h)[..., 3] > 0
         draw_markers()
         sums = _marker_stats(fbo, w, h, n, coverage)
         fbo.release()
@@ -257,10 +256,15 @@ def marker_geometry(centres: np.ndarray, radius: float) -> tuple[np.ndarray, np.
     return verts, faces, colors
 
 
+def _read_rgba(fbo, w: int, h: int) -> np.ndarray:
+    """(h, w, 4) uint8 framebuffer contents with row 0 at the top (north); GL's row 0 is the bottom."""
+    return np.frombuffer(fbo.read(components=4), dtype=np.uint8).reshape(h, w, 4)[::-1]
+
+
 def _marker_stats(fbo, w: int, h: int, n: int, coverage: np.ndarray | None = None) -> np.ndarray:
     """(n, 4) float64 per marker: pixel count, Σ(col + 0.5), Σ(row + 0.5) (row 0 = north), and
     the count of its pixels where ``coverage`` (model drawn underneath) is true."""
-    rgba = np.frombuffer(fbo.read(components=4), dtype=np.uint8).reshape(h, w, 4)[::-1]
+    rgba = _read_rgba(fbo, w, h)
     ids = rgba[..., 0].astype(np.int64) | (rgba[..., 1].astype(np.int64) << 8) | (rgba[..., 2].astype(np.int64) << 16)
     rows, cols = np.nonzero(ids)
     which = ids[rows, cols] - 1

@@ -14,7 +14,6 @@ from pathlib import Path
 import numpy as np
 
 from .atomic import write_json
-from .camera import project
 from .chunks import load_npz, pack_parts, save_npz, unpack_parts
 from .gcps import (CANDIDATE_FIELDS, OBSERVATION_FIELDS, assign_roles, grid_candidates, observations,
                    read_csv, write_csv)

@@ -32,14 +32,19 @@ def to_pixels(rows: list[dict], gt: tuple[float, ...]) -> np.ndarray:
     return np.column_stack([(mx - gt[0]) / gt[1], (my - gt[3]) / gt[5]])
 
 
+def gdal_gcps(rows: list[dict], gt: tuple[float, ...]) -> list:
+    """GDAL GCPs pairing each row's image position (in the raster with ``gt``) with its true x, y, z."""
+    g = gdal()
+    return [g.GCP(r["x"], r["y"], r["z"], float(p), float(q)) for r, (p, q) in zip(rows, to_pixels(rows, gt))]
+
+
 def predict(method: str, order: int, train: list[dict], query: list[dict], gt: tuple[float, ...]) -> np.ndarray:
     """Scene (x, y) of the ``query`` rows' image positions under a warp fitted on ``train``."""
     if method == "none":
         return np.array([[r["map_x"], r["map_y"]] for r in query], dtype=np.float64).reshape(-1, 2)
     g = gdal()
     ds = g.GetDriverByName("MEM").Create("", 1, 1, 1)
-    ds.SetGCPs([g.GCP(r["x"], r["y"], r["z"], float(p), float(q))
-                for r, (p, q) in zip(train, to_pixels(train, gt))], "")
+    ds.SetGCPs(gdal_gcps(train, gt), "")
     options = ["METHOD=GCP_TPS"] if method == "tps" else ["METHOD=GCP_POLYNOMIAL", f"MAX_GCP_ORDER={order}"]
     tr = g.Transformer(ds, None, options)
     pts = np.column_stack([to_pixels(query, gt), np.zeros(len(query))]).tolist()
@@ -84,7 +89,9 @@ def choose(obs: list[dict], plan: dict, gt: tuple[float, ...], method: str, orde
     if method == "none" or (method == "auto" and relief < 0.5):
         return {**baseline, "relief_px": relief, "candidates": [baseline]}
     if method == "polynomial":
-        candidates = [(m, o) for m, o in [("polynomial", k) for k in range(order, 0, -1)] if n_gcp >= MIN_GCPS[o]][:1]
+        # the configured order, or the highest lower one the GCP count supports
+        usable = [k for k in range(order, 0, -1) if n_gcp >= MIN_GCPS[k]]
+        candidates = [("polynomial", usable[0])] if usable else []
     elif method == "tps":
         candidates = [("tps", 0)] if n_gcp >= MIN_GCPS["tps"] else []
     else:
@@ -122,13 +129,11 @@ def warp_to_cog(mosaic: str | Path, obs: list[dict], choice: dict, plan: dict, o
         if choice["method"] == "none":
             run_tool(["gdal_translate", "-q", *cog, str(mosaic), str(tmp)])
             return
-        g = gdal()
         train = [r for r in obs if r["role"] == "gcp"]
-        gt = raster_geotransform(mosaic)
-        gcps = [g.GCP(r["x"], r["y"], r["z"], float(p), float(q)) for r, (p, q) in zip(train, to_pixels(train, gt))]
+        gcps = gdal_gcps(train, raster_geotransform(mosaic))
         gcp_vrt = Path(tmp).with_suffix(".gcps.vrt")
         try:
-            g.Translate(str(gcp_vrt), str(mosaic), format="VRT", GCPs=gcps, outputSRS=crs)
+            gdal().Translate(str(gcp_vrt), str(mosaic), format="VRT", GCPs=gcps, outputSRS=crs)
             method = ["-tps"] if choice["method"] == "tps" else ["-order", str(choice["order"])]
             gsd = str(plan["gsd"])
             run_tool(["gdalwarp", "-q", *method, "-r", "bilinear", "-t_srs", crs, "-tr", gsd, gsd, "-tap",

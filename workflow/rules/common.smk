@@ -9,7 +9,7 @@ from pipeline25d.config import check_semantics, perspectives
 from pipeline25d.errors import Pipeline25dError
 from pipeline25d.ingest import CHUNK_ID_PATTERN
 from pipeline25d.perspectives import ID_PATTERN
-from pipeline25d.plan import read_plan
+from pipeline25d.plan import plan_tile, read_plan
 
 validate(config, "../../config/schema.yaml")
 try:
@@ -54,14 +54,17 @@ def plan_of(pid):
     return read_plan(checkpoints.plan.get(pid=pid).output.plan)
 
 
+def tile_entry(wildcards):
+    return plan_tile(plan_of(wildcards.pid), int(wildcards.row), int(wildcards.col))
+
+
 def tile_lods(wildcards):
     """The LOD files a tile draws: a tile depends on its own chunks only."""
-    tile = plan_of(wildcards.pid)["_lookup"][(int(wildcards.row), int(wildcards.col))]
-    return [f"{RESULTS}/lod/{c['district']}/{c['id']}.npz" for c in tile["chunks"]]
+    return [f"{RESULTS}/lod/{c['district']}/{c['id']}.npz" for c in tile_entry(wildcards)["chunks"]]
 
 
 def tile_spec_hash(wildcards):
-    return plan_of(wildcards.pid)["_lookup"][(int(wildcards.row), int(wildcards.col))]["spec_hash"]
+    return tile_entry(wildcards)["spec_hash"]
 
 
 def perspective_tiles(wildcards, suffix):

@@ -29,15 +29,6 @@ def detect_format(path: Path) -> str:
     raise InputFileError(path, "unknown model format (set the input's format key)")
 
 
-def default_crs(fmt: str, path: Path, scene_crs: str) -> str | None:
-    """The CRS a format defines: ECEF for 3D Tiles, the file's own for CityJSON, else the scene's."""
-    if fmt in ("3dtiles", "b3dm"):
-        return "EPSG:4978"
-    if fmt == "cityjson":
-        return None  # the reader takes metadata.referenceSystem
-    return scene_crs
-
-
 def load_district(spec: dict, scene_crs: str, max_geometric_error: float | None = None,
                   base_dir: Path = Path(".")) -> Mesh:
     """Read one configured input (``inputs.<name>``) into the scene CRS, float64.
@@ -46,7 +37,7 @@ def load_district(spec: dict, scene_crs: str, max_geometric_error: float | None 
     """
     import numpy as np
 
-    from ..crs import transform_points
+    from .common import reproject_parts
 
     path = base_dir / spec["path"]
     fmt = spec.get("format", "auto")
@@ -80,6 +71,4 @@ def load_district(spec: dict, scene_crs: str, max_geometric_error: float | None 
     src_crs = src_crs or scene_crs
     if offset.any():
         mesh = mesh.transformed(lambda v: v + offset)
-    if src_crs != scene_crs:
-        mesh = mesh.transformed(lambda v: transform_points(v, src_crs, scene_crs))
-    return mesh
+    return Mesh(reproject_parts(mesh.parts, src_crs, scene_crs, path), source=mesh.source)

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..errors import CRSError, InputFileError
 from ..mesh import Mesh, MeshPart
-from .tiles3d import reproject_parts
+from .common import read_text, reproject_parts
 
 #: RGBA per colour class.
 PALETTE: dict[str, tuple[int, int, int, int]] = {
@@ -122,12 +122,7 @@ class _Model:
 
 def _read_model(path: Path) -> _Model:
     """Read a CityJSON file or a CityJSONSeq stream into chunks of real-coordinate vertices."""
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise InputFileError(path, "CityJSON file is missing") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputFileError(path, f"cannot read CityJSON: {exc}") from None
+    text = read_text(path, "CityJSON file")
     docs = _parse_json_documents(text, path)
     header = docs[0]
     if not isinstance(header, dict) or header.get("type") != "CityJSON":

@@ -29,15 +29,14 @@ from urllib.parse import unquote, urlsplit
 
 import numpy as np
 
-from ..crs import check_within_area_of_use, parse_crs, transform_points
 from ..errors import InputFileError, UnsupportedFeatureError
 from ..mesh import Mesh, MeshPart
+from .common import read_text, reproject_parts
 from .gltf import parse_gltf_bytes
 
 _B3DM_HEADER = 28
 _I3DM_HEADER = 32
 _LEGACY_LIMIT = 570425344  # CesiumJS: a "length" this large is really the start of a glTF header
-_AREA_SAMPLE = 2000
 
 
 # --------------------------------------------------------------------------- public API
@@ -186,12 +185,7 @@ def _resolve(uri: str | None, base: Path) -> Path:
 
 def _read_json(path: Path) -> dict:
     """Parsed tileset JSON; InputFileError when missing or invalid."""
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise InputFileError(path, "tileset JSON is missing") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputFileError(path, f"cannot read tileset JSON: {exc}") from None
+    text = read_text(path, "tileset JSON")
     try:
         data = json.loads(text)
     except json.JSONDecodeError as exc:
@@ -534,24 +528,3 @@ def _merge_untextured(parts: list[MeshPart]) -> list[MeshPart]:
         name="untextured",
     )
     return textured + [merged]
-
-
-def reproject_parts(parts: list[MeshPart], src_crs: str, scene_crs: str, where: str | Path) -> list[MeshPart]:
-    """Parts moved from ``src_crs`` to ``scene_crs`` in one transform call.
-
-    First checks that a sample of the vertices (converted to lon/lat) lies in the scene
-    CRS's area of use, so a model in the wrong place fails with a CRSError naming
-    ``where`` instead of yielding silently distorted coordinates.
-    """
-    if not parts or parse_crs(src_crs) == parse_crs(scene_crs):
-        return parts
-    allv = np.concatenate([p.vertices for p in parts])
-    lonlat = transform_points(allv[:: max(1, len(allv) // _AREA_SAMPLE)], src_crs, "EPSG:4979")
-    check_within_area_of_use(lonlat, scene_crs, where=str(where))
-    moved = transform_points(allv, src_crs, scene_crs)
-    out, start = [], 0
-    for p in parts:
-        end = start + len(p.vertices)
-        out.append(MeshPart(moved[start:end], p.faces, p.colors, p.uv, p.texture, p.name))
-        start = end
-    return out
