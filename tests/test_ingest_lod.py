@@ -106,3 +106,12 @@ def test_dtm_samples_the_same_ground_from_another_crs():
     p_utm = transform_points(pts, "EPSG:28992", "EPSG:25831")
     np.testing.assert_allclose(utm.sample(p_utm[:, 0], p_utm[:, 1]), z_rd, atol=1e-3)  # mm round trip
     assert np.isfinite(z_rd).all() and (z_rd > -3).all() and (z_rd < 5).all()
+
+
+@needs_data
+def test_offset_on_a_self_georeferenced_format_is_an_error_not_ignored():
+    from pipeline25d.errors import ConfigError
+
+    spec = {"path": str(DATA / "tokyo-chiyoda-b3dm/cesium-rtc-extension.b3dm"), "offset": [10.0, 0.0, 0.0]}
+    with pytest.raises(ConfigError, match="offset"):
+        load_district(spec, "EPSG:6677")

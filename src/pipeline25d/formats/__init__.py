@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from ..errors import InputFileError
+from ..errors import ConfigError, InputFileError
 from ..mesh import Mesh
 
 MESH_SUFFIXES = {".obj": "obj", ".ply": "ply", ".dae": "dae", ".glb": "glb", ".gltf": "gltf",
@@ -49,6 +49,9 @@ def load_district(spec: dict, scene_crs: str, max_geometric_error: float | None 
 
         src_crs, origin = read_metadata_xml(base_dir / spec["metadata"])
         offset = offset + origin
+    if fmt in ("3dtiles", "b3dm", "cityjson") and (offset.any() or spec.get("metadata")):
+        # these formats carry their own georeferencing; a silently ignored offset would misplace the map
+        raise ConfigError(f"{path}: offset/metadata apply to mesh files (obj, ply, glb, gltf, dae), not {fmt}")
     if fmt in ("3dtiles", "b3dm"):
         from . import tiles3d
 
