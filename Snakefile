@@ -14,6 +14,7 @@ if not workflow.overwrite_configfiles:
 include: "workflow/rules/common.smk"
 include: "workflow/rules/ingest.smk"
 include: "workflow/rules/lod.smk"
+include: "workflow/rules/terrain.smk"
 include: "workflow/rules/plan.smk"
 include: "workflow/rules/render.smk"
 include: "workflow/rules/gcps.smk"

@@ -18,7 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import Extent, project, projected_box
+from .camera import Extent, project, project_above_ground, projected_box
+from .gcps import CANDIDATE_FIELDS
 from .lod import choose_level
 from .perspectives import Perspective
 
@@ -47,19 +48,26 @@ def _index_range(lo: float, hi: float, span: float) -> range:
 
 
 def plan_perspective(p: Perspective, chunks: list[dict], candidates: list[dict], z0: float, gsd: float,
-                     tile_size: int, max_error_px: float, crs: str, render: dict) -> dict:
+                     tile_size: int, max_error_px: float, crs: str, render: dict,
+                     terrain: dict | None = None) -> dict:
     """The plan of perspective ``p`` as a JSON-able dict.
 
-    ``chunks``: [{"id", "district", "bounds" (2,3), "errors": [m per level]}, ...];
-    ``candidates``: GCP candidates [{"id", "x", "y", "z", "role"}, ...];
-    ``render``: render settings that, when changed, must re-render (part of each tile's spec).
+    ``chunks``: [{"id", "district", "bounds" (2,3), "errors": [m per level]}, plus "ground"
+    (lowest, highest DTM height under it) in terrain-relative mode];
+    ``candidates``: GCP candidates [{"id", "x", "y", "z", "ground", "sx", "sy", "role"}, ...];
+    ``render``: render settings that, when changed, must re-render (part of each tile's spec);
+    ``terrain``: {"projection": "terrain" | "plane", "dtm": path or None}.
     """
+    terrain = terrain or {"projection": "plane", "dtm": None}
+    relative = terrain["projection"] == "terrain"
     span = tile_span(gsd, tile_size)
     tiles: dict[tuple[int, int], dict] = {}
     for chunk in chunks:
-        box, depth = projected_box(np.array(chunk["bounds"]), p, z0)
+        box, depth = projected_box(np.array(chunk["bounds"]), p, z0, chunk["ground"][:2] if relative else None)
         entry = {"id": chunk["id"], "district": chunk["district"],
                  "lod": choose_level(chunk["errors"], max_error_px * gsd)}
+        if relative:
+            entry["ground"] = chunk["ground"][2]   # digest of the DTM under the chunk
         for r in _index_range(box.ymin, box.ymax, span):
             for c in _index_range(box.xmin, box.xmax, span):
                 tile = tiles.setdefault((r, c), {"row": r, "col": c, "chunks": [], "depth_range": [math.inf, -math.inf]})
@@ -68,7 +76,9 @@ def plan_perspective(p: Perspective, chunks: list[dict], candidates: list[dict],
                                        max(tile["depth_range"][1], depth[1] + DEPTH_MARGIN_M)]
     if not tiles:
         raise ValueError(f"{p.id}: no chunks to plan")
-    _assign_gcps(tiles, candidates, p, z0, span)
+    _assign_gcps(tiles, candidates, p, z0, span, relative)
+    # everything a tile's pixels depend on beyond its own entry: a change re-renders it
+    frame = {"z0": z0, "gsd": gsd, "tile_size": tile_size, "crs": crs, "perspective": p.id, **terrain}
     rows = [r for r, _ in tiles]
     cols = [c for _, c in tiles]
     total = (max(rows) - min(rows) + 1) * (max(cols) - min(cols) + 1)
@@ -77,29 +87,34 @@ def plan_perspective(p: Perspective, chunks: list[dict], candidates: list[dict],
         tile = tiles[key]
         tile["chunks"].sort(key=lambda t: (t["district"], t["id"]))
         tile["render"] = render
-        tile["spec_hash"] = hashlib.sha256(json.dumps(tile, sort_keys=True).encode()).hexdigest()[:16]
+        tile["spec_hash"] = hashlib.sha256(json.dumps([frame, tile], sort_keys=True).encode()).hexdigest()[:16]
         out_tiles.append(tile)
     return {
         "perspective": {"id": p.id, "azimuth": p.azimuth, "elevation": p.elevation},
         "crs": crs, "z0": z0, "gsd": gsd, "tile_size": tile_size,
+        "projection": terrain["projection"], "dtm": terrain["dtm"],
         "tiles": out_tiles,
         "n_tiles_total": total,
         "n_tiles_skipped": total - len(out_tiles),
     }
 
 
-def _assign_gcps(tiles: dict, candidates: list[dict], p: Perspective, z0: float, span: float) -> None:
+def _assign_gcps(tiles: dict, candidates: list[dict], p: Perspective, z0: float, span: float,
+                 relative: bool) -> None:
     """Give each candidate to the tile holding its projected centre (if that tile exists)."""
     for tile in tiles.values():
         tile["gcps"] = []
     if not candidates:
         return
     xyz = np.array([[c["x"], c["y"], c["z"]] for c in candidates])
-    m = project(xyz, p, z0)
+    if relative:
+        m = project_above_ground(xyz, np.array([c["ground"] for c in candidates]), p)
+    else:
+        m = project(xyz, p, z0)
     rows, cols = np.floor(m[:, 1] / span).astype(int), np.floor(m[:, 0] / span).astype(int)
     for cand, r, c in zip(candidates, rows, cols):
         if (r, c) in tiles:
-            tiles[(r, c)]["gcps"].append({k: cand[k] for k in ("id", "x", "y", "z", "role")})
+            tiles[(r, c)]["gcps"].append({k: cand[k] for k in CANDIDATE_FIELDS})
 
 
 @lru_cache(maxsize=256)

@@ -45,10 +45,13 @@ class DTM:
     """A terrain GeoTIFF sampled bilinearly in the scene CRS.
 
     Points are transformed to the raster's CRS first (pyproj), so a DTM in any CRS GDAL
-    reads works. Cells equal to nodata give NaN.
+    reads works. Cells equal to nodata give NaN, and so do points outside the raster,
+    unless ``continuous``: then nodata cells take their nearest valid value and points
+    outside take the nearest edge, so every vertex of a model has a ground height
+    (terrain-relative projection needs one).
     """
 
-    def __init__(self, path: str | Path, scene_crs: str):
+    def __init__(self, path: str | Path, scene_crs: str, continuous: bool = False):
         g = gdal()
         self.path = Path(path)
         try:
@@ -65,6 +68,26 @@ class DTM:
             raise InputFileError(path, "rotated geotransforms are not supported")
         self.crs_wkt = ds.GetProjection()
         self.scene_crs = scene_crs
+        self.continuous = continuous
+        if continuous:
+            from .terrain import fill_nearest
+
+            if not np.isfinite(self.values).any():
+                raise InputFileError(path, "has no valid height")
+            self.values = fill_nearest(self.values)
+
+    @classmethod
+    def from_array(cls, values: np.ndarray, geotransform: tuple[float, ...], continuous: bool = False) -> "DTM":
+        """A DTM over an in-memory (h, w) height array already in the scene CRS (NaN = nodata)."""
+        self = cls.__new__(cls)
+        self.path, self.gt, self.crs_wkt, self.scene_crs = Path("<memory>"), tuple(geotransform), "", None
+        self.values = np.asarray(values, dtype=np.float64)
+        self.continuous = continuous
+        if continuous:
+            from .terrain import fill_nearest
+
+            self.values = fill_nearest(self.values)
+        return self
 
     def sample(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Bilinear heights at scene-CRS (x, y); NaN outside the raster or on nodata."""
@@ -76,6 +99,10 @@ class DTM:
         col = (pts[:, 0] - self.gt[0]) / self.gt[1] - 0.5
         row = (pts[:, 1] - self.gt[3]) / self.gt[5] - 0.5
         h, w = self.values.shape
+        if self.continuous:
+            col, row = np.clip(col, 0, max(w - 1.000001, 0)), np.clip(row, 0, max(h - 1.000001, 0))
+            if w == 1 or h == 1:
+                return self.values[np.clip(np.round(row).astype(int), 0, h - 1), np.clip(np.round(col).astype(int), 0, w - 1)]
         c0, r0 = np.floor(col).astype(int), np.floor(row).astype(int)
         ok = (c0 >= 0) & (r0 >= 0) & (c0 + 1 < w) & (r0 + 1 < h)
         out = np.full(len(x), np.nan)

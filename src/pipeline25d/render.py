@@ -5,10 +5,16 @@ Two passes share the tile's matrices (see :mod:`pipeline25d.camera`):
 * colour: textured or vertex-coloured triangles, flat Lambert shading for untextured
   surfaces, depth test, MSAA; the result is un-premultiplied RGBA, transparent where
   nothing was drawn.
-* GCP markers (the paper's method): the model in black plus one small horizontal disk
-  per GCP in a unique colour, depth-tested with a small bias toward the camera. A marker
-  that is only partly visible is rejected; a fully visible one's pixel centroid is its
-  sub-pixel image position.
+* GCP markers (the paper's method): the model in black plus one small disk per GCP, lying
+  in the ground's local plane, in a unique colour, depth-tested with a small bias toward
+  the camera. A marker that is only partly visible is buried or hidden and rejected; one
+  whose depth disagrees with the model's surface under it floats and is rejected; a fully
+  visible one's pixel centroid is its sub-pixel image position.
+* depth: the view depth of the nearest surface per pixel (the DSM pass, seen from nadir).
+
+Terrain-relative projection (DESIGN.md): each vertex carries its DTM height ``in_ground``
+and is displaced by its height above that ground instead of above z0; depth stays the
+true 3D view depth, so hidden surfaces are resolved as in plane mode.
 
 moderngl is imported lazily so the rest of the package imports where EGL is absent.
 """
@@ -16,6 +22,7 @@ moderngl is imported lazily so the rest of the package imports where EGL is abse
 from __future__ import annotations
 
 import io
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -31,15 +38,17 @@ MARKER_SEGMENTS = 32
 VERTEX_SHADER = """
 #version 330
 uniform mat4 u_mvp;
+uniform vec4 u_shear;        // clip-space shift per metre of ground height (terrain-relative mode)
 uniform float u_zbias;
 in vec3 in_pos;
+in float in_ground;          // DTM height under the vertex minus z0 (0 in plane mode)
 in vec4 in_color;
 in vec2 in_uv;
 out vec3 v_pos;
 out vec4 v_color;
 out vec2 v_uv;
 void main() {
-    gl_Position = u_mvp * vec4(in_pos, 1.0);
+    gl_Position = u_mvp * vec4(in_pos, 1.0) - in_ground * u_shear;
     gl_Position.z -= u_zbias;
     v_pos = in_pos;
     v_color = in_color;
@@ -82,9 +91,29 @@ class TileView:
     extent: Extent
     depth_range: tuple[float, float]
     size: tuple[int, int]          # (width, height) in pixels
+    ground: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None   # DTM(x, y); None = plane mode
 
     def matrix(self, origin: np.ndarray) -> np.ndarray:
         return clip_matrix(self.perspective, self.z0, self.extent, self.depth_range, origin)
+
+    def shear(self, matrix: np.ndarray) -> tuple[float, float, float, float]:
+        """u_shear: the clip-space map shift per metre of ground height (zero in plane mode)."""
+        if self.ground is None:
+            return (0.0, 0.0, 0.0, 0.0)
+        return (float(matrix[0, 2]), float(matrix[1, 2]), 0.0, 0.0)
+
+    def ground_offsets(self, vertices: np.ndarray) -> np.ndarray | None:
+        """(n,) float32 DTM height − z0 under scene-CRS vertices, or None in plane mode."""
+        if self.ground is None:
+            return None
+        return (self.ground(vertices[:, 0], vertices[:, 1]) - self.z0).astype(np.float32)
+
+    def depth_metres(self, window_depth: np.ndarray) -> np.ndarray:
+        """View depth in metres from GL window depth in [0, 1] (1 = cleared: NaN)."""
+        dmin, dmax = self.depth_range
+        out = dmin + window_depth.astype(np.float64) * (dmax - dmin)
+        out[window_depth >= 1.0] = np.nan
+        return out
 
 
 def create_context():
@@ -130,9 +159,11 @@ class TileRenderer:
         return self._textures[data]
 
     def _vao(self, positions: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None,
-             uv: np.ndarray | None = None):
+             uv: np.ndarray | None = None, ground: np.ndarray | None = None):
         ctx = self.ctx
         content = [(ctx.buffer(positions.astype("f4").tobytes()), "3f", "in_pos")]
+        if ground is not None:
+            content.append((ctx.buffer(ground.astype("f4").tobytes()), "1f", "in_ground"))
         if colors is not None:
             content.append((ctx.buffer(np.ascontiguousarray(colors, dtype="u1").tobytes()), "4f1", "in_color"))
         if uv is not None:
@@ -153,13 +184,16 @@ class TileRenderer:
         self._set(u_light=tuple(LIGHT_DIRECTION), u_view=tuple(view_direction(view.perspective)),
                   u_ambient=self.ambient, u_zbias=0.0)
         for origin, parts in chunks:
-            self.prog["u_mvp"].write(view.matrix(origin).T.astype("f4").tobytes())
+            matrix = view.matrix(origin)
+            self.prog["u_mvp"].write(matrix.T.astype("f4").tobytes())
+            self._set(u_shear=view.shear(matrix))
             for part in parts:
                 if not part.n_triangles:
                     continue
                 local = part.vertices - origin
                 textured = part.texture is not None and part.uv is not None and not black
-                vao = self._vao(local, part.faces, None if black else part.colors, part.uv if textured else None)
+                vao = self._vao(local, part.faces, None if black else part.colors, part.uv if textured else None,
+                                view.ground_offsets(part.vertices))
                 if black:
                     self._set(u_mode=2, u_color=(0.0, 0.0, 0.0, 1.0), u_shade=False)
                 elif textured:
@@ -191,61 +225,123 @@ class TileRenderer:
             obj.release()
         return unpremultiply(rgba)
 
-    def render_markers(self, chunks: list[tuple[np.ndarray, list[MeshPart]]], view: TileView,
-                       points: np.ndarray, radius_m: float, depth_bias_m: float) -> tuple[np.ndarray, np.ndarray]:
-        """Marker pixel statistics for (n, 3) GCPs: (counts_full, sums).
+    def render_depth(self, chunks: list[tuple[np.ndarray, list[MeshPart]]], view: TileView) -> np.ndarray:
+        """(h, w) float64 view depth (metres) of the nearest surface at each pixel centre; NaN where empty."""
+        import moderngl
 
-        counts_full[i]: pixels of marker i with nothing else drawn; sums[i] = (count, Σcol, Σrow,
-        on_model) with the model drawn in black first (pixel centres at +0.5, row 0 = north);
-        on_model counts the marker's pixels that lie over model surface, so a GCP floating
-        over a hole in the model (no ground there) can be told apart.
+        ctx, (w, h) = self.ctx, view.size
+        depth = ctx.depth_texture((w, h))
+        fbo = ctx.framebuffer(color_attachments=[ctx.renderbuffer((w, h), 4)], depth_attachment=depth)
+        fbo.use()
+        ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+        ctx.enable(moderngl.DEPTH_TEST)
+        ctx.disable(moderngl.CULL_FACE)
+        self._draw_chunks(chunks, view, black=True)
+        out = view.depth_metres(_read_depth(depth, w, h))
+        fbo.release()
+        depth.release()
+        return out
+
+    def render_markers(self, chunks: list[tuple[np.ndarray, list[MeshPart]]], view: TileView,
+                       points: np.ndarray, slopes: np.ndarray, radius_m: float, depth_bias_m: float,
+                       depth_tolerance_m: float) -> tuple[np.ndarray, np.ndarray]:
+        """Marker pixel statistics for (n, 3) GCPs on ground of slope (n, 2) (dz/dx, dz/dy).
+
+        Returns (counts_full, sums): counts_full[i] = pixels of marker i drawn alone;
+        sums[i] = (count, Σcol, Σrow, agree) with the model drawn first (pixel centres at +0.5,
+        row 0 = north). ``agree`` counts marker pixels where the model's surface depth is
+        within ``depth_tolerance_m`` of the marker's own: fewer than counts_full means the
+        marker floats above the model (or over a hole) somewhere.
         """
         import moderngl
 
         ctx, (w, h) = self.ctx, view.size
-        fbo = ctx.framebuffer(color_attachments=[ctx.renderbuffer((w, h), 4)],
-                              depth_attachment=ctx.depth_renderbuffer((w, h)))
+        depth = ctx.depth_texture((w, h))
+        fbo = ctx.framebuffer(color_attachments=[ctx.renderbuffer((w, h), 4)], depth_attachment=depth)
         fbo.use()
         ctx.enable(moderngl.DEPTH_TEST)
         ctx.disable(moderngl.CULL_FACE)
         n = len(points)
         origin = points.mean(axis=0) if n else np.zeros(3)
-        verts, faces, colors = marker_geometry(points - origin, radius_m)
+        verts, faces, colors = marker_geometry(points - origin, slopes, radius_m)
+        ground = view.ground_offsets(verts + origin)
         dmin, dmax = view.depth_range
-        zbias = 2.0 * depth_bias_m / (dmax - dmin)
 
-        def draw_markers():
+        def draw_markers(bias_m: float):
             if not n:
                 return
-            self.prog["u_mvp"].write(view.matrix(origin).T.astype("f4").tobytes())
-            self._set(u_mode=0, u_shade=False, u_zbias=zbias)
-            vao = self._vao(verts, faces, colors)
+            matrix = view.matrix(origin)
+            self.prog["u_mvp"].write(matrix.T.astype("f4").tobytes())
+            self._set(u_mode=0, u_shade=False, u_zbias=2.0 * bias_m / (dmax - dmin), u_shear=view.shear(matrix))
+            vao = self._vao(verts, faces, colors, ground=ground)
             vao.render()
             vao.release()
             self._set(u_zbias=0.0)
 
         ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
-        draw_markers()
-        full = _marker_stats(fbo, w, h, n)[:, 0]
+        draw_markers(0.0)
+        alone = _marker_ids(fbo, w, h)
+        marker_depth = view.depth_metres(_read_depth(depth, w, h))
         ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         self._draw_chunks(chunks, view, black=True)
-        coverage = _read_rgba(fbo, w, h)[..., 3] > 0
-        draw_markers()
-        sums = _marker_stats(fbo, w, h, n, coverage)
+        model_depth = view.depth_metres(_read_depth(depth, w, h))
+        draw_markers(depth_bias_m)
+        seen = _marker_ids(fbo, w, h)
         fbo.release()
+        depth.release()
+        agree = np.abs(model_depth - marker_depth) <= depth_tolerance_m   # NaN (no model) disagrees
+        full = _marker_stats(alone, n)[:, 0]
+        full[_overlapping(points, slopes, radius_m, view)] = 0   # one marker hides another: no clean centroid
+        sums = _marker_stats(seen, n)
+        sums[:, 3] = _marker_stats(alone, n, agree)[:, 3]
         return full, sums
 
 
-def marker_geometry(centres: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Horizontal disks (triangle fans) around (n, 3) local centres, coloured by id + 1.
+def _overlapping(points: np.ndarray, slopes: np.ndarray, radius_m: float, view: TileView) -> np.ndarray:
+    """(n,) bool: markers whose images could touch another marker's image in this view.
 
-    A horizontal disk projects to the same disk in every map-aligned view (the shear
-    moves all its points alike), so its pixel centroid estimates its centre without bias.
+    Each marker's image is an ellipse around its projected centre whose longest semi-axis
+    is radius·σ_max(J), J the 2×2 Jacobian of the map projection on the marker's plane.
+    """
+    from .camera import horizontal_direction, project, project_above_ground, relief_factor
+
+    n = len(points)
+    if n < 2:
+        return np.zeros(n, dtype=bool)
+    p = view.perspective
+    if view.ground is None:
+        centres = project(points, p, view.z0)[:, :2]
+    else:
+        centres = project_above_ground(points, view.ground(points[:, 0], points[:, 1]), p)[:, :2]
+    shear = horizontal_direction(p) * relief_factor(p)
+    reach = np.array([np.linalg.norm(np.eye(2) + np.outer(shear, s), 2) for s in np.asarray(slopes).reshape(n, 2)])
+    reach = reach * radius_m + 2 * (view.extent.width / view.size[0])   # + 2 px of rasterisation
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(centres)
+    out = np.zeros(n, dtype=bool)
+    for i, j in tree.query_pairs(2 * float(reach.max())):
+        if np.hypot(*(centres[i] - centres[j])) < reach[i] + reach[j]:
+            out[i] = out[j] = True
+    return out
+
+
+def marker_geometry(centres: np.ndarray, slopes: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Disks (triangle fans) in the ground plane around (n, 3) local centres, coloured by id + 1.
+
+    Each disk lies in the plane z = z_c + s_x·dx + s_y·dy of its (n, 2) slopes and has
+    horizontal radius ``radius``. Every projection here is affine over a disk, and an
+    affine map takes a disk's centroid to its image's centroid, so the pixel centroid
+    estimates the centre without bias in any view.
     """
     n, k = len(centres), MARKER_SEGMENTS
     ang = np.linspace(0, 2 * np.pi, k, endpoint=False)
-    ring = np.column_stack([np.cos(ang), np.sin(ang), np.zeros(k)]) * radius
-    verts = (centres[:, None, :] + np.vstack([np.zeros((1, 3)), ring])[None]).reshape(-1, 3)
+    ring = np.column_stack([np.cos(ang), np.sin(ang)]) * radius
+    offsets = np.zeros((n, k + 1, 3))
+    offsets[:, 1:, :2] = ring[None]
+    slopes = np.asarray(slopes, dtype=np.float64).reshape(n, 2)
+    offsets[:, 1:, 2] = ring[None, :, 0] * slopes[:, :1] + ring[None, :, 1] * slopes[:, 1:]
+    verts = (centres[:, None, :] + offsets).reshape(-1, 3)
     base = np.arange(n)[:, None] * (k + 1)
     j = np.arange(k)
     fan = np.column_stack([np.zeros(k, int), 1 + j, 1 + (j + 1) % k])
@@ -256,23 +352,32 @@ def marker_geometry(centres: np.ndarray, radius: float) -> tuple[np.ndarray, np.
     return verts, faces, colors
 
 
+def _read_depth(texture, w: int, h: int) -> np.ndarray:
+    """(h, w) float32 window depth in [0, 1] of a depth texture, row 0 at the top."""
+    return np.frombuffer(texture.read(alignment=1), dtype=np.float32).reshape(h, w)[::-1]
+
+
 def _read_rgba(fbo, w: int, h: int) -> np.ndarray:
     """(h, w, 4) uint8 framebuffer contents with row 0 at the top (north); GL's row 0 is the bottom."""
     return np.frombuffer(fbo.read(components=4), dtype=np.uint8).reshape(h, w, 4)[::-1]
 
 
-def _marker_stats(fbo, w: int, h: int, n: int, coverage: np.ndarray | None = None) -> np.ndarray:
-    """(n, 4) float64 per marker: pixel count, Σ(col + 0.5), Σ(row + 0.5) (row 0 = north), and
-    the count of its pixels where ``coverage`` (model drawn underneath) is true."""
+def _marker_ids(fbo, w: int, h: int) -> np.ndarray:
+    """(h, w) int64 marker id + 1 per pixel (0 = none) from the colour buffer, row 0 at the top."""
     rgba = _read_rgba(fbo, w, h)
-    ids = rgba[..., 0].astype(np.int64) | (rgba[..., 1].astype(np.int64) << 8) | (rgba[..., 2].astype(np.int64) << 16)
+    return rgba[..., 0].astype(np.int64) | (rgba[..., 1].astype(np.int64) << 8) | (rgba[..., 2].astype(np.int64) << 16)
+
+
+def _marker_stats(ids: np.ndarray, n: int, flag: np.ndarray | None = None) -> np.ndarray:
+    """(n, 4) float64 per marker: pixel count, Σ(col + 0.5), Σ(row + 0.5) (row 0 = north), and
+    the count of its pixels where ``flag`` is true."""
     rows, cols = np.nonzero(ids)
     which = ids[rows, cols] - 1
     stats = np.zeros((n, 4))
     if n:
         stats[:, 0] = np.bincount(which, minlength=n)[:n]
-        if coverage is not None:
-            stats[:, 3] = np.bincount(which, weights=coverage[rows, cols].astype(float), minlength=n)[:n]
+        if flag is not None:
+            stats[:, 3] = np.bincount(which, weights=flag[rows, cols].astype(float), minlength=n)[:n]
         stats[:, 1] = np.bincount(which, weights=cols + 0.5, minlength=n)[:n]
         stats[:, 2] = np.bincount(which, weights=rows + 0.5, minlength=n)[:n]
     return stats

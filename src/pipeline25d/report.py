@@ -57,10 +57,14 @@ def lonlat_bounds(cog: Path) -> list[float]:
 
 
 def build_report(config: dict, results: str | Path) -> dict:
+    from .config import perspectives
+
     results = Path(results)
     scene = json.loads((results / "scene.json").read_text())
+    terrain_meta = results / "terrain" / "terrain.json"
+    terrain = json.loads(terrain_meta.read_text()) if terrain_meta.exists() else {"source": scene.get("terrain")}
     persp = []
-    for pid in sorted(p.stem for p in (results / "plans").glob("*.json")):
+    for pid in sorted(p.id for p in perspectives(config)):
         plan = json.loads((results / "plans" / f"{pid}.json").read_text())
         warp = json.loads((results / "maps" / f"{pid}.json").read_text())
         cog = results / "maps" / f"{pid}.tif"
@@ -72,7 +76,9 @@ def build_report(config: dict, results: str | Path) -> dict:
             "warp": {"method": warp["method"], "order": warp["order"]},
             "relief_px": warp["relief_px"],
             "rmsd_m": warp["rmsd_m"], "rmsd_px": warp["rmsd_px"], "max_m": warp["max_m"],
+            "check_note": warp.get("check_note"), "cv_rmsd_m": warp.get("cv_rmsd_m"),
             "unwarped_rmsd_m": warp["candidates"][0]["rmsd_m"],
+            "paper_method": warp.get("paper_method"),
             "candidates": warp["candidates"],
             "map_bytes": _size(cog), "tms_bytes": _size(results / "tms" / pid),
             "lonlat_bounds": lonlat_bounds(cog),
@@ -82,6 +88,8 @@ def build_report(config: dict, results: str | Path) -> dict:
     tms = sum(p["tms_bytes"] for p in persp)
     return {
         "scene": config["scene"], "crs": config["crs"], "gsd": config["gsd"], "z0": scene["z0"],
+        "projection": scene.get("projection", "plane"), "terrain": terrain,
+        "dtm_check_holdout_m": scene.get("dtm_check_holdout_m"),
         "perspectives": persp,
         "sizes": {"model_bytes": model, "maps_bytes": maps, "tms_bytes": tms,
                   "model_to_maps": model / maps if maps else None},
@@ -89,19 +97,52 @@ def build_report(config: dict, results: str | Path) -> dict:
     }
 
 
-def render_markdown(rep: dict) -> str:
-    def fmt(v, nd=3):
-        return "–" if v is None else f"{v:.{nd}f}"
+def fmt_measure(v: float | None, nd: int = 3, missing: str = "–") -> str:
+    """A measured figure with ``nd`` decimals; smaller ones keep two significant digits, and
+    one below 1e-6 reads "< 1e-06" (a measurement is never printed as a bare 0.000)."""
+    if v is None:
+        return missing
+    if abs(v) < 1e-6:
+        return "< 1e-06"
+    if abs(v) < 10 ** -(nd - 1):
+        return f"{v:.2g}"
+    return f"{v:.{nd}f}"
 
+
+def render_markdown(rep: dict) -> str:
+    fmt = fmt_measure
+    projection = {"terrain": "terrain-relative (heights above the DTM)",
+                  "plane": f"plane at z0 = {rep['z0']:.2f} m (the paper's method)"}[rep.get("projection", "plane")]
     lines = [f"# pipeline25d report: {rep['scene']}", "",
-             f"Scene CRS {rep['crs']}, gsd {rep['gsd']} m, reference plane z0 = {rep['z0']:.2f} m.", "",
+             f"Scene CRS {rep['crs']}, gsd {rep['gsd']} m.", "",
+             f"- terrain: {rep['terrain'].get('source')}"
+             + (f", {rep['terrain']['resolution']} m cells" if rep["terrain"].get("resolution") else ""),
+             f"- projection: {projection}",
+             "- check points are held out: never used to fit or to choose the warp (chosen by 5-fold"
+             " cross-validation on the GCPs)"
+             + (f"; the DTM is interpolated without the ground within {rep['dtm_check_holdout_m']:.1f} m of each"
+                " check point, so they measure how well it predicts ground it has not seen."
+                if rep.get("dtm_check_holdout_m") else "."), "",
              "| perspective | tiles rendered | skipped | GCPs | checks | warp | RMSD m | RMSD px | max m | unwarped RMSD m |",
              "|---|---:|---:|---:|---:|---|---:|---:|---:|---:|"]
     for p in rep["perspectives"]:
         warp = p["warp"]["method"] + (f" {p['warp']['order']}" if p["warp"]["method"] == "polynomial" else "")
+        na = p.get("check_note") or "n/a"
         lines.append(f"| {p['id']} | {p['tiles_rendered']} | {p['tiles_skipped']} | {p['n_gcp']} | {p['n_check']} | "
-                     f"{warp} | {fmt(p['rmsd_m'])} | {fmt(p['rmsd_px'], 2)} | {fmt(p['max_m'])} | "
-                     f"{fmt(p['unwarped_rmsd_m'])} |")
+                     f"{warp} | {fmt(p['rmsd_m'], missing=na)} | {fmt(p['rmsd_px'], 2, missing=na)} | "
+                     f"{fmt(p['max_m'], missing=na)} | {fmt(p['unwarped_rmsd_m'], missing=na)} |")
+    paper = [p for p in rep["perspectives"] if p.get("paper_method")]
+    if paper:
+        lines += ["", "## The paper's method on the same check points", "",
+                  "Plane at z0 plus the warp the paper uses (polynomial, order 3 where the GCPs allow), fitted on the"
+                  " same GCPs; marker positions computed analytically from the plane projection (markers are"
+                  " unbiased to < 0.15 px, see tests/test_render.py).", "",
+                  "| perspective | warp | RMSD m | RMSD px | max m |", "|---|---|---:|---:|---:|"]
+        for p in paper:
+            pm = p["paper_method"]
+            na = pm.get("check_note") or "n/a"
+            lines.append(f"| {p['id']} | polynomial {pm['order']} | {fmt(pm['rmsd_m'], missing=na)} | "
+                         f"{fmt(pm['rmsd_px'], 2, missing=na)} | {fmt(pm['max_m'], missing=na)} |")
     s = rep["sizes"]
     lines += ["", "## Sizes", "",
               f"- model inputs: {s['model_bytes'] / 1e6:.2f} MB",

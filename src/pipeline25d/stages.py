@@ -8,15 +8,15 @@ from __future__ import annotations
 
 import json
 import logging
-import statistics
+import math
 from pathlib import Path
 
 import numpy as np
 
 from .atomic import write_json
+from .errors import ConfigError
 from .chunks import load_npz, pack_parts, save_npz, unpack_parts
-from .gcps import (CANDIDATE_FIELDS, OBSERVATION_FIELDS, assign_roles, grid_candidates, observations,
-                   read_csv, write_csv)
+from .gcps import CANDIDATE_FIELDS, OBSERVATION_FIELDS, assign_roles, observations, read_csv, write_csv
 from .ingest import write_chunks
 from .lod import build_levels
 from .mesh import Mesh
@@ -24,6 +24,8 @@ from .perspectives import Perspective
 from .plan import plan_perspective, plan_tile, read_plan, tile_extent, tile_geotransform
 
 log = logging.getLogger(__name__)
+
+GROUND_MARGIN_M = 2.0   # widens a chunk's ground range (tile assignment in terrain mode) against sampling gaps
 
 
 # -- ingest / lod --------------------------------------------------------------------------
@@ -62,53 +64,246 @@ def load_chunk_level(lod_npz: str | Path, level: int) -> tuple[np.ndarray, list]
     return origin, unpack_parts(data, origin, prefix=f"L{level}_")
 
 
+# -- terrain: DSM from the model, DTM from the model (terrain: auto) ----------------------------
+def _lod_chunk_loaders(lod_jsons: list[str], max_error: float) -> list[tuple[np.ndarray, object]]:
+    """(bounds, load) per chunk; load() -> (origin, parts) at the coarsest LOD within ``max_error`` m."""
+    from functools import partial
+
+    from .lod import choose_level
+
+    out = []
+    for path in lod_jsons:
+        meta = json.loads(Path(path).read_text())
+        level = choose_level(meta["errors"], max_error)
+        out.append((np.array(meta["bounds"]), partial(load_chunk_level, Path(path).with_suffix(".npz"), level)))
+    return out
+
+
+def build_terrain(lod_jsons: list[str], inputs: dict, scene_crs: str, gsd: float, terrain: str, ground_cfg: dict,
+                  out_dsm: str | Path, out_ground: str | Path | None, out_json: str | Path) -> dict:
+    """Render the scene's DSM; with ``terrain: auto`` also find its ground cells (see :mod:`pipeline25d.terrain`).
+
+    ``out_ground`` holds the ground heights (NaN elsewhere); the scene stage interpolates
+    the DTM from it once it knows the check points, which it holds out of the DTM.
+    """
+    from .crs import horizontal_wkt
+    from .terrain import Grid, auto_resolution, csf_ground, render_height_map, trim_object_edges, write_float_geotiff
+
+    chunks = _lod_chunk_loaders(lod_jsons, 0.0)
+    lo = np.min([b[0] for b, _ in chunks], axis=0)
+    hi = np.max([b[1] for b, _ in chunks], axis=0)
+    bounds_xy = (lo[0], lo[1], hi[0], hi[1])
+    res = ground_cfg["resolution"]
+    res = auto_resolution(bounds_xy, gsd) if res == "auto" else float(res)
+    grid = Grid.covering(bounds_xy, res)
+    chunks = _lod_chunk_loaders(lod_jsons, res / 4)
+    log.info("DSM: %d x %d cells of %.2f m from %d chunks", grid.width, grid.height, res, len(chunks))
+    dsm = render_height_map(chunks, grid)
+    wkt = horizontal_wkt(scene_crs)
+    write_float_geotiff(out_dsm, dsm, grid, wkt)
+    record = {"dsm": str(out_dsm), "resolution": res, "dsm_cells": int(np.isfinite(dsm).sum())}
+    if terrain == "auto":
+        own = _own_terrain(inputs, scene_crs, grid, res)
+        sources = []
+        seed = np.full(dsm.shape, np.nan)
+        if own["districts"] != sorted(inputs):
+            cloth = ground_cfg["cloth_resolution"]
+            cloth = 2 * res if cloth == "auto" else float(cloth)
+            ground = trim_object_edges(csf_ground(dsm, grid, ground_cfg["max_object_size"], cloth,
+                                                  ground_cfg["rigidness"], ground_cfg["class_threshold"]))
+            seed[ground] = dsm[ground]
+            sources.append("model surface (nadir DSM, Cloth Simulation Filter)")
+        if own["districts"]:
+            have = np.isfinite(own["heights"])
+            seed[have] = own["heights"][have]
+            sources.append("the inputs' own terrain (CityJSON TINRelief or ground objects) of "
+                           + ", ".join(own["districts"]))
+        if not np.isfinite(seed).any():
+            raise ValueError("terrain: auto found no ground in the model; give a DTM (terrain: <path>) "
+                             "or terrain: flat")
+        write_float_geotiff(out_ground, seed, grid, wkt)
+        valid = np.isfinite(dsm)
+        record.update({"source": " + ".join(sources), "ground": str(out_ground),
+                       "ground_share": float(np.isfinite(seed)[valid].mean()) if valid.any() else 0.0,
+                       "relief_m": float(np.nanmax(seed) - np.nanmin(seed))})
+        log.info("ground from %s: %.1f%% of the model's cells, relief %.1f m", record["source"],
+                 100 * record["ground_share"], record["relief_m"])
+    elif terrain == "flat":
+        record.update({"source": "flat plane at z0"})
+    else:
+        record.update({"source": f"user DTM {terrain}", "dtm": terrain})
+    write_json(out_json, record)
+    return record
+
+
+def _own_terrain(inputs: dict, scene_crs: str, grid, res: float) -> dict:
+    """Heights of the inputs' own terrain (CityJSON TINRelief / ground objects) on ``grid``."""
+    from .chunks import chunk_origin
+    from .formats import detect_format
+    from .formats.cityjson import load_cityjson_terrain
+    from .terrain import render_height_map
+
+    districts, chunks = [], []
+    for name, spec in sorted(inputs.items()):
+        fmt = spec.get("format", "auto")
+        if (detect_format(Path(spec["path"])) if fmt == "auto" else fmt) != "cityjson":
+            continue
+        mesh = load_cityjson_terrain(spec["path"], scene_crs, src_crs=spec.get("crs"))
+        if not mesh.n_triangles:
+            continue
+        districts.append(name)
+        b = mesh.bounds()
+        chunks.append((b, lambda b=b, parts=mesh.parts: (chunk_origin(b), parts)))
+    heights = render_height_map(chunks, grid) if chunks else None
+    return {"districts": districts, "heights": heights}
+
+
 # -- scene: reference plane and GCP candidates --------------------------------------------------
-def scene_setup(lod_jsons: list[str], terrain: str, z0_cfg, gcp_cfg: dict, scene_crs: str,
-                out_scene: str | Path, out_candidates: str | Path) -> dict:
-    """Scene bounds, reference plane z0 and the GCP candidates (with check-point roles)."""
+def scene_setup(lod_jsons: list[str], dsm_path: str | Path, terrain: str, terrain_path: str | Path | None,
+                z0_cfg, projection: str, gcp_cfg: dict, scene_crs: str, gsd: float, perspective_ids: list[str],
+                out_scene: str | Path, out_candidates: str | Path, out_dtm: str | Path | None = None,
+                max_object_size: float = 100.0) -> dict:
+    """Reference plane z0, projection mode, GCP candidates (with check-point roles) and, for
+    ``terrain: auto``, the DTM.
+
+    ``terrain_path``: the ground heights from :func:`build_terrain` (auto) or the user's DTM.
+    With auto, the ground around each check point (within :func:`holdout_radius`) is left
+    out of the DTM's interpolation, so a check point measures how well the DTM predicts
+    ground it has not seen, not the DSM against itself.
+    """
+    from .crs import horizontal_wkt
+    from .gcp_sites import SiteRules, select_sites
+    from .gcps import candidates_from_sites
+    from .raster import DTM
+    from .terrain import interpolate_dtm, read_float_geotiff, write_float_geotiff
+
     metas = [json.loads(Path(p).read_text()) for p in lod_jsons]
     bounds = np.array([m["bounds"] for m in metas])
     lo, hi = bounds[:, 0].min(axis=0), bounds[:, 1].max(axis=0)
-    floor = float(np.median(bounds[:, 0, 2]))
-    height_fn = _terrain_function(terrain, scene_crs, z0_cfg, floor)
+    dsm, grid = read_float_geotiff(dsm_path)
+    xs, ys = grid.cell_centres()
+    seed, radius = None, None
+    if terrain == "flat":
+        level = float(z0_cfg) if z0_cfg != "auto" else float(np.median(bounds[:, 0, 2]))
+        dtm = np.full(dsm.shape, level)
+        height_fn = None
+    elif terrain == "auto":
+        seed, _ = read_float_geotiff(terrain_path)
+        search = int(np.ceil(max_object_size / 2 / grid.res))
+        dtm = interpolate_dtm(seed, search)
+        height_fn = None
+    else:
+        height_fn = DTM(terrain_path, scene_crs, continuous=True).sample
+        dtm = height_fn(xs.ravel(), ys.ravel()).reshape(dsm.shape)
+    covered = np.isfinite(dsm)
+    # auto: the median ground height, rounded to whole metres so a local terrain change does not move it
+    z0 = float(z0_cfg) if z0_cfg != "auto" else float(round(np.median(dtm[covered]))) if covered.any() else float(lo[2])
+    if projection == "auto":
+        projection = "plane" if terrain == "flat" else "terrain"
+    if projection == "terrain" and terrain == "flat":
+        raise ConfigError("config key projection: terrain-relative projection needs a terrain (auto or a DTM path), "
+                          "not terrain: flat")
+    perspectives = [Perspective.from_id(pid) for pid in perspective_ids]
     if gcp_cfg["source"] == "auto":
-        cands = grid_candidates((lo[0], lo[1], hi[0], hi[1]), gcp_cfg["spacing"], height_fn,
-                                gcp_cfg["holdout"], gcp_cfg["seed"])
+        rules = SiteRules(spacing=gcp_cfg["spacing"], radius=gcp_cfg["marker_px"] * gsd,
+                          clearance=gcp_cfg["clearance"], max_height=gcp_cfg["max_height"],
+                          max_roughness=gcp_cfg["max_roughness"], max_slope=gcp_cfg["max_slope"])
+        cands = candidates_from_sites(select_sites(dsm, dtm, grid, rules, perspectives),
+                                      gcp_cfg["holdout"], gcp_cfg["seed"])
+        if seed is not None:
+            radius = holdout_radius(rules)
+            dtm = interpolate_dtm(_without_check_points(seed, grid, cands, radius), search)
+            held = DTM.from_array(dtm, grid.geotransform, continuous=True)
+            for c in cands:
+                c["ground"] = round(float(held.sample(np.array([c["x"]]), np.array([c["y"]]))[0]), 3)
+            log.info("DTM interpolated without the ground within %.1f m of each check point", radius)
     else:
         rows = read_csv(gcp_cfg["source"])
-        cands = assign_roles([{k: r[k] for k in ("id", "x", "y", "z")} for r in rows],
+        xy = np.array([[r["x"], r["y"]] for r in rows]).reshape(-1, 2)
+        ground = (height_fn(xy[:, 0], xy[:, 1]) if height_fn else
+                  np.array([_cell_value(dtm, grid, x, y) for x, y in xy]))
+        cands = assign_roles([{"id": r["id"], "x": r["x"], "y": r["y"], "z": r["z"], "ground": float(g),
+                               "sx": 0.0, "sy": 0.0} for r, g in zip(rows, ground)],
                              gcp_cfg["holdout"], gcp_cfg["seed"])
-    z0 = float(z0_cfg) if z0_cfg != "auto" else (
-        float(statistics.median(c["z"] for c in cands)) if cands else floor)
-    scene = {"bounds": [lo.tolist(), hi.tolist()], "z0": z0, "terrain": terrain,
-             "n_candidates": len(cands), "n_chunks": len(metas)}
+    if terrain == "auto":
+        write_float_geotiff(out_dtm, dtm, grid, horizontal_wkt(scene_crs))
+    dtm_path = out_dtm if terrain == "auto" else terrain_path
+    scene = {"bounds": [lo.tolist(), hi.tolist()], "z0": z0, "terrain": terrain, "projection": projection,
+             "dtm": None if terrain == "flat" else str(dtm_path),
+             "n_candidates": len(cands), "n_check": sum(c["role"] == "check" for c in cands),
+             "dtm_check_holdout_m": radius,
+             "n_chunks": len(metas)}
     write_csv(out_candidates, cands, CANDIDATE_FIELDS)
     write_json(out_scene, scene)
+    log.info("z0 %.2f m, projection %s, %d GCP candidates (%d check points)", z0, projection, len(cands),
+             scene["n_check"])
     return scene
 
 
-def _terrain_function(terrain: str, scene_crs: str, z0_cfg, floor: float):
-    """height(x, y) from a DTM path, or a flat plane (z0, or the median chunk floor)."""
-    if terrain not in ("auto", "flat"):
-        from .raster import DTM
+def holdout_radius(rules) -> float:
+    """Metres of ground around a check point left out of the DTM: the marker's clear ground, at least 5 m."""
+    return max(rules.radius + rules.clearance, 5.0)
 
-        return DTM(terrain, scene_crs).sample
-    level = float(z0_cfg) if z0_cfg != "auto" else floor
-    return lambda x, y: np.full(len(x), level)
+
+def _without_check_points(seed: np.ndarray, grid, cands: list[dict], radius: float) -> np.ndarray:
+    """A copy of the ground heights with the cells within ``radius`` of each check point set to NaN."""
+    out = seed.copy()
+    xs, ys = grid.cell_centres()
+    k = int(np.ceil(radius / grid.res)) + 1
+    for c in cands:
+        if c["role"] != "check":
+            continue
+        col, row = int((c["x"] - grid.xmin) / grid.res), int((grid.ymax - c["y"]) / grid.res)
+        r0, r1, c0, c1 = max(row - k, 0), min(row + k + 1, grid.height), max(col - k, 0), min(col + k + 1, grid.width)
+        near = np.hypot(xs[r0:r1, c0:c1] - c["x"], ys[r0:r1, c0:c1] - c["y"]) <= radius
+        out[r0:r1, c0:c1][near] = np.nan
+    return out
+
+
+def _cell_value(values: np.ndarray, grid, x: float, y: float) -> float:
+    """The value of the grid cell holding (x, y), clamped to the grid."""
+    col = min(max(int((x - grid.xmin) / grid.res), 0), grid.width - 1)
+    row = min(max(int((grid.ymax - y) / grid.res), 0), grid.height - 1)
+    return float(values[row, col])
+
+
+def chunk_ground(bounds: np.ndarray, dtm) -> list:
+    """[lowest, highest, digest] of the DTM under a chunk's footprint.
+
+    Heights are sampled every DTM cell (at most 129 × 129) and widened by GROUND_MARGIN_M;
+    the digest of the samples enters the tile spec, so a tile re-renders when, and only
+    when, the ground under one of its chunks changes.
+    """
+    import hashlib
+
+    lo, hi = np.asarray(bounds, dtype=np.float64)
+    step = abs(dtm.gt[1])
+    nx = int(min(max(np.ceil((hi[0] - lo[0]) / step) + 1, 2), 129))
+    ny = int(min(max(np.ceil((hi[1] - lo[1]) / step) + 1, 2), 129))
+    gx, gy = np.meshgrid(np.linspace(lo[0], hi[0], nx), np.linspace(lo[1], hi[1], ny))
+    g = dtm.sample(gx.ravel(), gy.ravel())
+    digest = hashlib.sha256(np.round(g, 2).tobytes()).hexdigest()[:12]   # cm: float noise does not count
+    return [float(np.min(g)) - GROUND_MARGIN_M, float(np.max(g)) + GROUND_MARGIN_M, digest]
 
 
 # -- plan ---------------------------------------------------------------------------------
 def plan(perspective_id: str, lod_jsons: list[str], scene_json: str | Path, candidates_csv: str | Path,
          gsd: float, tile_size: int, max_error_px: float, crs: str, render: dict, out_plan: str | Path) -> dict:
     """Plan one perspective (see :mod:`pipeline25d.plan`); ``render`` holds render + marker settings."""
+    from .raster import DTM
+
     scene = json.loads(Path(scene_json).read_text())
+    relative = scene["projection"] == "terrain"
+    dtm = DTM(scene["dtm"], crs, continuous=True) if relative else None
     chunks = []
     for p in lod_jsons:
         meta = json.loads(Path(p).read_text())
         chunks.append({"id": meta["chunk"], "district": Path(p).parent.name, "bounds": meta["bounds"],
-                       "errors": meta["errors"]})
+                       "errors": meta["errors"],
+                       "ground": chunk_ground(meta["bounds"], dtm) if relative else None})
+    terrain = {"projection": scene["projection"], "dtm": scene["dtm"] if relative else None}
     result = plan_perspective(Perspective.from_id(perspective_id), chunks, read_csv(candidates_csv),
-                              scene["z0"], gsd, tile_size, max_error_px, crs, render)
+                              scene["z0"], gsd, tile_size, max_error_px, crs, render, terrain)
     write_json(out_plan, result)
     log.info("%s: %d tiles to render, %d empty tiles skipped", perspective_id, len(result["tiles"]),
              result["n_tiles_skipped"])
@@ -120,7 +315,7 @@ def render_tile(plan_path: str | Path, row: int, col: int, lod_dir: str | Path,
                 out_tif: str | Path, out_gcps: str | Path) -> dict:
     """Render tile (row, col) of a plan: RGBA GeoTIFF plus the GCPs seen whole in it."""
     from .crs import horizontal_wkt
-    from .raster import write_rgba_geotiff
+    from .raster import DTM, write_rgba_geotiff
     from .render import TileRenderer, TileView, create_context
 
     pl = read_plan(plan_path)
@@ -129,17 +324,21 @@ def render_tile(plan_path: str | Path, row: int, col: int, lod_dir: str | Path,
     t, gsd, cfg = pl["tile_size"], pl["gsd"], tile["render"]
     chunks = [load_chunk_level(Path(lod_dir) / c["district"] / f"{c['id']}.npz", c["lod"]) for c in tile["chunks"]]
     depth = tuple(tile["depth_range"])
+    ground = DTM(pl["dtm"], pl["crs"], continuous=True).sample if pl.get("projection") == "terrain" else None
     ctx = create_context()
     try:
         renderer = TileRenderer(ctx, ambient=cfg["ambient"], samples=cfg["samples"])
-        rgba = renderer.render_color(chunks, TileView(persp, pl["z0"], tile_extent(pl, row, col), depth, (t, t)))
+        rgba = renderer.render_color(chunks, TileView(persp, pl["z0"], tile_extent(pl, row, col), depth, (t, t),
+                                                      ground))
         seen = []
         if tile["gcps"]:
             margin = int(np.ceil(cfg["marker_px"])) + 2
             extent = tile_extent(pl, row, col, margin)
-            view = TileView(persp, pl["z0"], extent, depth, (t + 2 * margin, t + 2 * margin))
+            view = TileView(persp, pl["z0"], extent, depth, (t + 2 * margin, t + 2 * margin), ground)
             pts = np.array([[c["x"], c["y"], c["z"]] for c in tile["gcps"]])
-            full, sums = renderer.render_markers(chunks, view, pts, cfg["marker_px"] * gsd, cfg["depth_bias"])
+            slopes = np.array([[c["sx"], c["sy"]] for c in tile["gcps"]])
+            full, sums = renderer.render_markers(chunks, view, pts, slopes, cfg["marker_px"] * gsd, cfg["depth_bias"],
+                                                 marker_depth_tolerance(persp, gsd, cfg["max_float_px"]))
             seen = observations(tile["gcps"], full, sums, (extent.xmin, extent.ymax), gsd)
     finally:
         ctx.release()
@@ -148,6 +347,17 @@ def render_tile(plan_path: str | Path, row: int, col: int, lod_dir: str | Path,
     log.info("%s tile %d_%d: %d chunks, coverage %.1f%%, GCPs seen %d of %d", persp.id, row, col,
              len(chunks), 100 * float((rgba[..., 3] > 0).mean()), len(seen), len(tile["gcps"]))
     return {"gcps_candidates": len(tile["gcps"]), "gcps_seen": len(seen)}
+
+
+def marker_depth_tolerance(p: Perspective, gsd: float, max_float_px: float) -> float:
+    """View-depth gap (m) between a marker and the surface under it that shifts its image by max_float_px.
+
+    A marker δ metres above the ground appears δ·cot φ from that ground on the map and
+    δ / sin φ nearer in depth: the tolerance is max_float_px·gsd / cos φ (unbounded at nadir).
+    """
+    if p.elevation == 90:
+        return math.inf
+    return max_float_px * gsd / math.cos(math.radians(p.elevation))
 
 
 # -- gcps, mosaic, warp, tms ---------------------------------------------------------------------
@@ -166,19 +376,42 @@ def mosaic(tiles: list[str], out_vrt: str | Path) -> None:
 
 def warp(mosaic_vrt: str | Path, gcps_csv: str | Path, plan_path: str | Path, warp_cfg: dict,
          out_cog: str | Path, out_json: str | Path) -> dict:
-    """Choose the warp by check-point error, write the COG, and record the scores."""
+    """Choose the warp by cross-validation on the GCPs, write the COG, and record the check-point scores."""
     from .warp import choose, raster_geotransform, warp_to_cog
 
     pl = read_plan(plan_path)
     obs = read_csv(gcps_csv)
-    choice = choose(obs, pl, raster_geotransform(mosaic_vrt), warp_cfg["method"], warp_cfg["order"])
+    gt = raster_geotransform(mosaic_vrt)
+    choice = choose(obs, pl, gt, warp_cfg["method"], warp_cfg["order"])
     warp_to_cog(mosaic_vrt, obs, choice, pl, out_cog)
-    record = {"perspective": pl["perspective"], **choice,
-              "n_observed": len(obs)}
+    record = {"perspective": pl["perspective"], **choice, "n_observed": len(obs),
+              "paper_method": paper_method_on(obs, pl, gt) if pl.get("projection") == "terrain" else None}
     write_json(out_json, record)
     log.info("%s: warp %s (order %s), check-point RMSD %s m", pl["perspective"]["id"], choice["method"],
              choice["order"], None if choice["rmsd_m"] is None else round(choice["rmsd_m"], 3))
     return record
+
+
+def paper_method_on(obs: list[dict], plan: dict, gt: tuple[float, ...]) -> dict | None:
+    """Check-point error of the paper's method (plane at z0 + polynomial warp) on the same GCPs.
+
+    Marker positions are the analytic plane projection of each observed GCP, so only the
+    method differs from the terrain-relative figure, not the points.
+    """
+    from .camera import project
+    from .warp import MIN_GCPS, residuals
+
+    p = Perspective.from_id(plan["perspective"]["id"])
+    if not obs or p.elevation == 90:   # at nadir both methods are the same orthophoto
+        return None
+    m = project(np.array([[r["x"], r["y"], r["z"]] for r in obs]), p, plan["z0"])
+    planar = [{**r, "map_x": float(a), "map_y": float(b)} for r, (a, b) in zip(obs, m[:, :2])]
+    n_gcp = sum(r["role"] == "gcp" for r in obs)
+    orders = [k for k in (3, 2, 1) if n_gcp >= MIN_GCPS[k]]
+    if not orders:
+        return {"order": None, "rmsd_m": None, "rmsd_px": None, "max_m": None,
+                "check_note": f"n/a ({n_gcp} GCPs)"}
+    return residuals("polynomial", orders[0], planar, gt, plan["gsd"])
 
 
 def tms(cog: str | Path, zoom: str, out_dir: str | Path, processes: int = 1) -> None:

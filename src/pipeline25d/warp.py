@@ -1,10 +1,14 @@
-"""Orthorectification: choose a warp by check-point error, then gdalwarp the mosaic.
+"""Orthorectification: choose a warp by cross-validation on the GCPs, then gdalwarp the mosaic.
 
-Ground in a map-aligned render is exact on the reference plane z0 and displaced by
-(z - z0)·cot φ along the view direction elsewhere; the warp maps image positions of GCPs
-to their true (x, y). Methods: ``none`` (the render's own geotransform), polynomial of
-order 1-3, or thin-plate spline. Each is fitted on the GCPs only and scored on the
-held-out check points with GDAL's own GCP transformer, the one gdalwarp uses.
+In plane mode, ground in a map-aligned render is exact on the reference plane z0 and
+displaced by (z − z0)·cot φ along the view direction elsewhere; in terrain mode by its
+height above the DTM. The warp maps image positions of GCPs to their true (x, y).
+Methods: ``none`` (the render's own geotransform), polynomial of order 1-3, or thin-plate
+spline, all through GDAL's own GCP transformer (the one gdalwarp uses).
+
+The choice uses the GCPs alone (k-fold cross-validation); the held-out check points are
+scored only after it, so their RMSD is an honest estimate. Fewer than
+:data:`MIN_CHECK_POINTS` check points give no figure ("n/a"), never 0.
 """
 
 from __future__ import annotations
@@ -23,6 +27,9 @@ from .raster import gdal
 log = logging.getLogger(__name__)
 
 MIN_GCPS = {1: 3, 2: 6, 3: 10, "tps": 3}   # gdal's minimum GCP counts per polynomial order
+MIN_CHECK_POINTS = 5                       # fewer check points than this: the RMSD is reported as n/a
+CV_FOLDS = 5
+CV_MAX_GCPS = 600                          # cross-validation subsamples larger GCP sets (TPS is cubic in n)
 
 
 def to_pixels(rows: list[dict], gt: tuple[float, ...]) -> np.ndarray:
@@ -54,37 +61,74 @@ def predict(method: str, order: int, train: list[dict], query: list[dict], gt: t
     return out
 
 
+def _errors(method: str, order: int, train: list[dict], query: list[dict], gt: tuple[float, ...]) -> np.ndarray:
+    """(n,) metres between the query rows' predicted and true (x, y)."""
+    xy = predict(method, order, train, query, gt)
+    return np.hypot(xy[:, 0] - [r["x"] for r in query], xy[:, 1] - [r["y"] for r in query])
+
+
 def residuals(method: str, order: int, obs: list[dict], gt: tuple[float, ...], gsd: float) -> dict:
-    """Check-point error of a method fitted on the GCPs: RMSD and max, metres and pixels."""
+    """Check-point error of a method fitted on the GCPs: RMSD and max, metres and pixels.
+
+    With fewer than MIN_CHECK_POINTS check points the figures are None and ``check_note``
+    says how many there were.
+    """
     train = [r for r in obs if r["role"] == "gcp"]
     check = [r for r in obs if r["role"] == "check"]
     result = {"method": method, "order": order, "n_gcp": len(train), "n_check": len(check),
-              "rmsd_m": None, "rmsd_px": None, "max_m": None}
-    if not check:
+              "rmsd_m": None, "rmsd_px": None, "max_m": None, "check_note": f"n/a ({len(check)} check points)"}
+    if len(check) < MIN_CHECK_POINTS:
         return result
-    xy = predict(method, order, train, check, gt)
-    err = np.hypot(xy[:, 0] - [r["x"] for r in check], xy[:, 1] - [r["y"] for r in check])
+    err = _errors(method, order, train, check, gt)
     rmsd = float(np.sqrt(np.nanmean(err ** 2)))
-    return {**result, "rmsd_m": rmsd, "rmsd_px": rmsd / gsd, "max_m": float(np.nanmax(err))}
+    return {**result, "rmsd_m": rmsd, "rmsd_px": rmsd / gsd, "max_m": float(np.nanmax(err)),
+            "check_note": f"{len(check)} check points"}
+
+
+def cross_validated_rmsd(method: str, order: int, gcps: list[dict], gt: tuple[float, ...],
+                         folds: int = CV_FOLDS, seed: int = 0) -> float | None:
+    """k-fold cross-validated RMSD (m) of a method on the GCPs alone; None where a fold cannot be fitted."""
+    if method == "none":
+        return float(np.sqrt(np.mean(_errors("none", 0, [], gcps, gt) ** 2))) if gcps else None
+    rng = np.random.default_rng(seed)
+    rows = [gcps[i] for i in rng.permutation(len(gcps))[:CV_MAX_GCPS]]
+    need = MIN_GCPS["tps" if method == "tps" else order]
+    fold = np.arange(len(rows)) % folds
+    errs = []
+    for k in range(folds):
+        train = [r for r, f in zip(rows, fold) if f != k]
+        test = [r for r, f in zip(rows, fold) if f == k]
+        if len(train) < need:
+            return None
+        if test:
+            errs.append(_errors(method, order, train, test, gt))
+    err = np.concatenate(errs) if errs else np.array([np.nan])
+    return float(np.sqrt(np.nanmean(err ** 2))) if np.isfinite(err).any() else None
 
 
 def max_relief_displacement_px(obs: list[dict], plan: dict) -> float:
-    """Largest |z − z0|·cot φ over the observed GCPs, in pixels."""
+    """Largest |height above the reference|·cot φ over the observed GCPs, in pixels.
+
+    The reference is the DTM under each GCP in terrain mode, the plane z0 in plane mode.
+    """
     el = plan["perspective"]["elevation"]
     if el == 90 or not obs:
         return 0.0
     cot = 1.0 / math.tan(math.radians(el))
-    return max(abs(r["z"] - plan["z0"]) for r in obs) * cot / plan["gsd"]
+    relative = plan.get("projection") == "terrain"
+    return max(abs(r["z"] - (r["ground"] if relative else plan["z0"])) for r in obs) * cot / plan["gsd"]
 
 
 def choose(obs: list[dict], plan: dict, gt: tuple[float, ...], method: str, order: int) -> dict:
     """The warp to apply and the scores behind the choice.
 
     ``auto``: none where relief displacement stays under half a pixel, otherwise the
-    candidate (none, polynomial 1-3, tps) with the lowest check-point RMSD.
+    candidate (none, polynomial 1-3, tps) with the lowest cross-validated RMSD on the
+    GCPs. Check-point figures of every candidate are recorded, but none enters the choice.
     """
-    n_gcp = sum(r["role"] == "gcp" for r in obs)
-    baseline = residuals("none", 0, obs, gt, plan["gsd"])
+    gcps = [r for r in obs if r["role"] == "gcp"]
+    n_gcp = len(gcps)
+    baseline = {**residuals("none", 0, obs, gt, plan["gsd"]), "cv_rmsd_m": cross_validated_rmsd("none", 0, gcps, gt)}
     relief = max_relief_displacement_px(obs, plan)
     if method == "none" or (method == "auto" and relief < 0.5):
         return {**baseline, "relief_px": relief, "candidates": [baseline]}
@@ -97,11 +141,12 @@ def choose(obs: list[dict], plan: dict, gt: tuple[float, ...], method: str, orde
     else:
         candidates = [("polynomial", k) for k in (1, 2, 3) if n_gcp >= MIN_GCPS[k]]
         candidates += [("tps", 0)] if n_gcp >= MIN_GCPS["tps"] else []
-    scored = [baseline] + [residuals(m, o, obs, gt, plan["gsd"]) for m, o in candidates]
+    scored = [baseline] + [{**residuals(m, o, obs, gt, plan["gsd"]), "cv_rmsd_m": cross_validated_rmsd(m, o, gcps, gt)}
+                           for m, o in candidates]
     if method != "auto":
         best = scored[-1] if candidates else baseline
     else:
-        best = min(scored, key=lambda s: math.inf if s["rmsd_m"] is None else s["rmsd_m"])
+        best = min(scored, key=lambda s: math.inf if s["cv_rmsd_m"] is None else s["cv_rmsd_m"])
     return {**best, "relief_px": relief, "candidates": scored}
 
 

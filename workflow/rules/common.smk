@@ -24,7 +24,7 @@ MAX_LOD_ERROR = config["gsd"] * config["lod"]["max_error_px"]
 TERRAIN_FILE = [] if config["terrain"] in ("auto", "flat") else [config["terrain"]]
 GCP_FILE = [] if config["gcp"]["source"] == "auto" else [config["gcp"]["source"]]
 RENDER_SETTINGS = {**config["render"], "marker_px": config["gcp"]["marker_px"],
-                   "depth_bias": config["gcp"]["depth_bias"]}
+                   "depth_bias": config["gcp"]["depth_bias"], "max_float_px": config["gcp"]["max_float_px"]}
 
 
 wildcard_constraints:

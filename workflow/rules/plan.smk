@@ -1,20 +1,26 @@
-# Scene set-up (reference plane, GCP candidates) and the per-perspective plan checkpoint.
+# Scene set-up (reference plane, projection, GCP candidates on exposed ground) and the per-perspective plan checkpoint.
 
 
 rule scene:
     input:
         indexes=expand(f"{RESULTS}/chunks/{{district}}/index.json", district=DISTRICTS),
         lods=all_lod_meta,
-        terrain=TERRAIN_FILE,
+        dsm=rules.terrain.output.dsm,
+        terrain=rules.terrain.output.ground if config["terrain"] == "auto" else TERRAIN_FILE,
         gcps=GCP_FILE,
     output:
         scene=f"{RESULTS}/scene.json",
         candidates=f"{RESULTS}/gcps/candidates.csv",
+        dtm=[f"{RESULTS}/terrain/dtm.tif"] if config["terrain"] == "auto" else [],
     params:
         terrain=config["terrain"],
         z0=config["z0"],
+        projection=config["projection"],
         gcp=config["gcp"],
         crs=config["crs"],
+        gsd=config["gsd"],
+        perspectives=PERSPECTIVE_IDS,
+        ground=config["ground"],
     log:
         f"{RESULTS}/logs/scene.log",
     benchmark:

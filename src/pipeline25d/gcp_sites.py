@@ -1,0 +1,162 @@
+"""Where GCP candidates go: exposed, locally planar ground, clear along every view, evenly spread.
+
+Inputs are the scene's DSM (the model's top surface, from the nadir render) and DTM on one
+grid. A cell is a possible site where
+
+* the surface is ground: |DSM − DTM| ≤ ``max_height`` m;
+* it is exposed: no above-ground cell within marker radius + ``clearance`` m (the paper
+  leaves out "areas surrounding buildings");
+* the ground is locally planar (the DSM deviates from its own local mean by at most
+  ``max_roughness`` m over the marker) and no steeper than ``max_slope`` degrees;
+* the line of sight toward the camera of every requested perspective stays above the DSM
+  (checked for the marker's centre and its two side rims).
+
+The scene is divided into squares of ``spacing`` metres; each square gets the valid site
+nearest its centre, so candidates are evenly spread at the configured density. The render
+still decides per view (see :mod:`pipeline25d.render`): this only avoids wasting candidates.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .perspectives import Perspective
+from .terrain import Grid
+
+OPTIONS_PER_SQUARE = 6       # nearest-to-centre sites tested for line of sight per square
+SIGHT_MARGIN_M = 0.05        # the DSM must stay this far below a line of sight
+MAX_SIGHT_M = 400.0          # longest line of sight checked (horizontal metres)
+
+
+@dataclass(frozen=True)
+class SiteRules:
+    """Thresholds of :func:`select_sites` (metres and degrees)."""
+
+    spacing: float
+    radius: float              # marker radius on the ground
+    clearance: float = 2.0
+    max_height: float = 0.2
+    max_roughness: float = 0.05
+    max_slope: float = 30.0
+
+
+def ground_mask(dsm: np.ndarray, dtm: np.ndarray, max_height: float) -> np.ndarray:
+    """Cells whose top surface is the ground: |DSM − DTM| ≤ max_height."""
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(dsm) & np.isfinite(dtm) & (np.abs(dsm - dtm) <= max_height)
+
+
+def local_slope(dsm: np.ndarray, k: int, res: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(dz/dx, dz/dy, roughness) per cell over a (2k+1)² window; x east, y north.
+
+    Slopes are central differences across the window; roughness is |DSM − window mean|,
+    which is zero on any plane and grows with curvature and clutter.
+    """
+    from scipy import ndimage as ndi
+
+    filled = np.where(np.isfinite(dsm), dsm, np.nan)
+    sx = np.full(dsm.shape, np.nan)
+    sy = np.full(dsm.shape, np.nan)
+    sx[:, k:-k] = (filled[:, 2 * k:] - filled[:, :-2 * k]) / (2 * k * res)
+    sy[k:-k, :] = (filled[:-2 * k, :] - filled[2 * k:, :]) / (2 * k * res)   # row 0 is north
+    mean = ndi.uniform_filter(np.nan_to_num(filled), size=2 * k + 1, mode="nearest")
+    return sx, sy, np.abs(filled - mean)
+
+
+def select_sites(dsm: np.ndarray, dtm: np.ndarray, grid: Grid, rules: SiteRules,
+                 perspectives: list[Perspective]) -> dict[str, np.ndarray]:
+    """Candidate sites: arrays x, y, z (DSM at the site), ground (DTM), sx, sy (slopes)."""
+    from scipy import ndimage as ndi
+
+    ground = ground_mask(dsm, dtm, rules.max_height)
+    # exposed: distance to the nearest non-ground cell, in metres
+    exposed = ndi.distance_transform_edt(ground) * grid.res >= rules.radius + rules.clearance
+    k = max(1, int(math.ceil(rules.radius / grid.res)))
+    sx, sy, rough = local_slope(dsm, k, grid.res)
+    with np.errstate(invalid="ignore"):
+        slope_deg = np.degrees(np.arctan(np.hypot(sx, sy)))
+        ok = exposed & (rough <= rules.max_roughness) & (slope_deg <= rules.max_slope)
+    rows, cols = np.nonzero(ok)
+    xs, ys = grid.cell_centres()
+    x, y = xs[rows, cols], ys[rows, cols]
+    # nearest-to-centre options per spacing square
+    sq_x, sq_y = np.floor(x / rules.spacing), np.floor(y / rules.spacing)
+    dist = np.hypot(x - (sq_x + 0.5) * rules.spacing, y - (sq_y + 0.5) * rules.spacing)
+    order = np.lexsort((dist, sq_y, sq_x))
+    key = np.column_stack([sq_x[order], sq_y[order]])
+    first = np.r_[True, np.any(key[1:] != key[:-1], axis=1)]
+    rank = np.arange(len(order)) - np.maximum.accumulate(np.where(first, np.arange(len(order)), 0))
+    options = order[rank < OPTIONS_PER_SQUARE]
+    ro, co = rows[options], cols[options]
+    visible = _clear_lines_of_sight(dsm, grid, x[options], y[options], dsm[ro, co],
+                                    np.column_stack([sx[ro, co], sy[ro, co]]), rules.radius, perspectives)
+    options = options[visible]
+    # the first (nearest) visible option of each square
+    key = np.column_stack([sq_x[options], sq_y[options]])
+    first = np.r_[True, np.any(key[1:] != key[:-1], axis=1)] if len(options) else np.zeros(0, bool)
+    pick = options[first]
+    r, c = rows[pick], cols[pick]
+    # Off the cell centre by a fraction of a cell (a hash of the square, so stable): markers
+    # centred on pixel corners would give exact centroids and hide the method's own resolution.
+    jx, jy = _jitter(sq_x[pick], sq_y[pick])
+    px, py = x[pick] + jx * grid.res, y[pick] + jy * grid.res
+    dz = sx[r, c] * jx * grid.res + sy[r, c] * jy * grid.res   # along the local ground plane
+    return {"x": px, "y": py, "z": dsm[r, c] + dz, "ground": dtm[r, c] + dz, "sx": sx[r, c], "sy": sy[r, c],
+            "square_col": sq_x[pick].astype(np.int64), "square_row": sq_y[pick].astype(np.int64)}
+
+
+def _jitter(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Deterministic offsets in [-0.4, 0.4) per integer pair (a, b), by an integer hash."""
+    h = (a.astype(np.int64) * 73856093) ^ (b.astype(np.int64) * 19349663)
+    h = (h * 2654435761) % (2 ** 32)
+    return (h % 1000) / 1000 * 0.8 - 0.4, ((h // 1000) % 1000) / 1000 * 0.8 - 0.4
+
+
+def _clear_lines_of_sight(dsm: np.ndarray, grid: Grid, x: np.ndarray, y: np.ndarray, z: np.ndarray,
+                          slopes: np.ndarray, radius: float, perspectives: list[Perspective],
+                          batch: int = 4096) -> np.ndarray:
+    """True where, in every perspective, the rays to the camera from the site's centre and
+    side rims stay SIGHT_MARGIN_M above the DSM (nearest-cell samples; outside = clear).
+
+    Rim heights follow the site's ground plane (``slopes``: (n, 2) dz/dx, dz/dy).
+    """
+    top = np.nanmax(dsm) if np.isfinite(dsm).any() else 0.0
+    ok = np.ones(len(x), dtype=bool)
+    for p in perspectives:
+        if p.elevation == 90:
+            continue
+        t_ = math.radians(p.azimuth)
+        back = -np.array([math.sin(t_), math.cos(t_)])          # from the site toward the camera
+        side = np.array([back[1], -back[0]])
+        tan_e = math.tan(math.radians(p.elevation))
+        for lo in range(0, len(x), batch):
+            idx = np.arange(lo, min(lo + batch, len(x)))
+            idx = idx[ok[idx]]
+            if not len(idx):
+                continue
+            reach = np.minimum((top - z[idx]) / tan_e, MAX_SIGHT_M)
+            steps = np.arange(grid.res, max(float(reach.max()), grid.res) + grid.res, grid.res)
+            for off in (0.0, radius, -radius):
+                ox, oy = x[idx] + off * side[0], y[idx] + off * side[1]
+                oz = z[idx] + off * (slopes[idx, 0] * side[0] + slopes[idx, 1] * side[1])
+                blocked = _ray_blocked(dsm, grid, ox, oy, oz, back, tan_e, steps, reach)
+                ok[idx[blocked]] = False
+    return ok
+
+
+def _ray_blocked(dsm: np.ndarray, grid: Grid, x: np.ndarray, y: np.ndarray, z: np.ndarray, back: np.ndarray,
+                 tan_e: float, steps: np.ndarray, reach: np.ndarray) -> np.ndarray:
+    """Whether the DSM rises above each ray (x, y, z) + t·(back, tan_e), t in steps ≤ reach."""
+    h, w = dsm.shape
+    px = x[:, None] + steps[None] * back[0]
+    py = y[:, None] + steps[None] * back[1]
+    col = np.floor((px - grid.xmin) / grid.res).astype(np.int64)
+    row = np.floor((grid.ymax - py) / grid.res).astype(np.int64)
+    inside = (col >= 0) & (col < w) & (row >= 0) & (row < h) & (steps[None] <= reach[:, None])
+    surf = np.full(px.shape, -np.inf)
+    surf[inside] = dsm[row[inside], col[inside]]
+    surf = np.nan_to_num(surf, nan=-np.inf)
+    return np.any(surf > z[:, None] + steps[None] * tan_e - SIGHT_MARGIN_M, axis=1)

@@ -1,0 +1,214 @@
+"""Ground-offset evaluation against synthetic maps with exactly known shifts."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from pipeline25d.evaluate import ground_mask_from_rasters, ground_offsets, main
+from pipeline25d.raster import gdal, write_rgba_geotiff
+
+GSD = 0.5
+E0, N0 = 691000.0, 5334000.0          # UTM 32N, top-left corner of the big texture
+N = 640                               # big periodic texture, px
+
+
+def _wkt() -> str:
+    from osgeo import osr
+
+    srs = osr.SpatialReference()
+    srs.ImportFromEPSG(25832)
+    return srs.ExportToWkt()
+
+
+def texture(seed: int, n: int = N) -> np.ndarray:
+    """Periodic, band-limited noise (features ~2-8 px), grey levels around 128, float."""
+    f = np.fft.fft2(np.random.default_rng(seed).standard_normal((n, n)))
+    k = np.hypot(np.fft.fftfreq(n)[:, None], np.fft.fftfreq(n)[None, :])
+    img = np.real(np.fft.ifft2(f * np.exp(-2 * (2.5 * k) ** 2) * (1 - np.exp(-(8 * k) ** 2))))
+    return (img - img.mean()) / img.std() * 40 + 128
+
+
+def fourier_shift(img: np.ndarray, d_col: float, d_row: float) -> np.ndarray:
+    """Content moved by (+d_col, +d_row) px (exact for a periodic band-limited image)."""
+    return np.real(np.fft.ifft2(ndimage.fourier_shift(np.fft.fft2(img), (d_row, d_col))))
+
+
+def upsample2(img: np.ndarray) -> np.ndarray:
+    """Exact 2x band-limited interpolation of a periodic image (fine pixel 2i = coarse pixel i)."""
+    n = img.shape[0]
+    spec = np.zeros((2 * n, 2 * n), complex)
+    spec[n // 2:n // 2 + n, n // 2:n // 2 + n] = np.fft.fftshift(np.fft.fft2(img))
+    return np.real(np.fft.ifft2(np.fft.ifftshift(spec))) * 4
+
+
+def write_map(path, grey: np.ndarray, col0: float, row0: float, alpha: np.ndarray | None = None,
+              gsd: float = GSD) -> str:
+    """Write a grey float image as RGBA GeoTIFF whose top-left corner is big-texture pixel corner (col0, row0)."""
+    g = np.clip(np.round(grey), 0, 255).astype(np.uint8)
+    rgba = np.dstack([g, g, (g * 0.8 + 20).astype(np.uint8), np.full_like(g, 255) if alpha is None else alpha])
+    write_rgba_geotiff(path, rgba, (E0 + col0 * GSD, gsd, 0.0, N0 - row0 * GSD, 0.0, -gsd), _wkt())
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def tex() -> np.ndarray:
+    return texture(1)
+
+
+@pytest.fixture
+def nadir(tmp_path, tex) -> str:
+    return write_map(tmp_path / "az000_el90.tif", tex[40:424, 24:472], 24, 40)     # 384 x 448 px
+
+
+def test_constant_subpixel_shift_and_other_extent(tmp_path, tex, nadir):
+    # ground 1.3 px east and 0.7 px south (map dy = -0.7) in the oblique; extent and origin differ
+    moved = fourier_shift(tex, 1.3, 0.7)
+    obl = write_map(tmp_path / "az045_el45.tif", moved[10:500, 60:620], 60, 10)
+    res = ground_offsets(obl, nadir, step_px=48)
+    s = res.summary()
+    assert not res.resampled and not res.note and res.n_failed == 0 and res.n_ok >= 40
+    assert res.n_windows == res.n_ok + res.n_failed
+    assert s["bias_x_px"] == pytest.approx(1.3, abs=0.05)
+    assert s["bias_y_px"] == pytest.approx(-0.7, abs=0.05)
+    assert s["rms_px"] == pytest.approx(np.hypot(1.3, 0.7), abs=0.05)
+    assert s["bias_x_m"] == pytest.approx(1.3 * GSD, abs=0.025)
+    assert np.abs(res.dx_px - 1.3).max() < 0.1 and np.abs(res.dy_px + 0.7).max() < 0.1
+    assert res.quality.min() > 0.9
+
+
+def test_sign_convention_from_georeferencing(tmp_path, tex, nadir):
+    # same pixels, origin 2 px east and 1 px north: every ground feature shows 2 px east, 1 px north
+    obl = write_map(tmp_path / "obl.tif", tex[40:424, 24:472], 24 + 2, 40 - 1)
+    res = ground_offsets(obl, nadir)
+    s = res.summary()
+    assert s["bias_x_px"] == pytest.approx(2.0, abs=0.01)
+    assert s["bias_y_px"] == pytest.approx(1.0, abs=0.01)
+
+
+def test_origin_off_grid_by_a_fraction(tmp_path, tex, nadir):
+    # origin 0.25 px east and 0.125 px north of the nadir grid: paired without resampling
+    obl = write_map(tmp_path / "obl.tif", fourier_shift(tex, 0.4, -0.2)[40:424, 24:472], 24 + 0.25, 40 - 0.125)
+    res = ground_offsets(obl, nadir)
+    s = res.summary()
+    assert not res.resampled and "off the nadir grid" in res.note and res.n_failed == 0
+    assert s["bias_x_px"] == pytest.approx(0.4 + 0.25, abs=0.05)
+    assert s["bias_y_px"] == pytest.approx(0.2 + 0.125, abs=0.05)
+
+
+def test_other_gsd_is_resampled(tmp_path, tex, nadir):
+    # oblique at half the gsd (exact 2x interpolation), ground 0.6 px east, 0.3 px north (nadir px)
+    # fine pixel j's centre lies at coarse pixel j/2 - 0.25: move the content by +0.25 before upsampling
+    fine = upsample2(fourier_shift(tex, 0.6 + 0.25, -0.3 + 0.25))
+    obl = write_map(tmp_path / "obl.tif", fine[2 * 40:2 * 424, 2 * 24:2 * 472], 24, 40, gsd=GSD / 2)
+    res = ground_offsets(obl, nadir)
+    s = res.summary()
+    assert res.resampled and "resampled" in res.note and "resampled" in res.summary_line()
+    assert res.n_ok >= 20
+    assert s["bias_x_px"] == pytest.approx(0.6, abs=0.05)
+    assert s["bias_y_px"] == pytest.approx(0.3, abs=0.05)
+
+
+def test_smooth_shift_field_recovered_per_window(tmp_path, tex, nadir):
+    rows, cols = np.mgrid[0:N, 0:N].astype(float)
+
+    def field(c, r):  # px (east, south); content at texture pixel p comes from p - field(p)
+        return 1.2 * np.sin(2 * np.pi * c / N) + 0.3, 0.9 * np.cos(2 * np.pi * (r + 0.5 * c) / N)
+
+    dc, dr = field(cols, rows)
+    # warp on the 2x-oversampled texture, where cubic interpolation is accurate
+    moved = ndimage.map_coordinates(upsample2(tex), [2 * (rows - dr), 2 * (cols - dc)], order=3, mode="grid-wrap")
+    obl = write_map(tmp_path / "obl.tif", moved, 0, 0)
+    res = ground_offsets(obl, nadir, step_px=48)
+    assert res.n_failed == 0 and res.n_ok >= 50
+    c, r = (res.x - E0) / GSD - 0.5, (N0 - res.y) / GSD - 0.5     # nadir window centres, texture px
+    tc, tr = field(c, r)
+    for _ in range(3):                                             # where that ground shows: q = c + field(q)
+        tc, tr = field(c + tc, r + tr)
+    err = np.hypot(res.dx_px - tc, res.dy_px + tr)
+    assert err.max() < 0.1, err.max()
+
+
+def test_transparent_flat_and_off_ground_windows_excluded(tmp_path, tex):
+    grey = tex[:384, :384].copy()
+    grey[200:330, 30:170] = 130.0                                  # flat (textureless) area
+    nadir = write_map(tmp_path / "nadir.tif", grey, 0, 0)
+    alpha = np.full(grey.shape, 255, np.uint8)
+    alpha[40:130, 200:300] = 0                                     # transparent hole in the oblique
+    obl = write_map(tmp_path / "obl.tif", grey, 0, 0, alpha)
+    x_cut = E0 + 330 * GSD                                         # east of this: not ground
+
+    res = ground_offsets(obl, nadir, ground_mask_fn=lambda x, y: x < x_cut, step_px=32)
+    assert res.n_transparent > 0 and res.n_flat > 0 and res.n_not_ground > 0
+    assert res.n_examined == res.n_grid == res.n_transparent + res.n_flat + res.n_not_ground + res.n_windows
+    half = res.window_px / 2
+    c0, c1 = (res.x - E0) / GSD - half, (res.x - E0) / GSD + half  # window pixel bounds (texture px)
+    r0, r1 = (N0 - res.y) / GSD - half, (N0 - res.y) / GSD + half
+    assert not ((c1 > 200) & (c0 < 300) & (r1 > 40) & (r0 < 130)).any()      # touches the hole
+    assert not ((c0 >= 30) & (c1 <= 170) & (r0 >= 200) & (r1 <= 330)).any()  # inside the flat area
+    assert (c1 <= 330).all()                                                  # off ground
+    assert res.n_failed == 0 and np.abs(res.dx_px).max() < 0.05 and np.abs(res.dy_px).max() < 0.05
+
+
+def test_ground_mask_from_dsm_and_dtm(tmp_path, tex, capsys):
+    nadir = write_map(tmp_path / "nadir.tif", tex[:384, :384], 0, 0)
+    g = gdal()
+    cell = 1.0                                                      # DSM/DTM at 1 m, 256 x 256 cells
+    for name, values in (("dtm", np.full((256, 256), 480.0)), ("dsm", np.full((256, 256), 480.2))):
+        if name == "dsm":
+            values[100:150, 60:110] = 495.0                         # a building: 15 m above ground
+        ds = g.GetDriverByName("GTiff").Create(str(tmp_path / f"{name}.tif"), 256, 256, 1, g.GDT_Float32)
+        ds.SetGeoTransform((E0, cell, 0, N0, 0, -cell))
+        ds.SetProjection(_wkt())
+        ds.GetRasterBand(1).WriteArray(values)
+        ds = None
+    mask = ground_mask_from_rasters(tmp_path / "dsm.tif", tmp_path / "dtm.tif", max_height=0.5, dilate_m=1.0)
+    xs = E0 + np.array([85.5, 59.5, 30.0, 300.0])
+    ys = N0 - np.array([125.5, 125.5, 30.0, 30.0])
+    assert mask(xs, ys).tolist() == [False, False, True, False]   # roof, dilated edge, ground, outside
+    res = ground_offsets(nadir, nadir, ground_mask_fn=mask, step_px=32)
+    assert res.n_not_ground > 0 and res.n_ok > 0
+    half = res.window_px / 2 * GSD
+    hit = ((res.x + half > E0 + 59) & (res.x - half < E0 + 111)
+           & (N0 - res.y + half > 99) & (N0 - res.y - half < 151))
+    assert not hit.any()
+    dem = ["--dsm", str(tmp_path / "dsm.tif"), "--dtm", str(tmp_path / "dtm.tif"), "--step", "32"]
+    assert main(["ground", nadir, nadir, *dem]) == 0
+    assert capsys.readouterr().out == ""                          # the nadir map itself is skipped
+    obl = write_map(tmp_path / "obl.tif", tex[:384, :384], 0, 0)
+    assert main(["ground", obl, nadir, *dem]) == 0
+    assert f"{res.n_not_ground} not ground" in capsys.readouterr().out
+
+
+def test_max_windows_sample_is_seeded(tmp_path, tex, nadir):
+    a = ground_offsets(nadir, nadir, step_px=32, max_windows=12, seed=3)
+    b = ground_offsets(nadir, nadir, step_px=32, max_windows=12, seed=3)
+    assert a.n_windows == 12 and a.n_examined == 12 < a.n_grid
+    assert np.array_equal(a.x, b.x) and np.array_equal(a.y, b.y)
+
+
+def test_unrelated_content_fails_and_prints_na(tmp_path, tex, nadir, capsys):
+    obl = write_map(tmp_path / "az135_el45.tif", texture(2)[40:424, 24:472], 24, 40)
+    res = ground_offsets(obl, nadir)
+    assert res.n_windows > 20 and res.n_ok < 10 and res.n_failed == res.n_windows - res.n_ok
+    assert res.summary()["rms_px"] is None
+    out = tmp_path / "eval.json"
+    assert main(["ground", obl, nadir, "--json", str(out)]) == 0
+    line = capsys.readouterr().out.strip()
+    assert line.startswith(f"az135_el45: {res.n_windows} windows, {res.n_ok} ok, n/a ({res.n_ok} windows)")
+    data = json.loads(out.read_text())
+    assert data["maps"]["az135_el45"]["summary"]["n_failed"] == res.n_failed
+
+
+def test_cli_summary_line_and_json(tmp_path, tex, nadir, capsys):
+    obl = write_map(tmp_path / "az045_el45.tif", fourier_shift(tex, -0.4, 0.6)[40:424, 24:472], 24, 40)
+    out = tmp_path / "eval.json"
+    assert main(["ground", obl, nadir, "--json", str(out)]) == 0
+    line = capsys.readouterr().out.strip()
+    assert line.startswith("az045_el45: ") and " rms 0.7" in line and "bias (-0.40, -0.60) px" in line
+    data = json.loads(out.read_text())["maps"]["az045_el45"]
+    assert data["summary"]["n_ok"] == len(data["windows"]["dx_px"]) == data["summary"]["n_windows"]
+    assert data["summary"]["rms_m"] == pytest.approx(np.hypot(0.4, 0.6) * GSD, abs=0.025)
