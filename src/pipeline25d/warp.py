@@ -30,6 +30,7 @@ MIN_GCPS = {1: 3, 2: 6, 3: 10, "tps": 3}   # gdal's minimum GCP counts per polyn
 MIN_CHECK_POINTS = 5                       # fewer check points than this: the RMSD is reported as n/a
 CV_FOLDS = 5
 CV_MAX_GCPS = 600                          # cross-validation subsamples larger GCP sets (TPS is cubic in n)
+WARP_GAIN, WARP_MIN_GAIN_PX = 1.1, 0.1     # auto warps only where none's CV error exceeds 1.1 × best + 0.1 px
 
 
 def to_pixels(rows: list[dict], gt: tuple[float, ...]) -> np.ndarray:
@@ -147,6 +148,10 @@ def choose(obs: list[dict], plan: dict, gt: tuple[float, ...], method: str, orde
         best = scored[-1] if candidates else baseline
     else:
         best = min(scored, key=lambda s: math.inf if s["cv_rmsd_m"] is None else s["cv_rmsd_m"])
+        # A warp resamples the whole map: take one only where it clearly beats none.
+        if baseline["cv_rmsd_m"] is not None and best["cv_rmsd_m"] is not None and \
+                baseline["cv_rmsd_m"] <= WARP_GAIN * best["cv_rmsd_m"] + WARP_MIN_GAIN_PX * plan["gsd"]:
+            best = baseline
     return {**best, "relief_px": relief, "candidates": scored}
 
 

@@ -1,0 +1,104 @@
+"""Terrain from the model (CSF on the detrended DSM, DTM fill) and GCP site selection, against exact truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline25d.gcp_sites import SiteRules, select_sites
+from pipeline25d.perspectives import Perspective
+from pipeline25d.terrain import Grid, csf_ground, interpolate_dtm, trim_object_edges
+from pipeline25d.warp import MIN_CHECK_POINTS, choose, residuals
+
+E0, N0 = 600000.0, 5250000.0
+
+
+def rugged_scene(n: int = 300, seed: int = 0):
+    """A 1 m DSM of steep terrain (~200 m relief) with 40 flat-roofed boxes; truth masks and DTM."""
+    grid = Grid(E0, N0 + n, 1.0, n, n)
+    xs, ys = grid.cell_centres()
+    terrain = 60 * np.sin((xs - E0) / 90) * np.cos((ys - N0) / 110) + 0.3 * (xs - E0)   # slopes up to ~40°
+    dsm = terrain.copy()
+    objects = np.zeros(dsm.shape, bool)
+    rng = np.random.default_rng(seed)
+    for _ in range(40):
+        r, c = rng.integers(5, n - 30, 2)
+        h, w = rng.integers(8, 25, 2)
+        dsm[r:r + h, c:c + w] = terrain[r:r + h, c:c + w].max() + rng.uniform(6, 40)
+        objects[r:r + h, c:c + w] = True
+    return grid, dsm, terrain, objects
+
+
+def test_csf_on_the_detrended_dsm_finds_the_ground_of_steep_relief():
+    grid, dsm, terrain, objects = rugged_scene()
+    ground = csf_ground(dsm, grid, max_object_m=60, cloth_resolution=2.0, rigidness=2, class_threshold=0.5)
+    assert not (ground & objects).any()                                  # no roof taken as ground
+    recall = ground[~objects].mean()
+    assert recall > 0.97, recall
+    kept = trim_object_edges(ground)
+    dtm = interpolate_dtm(np.where(kept, dsm, np.nan), search_cells=30)
+    err = dtm - terrain
+    assert np.abs(err[kept]).max() < 1e-4                                # ground keeps its own heights (float32 fill)
+    rms = {name: float(np.sqrt(np.mean(err[m] ** 2))) for name, m in
+           (("missed ground", ~objects & ~kept), ("under objects", objects))}
+    # missed ground is mostly on convex crests (the opening cuts them): bounded, not exact
+    assert rms["missed ground"] < 2.5 and rms["under objects"] < 1.5, rms
+
+
+def test_sites_are_exposed_clear_of_objects_and_of_their_lines_of_sight():
+    """Flat ground with one 30 m tower; a camera in the south at 30° cannot see the ground
+    north of the tower up to 30·cot 30° = 52 m: no site may lie there."""
+    n = 200
+    grid = Grid(E0, N0 + n, 1.0, n, n)
+    dsm = np.full((n, n), 10.0)
+    tower = (slice(90, 110), slice(90, 110))                             # rows (north at 0), cols
+    dsm[tower] = 40.0
+    dtm = np.full((n, n), 10.0)
+    rules = SiteRules(spacing=8.0, radius=1.0, clearance=2.0)
+    sites = select_sites(dsm, dtm, grid, rules, [Perspective(0, 30), Perspective(0, 90)])
+    x, y = sites["x"] - E0, sites["y"] - N0                              # tower covers x, y in [90, 110]
+    assert len(x) > 400
+    gap = np.maximum(np.maximum(90 - x, x - 110), np.maximum(90 - y, y - 110))
+    assert gap.min() >= rules.radius + rules.clearance - 1.0             # 1 cell of rasterisation
+    shadow = (x > 90 - rules.radius) & (x < 110 + rules.radius) & (y > 110) & (y < 110 + 30 / np.tan(np.radians(30)))
+    assert not shadow.any()
+    # one site per 8 m square, ids stable per square
+    squares = set(zip(sites["square_col"].tolist(), sites["square_row"].tolist()))
+    assert len(squares) == len(x)
+    np.testing.assert_allclose(sites["z"], 10.0)
+
+
+def _obs(n_gcp: int, n_check: int, offset: float, rng) -> list[dict]:
+    rows = []
+    for i in range(n_gcp + n_check):
+        x, y = rng.uniform(0, 500, 2)
+        noise = rng.normal(0, 0.02, 2)
+        rows.append({"id": f"g{i}", "x": x, "y": y, "z": 0.0, "ground": 0.0, "role": "gcp" if i < n_gcp else "check",
+                     "map_x": x + offset + noise[0], "map_y": y + noise[1]})
+    return rows
+
+
+def test_auto_warp_keeps_none_unless_a_warp_clearly_wins_and_never_looks_at_check_points():
+    rng = np.random.default_rng(2)
+    plan = {"perspective": {"id": "az045_el45", "elevation": 45}, "gsd": 0.5, "z0": 0.0, "projection": "plane"}
+    gt = (0.0, 0.5, 0.0, 500.0, 0.0, -0.5)
+    obs = _obs(60, 20, 0.0, rng)
+    for r in obs:
+        r["z"] = 3.0                                                      # relief 3 m: the warp is considered
+    assert choose(obs, plan, gt, "auto", 3)["method"] == "none"           # nothing to correct
+    shifted = _obs(60, 20, 2.0, rng)
+    for r in shifted:
+        r["z"] = 3.0
+    best = choose(shifted, plan, gt, "auto", 3)
+    assert best["method"] == "polynomial" and best["rmsd_px"] < 0.2      # a 4 px shift is corrected
+    # corrupting the check points' observations changes their score, not the choice
+    broken = [{**r, "map_x": r["map_x"] + 50} if r["role"] == "check" else r for r in shifted]
+    again = choose(broken, plan, gt, "auto", 3)
+    assert (again["method"], again["order"]) == (best["method"], best["order"]) and again["rmsd_m"] > 40
+
+
+@pytest.mark.parametrize("n_check", [0, 1, MIN_CHECK_POINTS - 1])
+def test_too_few_check_points_give_no_figure(n_check):
+    rng = np.random.default_rng(3)
+    res = residuals("none", 0, _obs(20, n_check, 0.0, rng), (0.0, 0.5, 0.0, 500.0, 0.0, -0.5), 0.5)
+    assert res["rmsd_m"] is None and res["check_note"] == f"n/a ({n_check} check points)"
