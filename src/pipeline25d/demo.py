@@ -776,18 +776,24 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--buildings", type=int, default=320, help="number of buildings (default 320)")
     parser.add_argument("--scale", type=float, default=1.0, help="block size factor (default 1.0 = 240 m)")
     args = parser.parse_args(argv)
+    return run_generator(
+        lambda progress: generate_demo_city(args.out_dir, args.seed, args.buildings, args.scale, progress=progress),
+        lambda m: f"demo city: {m['n_buildings']} buildings, {m['n_triangles']} triangles in {args.out_dir}")
+
+
+def run_generator(generate: Callable[[Callable[[str], None]], dict], summary: Callable[[dict], str]) -> int:
+    """Run a scene generator for a CLI: progress lines and a summary on stderr; 2 on a ConfigError."""
 
     def progress(line: str) -> None:
         sys.stderr.write(line + "\n")
         sys.stderr.flush()
 
     try:
-        manifest = generate_demo_city(args.out_dir, args.seed, args.buildings, args.scale, progress=progress)
+        manifest = generate(progress)
     except ConfigError as exc:
         sys.stderr.write(f"error: {exc}\n")
         return 2
-    sys.stderr.write(f"demo city: {manifest['n_buildings']} buildings, {manifest['n_triangles']} triangles "
-                     f"in {args.out_dir}\n")
+    sys.stderr.write(summary(manifest) + "\n")
     return 0
 
 

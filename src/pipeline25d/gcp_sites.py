@@ -57,13 +57,12 @@ def local_slope(dsm: np.ndarray, k: int, res: float) -> tuple[np.ndarray, np.nda
     """
     from scipy import ndimage as ndi
 
-    filled = np.where(np.isfinite(dsm), dsm, np.nan)
     sx = np.full(dsm.shape, np.nan)
     sy = np.full(dsm.shape, np.nan)
-    sx[:, k:-k] = (filled[:, 2 * k:] - filled[:, :-2 * k]) / (2 * k * res)
-    sy[k:-k, :] = (filled[:-2 * k, :] - filled[2 * k:, :]) / (2 * k * res)   # row 0 is north
-    mean = ndi.uniform_filter(np.nan_to_num(filled), size=2 * k + 1, mode="nearest")
-    return sx, sy, np.abs(filled - mean)
+    sx[:, k:-k] = (dsm[:, 2 * k:] - dsm[:, :-2 * k]) / (2 * k * res)
+    sy[k:-k, :] = (dsm[:-2 * k, :] - dsm[2 * k:, :]) / (2 * k * res)   # row 0 is north
+    mean = ndi.uniform_filter(np.nan_to_num(dsm), size=2 * k + 1, mode="nearest")
+    return sx, sy, np.abs(dsm - mean)
 
 
 def select_sites(dsm: np.ndarray, dtm: np.ndarray, grid: Grid, rules: SiteRules,
@@ -86,18 +85,14 @@ def select_sites(dsm: np.ndarray, dtm: np.ndarray, grid: Grid, rules: SiteRules,
     sq_x, sq_y = np.floor(x / rules.spacing), np.floor(y / rules.spacing)
     dist = np.hypot(x - (sq_x + 0.5) * rules.spacing, y - (sq_y + 0.5) * rules.spacing)
     order = np.lexsort((dist, sq_y, sq_x))
-    key = np.column_stack([sq_x[order], sq_y[order]])
-    first = np.r_[True, np.any(key[1:] != key[:-1], axis=1)]
+    first = _starts_of_runs(sq_x[order], sq_y[order])
     rank = np.arange(len(order)) - np.maximum.accumulate(np.where(first, np.arange(len(order)), 0))
     options = order[rank < OPTIONS_PER_SQUARE]
     ro, co = rows[options], cols[options]
     visible = _clear_lines_of_sight(dsm, grid, x[options], y[options], dsm[ro, co],
                                     np.column_stack([sx[ro, co], sy[ro, co]]), rules.radius, perspectives)
     options = options[visible]
-    # the first (nearest) visible option of each square
-    key = np.column_stack([sq_x[options], sq_y[options]])
-    first = np.r_[True, np.any(key[1:] != key[:-1], axis=1)] if len(options) else np.zeros(0, bool)
-    pick = options[first]
+    pick = options[_starts_of_runs(sq_x[options], sq_y[options])]   # the nearest visible option per square
     r, c = rows[pick], cols[pick]
     # Off the cell centre by a fraction of a cell (a hash of the square, so stable): markers
     # centred on pixel corners would give exact centroids and hide the method's own resolution.
@@ -106,6 +101,13 @@ def select_sites(dsm: np.ndarray, dtm: np.ndarray, grid: Grid, rules: SiteRules,
     dz = sx[r, c] * jx * grid.res + sy[r, c] * jy * grid.res   # along the local ground plane
     return {"x": px, "y": py, "z": dsm[r, c] + dz, "ground": dtm[r, c] + dz, "sx": sx[r, c], "sy": sy[r, c],
             "square_col": sq_x[pick].astype(np.int64), "square_row": sq_y[pick].astype(np.int64)}
+
+
+def _starts_of_runs(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(n,) bool: where the sorted key pair (a, b) differs from the previous entry."""
+    if not len(a):
+        return np.zeros(0, dtype=bool)
+    return np.r_[True, (a[1:] != a[:-1]) | (b[1:] != b[:-1])]
 
 
 def _jitter(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

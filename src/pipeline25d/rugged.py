@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 
 from .atomic import atomic_path
-from .demo import CRS, DTM_PIXEL, EPSG_CODE, WALL_SINK, _format_rows, _Group, _write_atomic
+from .demo import CRS, DTM_PIXEL, EPSG_CODE, WALL_SINK, _format_rows, _Group, _write_atomic, run_generator
 from .errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -716,20 +716,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--buildings", type=int, default=250, help="number of buildings (default 250)")
     parser.add_argument("--spacing", type=float, default=5.0, help="terrain grid spacing in metres (default 5)")
     args = parser.parse_args(argv)
-
-    def progress(line: str) -> None:
-        sys.stderr.write(line + "\n")
-        sys.stderr.flush()
-
-    try:
-        manifest = generate_rugged_city(args.out_dir, args.seed, args.size, args.relief, args.buildings,
-                                        args.spacing, progress=progress)
-    except ConfigError as exc:
-        sys.stderr.write(f"error: {exc}\n")
-        return 2
-    sys.stderr.write(f"rugged city: {manifest['n_buildings']} buildings, {manifest['n_triangles']} triangles, "
-                     f"relief {manifest['relief_m']:.1f} m in {args.out_dir}\n")
-    return 0
+    return run_generator(
+        lambda progress: generate_rugged_city(args.out_dir, args.seed, args.size, args.relief, args.buildings,
+                                              args.spacing, progress=progress),
+        lambda m: f"rugged city: {m['n_buildings']} buildings, {m['n_triangles']} triangles, "
+                  f"relief {m['relief_m']:.1f} m in {args.out_dir}")
 
 
 if __name__ == "__main__":

@@ -65,18 +65,16 @@ def load_chunk_level(lod_npz: str | Path, level: int) -> tuple[np.ndarray, list]
 
 
 # -- terrain: DSM from the model, DTM from the model (terrain: auto) ----------------------------
-def _lod_chunk_loaders(lod_jsons: list[str], max_error: float) -> list[tuple[np.ndarray, object]]:
-    """(bounds, load) per chunk; load() -> (origin, parts) at the coarsest LOD within ``max_error`` m."""
+def _lod_chunk_loaders(metas: dict[str, dict], max_error: float) -> list[tuple[np.ndarray, object]]:
+    """(bounds, load) per chunk of {lod json path: its metadata}; load() -> (origin, parts) at
+    the coarsest LOD within ``max_error`` m."""
     from functools import partial
 
     from .lod import choose_level
 
-    out = []
-    for path in lod_jsons:
-        meta = json.loads(Path(path).read_text())
-        level = choose_level(meta["errors"], max_error)
-        out.append((np.array(meta["bounds"]), partial(load_chunk_level, Path(path).with_suffix(".npz"), level)))
-    return out
+    return [(np.array(meta["bounds"]),
+             partial(load_chunk_level, Path(path).with_suffix(".npz"), choose_level(meta["errors"], max_error)))
+            for path, meta in metas.items()]
 
 
 def build_terrain(lod_jsons: list[str], inputs: dict, scene_crs: str, gsd: float, terrain: str, ground_cfg: dict,
@@ -89,21 +87,21 @@ def build_terrain(lod_jsons: list[str], inputs: dict, scene_crs: str, gsd: float
     from .crs import horizontal_wkt
     from .terrain import Grid, auto_resolution, csf_ground, render_height_map, trim_object_edges, write_float_geotiff
 
-    chunks = _lod_chunk_loaders(lod_jsons, 0.0)
-    lo = np.min([b[0] for b, _ in chunks], axis=0)
-    hi = np.max([b[1] for b, _ in chunks], axis=0)
+    metas = {path: json.loads(Path(path).read_text()) for path in lod_jsons}
+    bounds = np.array([m["bounds"] for m in metas.values()])
+    lo, hi = bounds[:, 0].min(axis=0), bounds[:, 1].max(axis=0)
     bounds_xy = (lo[0], lo[1], hi[0], hi[1])
     res = ground_cfg["resolution"]
     res = auto_resolution(bounds_xy, gsd) if res == "auto" else float(res)
     grid = Grid.covering(bounds_xy, res)
-    chunks = _lod_chunk_loaders(lod_jsons, res / 4)
+    chunks = _lod_chunk_loaders(metas, res / 4)
     log.info("DSM: %d x %d cells of %.2f m from %d chunks", grid.width, grid.height, res, len(chunks))
     dsm = render_height_map(chunks, grid)
     wkt = horizontal_wkt(scene_crs)
     write_float_geotiff(out_dsm, dsm, grid, wkt)
     record = {"dsm": str(out_dsm), "resolution": res, "dsm_cells": int(np.isfinite(dsm).sum())}
     if terrain == "auto":
-        own = _own_terrain(inputs, scene_crs, grid, res)
+        own = _own_terrain(inputs, scene_crs, grid)
         sources = []
         seed = np.full(dsm.shape, np.nan)
         if own["districts"] != sorted(inputs):
@@ -136,7 +134,7 @@ def build_terrain(lod_jsons: list[str], inputs: dict, scene_crs: str, gsd: float
     return record
 
 
-def _own_terrain(inputs: dict, scene_crs: str, grid, res: float) -> dict:
+def _own_terrain(inputs: dict, scene_crs: str, grid) -> dict:
     """Heights of the inputs' own terrain (CityJSON TINRelief / ground objects) on ``grid``."""
     from .chunks import chunk_origin
     from .formats import detect_format
