@@ -47,7 +47,8 @@ def test_csf_on_the_detrended_dsm_finds_the_ground_of_steep_relief():
 
 def test_sites_are_exposed_clear_of_objects_and_of_their_lines_of_sight():
     """Flat ground with one 30 m tower; a camera in the south at 30° cannot see the ground
-    north of the tower up to 30·cot 30° = 52 m: no site may lie there."""
+    north of the tower up to 30·cot 30° = 52 m: no site there is clear for that view, and with
+    that view alone no site lies there at all."""
     n = 200
     grid = Grid(E0, N0 + n, 1.0, n, n)
     dsm = np.full((n, n), 10.0)
@@ -61,7 +62,12 @@ def test_sites_are_exposed_clear_of_objects_and_of_their_lines_of_sight():
     gap = np.maximum(np.maximum(90 - x, x - 110), np.maximum(90 - y, y - 110))
     assert gap.min() >= rules.radius + rules.clearance - 1.0             # 1 cell of rasterisation
     shadow = (x > 90 - rules.radius) & (x < 110 + rules.radius) & (y > 110) & (y < 110 + 30 / np.tan(np.radians(30)))
-    assert not shadow.any()
+    assert shadow.sum() > 10 and not sites["clear"][shadow, 0].any() and sites["clear"][:, 1].all()
+    assert sites["clear"][~shadow, 0].mean() > 0.95
+    alone = select_sites(dsm, dtm, grid, rules, [Perspective(0, 30)])
+    ax, ay = alone["x"] - E0, alone["y"] - N0
+    assert len(ax) > 350 and alone["clear"].all()
+    assert not ((ax > 90 - rules.radius) & (ax < 110 + rules.radius) & (ay > 110) & (ay < 110 + 30 / np.tan(np.radians(30)))).any()
     # one site per 8 m square, ids stable per square
     squares = set(zip(sites["square_col"].tolist(), sites["square_row"].tolist()))
     assert len(squares) == len(x)
@@ -102,3 +108,38 @@ def test_too_few_check_points_give_no_figure(n_check):
     rng = np.random.default_rng(3)
     res = residuals("none", 0, _obs(20, n_check, 0.0, rng), (0.0, 0.5, 0.0, 500.0, 0.0, -0.5), 0.5)
     assert res["rmsd_m"] is None and res["check_note"] == f"n/a ({n_check} check points)"
+
+
+def test_dtm_cells_beyond_the_search_reach_take_the_nearest_ground_not_a_nodata_value():
+    """FillNodata works in float32: cells it leaves unfilled must not come back as −1e30."""
+    seed = np.full((60, 80), np.nan)
+    seed[:10, :10] = 3.0
+    seed[50:, 70:] = 5.0
+    dtm = interpolate_dtm(seed, search_cells=5)
+    assert np.isfinite(dtm).all()
+    assert dtm.min() == 3.0 and dtm.max() == 5.0
+    assert dtm[0, 79] in (3.0, 5.0) and dtm[30, 40] in (3.0, 5.0)     # far from both: nearest value
+
+
+def test_sites_closer_than_their_markers_reach_are_thinned_locally():
+    """Spacing below the marker size: no two kept markers may touch in any view (the render
+    would reject both), and removing sites far away does not change which ones are kept."""
+    from scipy.spatial.distance import pdist
+
+    n = 80
+    grid = Grid(E0, N0 + n, 1.0, n, n)
+    dsm = np.full((n, n), 5.0)
+    rules = SiteRules(spacing=2.0, radius=1.0, clearance=0.0)
+    views = [Perspective(0, 90), Perspective(45, 45)]
+    sites = select_sites(dsm, dsm, grid, rules, views)
+    reach = rules.radius + grid.res                                      # flat ground: no stretch
+    assert pdist(np.column_stack([sites["x"], sites["y"]])).min() >= 2 * reach
+    assert len(sites["x"]) > (n / (2 * reach + 2)) ** 2                 # thinning keeps a dense set
+    # the western half alone keeps the same sites away from the cut
+    half = dsm.copy()
+    half[:, 40:] = np.nan
+    west = select_sites(half, half, grid, rules, views)
+    far = sites["x"] - E0 < 30
+    kept = set(zip(sites["square_col"][far].tolist(), sites["square_row"][far].tolist()))
+    kept_west = set(zip(west["square_col"].tolist(), west["square_row"].tolist()))
+    assert kept <= kept_west

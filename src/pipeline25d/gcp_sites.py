@@ -8,7 +8,7 @@ grid. A cell is a possible site where
   leaves out "areas surrounding buildings");
 * the ground is locally planar (the DSM deviates from its own local mean by at most
   ``max_roughness`` m over the marker) and no steeper than ``max_slope`` degrees;
-* the line of sight toward the camera of every requested perspective stays above the DSM
+* the line of sight toward the camera stays above the DSM in at least one requested view
   (checked for the marker's centre and its two side rims).
 
 The scene is divided into squares of ``spacing`` metres; each square gets the valid site
@@ -37,7 +37,7 @@ class SiteRules:
 
     spacing: float
     radius: float              # marker radius on the ground
-    clearance: float = 2.0
+    clearance: float = 1.0
     max_height: float = 0.2
     max_roughness: float = 0.05
     max_slope: float = 30.0
@@ -67,7 +67,9 @@ def local_slope(dsm: np.ndarray, k: int, res: float) -> tuple[np.ndarray, np.nda
 
 def select_sites(dsm: np.ndarray, dtm: np.ndarray, grid: Grid, rules: SiteRules,
                  perspectives: list[Perspective]) -> dict[str, np.ndarray]:
-    """Candidate sites: arrays x, y, z (DSM at the site), ground (DTM), sx, sy (slopes)."""
+    """Candidate sites: arrays x, y, z (DSM at the site), ground (DTM), sx, sy (slopes),
+    square_col/square_row (the spacing square) and clear ((n, len(perspectives)) bool: the
+    lines of sight of that view are clear)."""
     from scipy import ndimage as ndi
 
     ground = ground_mask(dsm, dtm, rules.max_height)
@@ -89,18 +91,60 @@ def select_sites(dsm: np.ndarray, dtm: np.ndarray, grid: Grid, rules: SiteRules,
     rank = np.arange(len(order)) - np.maximum.accumulate(np.where(first, np.arange(len(order)), 0))
     options = order[rank < OPTIONS_PER_SQUARE]
     ro, co = rows[options], cols[options]
-    visible = _clear_lines_of_sight(dsm, grid, x[options], y[options], dsm[ro, co],
-                                    np.column_stack([sx[ro, co], sy[ro, co]]), rules.radius, perspectives)
-    options = options[visible]
-    pick = options[_starts_of_runs(sq_x[options], sq_y[options])]   # the nearest visible option per square
+    clear = _clear_lines_of_sight(dsm, grid, x[options], y[options], dsm[ro, co],
+                                  np.column_stack([sx[ro, co], sy[ro, co]]), rules.radius, perspectives)
+    # Per square, the option seen in the most views, nearest the centre among equals. A site
+    # hidden in some views still serves the others (each view's render rejects what it cannot see).
+    views = clear.sum(axis=1)
+    keep = views > 0
+    options, views, clear = options[keep], views[keep], clear[keep]
+    by_rank = np.lexsort((dist[options], -views, sq_y[options], sq_x[options]))
+    first = by_rank[_starts_of_runs(sq_x[options][by_rank], sq_y[options][by_rank])]
+    pick, clear = options[first], clear[first]
     r, c = rows[pick], cols[pick]
     # Off the cell centre by a fraction of a cell (a hash of the square, so stable): markers
     # centred on pixel corners would give exact centroids and hide the method's own resolution.
     jx, jy = _jitter(sq_x[pick], sq_y[pick])
     px, py = x[pick] + jx * grid.res, y[pick] + jy * grid.res
+    apart = _apart(px, py, sx[r, c], sy[r, c], sq_x[pick], sq_y[pick], rules.radius, grid.res, perspectives)
+    pick, clear, r, c, jx, jy, px, py = (a[apart] for a in (pick, clear, r, c, jx, jy, px, py))
     dz = sx[r, c] * jx * grid.res + sy[r, c] * jy * grid.res   # along the local ground plane
     return {"x": px, "y": py, "z": dsm[r, c] + dz, "ground": dtm[r, c] + dz, "sx": sx[r, c], "sy": sy[r, c],
-            "square_col": sq_x[pick].astype(np.int64), "square_row": sq_y[pick].astype(np.int64)}
+            "square_col": sq_x[pick].astype(np.int64), "square_row": sq_y[pick].astype(np.int64),
+            "clear": clear}
+
+
+def _apart(x: np.ndarray, y: np.ndarray, sx: np.ndarray, sy: np.ndarray, sq_x: np.ndarray, sq_y: np.ndarray,
+           radius: float, res: float, perspectives: list[Perspective]) -> np.ndarray:
+    """(n,) bool: a subset of sites whose marker images cannot touch in any view.
+
+    A marker's image reaches radius·σ_max(I + cot φ·d ⊗ slope) (+ one DSM cell) from its
+    centre (the same bound the render uses to reject overlaps). Sites are kept greedily in
+    the order of a hash of their square, so which of two close sites survives does not depend
+    on sites elsewhere.
+    """
+    from scipy.spatial import cKDTree
+
+    from .camera import horizontal_direction, relief_factor
+
+    n = len(x)
+    if n < 2:
+        return np.ones(n, dtype=bool)
+    slopes = np.column_stack([sx, sy])
+    stretch = np.ones(n)
+    for p in perspectives:
+        shear = horizontal_direction(p) * relief_factor(p)
+        jac = np.eye(2)[None] + shear[None, :, None] * slopes[:, None, :]
+        stretch = np.maximum(stretch, np.linalg.norm(jac, ord=2, axis=(1, 2)))
+    reach = radius * stretch + res
+    tree = cKDTree(np.column_stack([x, y]))
+    kept = np.zeros(n, dtype=bool)
+    jx, _ = _jitter(sq_x, sq_y)
+    for i in np.lexsort((sq_y, sq_x, jx)):
+        near = tree.query_ball_point([x[i], y[i]], reach[i] + reach.max())
+        if not any(kept[j] and np.hypot(x[i] - x[j], y[i] - y[j]) < reach[i] + reach[j] for j in near):
+            kept[i] = True
+    return kept
 
 
 def _starts_of_runs(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -120,16 +164,18 @@ def _jitter(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def _clear_lines_of_sight(dsm: np.ndarray, grid: Grid, x: np.ndarray, y: np.ndarray, z: np.ndarray,
                           slopes: np.ndarray, radius: float, perspectives: list[Perspective],
                           batch: int = 4096) -> np.ndarray:
-    """True where, in every perspective, the rays to the camera from the site's centre and
-    side rims stay SIGHT_MARGIN_M above the DSM (nearest-cell samples; outside = clear).
+    """(n, len(perspectives)) bool: whether, in each perspective, the rays to the camera from
+    the site's centre and side rims stay SIGHT_MARGIN_M above the DSM (nearest-cell samples;
+    outside = clear; nadir is always clear).
 
     Rim heights follow the site's ground plane (``slopes``: (n, 2) dz/dx, dz/dy).
     """
     top = np.nanmax(dsm) if np.isfinite(dsm).any() else 0.0
-    ok = np.ones(len(x), dtype=bool)
-    for p in perspectives:
+    clear = np.ones((len(x), len(perspectives)), dtype=bool)
+    for v, p in enumerate(perspectives):
         if p.elevation == 90:
             continue
+        ok = clear[:, v]
         t_ = math.radians(p.azimuth)
         back = -np.array([math.sin(t_), math.cos(t_)])          # from the site toward the camera
         side = np.array([back[1], -back[0]])
@@ -146,7 +192,7 @@ def _clear_lines_of_sight(dsm: np.ndarray, grid: Grid, x: np.ndarray, y: np.ndar
                 oz = z[idx] + off * (slopes[idx, 0] * side[0] + slopes[idx, 1] * side[1])
                 blocked = _ray_blocked(dsm, grid, ox, oy, oz, back, tan_e, steps, reach)
                 ok[idx[blocked]] = False
-    return ok
+    return clear
 
 
 def _ray_blocked(dsm: np.ndarray, grid: Grid, x: np.ndarray, y: np.ndarray, z: np.ndarray, back: np.ndarray,

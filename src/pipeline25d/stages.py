@@ -280,6 +280,8 @@ def chunk_ground(bounds: np.ndarray, dtm) -> list:
     ny = int(min(max(np.ceil((hi[1] - lo[1]) / step) + 1, 2), 129))
     gx, gy = np.meshgrid(np.linspace(lo[0], hi[0], nx), np.linspace(lo[1], hi[1], ny))
     g = dtm.sample(gx.ravel(), gy.ravel())
+    if not np.isfinite(g).all() or np.abs(g).max() > 1e5:
+        raise ValueError(f"{dtm.path}: DTM heights under the chunk at {lo[:2]}..{hi[:2]} are not finite or not plausible (|h| > 100 km)")
     digest = hashlib.sha256(np.round(g, 2).tobytes()).hexdigest()[:12]   # cm: float noise does not count
     return [float(np.min(g)) - GROUND_MARGIN_M, float(np.max(g)) + GROUND_MARGIN_M, digest]
 

@@ -196,7 +196,7 @@ def interpolate_dtm(seed: np.ndarray, search_cells: int) -> np.ndarray:
     band.WriteArray(np.where(np.isfinite(seed), seed, nodata))
     g.FillNodata(band, None, maxSearchDist=max(int(search_cells), 1), smoothingIterations=0)
     out = band.ReadAsArray().astype(np.float64)
-    out[out == nodata] = np.nan
+    out[out <= nodata / 2] = np.nan      # FillNodata works in float32: unfilled cells read float32(-1e30)
     return fill_nearest(out)
 
 
