@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from pipeline25d.camera import view_direction
+from pipeline25d.camera import project, view_direction
 from pipeline25d.paper_camera import PaperCamera, _corners
 from pipeline25d.perspectives import Perspective
 
@@ -234,3 +234,25 @@ def test_for_perspective_and_length_constraints():
         PaperCamera(BOX, 0, 45, length=300.0)
     with pytest.raises(ValueError):
         PaperCamera(BOX, 0, 45, dist=300.0)
+
+
+@pytest.mark.parametrize("az,el", [(0, 45), (135, 30), (290, 60), (0, 90), (45, 5)])
+def test_paper_render_affine_is_the_paper_cameras_image_plane(az, el):
+    """camera.paper_affine (what the paper mode renders with) against PaperCamera.project_pixels
+    (Eqs. 1-18): the same image up to the frame's origin, in image-plane metres; and an affine
+    function of the map-aligned plane projection (so one polynomial warp fits both)."""
+    rng = np.random.default_rng(az + el)
+    pts = rng.uniform(-100, 100, (50, 3)) + [500000.0, 5000000.0, 300.0]
+    p = Perspective(az, el)
+    cam = PaperCamera(((499800.0, 4999800.0, 0.0), (500200.0, 5000200.0, 600.0)), az, el)
+    w, h = 4000, 3000
+    px = cam.project_pixels(pts, w, h)
+    uv = project(pts, p, 0.0, "paper")[:, :2]
+    du, dv = px[:, 0] * cam.width / w - uv[:, 0], -px[:, 1] * cam.height / h - uv[:, 1]
+    assert np.ptp(du) < 1e-6 and np.ptp(dv) < 1e-6
+    z0 = 300.0
+    m = project(pts, p, z0)
+    t, f = math.radians(az), math.radians(el)
+    np.testing.assert_allclose(uv[:, 0], math.cos(t) * m[:, 0] - math.sin(t) * m[:, 1], atol=1e-6)
+    np.testing.assert_allclose(uv[:, 1], math.sin(f) * (math.sin(t) * m[:, 0] + math.cos(t) * m[:, 1])
+                               + z0 * math.cos(f), atol=1e-6)

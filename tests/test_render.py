@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from conftest import box_part, ground_part
-from pipeline25d.camera import Extent, project
+from pipeline25d.camera import Extent, pixel_size, project
 from pipeline25d.gcps import observations
 from pipeline25d.mesh import MeshPart
 from pipeline25d.perspectives import Perspective
@@ -117,9 +117,11 @@ def slope_part(x0, y0, x1, y1, z_fn, step=2.0, rgba=(90, 140, 60, 255)) -> MeshP
     return MeshPart(verts, faces, colors=np.tile(np.array(rgba, np.uint8), (len(verts), 1)))
 
 
-def test_floating_and_buried_markers_are_rejected_tilted_ones_on_slopes_accepted(gl_ctx):
+@pytest.mark.parametrize("camera", ["map", "paper"])
+def test_floating_and_buried_markers_are_rejected_tilted_ones_on_slopes_accepted(gl_ctx, camera):
     """On a 20 % slope: markers on the surface (tilted with it) are accepted and unbiased;
-    markers 1 m above it (floating) or 0.5 m below it (buried) are rejected."""
+    markers 1 m above it (floating) or 0.5 m below it (buried) are rejected. The same on the
+    paper camera's image plane (pixels of gsd·sin φ), against its analytic projection."""
     p = Perspective(30, 40)
     slope = (0.2, -0.1)
 
@@ -136,20 +138,27 @@ def test_floating_and_buried_markers_are_rejected_tilted_ones_on_slopes_accepted
     lift[28:] = 0.0
     pts = np.column_stack([xy, z_fn(xy[:, 0], xy[:, 1]) + lift])
     margin = 8
-    m = margin * GSD
-    ext = Extent(E0 - m, N0 - m, E0 + SIZE * GSD + m, N0 + SIZE * GSD + m)
     corners = np.array([[E0 + dx, N0 + dy, z_fn(E0 + dx, N0 + dy) + dz] for dx in (-50, 120) for dy in (-50, 120)
                         for dz in (-5, 5)])
     d = project(corners, p, Z0)[:, 2]
-    v = TileView(p, Z0, ext, (d.min(), d.max()), (SIZE + 2 * margin,) * 2)
+    pixel = pixel_size(GSD, p, camera)
+    if camera == "map":
+        m = margin * GSD
+        ext = Extent(E0 - m, N0 - m, E0 + SIZE * GSD + m, N0 + SIZE * GSD + m)
+    else:   # the image-plane box of the marker area, on whole pixels of an arbitrary grid
+        uv = project(np.column_stack([xy, pts[:, 2]]), p, Z0, camera)
+        lo = np.floor(uv[:, :2].min(axis=0) / pixel) * pixel - (margin + 12) * pixel
+        ext = Extent(lo[0], lo[1], lo[0] + (SIZE + 2 * margin) * pixel * 1.5, lo[1] + (SIZE + 2 * margin) * pixel)
+    size = (round(ext.width / pixel), round(ext.height / pixel))
+    v = TileView(p, Z0, ext, (d.min(), d.max()), size, camera=camera)
     tol = 0.25 * GSD / np.cos(np.radians(p.elevation))
     full, sums = TileRenderer(gl_ctx).render_markers([(np.array([E0, N0, Z0]), [terrain])], v, pts,
                                                      np.tile(slope, (len(pts), 1)), 6 * GSD, 0.05, tol)
     cands = [{"id": f"g{i}", "x": x, "y": y, "z": z, "role": "gcp"} for i, (x, y, z) in enumerate(pts)]
-    seen = observations(cands, full, sums, (ext.xmin, ext.ymax), GSD)
+    seen = observations(cands, full, sums, (ext.xmin, ext.ymax), pixel)
     assert {s["id"] for s in seen} == {f"g{i}" for i in range(10)}
-    truth = project(pts[:10], p, Z0)
-    err = np.hypot([s["map_x"] for s in seen] - truth[:, 0], [s["map_y"] for s in seen] - truth[:, 1]) / GSD
+    truth = project(pts[:10], p, Z0, camera)
+    err = np.hypot([s["map_x"] for s in seen] - truth[:, 0], [s["map_y"] for s in seen] - truth[:, 1]) / pixel
     # rasterised tilted disks of ~6 px radius: centroid quantisation only
     assert np.sqrt(np.mean(err ** 2)) < 0.12 and err.max() < 0.25, err
 

@@ -143,3 +143,26 @@ def test_sites_closer_than_their_markers_reach_are_thinned_locally():
     kept = set(zip(sites["square_col"][far].tolist(), sites["square_row"][far].tolist()))
     kept_west = set(zip(west["square_col"].tolist(), west["square_row"].tolist()))
     assert kept <= kept_west
+
+
+def test_object_edges_keep_the_ground_at_a_walls_foot_and_drop_what_rises_above_it():
+    """On a 30 % slope: a block with a 0.4 m 'wall foot' ramp on its east side (what a LiDAR
+    mesh gives, and what the filter may call ground). The ramp cells are dropped; the other
+    cells along the block lie on the terrain plane and are kept, so the DTM under the block
+    is interpolated from the ground right at its foot."""
+    n = 60
+    cols, rows = np.meshgrid(np.arange(n), np.arange(n))
+    terrain = 0.3 * cols - 0.1 * rows
+    dsm = terrain.copy()
+    block = (slice(20, 40), slice(20, 40))
+    dsm[block] += 12.0
+    ramp = np.zeros((n, n), bool)
+    ramp[20:40, 40] = True
+    dsm[ramp] += 0.4
+    ground = np.ones((n, n), bool)
+    ground[block] = False
+    kept = trim_object_edges(ground, dsm)
+    assert not (kept & ramp).any()
+    edge_on_terrain = ground & ~ramp & ~trim_object_edges(ground)          # the one-cell ring, ramp excluded
+    assert edge_on_terrain.sum() > 60 and kept[edge_on_terrain].all()
+    assert (trim_object_edges(ground) == (ground & ~edge_on_terrain & ~ramp)).all()   # without a DSM: all dropped

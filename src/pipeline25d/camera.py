@@ -5,6 +5,12 @@ north-up map at (x, y) + (z - z0)·cot φ·d with d = (sin θ, cos θ); its dept
 distance along the 3D view direction v = (sin θ cos φ, cos θ cos φ, -sin φ). Both are
 affine, so one 4×4 matrix per tile takes chunk-local float32 coordinates to clip space.
 All of this is float64; only the final matrix goes to the GPU as float32.
+
+The paper's camera (``camera="paper"``, :class:`PaperCamera`, Eqs. 1, 9-11) images the
+scene on the plane perpendicular to the view: u = vRight·Rz(θ)p, v = vUp·Rz(θ)p, a rotated
+and foreshortened picture that only a GCP warp brings onto the map. For any point it is an
+affine function of the map-aligned plane projection (u = rotation of the map position,
+v = sin φ × the other rotated axis + z0·cos φ), so the same polynomial warp fits both equally.
 """
 
 from __future__ import annotations
@@ -63,9 +69,36 @@ def map_affine(p: Perspective, z0: float) -> tuple[np.ndarray, np.ndarray]:
     return A, b
 
 
-def project(points: np.ndarray, p: Perspective, z0: float) -> np.ndarray:
-    """(n, 3) scene points -> (n, 3) float64 [map_x, map_y, depth]."""
-    A, b = map_affine(p, z0)
+def paper_affine(p: Perspective) -> tuple[np.ndarray, np.ndarray]:
+    """(A, b) with [u, v, depth] = A @ (x, y, z) + b on the paper camera's image plane, metres.
+
+    Rows 0-1 are vRight and vUp of Eqs. (9)-(11) after the model rotation Rz(θ) (the
+    rotation part of view · model; the image origin is arbitrary, so b = 0); row 2 is the
+    same view depth as the map-aligned projection.
+    """
+    cam = PaperCamera(((0.0, 0.0, 0.0), (1.0, 1.0, 1.0)), float(p.azimuth), float(p.elevation))
+    rot = (cam.view_matrix() @ cam.model_matrix())[:2, :3]
+    return np.vstack([rot, view_direction(p)]), np.zeros(3)
+
+
+def camera_affine(p: Perspective, z0: float, camera: str = "map") -> tuple[np.ndarray, np.ndarray]:
+    """The affine projection of ``camera``: "map" (:func:`map_affine`) or "paper" (:func:`paper_affine`)."""
+    if camera == "paper":
+        return paper_affine(p)
+    if camera != "map":
+        raise ValueError(f"unknown camera {camera!r}")
+    return map_affine(p, z0)
+
+
+def pixel_size(gsd: float, p: Perspective, camera: str = "map") -> float:
+    """Image-plane metres per pixel. The paper camera's pixels are gsd·sin φ, so ground along
+    the view is sampled at the map's gsd (the baseline is not handicapped by coarser pixels)."""
+    return gsd * math.sin(math.radians(p.elevation)) if camera == "paper" else gsd
+
+
+def project(points: np.ndarray, p: Perspective, z0: float, camera: str = "map") -> np.ndarray:
+    """(n, 3) scene points -> (n, 3) float64 [map_x, map_y, depth] (image u, v, depth for "paper")."""
+    A, b = camera_affine(p, z0, camera)
     return np.asarray(points, dtype=np.float64) @ A.T + b
 
 
@@ -82,8 +115,17 @@ def project_above_ground(points: np.ndarray, ground: np.ndarray, p: Perspective)
     return out
 
 
+def image_stretch(p: Perspective, slopes: np.ndarray, camera: str = "map") -> np.ndarray:
+    """(n,) σ_max of the 2×2 Jacobian of the projection on planes of (n, 2) slopes (dz/dx, dz/dy):
+    how far, per metre, a disk in that plane reaches from its centre in the image."""
+    A = camera_affine(p, 0.0, camera)[0]
+    slopes = np.asarray(slopes, dtype=np.float64).reshape(-1, 2)
+    jac = A[None, :2, :2] + A[None, :2, 2, None] * slopes[:, None, :]
+    return np.linalg.norm(jac, ord=2, axis=(1, 2))
+
+
 def clip_matrix(p: Perspective, z0: float, extent: Extent, depth_range: tuple[float, float],
-                origin: np.ndarray) -> np.ndarray:
+                origin: np.ndarray, camera: str = "map") -> np.ndarray:
     """4×4 float64 matrix from chunk-local coordinates (scene point − origin) to GL clip space.
 
     The extent maps exactly onto NDC [-1, 1] in x and y (so pixel boundaries of adjacent
@@ -91,7 +133,7 @@ def clip_matrix(p: Perspective, z0: float, extent: Extent, depth_range: tuple[fl
     translation column is computed in float64 relative to ``origin``, so it is small and
     float32 keeps sub-millimetre precision even at UTM northings.
     """
-    A, b = map_affine(p, z0)
+    A, b = camera_affine(p, z0, camera)
     dmin, dmax = depth_range
     scale = np.diag([2.0 / extent.width, 2.0 / extent.height, 2.0 / (dmax - dmin)])
     # Translation: where the origin lands in NDC, with the large terms cancelled first.
@@ -106,8 +148,9 @@ def clip_matrix(p: Perspective, z0: float, extent: Extent, depth_range: tuple[fl
 
 
 def projected_box(bounds: np.ndarray, p: Perspective, z0: float,
-                  ground_range: tuple[float, float] | None = None) -> tuple[Extent, tuple[float, float]]:
-    """Map extent and depth range covered by a (2, 3) bounding box in perspective p.
+                  ground_range: tuple[float, float] | None = None,
+                  camera: str = "map") -> tuple[Extent, tuple[float, float]]:
+    """Map (or paper image) extent and depth range covered by a (2, 3) bounding box in perspective p.
 
     ``ground_range``: (lowest, highest) ground under the box for terrain-relative
     projection; heights above ground then span [z_min − highest, z_max − lowest].
@@ -116,7 +159,7 @@ def projected_box(bounds: np.ndarray, p: Perspective, z0: float,
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
     depth = project(corners, p, z0)[:, 2]
     if ground_range is None:
-        planar = project(corners, p, z0)
+        planar = project(corners, p, z0, camera)
     else:
         rel = np.array([[x, y, h] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
                         for h in (lo[2] - ground_range[1], hi[2] - ground_range[0])])

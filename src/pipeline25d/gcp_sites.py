@@ -125,17 +125,14 @@ def _apart(x: np.ndarray, y: np.ndarray, sx: np.ndarray, sy: np.ndarray, sq_x: n
     """
     from scipy.spatial import cKDTree
 
-    from .camera import horizontal_direction, relief_factor
+    from .camera import image_stretch
 
     n = len(x)
     if n < 2:
         return np.ones(n, dtype=bool)
-    slopes = np.column_stack([sx, sy])
     stretch = np.ones(n)
     for p in perspectives:
-        shear = horizontal_direction(p) * relief_factor(p)
-        jac = np.eye(2)[None] + shear[None, :, None] * slopes[:, None, :]
-        stretch = np.maximum(stretch, np.linalg.norm(jac, ord=2, axis=(1, 2)))
+        stretch = np.maximum(stretch, image_stretch(p, np.column_stack([sx, sy])))
     reach = radius * stretch + res
     tree = cKDTree(np.column_stack([x, y]))
     kept = np.zeros(n, dtype=bool)

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import Extent, project, project_above_ground, projected_box
+from .camera import Extent, pixel_size, project, project_above_ground, projected_box
 from .gcps import CANDIDATE_FIELDS
 from .lod import choose_level
 from .perspectives import Perspective
@@ -30,17 +30,27 @@ def tile_span(gsd: float, tile_size: int) -> float:
     return gsd * tile_size
 
 
+def plan_pixel(plan: dict) -> float:
+    """Metres per render pixel: the gsd, or the paper camera's image-plane pixel."""
+    return plan.get("pixel_size", plan["gsd"])
+
+
+def plan_camera(plan: dict) -> str:
+    return "paper" if plan.get("projection") == "paper" else "map"
+
+
 def tile_extent(plan: dict, row: int, col: int, margin_px: int = 0) -> Extent:
-    """Map extent of tile (row, col), optionally grown by ``margin_px`` on every side."""
-    gsd, span = plan["gsd"], tile_span(plan["gsd"], plan["tile_size"])
-    m = margin_px * gsd
+    """Map (or paper image) extent of tile (row, col), optionally grown by ``margin_px`` on every side."""
+    px = plan_pixel(plan)
+    span = tile_span(px, plan["tile_size"])
+    m = margin_px * px
     return Extent(col * span - m, row * span - m, (col + 1) * span + m, (row + 1) * span + m)
 
 
 def tile_geotransform(plan: dict, row: int, col: int) -> tuple[float, ...]:
     """GDAL geotransform of tile (row, col) (top-left corner, north up)."""
     e = tile_extent(plan, row, col)
-    return (e.xmin, plan["gsd"], 0.0, e.ymax, 0.0, -plan["gsd"])
+    return (e.xmin, plan_pixel(plan), 0.0, e.ymax, 0.0, -plan_pixel(plan))
 
 
 def _index_range(lo: float, hi: float, span: float) -> range:
@@ -56,14 +66,18 @@ def plan_perspective(p: Perspective, chunks: list[dict], candidates: list[dict],
     (lowest, highest DTM height under it) in terrain-relative mode];
     ``candidates``: GCP candidates [{"id", "x", "y", "z", "ground", "sx", "sy", "role"}, ...];
     ``render``: render settings that, when changed, must re-render (part of each tile's spec);
-    ``terrain``: {"projection": "terrain" | "plane", "dtm": path or None}.
+    ``terrain``: {"projection": "terrain" | "plane" | "paper", "dtm": path or None}. With
+    "paper" the tiles lie on the paper camera's image plane (:func:`pipeline25d.camera.paper_affine`)
+    with pixels of :func:`pipeline25d.camera.pixel_size`.
     """
     terrain = terrain or {"projection": "plane", "dtm": None}
     relative = terrain["projection"] == "terrain"
-    span = tile_span(gsd, tile_size)
+    camera = "paper" if terrain["projection"] == "paper" else "map"
+    pixel = pixel_size(gsd, p, camera)
+    span = tile_span(pixel, tile_size)
     tiles: dict[tuple[int, int], dict] = {}
     for chunk in chunks:
-        box, depth = projected_box(np.array(chunk["bounds"]), p, z0, chunk["ground"][:2] if relative else None)
+        box, depth = projected_box(np.array(chunk["bounds"]), p, z0, chunk["ground"][:2] if relative else None, camera)
         entry = {"id": chunk["id"], "district": chunk["district"],
                  "lod": choose_level(chunk["errors"], max_error_px * gsd)}
         if relative:
@@ -76,7 +90,7 @@ def plan_perspective(p: Perspective, chunks: list[dict], candidates: list[dict],
                                        max(tile["depth_range"][1], depth[1] + DEPTH_MARGIN_M)]
     if not tiles:
         raise ValueError(f"{p.id}: no chunks to plan")
-    _assign_gcps(tiles, candidates, p, z0, span, relative)
+    _assign_gcps(tiles, candidates, p, z0, span, relative, camera)
     # everything a tile's pixels depend on beyond its own entry: a change re-renders it
     frame = {"z0": z0, "gsd": gsd, "tile_size": tile_size, "crs": crs, "perspective": p.id, **terrain}
     rows = [r for r, _ in tiles]
@@ -91,7 +105,7 @@ def plan_perspective(p: Perspective, chunks: list[dict], candidates: list[dict],
         out_tiles.append(tile)
     return {
         "perspective": {"id": p.id, "azimuth": p.azimuth, "elevation": p.elevation},
-        "crs": crs, "z0": z0, "gsd": gsd, "tile_size": tile_size,
+        "crs": crs, "z0": z0, "gsd": gsd, "pixel_size": pixel, "tile_size": tile_size,
         "projection": terrain["projection"], "dtm": terrain["dtm"],
         "tiles": out_tiles,
         "n_tiles_total": total,
@@ -100,7 +114,7 @@ def plan_perspective(p: Perspective, chunks: list[dict], candidates: list[dict],
 
 
 def _assign_gcps(tiles: dict, candidates: list[dict], p: Perspective, z0: float, span: float,
-                 relative: bool) -> None:
+                 relative: bool, camera: str = "map") -> None:
     """Give each candidate to the tile holding its projected centre (if that tile exists)."""
     for tile in tiles.values():
         tile["gcps"] = []
@@ -110,7 +124,7 @@ def _assign_gcps(tiles: dict, candidates: list[dict], p: Perspective, z0: float,
     if relative:
         m = project_above_ground(xyz, np.array([c["ground"] for c in candidates]), p)
     else:
-        m = project(xyz, p, z0)
+        m = project(xyz, p, z0, camera)
     rows, cols = np.floor(m[:, 1] / span).astype(int), np.floor(m[:, 0] / span).astype(int)
     for cand, r, c in zip(candidates, rows, cols):
         if (r, c) in tiles:

@@ -92,9 +92,10 @@ class TileView:
     depth_range: tuple[float, float]
     size: tuple[int, int]          # (width, height) in pixels
     ground: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None   # DTM(x, y); None = plane mode
+    camera: str = "map"            # "map" (map-aligned) or "paper" (the paper's image plane)
 
     def matrix(self, origin: np.ndarray) -> np.ndarray:
-        return clip_matrix(self.perspective, self.z0, self.extent, self.depth_range, origin)
+        return clip_matrix(self.perspective, self.z0, self.extent, self.depth_range, origin, self.camera)
 
     def shear(self, matrix: np.ndarray) -> tuple[float, float, float, float]:
         """u_shear: the clip-space map shift per metre of ground height (zero in plane mode)."""
@@ -303,19 +304,17 @@ def _overlapping(points: np.ndarray, slopes: np.ndarray, radius_m: float, view: 
     Each marker's image is an ellipse around its projected centre whose longest semi-axis
     is radius·σ_max(J), J the 2×2 Jacobian of the map projection on the marker's plane.
     """
-    from .camera import horizontal_direction, project, project_above_ground, relief_factor
+    from .camera import image_stretch, project, project_above_ground
 
     n = len(points)
     if n < 2:
         return np.zeros(n, dtype=bool)
     p = view.perspective
     if view.ground is None:
-        centres = project(points, p, view.z0)[:, :2]
+        centres = project(points, p, view.z0, view.camera)[:, :2]
     else:
         centres = project_above_ground(points, view.ground(points[:, 0], points[:, 1]), p)[:, :2]
-    shear = horizontal_direction(p) * relief_factor(p)
-    reach = np.array([np.linalg.norm(np.eye(2) + np.outer(shear, s), 2) for s in np.asarray(slopes).reshape(n, 2)])
-    reach = reach * radius_m + 2 * (view.extent.width / view.size[0])   # + 2 px of rasterisation
+    reach = image_stretch(p, slopes, view.camera) * radius_m + 2 * (view.extent.width / view.size[0])   # + 2 px
     from scipy.spatial import cKDTree
 
     tree = cKDTree(centres)

@@ -21,7 +21,7 @@ from .ingest import write_chunks
 from .lod import build_levels
 from .mesh import Mesh
 from .perspectives import Perspective
-from .plan import plan_perspective, plan_tile, read_plan, tile_extent, tile_geotransform
+from .plan import plan_camera, plan_perspective, plan_pixel, plan_tile, read_plan, tile_extent, tile_geotransform
 
 log = logging.getLogger(__name__)
 
@@ -108,7 +108,7 @@ def build_terrain(lod_jsons: list[str], inputs: dict, scene_crs: str, gsd: float
             cloth = ground_cfg["cloth_resolution"]
             cloth = 2 * res if cloth == "auto" else float(cloth)
             ground = trim_object_edges(csf_ground(dsm, grid, ground_cfg["max_object_size"], cloth,
-                                                  ground_cfg["rigidness"], ground_cfg["class_threshold"]))
+                                                  ground_cfg["rigidness"], ground_cfg["class_threshold"]), dsm)
             seed[ground] = dsm[ground]
             sources.append("model surface (nadir DSM, Cloth Simulation Filter)")
         if own["districts"]:
@@ -325,24 +325,27 @@ def render_tile(plan_path: str | Path, row: int, col: int, lod_dir: str | Path,
     chunks = [load_chunk_level(Path(lod_dir) / c["district"] / f"{c['id']}.npz", c["lod"]) for c in tile["chunks"]]
     depth = tuple(tile["depth_range"])
     ground = DTM(pl["dtm"], pl["crs"], continuous=True).sample if pl.get("projection") == "terrain" else None
+    camera, pixel = plan_camera(pl), plan_pixel(pl)
     ctx = create_context()
     try:
         renderer = TileRenderer(ctx, ambient=cfg["ambient"], samples=cfg["samples"])
         rgba = renderer.render_color(chunks, TileView(persp, pl["z0"], tile_extent(pl, row, col), depth, (t, t),
-                                                      ground))
+                                                      ground, camera))
         seen = []
         if tile["gcps"]:
             margin = int(np.ceil(cfg["marker_px"])) + 2
             extent = tile_extent(pl, row, col, margin)
-            view = TileView(persp, pl["z0"], extent, depth, (t + 2 * margin, t + 2 * margin), ground)
+            view = TileView(persp, pl["z0"], extent, depth, (t + 2 * margin, t + 2 * margin), ground, camera)
             pts = np.array([[c["x"], c["y"], c["z"]] for c in tile["gcps"]])
             slopes = np.array([[c["sx"], c["sy"]] for c in tile["gcps"]])
             full, sums = renderer.render_markers(chunks, view, pts, slopes, cfg["marker_px"] * gsd, cfg["depth_bias"],
                                                  marker_depth_tolerance(persp, gsd, cfg["max_float_px"]))
-            seen = observations(tile["gcps"], full, sums, (extent.xmin, extent.ymax), gsd)
+            seen = observations(tile["gcps"], full, sums, (extent.xmin, extent.ymax), pixel)
     finally:
         ctx.release()
-    write_rgba_geotiff(out_tif, rgba, tile_geotransform(pl, row, col), horizontal_wkt(pl["crs"]))
+    # the paper camera's tiles lie on its image plane, which is no CRS: the warp georeferences them
+    wkt = "" if camera == "paper" else horizontal_wkt(pl["crs"])
+    write_rgba_geotiff(out_tif, rgba, tile_geotransform(pl, row, col), wkt)
     write_csv(out_gcps, seen, OBSERVATION_FIELDS)
     log.info("%s tile %d_%d: %d chunks, coverage %.1f%%, GCPs seen %d of %d", persp.id, row, col,
              len(chunks), 100 * float((rgba[..., 3] > 0).mean()), len(seen), len(tile["gcps"]))
@@ -395,17 +398,21 @@ def warp(mosaic_vrt: str | Path, gcps_csv: str | Path, plan_path: str | Path, wa
 def paper_method_on(obs: list[dict], plan: dict, gt: tuple[float, ...]) -> dict | None:
     """Check-point error of the paper's method (plane at z0 + polynomial warp) on the same GCPs.
 
-    Marker positions are the analytic plane projection of each observed GCP, so only the
-    method differs from the terrain-relative figure, not the points.
+    Each observed (terrain-relative) marker position is moved to where the plane projection
+    puts it, by (DTM − z0)·cot φ·d: exact where the DTM is planar across the marker, since
+    the render displaced the marker by its height above that DTM. So only the method differs, not the points nor their sampling
+    noise. (The paper camera's image is an affine function of the plane projection, so its
+    polynomial warp scores the same; ``projection: paper`` renders it.)
     """
-    from .camera import project
+    from .camera import horizontal_direction, relief_factor
     from .warp import MIN_GCPS, residuals
 
     p = Perspective.from_id(plan["perspective"]["id"])
     if not obs or p.elevation == 90:   # at nadir both methods are the same orthophoto
         return None
-    m = project(np.array([[r["x"], r["y"], r["z"]] for r in obs]), p, plan["z0"])
-    planar = [{**r, "map_x": float(a), "map_y": float(b)} for r, (a, b) in zip(obs, m[:, :2])]
+    shift = horizontal_direction(p) * relief_factor(p)
+    planar = [{**r, "map_x": r["map_x"] + (r["ground"] - plan["z0"]) * shift[0],
+               "map_y": r["map_y"] + (r["ground"] - plan["z0"]) * shift[1]} for r in obs]
     n_gcp = sum(r["role"] == "gcp" for r in obs)
     orders = [k for k in (3, 2, 1) if n_gcp >= MIN_GCPS[k]]
     if not orders:

@@ -170,11 +170,47 @@ def csf_ground(dsm: np.ndarray, grid: Grid, max_object_m: float, cloth_resolutio
     return mask
 
 
-def trim_object_edges(ground: np.ndarray) -> np.ndarray:
-    """Drop ground cells touching a non-ground cell (wall feet, eaves): one-cell erosion."""
+def trim_object_edges(ground: np.ndarray, dsm: np.ndarray | None = None, tol: float = 0.1,
+                      window: int = 7) -> np.ndarray:
+    """Drop the ground cells along objects that rise above the ground around them.
+
+    A ground cell touching a non-ground cell is a wall foot or eave on a surface mesh, or
+    true ground where a model's wall meets its terrain. With ``dsm`` it is kept when it
+    lies at most ``tol`` m above the plane fitted (least squares) to the inner ground cells
+    of a ``window``² neighbourhood, so the ground at a building's foot still shapes the DTM
+    under it. Without ``dsm`` (or with too few inner cells to fit) every edge cell is dropped.
+    """
     from scipy import ndimage as ndi
 
-    return ground & ~ndi.binary_dilation(~ground, structure=np.ones((3, 3), bool))
+    edge = ground & ndi.binary_dilation(~ground, structure=np.ones((3, 3), bool))
+    inner = ground & ~edge
+    if dsm is None:
+        return inner
+    h, w = ground.shape
+    rows, cols = np.mgrid[0:h, 0:w].astype(np.float64)
+    r0, c0 = rows - rows.mean(), cols - cols.mean()     # centred: keeps the sums well conditioned
+    wgt = inner.astype(np.float64)
+    z = np.where(inner, dsm, 0.0)
+
+    def box(a):
+        return ndi.uniform_filter(a, size=window, mode="constant")
+
+    # local plane z = a + b·row + c·col by weighted least squares (3×3 normal equations per cell)
+    terms = [wgt, wgt * r0, wgt * c0, wgt * r0 * r0, wgt * r0 * c0, wgt * c0 * c0]
+    s0, sr, sc, srr, src, scc = (box(t) for t in terms)
+    tz, trz, tcz = box(z), box(z * r0), box(z * c0)
+    normal = np.stack([np.stack([s0, sr, sc], -1), np.stack([sr, srr, src], -1), np.stack([sc, src, scc], -1)], -2)
+    rhs = np.stack([tz, trz, tcz], -1)
+    keep = inner.copy()
+    idx = np.nonzero(edge & (s0 * window ** 2 >= 6))
+    if len(idx[0]):
+        m, v = normal[idx], rhs[idx]
+        ok = np.abs(np.linalg.det(m)) > 1e-9 * np.maximum(s0[idx], 1e-12) ** 3
+        coef = np.zeros((len(m), 3))
+        coef[ok] = np.linalg.solve(m[ok], v[ok][..., None])[..., 0]
+        plane = coef[:, 0] + coef[:, 1] * r0[idx] + coef[:, 2] * c0[idx]
+        keep[idx[0][ok], idx[1][ok]] = dsm[idx][ok] <= plane[ok] + tol
+    return keep
 
 
 # -- DTM --------------------------------------------------------------------------------------

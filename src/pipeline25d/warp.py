@@ -126,11 +126,19 @@ def choose(obs: list[dict], plan: dict, gt: tuple[float, ...], method: str, orde
     ``auto``: none where relief displacement stays under half a pixel, otherwise the
     candidate (none, polynomial 1-3, tps) with the lowest cross-validated RMSD on the
     GCPs. Check-point figures of every candidate are recorded, but none enters the choice.
+    The paper camera's image is not a map: there, ``auto`` and ``none`` mean the paper's
+    polynomial warp, and the unwarped "none" is scored as n/a.
     """
     gcps = [r for r in obs if r["role"] == "gcp"]
     n_gcp = len(gcps)
-    baseline = {**residuals("none", 0, obs, gt, plan["gsd"]), "cv_rmsd_m": cross_validated_rmsd("none", 0, gcps, gt)}
     relief = max_relief_displacement_px(obs, plan)
+    if plan.get("projection") == "paper":
+        baseline = {**residuals("none", 0, [], gt, plan["gsd"]), "cv_rmsd_m": None,
+                    "check_note": "n/a (the paper camera's image is not a map)"}
+        method = "polynomial" if method in ("auto", "none") else method
+    else:
+        baseline = {**residuals("none", 0, obs, gt, plan["gsd"]),
+                    "cv_rmsd_m": cross_validated_rmsd("none", 0, gcps, gt)}
     if method == "none" or (method == "auto" and relief < 0.5):
         return {**baseline, "relief_px": relief, "candidates": [baseline]}
     if method == "polynomial":
@@ -145,6 +153,9 @@ def choose(obs: list[dict], plan: dict, gt: tuple[float, ...], method: str, orde
     scored = [baseline] + [{**residuals(m, o, obs, gt, plan["gsd"]), "cv_rmsd_m": cross_validated_rmsd(m, o, gcps, gt)}
                            for m, o in candidates]
     if method != "auto":
+        if not candidates and plan.get("projection") == "paper":
+            raise ValueError(f"{plan['perspective']['id']}: {n_gcp} GCPs observed, too few for the paper's "
+                             f"{method} warp (order 1 needs {MIN_GCPS[1]})")
         best = scored[-1] if candidates else baseline
     else:
         best = min(scored, key=lambda s: math.inf if s["cv_rmsd_m"] is None else s["cv_rmsd_m"])
