@@ -15,10 +15,10 @@ PYTHON ?= python3
 
 run: deps
 	$(PY) -m pipeline25d demo-city resources/demo
-	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(VENV)/bin/snakemake -j2
+	$(VENV)/bin/snakemake -j2
 
 test: deps
-	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(PY) -m pytest -q; rc=$$?; \
+	$(PY) -m pytest -q; rc=$$?; \
 	  if [ $$rc -eq 5 ]; then echo "pytest collected no tests"; exit 1; fi; exit $$rc
 
 deps: sysdeps $(STAMP) $(LEAFLET)

@@ -23,7 +23,7 @@ def test_three_keys_run_with_every_default_filled():
     cfg = validate_schema(copy.deepcopy(BASE))
     assert cfg["gsd"] == 0.25 and cfg["tile_size"] == 1024 and cfg["perspectives"] == "eight-45+nadir"
     assert cfg["gcp"] == {"source": "auto", "spacing": 20, "holdout": 0.2, "seed": 0, "marker_px": 6,
-                          "depth_bias": 0.3, "clearance": 2.0, "max_height": 0.2, "max_roughness": 0.05,
+                          "depth_bias": 0.3, "clearance": 1.0, "max_height": 0.2, "max_roughness": 0.05,
                           "max_slope": 30, "max_float_px": 0.5}
     assert cfg["terrain"] == "auto" and cfg["projection"] == "auto"
     assert cfg["ground"] == {"resolution": "auto", "max_object_size": 100, "cloth_resolution": "auto",

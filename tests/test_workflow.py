@@ -21,7 +21,10 @@ SMALL_PERSPECTIVES = [{"azimuth": 0, "elevation": 90}, {"azimuth": 45, "elevatio
 
 
 def snakemake(workdir: Path, *args: str, check: bool = True) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}:{os.environ.get('PATH', '')}"}
+    # as a user runs it: the venv's bin is NOT on PATH (jobs must find their own interpreter)
+    venv_bin = str(Path(sys.executable).parent)
+    path = ":".join(d for d in os.environ.get("PATH", "").split(":") if d and d != venv_bin)
+    env = {**os.environ, "PATH": path}
     cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"), "--directory", str(workdir),
            "--configfile", str(workdir / "config.yaml"), "-j2", *args]
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env)

@@ -1,5 +1,7 @@
 # Config validation (before any job), constants, wildcard constraints and input functions.
 import json
+import shlex
+import sys
 from pathlib import Path
 
 from snakemake.exceptions import WorkflowError
@@ -18,6 +20,8 @@ except Pipeline25dError as exc:
     raise WorkflowError(f"invalid configuration: {exc}") from None
 
 RESULTS = f"results/{config['scene']}"
+# Jobs run this workflow's own interpreter (the venv snakemake runs in), whatever PATH says.
+PYTHON = shlex.quote(sys.executable)
 DISTRICTS = sorted(config["inputs"])
 PERSPECTIVE_IDS = [p.id for p in perspectives(config)]
 MAX_LOD_ERROR = config["gsd"] * config["lod"]["max_error_px"]

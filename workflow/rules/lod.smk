@@ -15,5 +15,5 @@ rule lod:
     benchmark:
         f"{RESULTS}/benchmarks/lod/{{district}}/{{chunk}}.tsv"
     shell:
-        "python -m pipeline25d lod {input} {output.npz} {output.meta}"
+        PYTHON + " -m pipeline25d lod {input} {output.npz} {output.meta}"
         " --max-error {params.max_error} --max-levels {params.max_levels} > {log} 2>&1"

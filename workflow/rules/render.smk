@@ -20,6 +20,6 @@ rule render_tile:
     group:
         "render"
     shell:
-        "python -m pipeline25d render-tile --plan {params.plan} --row {wildcards.row} --col {wildcards.col}"
+        PYTHON + " -m pipeline25d render-tile --plan {params.plan} --row {wildcards.row} --col {wildcards.col}"
         " --lod-dir {params.lod_dir} --out-tif {output.tif} --out-gcps {output.gcps}"
         " --spec-hash {params.spec_hash} > {log} 2>&1"
