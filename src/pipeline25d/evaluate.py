@@ -636,7 +636,10 @@ def measure_window(nadir_grey: np.ndarray, nadir_ok: np.ndarray, oblique_grey: n
             return WindowFit(s[1], s[0], float("nan"), ratio, float("inf"), float("nan"), int(len(ref)),
                              "too_few_pixels")
         warped = sample(r + s[0], c + s[1])
-        gain, offset = np.polyfit(ref, warped, 1) if ref.std() > 0 else (1.0, warped.mean() - ref.mean())
+        # least-squares line warped ≈ gain·ref + offset (closed form: no RankWarning on flat windows)
+        var = float(ref.var())
+        gain = float(((ref - ref.mean()) * (warped - warped.mean())).mean() / var) if var > 1e-12 else 1.0
+        offset = float(warped.mean() - gain * ref.mean())
         converged = False
         for it in range(_LK_MAX_ITER):
             # derivatives of the spline interpolant itself (exact Jacobian: quadratic convergence)
