@@ -110,6 +110,23 @@ def test_too_few_check_points_give_no_figure(n_check):
     assert res["rmsd_m"] is None and res["check_note"] == f"n/a ({n_check} check points)"
 
 
+def test_a_large_tps_that_is_not_chosen_is_not_fitted_on_every_gcp():
+    """TPS is cubic in the GCP count: with more GCPs than cross-validation samples, a TPS that
+    loses is recorded with its CV score but no full fit; the polynomials are still scored."""
+    from pipeline25d.warp import CV_MAX_GCPS
+
+    rng = np.random.default_rng(4)
+    plan = {"perspective": {"id": "az045_el45", "elevation": 45}, "gsd": 0.5, "z0": 0.0, "projection": "plane"}
+    obs = _obs(CV_MAX_GCPS + 100, 30, 2.0, rng)
+    for r in obs:
+        r["z"] = 3.0
+    choice = choose(obs, plan, (0.0, 0.5, 0.0, 500.0, 0.0, -0.5), "auto", 3)
+    assert choice["method"] == "polynomial"                              # a shift: order 1 fits it
+    tps = next(c for c in choice["candidates"] if c["method"] == "tps")
+    assert tps["cv_rmsd_m"] is not None and tps["rmsd_m"] is None and "not scored" in tps["check_note"]
+    assert all(c["rmsd_m"] is not None for c in choice["candidates"] if c["method"] == "polynomial")
+
+
 def test_dtm_cells_beyond_the_search_reach_take_the_nearest_ground_not_a_nodata_value():
     """FillNodata works in float32: cells it leaves unfilled must not come back as −1e30."""
     seed = np.full((60, 80), np.nan)

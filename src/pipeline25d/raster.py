@@ -30,7 +30,7 @@ def write_rgba_geotiff(path: str | Path, rgba: np.ndarray, geotransform: tuple, 
     with atomic_path(path) as tmp:
         ds = g.GetDriverByName("GTiff").Create(
             str(tmp), w, h, 4, g.GDT_Byte,
-            ["COMPRESS=DEFLATE", "TILED=YES", "PHOTOMETRIC=RGB", "ALPHA=UNASSOCIATED"])
+            ["COMPRESS=DEFLATE", "TILED=YES", "PHOTOMETRIC=RGB", "ALPHA=YES"])
         ds.SetGeoTransform(geotransform)
         ds.SetProjection(wkt)
         for b, interp in enumerate((g.GCI_RedBand, g.GCI_GreenBand, g.GCI_BlueBand, g.GCI_AlphaBand)):

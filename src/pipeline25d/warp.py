@@ -150,7 +150,9 @@ def choose(obs: list[dict], plan: dict, gt: tuple[float, ...], method: str, orde
     else:
         candidates = [("polynomial", k) for k in (1, 2, 3) if n_gcp >= MIN_GCPS[k]]
         candidates += [("tps", 0)] if n_gcp >= MIN_GCPS["tps"] else []
-    scored = [baseline] + [{**residuals(m, o, obs, gt, plan["gsd"]), "cv_rmsd_m": cross_validated_rmsd(m, o, gcps, gt)}
+    # Cross-validation (on subsamples) for every candidate; the full fit that scores check
+    # points is cubic in the GCP count for TPS, so a large TPS is scored only if it is chosen.
+    scored = [baseline] + [{"method": m, "order": o, "cv_rmsd_m": cross_validated_rmsd(m, o, gcps, gt)}
                            for m, o in candidates]
     if method != "auto":
         if not candidates and plan.get("projection") == "paper":
@@ -163,6 +165,14 @@ def choose(obs: list[dict], plan: dict, gt: tuple[float, ...], method: str, orde
         if baseline["cv_rmsd_m"] is not None and best["cv_rmsd_m"] is not None and \
                 baseline["cv_rmsd_m"] <= WARP_GAIN * best["cv_rmsd_m"] + WARP_MIN_GAIN_PX * plan["gsd"]:
             best = baseline
+    for i, cand in enumerate(scored[1:], 1):
+        if cand is best or cand["method"] != "tps" or n_gcp <= CV_MAX_GCPS:
+            scored[i] = {**residuals(cand["method"], cand["order"], obs, gt, plan["gsd"]), **cand}
+        else:
+            scored[i] = {**residuals(cand["method"], cand["order"], [], gt, plan["gsd"]), **cand, "n_gcp": n_gcp,
+                         "check_note": f"not scored (TPS on {n_gcp} GCPs, not chosen)"}
+        if cand is best:
+            best = scored[i]
     return {**best, "relief_px": relief, "candidates": scored}
 
 
