@@ -68,3 +68,14 @@ def test_perspective_presets_and_ids():
     assert Perspective.from_id("az135_el30") == Perspective(135, 30)
     # every nadir is the same view: one id
     assert [p.id for p in expand([{"azimuth": 90, "elevation": 90}, {"azimuth": 0, "elevation": 90}])] == ["az000_el90"]
+
+
+def test_chunk_size_auto_follows_the_gsd():
+    from pipeline25d.config import chunk_size
+
+    cfg = validate_schema(copy.deepcopy(BASE))
+    assert cfg["chunk_size"] == "auto" and chunk_size(cfg) == 100.0          # gsd 0.25: 400 px = 100 m
+    assert chunk_size({**cfg, "gsd": 2.0}) == 800.0                           # 400 px at 2 m
+    assert chunk_size({**cfg, "chunk_size": 80}) == 80.0
+    with pytest.raises(ConfigError, match="chunk_size"):
+        validate_schema({**copy.deepcopy(BASE), "chunk_size": "big"})

@@ -87,3 +87,13 @@ def load_config(path: str | Path) -> dict[str, Any]:
 def perspectives(config: dict[str, Any]) -> list[Perspective]:
     """The validated config's perspectives."""
     return expand(config["perspectives"])
+
+
+CHUNK_PX = 400          # chunk_size auto: a chunk spans this many map pixels ...
+MIN_CHUNK_M = 100.0     # ... and at least this many metres
+
+
+def chunk_size(config: dict[str, Any]) -> float:
+    """The chunk edge in metres: the configured one, or auto = max(100 m, 400·gsd)."""
+    value = config.get("chunk_size", "auto")
+    return max(MIN_CHUNK_M, CHUNK_PX * float(config["gsd"])) if value == "auto" else float(value)

@@ -7,7 +7,7 @@ from pathlib import Path
 from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 
-from pipeline25d.config import check_semantics, perspectives
+from pipeline25d.config import check_semantics, chunk_size, perspectives
 from pipeline25d.errors import Pipeline25dError
 from pipeline25d.ingest import CHUNK_ID_PATTERN
 from pipeline25d.perspectives import ID_PATTERN

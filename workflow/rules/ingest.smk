@@ -9,7 +9,7 @@ checkpoint ingest:
     params:
         spec=lambda wc: config["inputs"][wc.district],
         crs=config["crs"],
-        chunk_size=config["chunk_size"],
+        chunk_size=chunk_size(config),
         max_error=MAX_LOD_ERROR,
     log:
         f"{RESULTS}/logs/ingest/{{district}}.log",
