@@ -109,6 +109,36 @@ def test_dtm_samples_the_same_ground_from_another_crs():
 
 
 @needs_data
+def test_dtm_read_through_a_window_samples_the_same_heights_with_a_fraction_of_the_cells(tmp_path):
+    from pipeline25d.crs import horizontal_wkt, transform_points
+    from pipeline25d.raster import DTM
+    from pipeline25d.terrain import Grid, write_float_geotiff
+
+    # a hole-free DTM (as terrain: auto writes it): only the window's cells are read
+    grid = Grid(84000.0, 448000.0, 0.5, 2000, 2000)
+    cols, rows = np.meshgrid(np.arange(2000), np.arange(2000))
+    write_float_geotiff(tmp_path / "dtm.tif", 0.01 * cols - 0.02 * rows + np.sin(cols / 9.0), grid,
+                        horizontal_wkt("EPSG:28992"))
+    rng = np.random.default_rng(1)
+    xy = np.column_stack([rng.uniform(84300, 84360, 200), rng.uniform(447450, 447500, 200)])
+    whole = DTM(tmp_path / "dtm.tif", "EPSG:28992", continuous=True)
+    part = DTM(tmp_path / "dtm.tif", "EPSG:28992", continuous=True, window=(84300, 447450, 84360, 447500))
+    np.testing.assert_array_equal(part.sample(xy[:, 0], xy[:, 1]), whole.sample(xy[:, 0], xy[:, 1]))
+    assert part.values.size < 0.01 * whole.values.size
+    # the window is given in the scene CRS, whatever the raster's
+    utm = transform_points(np.column_stack([xy, np.zeros(len(xy))]), "EPSG:28992", "EPSG:25831")
+    lo, hi = utm[:, :2].min(axis=0), utm[:, :2].max(axis=0)
+    part_utm = DTM(tmp_path / "dtm.tif", "EPSG:25831", continuous=True, window=(*lo, *hi))
+    assert part_utm.values.size < 0.01 * whole.values.size
+    np.testing.assert_allclose(part_utm.sample(utm[:, 0], utm[:, 1]), whole.sample(xy[:, 0], xy[:, 1]), atol=1e-3)
+    # a DTM with holes (Delft's): filled alike whatever the window, so tiles cannot disagree
+    xy = np.column_stack([rng.uniform(84900, 84960, 200), rng.uniform(447450, 447500, 200)])
+    whole = DTM(DATA / "delft/delft_dtm.tif", "EPSG:28992", continuous=True)
+    part = DTM(DATA / "delft/delft_dtm.tif", "EPSG:28992", continuous=True, window=(84900, 447450, 84960, 447500))
+    np.testing.assert_array_equal(part.sample(xy[:, 0], xy[:, 1]), whole.sample(xy[:, 0], xy[:, 1]))
+
+
+@needs_data
 def test_offset_on_a_self_georeferenced_format_is_an_error_not_ignored():
     from pipeline25d.errors import ConfigError
 

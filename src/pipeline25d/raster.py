@@ -51,7 +51,11 @@ class DTM:
     (terrain-relative projection needs one).
     """
 
-    def __init__(self, path: str | Path, scene_crs: str, continuous: bool = False):
+    def __init__(self, path: str | Path, scene_crs: str, continuous: bool = False,
+                 window: tuple[float, float, float, float] | None = None):
+        """``window``: (xmin, ymin, xmax, ymax) in the scene CRS: read only the cells around it
+        (memory O(window), not O(raster)); points outside it are then clamped to its edge. A
+        continuous DTM with nodata inside the window is read whole (see below)."""
         g = gdal()
         self.path = Path(path)
         try:
@@ -59,14 +63,24 @@ class DTM:
         except RuntimeError as exc:
             raise InputFileError(path, f"cannot open as a raster: {exc}") from None
         band = ds.GetRasterBand(1)
-        self.values = band.ReadAsArray().astype(np.float64)
-        nodata = band.GetNoDataValue()
-        if nodata is not None:
-            self.values[self.values == nodata] = np.nan
-        self.gt = ds.GetGeoTransform()
-        if self.gt[2] or self.gt[4]:
+        gt = ds.GetGeoTransform()
+        if gt[2] or gt[4]:
             raise InputFileError(path, "rotated geotransforms are not supported")
         self.crs_wkt = ds.GetProjection()
+        self.scene_crs = scene_crs
+        c0, r0, w, h = 0, 0, ds.RasterXSize, ds.RasterYSize
+        if window is not None:
+            c0, r0, w, h = self._pixel_window(window, gt, ds.RasterXSize, ds.RasterYSize)
+        nodata = band.GetNoDataValue()
+        self.values = band.ReadAsArray(c0, r0, w, h).astype(np.float64)
+        if continuous and nodata is not None and (self.values == nodata).any():
+            # holes are filled from the nearest valid cell, which may lie outside the window:
+            # read everything, so every tile fills them alike (no seams)
+            c0, r0 = 0, 0
+            self.values = band.ReadAsArray().astype(np.float64)
+        if nodata is not None:
+            self.values[self.values == nodata] = np.nan
+        self.gt = (gt[0] + c0 * gt[1], gt[1], 0.0, gt[3] + r0 * gt[5], 0.0, gt[5])
         self.scene_crs = scene_crs
         self.continuous = continuous
         if continuous:
@@ -75,6 +89,22 @@ class DTM:
             if not np.isfinite(self.values).any():
                 raise InputFileError(path, "has no valid height")
             self.values = fill_nearest(self.values)
+
+    def _pixel_window(self, window, gt, width: int, height: int, margin: int = 2) -> tuple[int, int, int, int]:
+        """(col, row, w, h) of the raster cells covering a scene-CRS window, plus a margin."""
+        from .crs import transform_points
+
+        x0, y0, x1, y1 = window
+        pts = np.array([[x0, y0, 0.0], [x0, y1, 0.0], [x1, y0, 0.0], [x1, y1, 0.0]])
+        if self.crs_wkt:
+            pts = transform_points(pts, self.scene_crs, self.crs_wkt)
+        cols = (pts[:, 0] - gt[0]) / gt[1]
+        rows = (pts[:, 1] - gt[3]) / gt[5]
+        c0 = int(np.clip(np.floor(cols.min()) - margin, 0, width - 1))
+        r0 = int(np.clip(np.floor(rows.min()) - margin, 0, height - 1))
+        c1 = int(np.clip(np.ceil(cols.max()) + margin, c0 + 1, width))
+        r1 = int(np.clip(np.ceil(rows.max()) + margin, r0 + 1, height))
+        return c0, r0, c1 - c0, r1 - r0
 
     @classmethod
     def from_array(cls, values: np.ndarray, geotransform: tuple[float, ...], continuous: bool = False) -> "DTM":

@@ -117,6 +117,42 @@ class TileView:
         return out
 
 
+class _GpuMesh:
+    """A vertex array and the buffers it reads (``vao.release()`` alone leaves them allocated)."""
+
+    def __init__(self, vao, buffers: list):
+        self.vao, self.buffers = vao, buffers
+        self.texture: bytes | None = None
+        self.coloured = False
+
+    def release(self) -> None:
+        self.vao.release()
+        for b in self.buffers:
+            b.release()
+
+
+class TileGeometry:
+    """Chunks uploaded once for all passes of a tile: [(origin, [_GpuMesh, ...]), ...]."""
+
+    def __init__(self, chunks: list[tuple[np.ndarray, list[_GpuMesh]]]):
+        self.chunks = chunks
+
+    def release(self) -> None:
+        for _, meshes in self.chunks:
+            for mesh in meshes:
+                mesh.release()
+        self.chunks = []
+
+    def __enter__(self) -> "TileGeometry":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+Chunks = "list[tuple[np.ndarray, list[MeshPart]]] | TileGeometry"
+
+
 def create_context():
     """A standalone moderngl context on EGL; RenderError with a hint when unavailable."""
     try:
@@ -160,17 +196,46 @@ class TileRenderer:
         return self._textures[data]
 
     def _vao(self, positions: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None,
-             uv: np.ndarray | None = None, ground: np.ndarray | None = None):
+             uv: np.ndarray | None = None, ground: np.ndarray | None = None) -> "_GpuMesh":
+        """Upload one mesh (positions already relative to its origin) as a vertex array."""
         ctx = self.ctx
-        content = [(ctx.buffer(positions.astype("f4").tobytes()), "3f", "in_pos")]
+        content = [(ctx.buffer(np.ascontiguousarray(positions, dtype="f4")), "3f", "in_pos")]
         if ground is not None:
-            content.append((ctx.buffer(ground.astype("f4").tobytes()), "1f", "in_ground"))
+            content.append((ctx.buffer(np.ascontiguousarray(ground, dtype="f4")), "1f", "in_ground"))
         if colors is not None:
-            content.append((ctx.buffer(np.ascontiguousarray(colors, dtype="u1").tobytes()), "4f1", "in_color"))
+            content.append((ctx.buffer(np.ascontiguousarray(colors, dtype="u1")), "4f1", "in_color"))
         if uv is not None:
-            content.append((ctx.buffer(uv.astype("f4").tobytes()), "2f", "in_uv"))
-        ibo = ctx.buffer(faces.astype("u4").tobytes())
-        return ctx.vertex_array(self.prog, content, index_buffer=ibo, index_element_size=4)
+            content.append((ctx.buffer(np.ascontiguousarray(uv, dtype="f4")), "2f", "in_uv"))
+        ibo = ctx.buffer(np.ascontiguousarray(faces, dtype="u4"))
+        vao = ctx.vertex_array(self.prog, content, index_buffer=ibo, index_element_size=4)
+        return _GpuMesh(vao, [b for b, _, _ in content] + [ibo])
+
+    def upload(self, chunks: list[tuple[np.ndarray, list[MeshPart]]], view: TileView) -> "TileGeometry":
+        """The chunks on the GPU, once for every pass of a tile (they share the view's ground).
+
+        Vertices go to float32 relative to their chunk's origin; in terrain-relative mode
+        each also carries DTM − z0 under it. Release the result (or use it in ``with``).
+        """
+        out = []
+        for origin, parts in chunks:
+            gpu = []
+            for part in parts:
+                if not part.n_triangles:
+                    continue
+                textured = part.texture is not None and part.uv is not None
+                mesh = self._vao(part.vertices - origin, part.faces, part.colors, part.uv if textured else None,
+                                 view.ground_offsets(part.vertices))
+                mesh.texture = part.texture if textured else None
+                mesh.coloured = part.colors is not None
+                gpu.append(mesh)
+            out.append((np.asarray(origin, dtype=np.float64), gpu))
+        return TileGeometry(out)
+
+    def _geometry(self, chunks, view: TileView) -> tuple["TileGeometry", bool]:
+        """(geometry, owned): ``chunks`` uploaded here (owned, to release) unless already uploaded."""
+        if isinstance(chunks, TileGeometry):
+            return chunks, False
+        return self.upload(chunks, view), True
 
     def _set(self, **uniforms) -> None:
         for name, value in uniforms.items():
@@ -178,40 +243,33 @@ class TileRenderer:
                 self.prog[name].value = value
 
     # -- drawing ---------------------------------------------------------------
-    def _draw_chunks(self, chunks: list[tuple[np.ndarray, list[MeshPart]]], view: TileView,
-                     black: bool = False) -> None:
+    def _draw_chunks(self, geometry: "TileGeometry", view: TileView, black: bool = False) -> None:
         from .camera import view_direction
 
         self._set(u_light=tuple(LIGHT_DIRECTION), u_view=tuple(view_direction(view.perspective)),
                   u_ambient=self.ambient, u_zbias=0.0)
-        for origin, parts in chunks:
+        for origin, meshes in geometry.chunks:
             matrix = view.matrix(origin)
             self.prog["u_mvp"].write(matrix.T.astype("f4").tobytes())
             self._set(u_shear=view.shear(matrix))
-            for part in parts:
-                if not part.n_triangles:
-                    continue
-                local = part.vertices - origin
-                textured = part.texture is not None and part.uv is not None and not black
-                vao = self._vao(local, part.faces, None if black else part.colors, part.uv if textured else None,
-                                view.ground_offsets(part.vertices))
+            for mesh in meshes:
                 if black:
                     self._set(u_mode=2, u_color=(0.0, 0.0, 0.0, 1.0), u_shade=False)
-                elif textured:
-                    self._texture(part.texture).use(0)
+                elif mesh.texture is not None:
+                    self._texture(mesh.texture).use(0)
                     self._set(u_mode=1, u_tex=0, u_shade=False)
-                elif part.colors is not None:
+                elif mesh.coloured:
                     self._set(u_mode=0, u_shade=True)
                 else:
                     self._set(u_mode=2, u_color=(0.7, 0.7, 0.7, 1.0), u_shade=True)
-                vao.render()
-                vao.release()
+                mesh.vao.render()
 
-    def render_color(self, chunks: list[tuple[np.ndarray, list[MeshPart]]], view: TileView) -> np.ndarray:
+    def render_color(self, chunks: "Chunks", view: TileView) -> np.ndarray:
         """(h, w, 4) uint8 RGBA, row 0 = north edge, alpha 0 where empty."""
         import moderngl
 
         ctx, (w, h) = self.ctx, view.size
+        geometry, owned = self._geometry(chunks, view)
         fbo_ms = ctx.framebuffer(color_attachments=[ctx.renderbuffer((w, h), 4, samples=self.samples)],
                                  depth_attachment=ctx.depth_renderbuffer((w, h), samples=self.samples))
         fbo = ctx.simple_framebuffer((w, h), components=4)
@@ -219,31 +277,36 @@ class TileRenderer:
         ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         ctx.enable(moderngl.DEPTH_TEST)
         ctx.disable(moderngl.CULL_FACE)
-        self._draw_chunks(chunks, view)
+        self._draw_chunks(geometry, view)
         ctx.copy_framebuffer(fbo, fbo_ms)
         rgba = _read_rgba(fbo, w, h)
         for obj in (fbo_ms, fbo):
             obj.release()
+        if owned:
+            geometry.release()
         return unpremultiply(rgba)
 
-    def render_depth(self, chunks: list[tuple[np.ndarray, list[MeshPart]]], view: TileView) -> np.ndarray:
+    def render_depth(self, chunks: "Chunks", view: TileView) -> np.ndarray:
         """(h, w) float64 view depth (metres) of the nearest surface at each pixel centre; NaN where empty."""
         import moderngl
 
         ctx, (w, h) = self.ctx, view.size
+        geometry, owned = self._geometry(chunks, view)
         depth = ctx.depth_texture((w, h))
         fbo = ctx.framebuffer(color_attachments=[ctx.renderbuffer((w, h), 4)], depth_attachment=depth)
         fbo.use()
         ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         ctx.enable(moderngl.DEPTH_TEST)
         ctx.disable(moderngl.CULL_FACE)
-        self._draw_chunks(chunks, view, black=True)
+        self._draw_chunks(geometry, view, black=True)
         out = view.depth_metres(_read_depth(depth, w, h))
         fbo.release()
         depth.release()
+        if owned:
+            geometry.release()
         return out
 
-    def render_markers(self, chunks: list[tuple[np.ndarray, list[MeshPart]]], view: TileView,
+    def render_markers(self, chunks: "Chunks", view: TileView,
                        points: np.ndarray, slopes: np.ndarray, radius_m: float, depth_bias_m: float,
                        depth_tolerance_m: float) -> tuple[np.ndarray, np.ndarray]:
         """Marker pixel statistics for (n, 3) GCPs on ground of slope (n, 2) (dz/dx, dz/dy).
@@ -257,6 +320,7 @@ class TileRenderer:
         import moderngl
 
         ctx, (w, h) = self.ctx, view.size
+        geometry, owned = self._geometry(chunks, view)
         depth = ctx.depth_texture((w, h))
         fbo = ctx.framebuffer(color_attachments=[ctx.renderbuffer((w, h), 4)], depth_attachment=depth)
         fbo.use()
@@ -274,9 +338,9 @@ class TileRenderer:
             matrix = view.matrix(origin)
             self.prog["u_mvp"].write(matrix.T.astype("f4").tobytes())
             self._set(u_mode=0, u_shade=False, u_zbias=2.0 * bias_m / (dmax - dmin), u_shear=view.shear(matrix))
-            vao = self._vao(verts, faces, colors, ground=ground)
-            vao.render()
-            vao.release()
+            mesh = self._vao(verts, faces, colors, ground=ground)
+            mesh.vao.render()
+            mesh.release()
             self._set(u_zbias=0.0)
 
         ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
@@ -284,12 +348,14 @@ class TileRenderer:
         alone = _marker_ids(fbo, w, h)
         marker_depth = view.depth_metres(_read_depth(depth, w, h))
         ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
-        self._draw_chunks(chunks, view, black=True)
+        self._draw_chunks(geometry, view, black=True)
         model_depth = view.depth_metres(_read_depth(depth, w, h))
         draw_markers(depth_bias_m)
         seen = _marker_ids(fbo, w, h)
         fbo.release()
         depth.release()
+        if owned:
+            geometry.release()
         agree = np.abs(model_depth - marker_depth) <= depth_tolerance_m   # NaN (no model) disagrees
         full = _marker_stats(alone, n)[:, 0]
         full[_overlapping(points, slopes, radius_m, view)] = 0   # one marker hides another: no clean centroid
@@ -315,13 +381,12 @@ def _overlapping(points: np.ndarray, slopes: np.ndarray, radius_m: float, view: 
     else:
         centres = project_above_ground(points, view.ground(points[:, 0], points[:, 1]), p)[:, :2]
     reach = image_stretch(p, slopes, view.camera) * radius_m + 2 * (view.extent.width / view.size[0])   # + 2 px
-    from scipy.spatial import cKDTree
-
-    tree = cKDTree(centres)
     out = np.zeros(n, dtype=bool)
-    for i, j in tree.query_pairs(2 * float(reach.max())):
-        if np.hypot(*(centres[i] - centres[j])) < reach[i] + reach[j]:
-            out[i] = out[j] = True
+    for lo in range(0, n, 1024):   # pairwise in blocks: a tile holds hundreds of markers, not millions
+        d = np.hypot(*(centres[lo:lo + 1024, None, :] - centres[None, :, :]).transpose(2, 0, 1))
+        touch = d < reach[lo:lo + 1024, None] + reach[None, :]
+        touch[np.arange(touch.shape[0]), np.arange(lo, lo + touch.shape[0])] = False
+        out[lo:lo + 1024] |= touch.any(axis=1)
     return out
 
 

@@ -328,23 +328,31 @@ def render_tile(plan_path: str | Path, row: int, col: int, lod_dir: str | Path,
     t, gsd, cfg = pl["tile_size"], pl["gsd"], tile["render"]
     chunks = [load_chunk_level(Path(lod_dir) / c["district"] / f"{c['id']}.npz", c["lod"]) for c in tile["chunks"]]
     depth = tuple(tile["depth_range"])
-    ground = DTM(pl["dtm"], pl["crs"], continuous=True).sample if pl.get("projection") == "terrain" else None
+    ground = None
+    if pl.get("projection") == "terrain":   # the DTM around what this tile draws, not the whole city's
+        xy = [p.vertices[:, :2] for _, parts in chunks for p in parts if p.n_triangles]
+        xy += [np.array([[c["x"], c["y"]] for c in tile["gcps"]]).reshape(-1, 2)]
+        xy = np.concatenate(xy)
+        window = (*xy.min(axis=0), *xy.max(axis=0))
+        ground = DTM(pl["dtm"], pl["crs"], continuous=True, window=window).sample
     camera, pixel = plan_camera(pl), plan_pixel(pl)
     ctx = create_context()
     try:
         renderer = TileRenderer(ctx, ambient=cfg["ambient"], samples=cfg["samples"])
-        rgba = renderer.render_color(chunks, TileView(persp, pl["z0"], tile_extent(pl, row, col), depth, (t, t),
-                                                      ground, camera))
-        seen = []
-        if tile["gcps"]:
-            margin = int(np.ceil(cfg["marker_px"])) + 2
-            extent = tile_extent(pl, row, col, margin)
-            view = TileView(persp, pl["z0"], extent, depth, (t + 2 * margin, t + 2 * margin), ground, camera)
-            pts = np.array([[c["x"], c["y"], c["z"]] for c in tile["gcps"]])
-            slopes = np.array([[c["sx"], c["sy"]] for c in tile["gcps"]])
-            full, sums = renderer.render_markers(chunks, view, pts, slopes, cfg["marker_px"] * gsd, cfg["depth_bias"],
-                                                 marker_depth_tolerance(persp, gsd, cfg["max_float_px"]))
-            seen = observations(tile["gcps"], full, sums, (extent.xmin, extent.ymax), pixel)
+        view = TileView(persp, pl["z0"], tile_extent(pl, row, col), depth, (t, t), ground, camera)
+        with renderer.upload(chunks, view) as geometry:          # once for both passes
+            rgba = renderer.render_color(geometry, view)
+            seen = []
+            if tile["gcps"]:
+                margin = int(np.ceil(cfg["marker_px"])) + 2
+                extent = tile_extent(pl, row, col, margin)
+                view = TileView(persp, pl["z0"], extent, depth, (t + 2 * margin, t + 2 * margin), ground, camera)
+                pts = np.array([[c["x"], c["y"], c["z"]] for c in tile["gcps"]])
+                slopes = np.array([[c["sx"], c["sy"]] for c in tile["gcps"]])
+                full, sums = renderer.render_markers(geometry, view, pts, slopes, cfg["marker_px"] * gsd,
+                                                     cfg["depth_bias"],
+                                                     marker_depth_tolerance(persp, gsd, cfg["max_float_px"]))
+                seen = observations(tile["gcps"], full, sums, (extent.xmin, extent.ymax), pixel)
     finally:
         ctx.release()
     # the paper camera's tiles lie on its image plane, which is no CRS: the warp georeferences them

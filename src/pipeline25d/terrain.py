@@ -133,11 +133,11 @@ def lower_envelope(dsm: np.ndarray, res: float, max_object_m: float) -> np.ndarr
 
 def fill_nearest(values: np.ndarray) -> np.ndarray:
     """NaN cells take the value of the nearest finite cell (all-NaN input stays NaN)."""
-    from scipy import ndimage as ndi
-
     bad = ~np.isfinite(values)
     if not bad.any() or bad.all():
         return values.copy()
+    from scipy import ndimage as ndi   # only when needed: tile jobs read DTMs without holes
+
     idx = ndi.distance_transform_edt(bad, return_distances=False, return_indices=True)
     return values[tuple(idx)]
 
