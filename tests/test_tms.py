@@ -29,7 +29,7 @@ def test_tiles_match_a_default_gdal2tiles_cut(tmp_path):
 
     write_rgba_geotiff(cog, rgba, (691000.0, 0.5, 0.0, 5334000.0, 0.0, -0.5), horizontal_wkt("EPSG:25832"))
     ours, ref = tmp_path / "ours", tmp_path / "ref"
-    tms(cog, "auto", ours)
+    tms(cog, "auto", ours, tile_format="png")
     subprocess.run([sys.executable, "-m", "osgeo_utils.gdal2tiles", "-q", "--xyz", "-w", "none", "-r", "average",
                     str(cog), str(ref)], check=True)
     ref_tiles = sorted(p.relative_to(ref) for p in ref.rglob("*.png"))
@@ -38,3 +38,52 @@ def test_tiles_match_a_default_gdal2tiles_cut(tmp_path):
                     - np.asarray(Image.open(ref / t).convert("RGBA"), float)).mean() for t in ref_tiles]
     assert np.mean(diffs) < 0.05 and max(diffs) < 1.0, (np.mean(diffs), max(diffs))
     assert not list(tmp_path.glob("*.3857.tif")) and not list(tmp_path.glob(".ours*"))   # nothing left over
+
+
+def _smooth_map(path):
+    from pipeline25d.crs import horizontal_wkt
+
+    h, w = 600, 800
+    yy, xx = np.mgrid[0:h, 0:w]
+    rgba = np.zeros((h, w, 4), np.uint8)
+    rgba[..., 0] = (128 + 100 * np.sin(xx / 23.0)).astype(np.uint8)
+    rgba[..., 1] = (128 + 100 * np.cos(yy / 31.0)).astype(np.uint8)
+    rgba[..., 2] = 90
+    rgba[..., 3] = 255
+    rgba[:150, :200] = 0
+    write_rgba_geotiff(path, rgba, (691000.0, 0.5, 0.0, 5334000.0, 0.0, -0.5), horizontal_wkt("EPSG:25832"))
+
+
+def test_webp_tiles_are_the_png_tiles_lossy_and_keep_transparency(tmp_path):
+    _smooth_map(tmp_path / "map.tif")
+    tms(tmp_path / "map.tif", "auto", tmp_path / "png", tile_format="png")
+    tms(tmp_path / "map.tif", "auto", tmp_path / "webp", tile_format="webp", quality=85)
+    png = sorted(p.relative_to(tmp_path / "png").with_suffix("") for p in (tmp_path / "png").rglob("*.png"))
+    webp = sorted(p.relative_to(tmp_path / "webp").with_suffix("") for p in (tmp_path / "webp").rglob("*.webp"))
+    assert png and webp == png
+    errs = []
+    for t in png:
+        a = np.asarray(Image.open((tmp_path / "png" / t).with_suffix(".png")).convert("RGBA"), float)
+        b = np.asarray(Image.open((tmp_path / "webp" / t).with_suffix(".webp")).convert("RGBA"), float)
+        assert np.abs(a[..., 3] - b[..., 3]).mean() < 1.0                  # transparency kept
+        errs.append(np.abs(a[..., :3] - b[..., :3])[a[..., 3] == 255].ravel())
+    assert np.concatenate(errs).mean() < 3.0                                # lossy, but the same picture
+
+
+def test_jpeg_maps_keep_their_transparency_as_a_mask_that_the_readers_use(tmp_path):
+    from osgeo import gdal
+
+    from pipeline25d.evaluate import _read_window
+    from pipeline25d.warp import warp_to_cog
+
+    _smooth_map(tmp_path / "map.tif")
+    plan = {"crs": "EPSG:25832", "gsd": 0.5}
+    sizes = {}
+    for codec in ("deflate", "jpeg", "webp"):
+        out = tmp_path / f"{codec}.tif"
+        warp_to_cog(tmp_path / "map.tif", [], {"method": "none"}, plan, out, codec, 85)
+        sizes[codec] = out.stat().st_size
+        _, alpha = _read_window(gdal.Open(str(out)), 0, 0, 400)
+        assert (alpha[:150, :200] == 0).all() and (alpha[200:, 250:] == 255).all(), codec
+    assert gdal.Open(str(tmp_path / "jpeg.tif")).RasterCount == 3
+    assert sizes["jpeg"] < sizes["deflate"] / 2 and sizes["webp"] < sizes["deflate"] / 2, sizes

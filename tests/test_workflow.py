@@ -126,7 +126,7 @@ def test_full_pipeline_outputs(small_run):
         assert ds.GetMetadata("IMAGE_STRUCTURE").get("LAYOUT") == "COG"
         assert osr.SpatialReference(ds.GetProjection()).IsSame(scene_srs)
         assert ds.RasterCount == 4 and ds.GetGeoTransform()[2] == 0 and ds.GetGeoTransform()[5] < 0
-        assert any((results / "tms" / pid).rglob("*.png"))
+        assert any((results / "tms" / pid).rglob("*.webp"))                # the default tile format
     assert (results / "viewer" / "index.html").exists() and (results / "viewer" / "leaflet" / "leaflet.js").exists()
     assert (results / "report" / "report.md").read_text().startswith("# pipeline25d report: small")
 

@@ -56,7 +56,7 @@ import numpy as np
 
 from .errors import ConfigError, CRSError, InputFileError, Pipeline25dError
 from .perspectives import Perspective
-from .raster import gdal
+from .raster import gdal, window_alpha
 
 log = logging.getLogger(__name__)
 
@@ -232,7 +232,7 @@ def _read_window(ds, col: int, row: int, size: int) -> tuple[np.ndarray, np.ndar
     if arr.ndim == 2:
         arr = arr[None]
     n = arr.shape[0]
-    alpha = arr[3] if n >= 4 else np.full(arr.shape[1:], 255, np.uint8)
+    alpha = window_alpha(ds, arr, col, row, size, size)
     grey = np.tensordot(_GREY, arr[:3].astype(np.float64), axes=1) if n >= 3 else arr[0].astype(np.float64)
     return grey, alpha
 
@@ -304,7 +304,7 @@ def _read_block(ds, col: int, row: int, size: int) -> tuple[np.ndarray, np.ndarr
             arr = arr[None]
         n = arr.shape[0]
         inner = (slice(r0 - row, r1 - row), slice(c0 - col, c1 - col))
-        alpha[inner] = arr[3] if n >= 4 else 255
+        alpha[inner] = window_alpha(ds, arr, c0, r0, c1 - c0, r1 - r0)
         grey[inner] = np.tensordot(_GREY, arr[:3].astype(np.float64), axes=1) if n >= 3 else arr[0]
     return grey, alpha
 

@@ -61,6 +61,7 @@ from .errors import CRSError, InputFileError, Pipeline25dError
 from .evaluate import _open, _pair_grids, _same_crs
 from .footprints import Footprint, contains, rasterize, read_footprints
 from .perspectives import ID_PATTERN, Perspective
+from .raster import window_alpha
 
 log = logging.getLogger(__name__)
 
@@ -132,7 +133,7 @@ def _read_rgba(ds, col0: int, row0: int, width: int, height: int) -> tuple[np.nd
     sl = (slice(r0 - row0, r1 - row0), slice(c0 - col0, c1 - col0))
     n = arr.shape[0]
     rgb[sl] = np.moveaxis(arr[:3] if n >= 3 else np.repeat(arr[:1], 3, axis=0), 0, -1)
-    alpha[sl] = arr[3] if n >= 4 else 255
+    alpha[sl] = window_alpha(ds, arr, c0, r0, c1 - c0, r1 - r0)
     return rgb, alpha
 
 

@@ -41,6 +41,19 @@ def write_rgba_geotiff(path: str | Path, rgba: np.ndarray, geotransform: tuple, 
         ds = None
 
 
+def window_alpha(ds, arr: np.ndarray, col: int, row: int, width: int, height: int) -> np.ndarray:
+    """(h, w) uint8 opacity of a window read as ``arr`` (bands first): the alpha band of an
+    RGBA map, else its per-dataset mask (a JPEG-compressed map keeps its alpha there), else opaque."""
+    if arr.ndim == 3 and arr.shape[0] >= 4:
+        return arr[3]
+    g = gdal()
+    band = ds.GetRasterBand(1)
+    flags = band.GetMaskFlags()
+    if flags & g.GMF_PER_DATASET and not flags & g.GMF_ALL_VALID:
+        return band.GetMaskBand().ReadAsArray(col, row, width, height)
+    return np.full((height, width), 255, np.uint8)
+
+
 class DTM:
     """A terrain GeoTIFF sampled bilinearly in the scene CRS.
 

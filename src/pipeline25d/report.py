@@ -158,7 +158,9 @@ def render_markdown(rep: dict) -> str:
               f"- model inputs: {s['model_bytes'] / 1e6:.2f} MB",
               f"- maps (COG): {s['maps_bytes'] / 1e6:.2f} MB"
               + (f" (model : maps = {_ratio(s['model_to_maps'])})" if s["model_to_maps"] else ""),
-              f"- web tiles: {s['tms_bytes'] / 1e6:.2f} MB", "", "## Stage timings", "",
+              f"- web tiles: {s['tms_bytes'] / 1e6:.2f} MB"
+              + (f" (model : tiles = {_ratio(s['model_bytes'] / s['tms_bytes'])})" if s["tms_bytes"] else ""),
+              "", "## Stage timings", "",
               "| stage | jobs | seconds (sum) | max RSS MB |", "|---|---:|---:|---:|"]
     for stage, t in rep["timings"].items():
         lines.append(f"| {stage} | {t['jobs']} | {t['seconds']:.1f} | {t['max_rss_mb']:.0f} |")

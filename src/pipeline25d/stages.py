@@ -390,7 +390,7 @@ def mosaic(tiles: list[str], out_vrt: str | Path) -> None:
 
 
 def warp(mosaic_vrt: str | Path, gcps_csv: str | Path, plan_path: str | Path, warp_cfg: dict,
-         out_cog: str | Path, out_json: str | Path) -> dict:
+         out_cog: str | Path, out_json: str | Path, maps_cfg: dict | None = None) -> dict:
     """Choose the warp by cross-validation on the GCPs, write the COG, and record the check-point scores."""
     from .warp import choose, raster_geotransform, warp_to_cog
 
@@ -398,7 +398,9 @@ def warp(mosaic_vrt: str | Path, gcps_csv: str | Path, plan_path: str | Path, wa
     obs = read_csv(gcps_csv)
     gt = raster_geotransform(mosaic_vrt)
     choice = choose(obs, pl, gt, warp_cfg["method"], warp_cfg["order"])
-    warp_to_cog(mosaic_vrt, obs, choice, pl, out_cog)
+    maps_cfg = maps_cfg or {}
+    warp_to_cog(mosaic_vrt, obs, choice, pl, out_cog, maps_cfg.get("compression", "deflate"),
+                maps_cfg.get("quality", 85))
     record = {"perspective": pl["perspective"], **choice, "n_observed": len(obs),
               "paper_method": paper_method_on(obs, pl, gt) if pl.get("projection") == "terrain" else None}
     write_json(out_json, record)
@@ -433,13 +435,15 @@ def paper_method_on(obs: list[dict], plan: dict, gt: tuple[float, ...]) -> dict 
     return residuals("polynomial", orders[0], planar, gt, plan["gsd"])
 
 
-def tms(cog: str | Path, zoom: str, out_dir: str | Path, processes: int = 1) -> None:
+def tms(cog: str | Path, zoom: str, out_dir: str | Path, processes: int = 1, tile_format: str = "png",
+        quality: int = 85) -> None:
     """gdal2tiles XYZ pyramid (web mercator) of a map, built in a temporary folder then moved.
 
     The map is first reprojected to EPSG:3857 once, by gdalwarp in C on the grid and with
     nearest-neighbour resampling of gdal2tiles' own warped VRT (transform exact to 0.01 px), so gdal2tiles
     reads plain windows instead of re-warping (and re-decompressing) for every tile: the
     same tiles (mean difference < 0.01 grey levels, most tiles bit-identical), 2-4x sooner.
+    ``tile_format`` png or webp (lossy at ``quality``, with alpha).
     """
     import shutil
     import sys
@@ -453,11 +457,13 @@ def tms(cog: str | Path, zoom: str, out_dir: str | Path, processes: int = 1) -> 
     tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
     mercator = tmp.with_suffix(".3857.tif")
     try:
-        run_tool(["gdalwarp", "-q", "-overwrite", "-t_srs", "EPSG:3857", "-r", "near", "-et", "0.01", "-multi",
+        run_tool(["gdalwarp", "-q", "-overwrite", "-t_srs", "EPSG:3857", "-r", "near", "-et", "0.01", "-dstalpha", "-multi",
                   "-wo", f"NUM_THREADS={processes}", "-co", "TILED=YES", "-co", "COMPRESS=ZSTD",
                   "-co", "ZSTD_LEVEL=1", str(cog), str(mercator)])
         args = [sys.executable, "-m", "osgeo_utils.gdal2tiles", "-q", "--xyz", "-w", "none", "-r", "average",
                 f"--processes={processes}"]
+        if tile_format == "webp":
+            args += ["--tiledriver=WEBP", f"--webp-quality={int(quality)}"]
         if zoom != "auto":
             args += ["-z", zoom]
         run_tool(args + [str(mercator), str(tmp)])

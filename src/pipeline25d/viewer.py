@@ -29,6 +29,14 @@ def leaflet_dist() -> Path:
                            "or set PIPELINE25D_LEAFLET to a leaflet/dist folder")
 
 
+def tile_extension(tms_dir: Path) -> str:
+    """The pyramid's tile file extension (png or webp), from the tiles themselves."""
+    for path in tms_dir.rglob("*"):
+        if path.suffix in (".png", ".webp"):
+            return path.suffix[1:]
+    return "png"
+
+
 def zoom_range(tms_dir: Path) -> tuple[int, int]:
     zooms = sorted(int(p.name) for p in tms_dir.iterdir() if p.is_dir() and p.name.isdigit())
     return zooms[0], zooms[-1]
@@ -43,7 +51,8 @@ def write_viewer(report_json: str | Path, out_html: str | Path) -> None:
         warp = p["warp"]["method"] + (f" {p['warp']['order']}" if p["warp"]["method"] == "polynomial" else "")
         entries.append({"id": p["id"], "azimuth": p["azimuth"], "elevation": p["elevation"],
                         "rmsd_m": p["rmsd_m"], "rmsd_px": p["rmsd_px"], "warp": warp,
-                        "lonlat_bounds": p["lonlat_bounds"], "min_zoom": zmin, "max_zoom": zmax})
+                        "lonlat_bounds": p["lonlat_bounds"], "min_zoom": zmin, "max_zoom": zmax,
+                        "ext": tile_extension(results / "tms" / p["id"])})
     out_html = Path(out_html)
     dest = out_html.parent / "leaflet"
     dest.mkdir(parents=True, exist_ok=True)

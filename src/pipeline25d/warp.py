@@ -190,12 +190,19 @@ def build_mosaic(tiles: list[str], out_vrt: str | Path) -> None:
         run_tool(["gdalbuildvrt", "-q", str(tmp), *tiles])
 
 
-def warp_to_cog(mosaic: str | Path, obs: list[dict], choice: dict, plan: dict, out: str | Path) -> None:
-    """Write the north-up COG: gdalwarp with the chosen GCP warp, or a plain copy for none."""
+def warp_to_cog(mosaic: str | Path, obs: list[dict], choice: dict, plan: dict, out: str | Path,
+                compression: str = "deflate", quality: int = 85) -> None:
+    """Write the north-up COG: gdalwarp with the chosen GCP warp, or a plain copy for none.
+
+    ``compression``: deflate (lossless RGBA), jpeg (RGB + the alpha as a mask, which the COG
+    driver makes) or webp (RGBA), the last two at ``quality``.
+    """
     from .crs import horizontal_wkt
 
     crs = horizontal_wkt(plan["crs"])
-    cog = ["-of", "COG", "-co", "COMPRESS=DEFLATE", "-co", "OVERVIEWS=AUTO"]
+    codec = ["-co", "COMPRESS=DEFLATE"] if compression == "deflate" else \
+        ["-co", f"COMPRESS={compression.upper()}", "-co", f"QUALITY={int(quality)}"]
+    cog = ["-of", "COG", *codec, "-co", "OVERVIEWS=AUTO"]
     with atomic_path(out) as tmp:
         if choice["method"] == "none":
             run_tool(["gdal_translate", "-q", *cog, str(mosaic), str(tmp)])

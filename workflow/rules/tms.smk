@@ -8,6 +8,8 @@ rule tms:
         directory(f"{RESULTS}/tms/{{pid}}"),
     params:
         zoom=config["tms"]["zoom"],
+        tile_format=config["tms"]["format"],
+        quality=config["tms"]["quality"],
     threads: 2
     log:
         f"{RESULTS}/logs/tms/{{pid}}.log",

@@ -11,6 +11,7 @@ rule warp:
         meta=f"{RESULTS}/maps/{{pid}}.json",
     params:
         warp=config["warp"],
+        maps=config["maps"],
     log:
         f"{RESULTS}/logs/warp/{{pid}}.log",
     benchmark:
