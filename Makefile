@@ -11,7 +11,7 @@ APT_PACKAGES := python3-venv python3-dev build-essential gdal-bin libgdal-dev li
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 PYTHON ?= python3
 
-.PHONY: run test deps sysdeps clean-results
+.PHONY: run test bench deps sysdeps clean-results
 
 run: deps
 	$(PY) -m pipeline25d demo-city resources/demo
@@ -20,6 +20,13 @@ run: deps
 test: deps
 	$(PY) -m pytest -q; rc=$$?; \
 	  if [ $$rc -eq 5 ]; then echo "pytest collected no tests"; exit 1; fi; exit $$rc
+
+# City-scale benchmark at the paper's Dataset 2 footprint (Delft LiDAR mesh tiled 12 x 10,
+# decimated to ~5.8 M triangles): writes bench/dataset2.json. BENCH_ARGS overrides, e.g.
+# make bench BENCH_ARGS="--grid 2x2 --name small"
+BENCH_ARGS ?= --grid 12x10 --decimate 0.1 --name dataset2
+bench: deps
+	$(PY) -m pipeline25d.bench $(BENCH_ARGS)
 
 deps: sysdeps $(STAMP) $(LEAFLET)
 
