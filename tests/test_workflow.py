@@ -83,33 +83,31 @@ SMALL_CONFIG = {"scene": "small", "crs": "EPSG:25832",
                 "perspectives": SMALL_PERSPECTIVES, "gcp": {"spacing": 8, "holdout": 0.3, "marker_px": 4}, "tms": {"zoom": "14-17"}}
 
 
+def demo_run(tmp_path_factory, scene: str, **overrides) -> tuple[Path, Path]:
+    """The small demo city run end to end with SMALL_CONFIG plus ``overrides``: (workdir, results)."""
+    workdir = tmp_path_factory.mktemp(scene)
+    make_scene(workdir, {**SMALL_CONFIG, "scene": scene, **overrides}, scale=0.35, buildings=40)
+    snakemake(workdir)
+    return workdir, workdir / "results" / scene
+
+
 @pytest.fixture(scope="module")
 def small_run(tmp_path_factory):
     """The demo city with no DTM given: terrain from the model, terrain-relative projection."""
-    workdir = tmp_path_factory.mktemp("small")
-    make_scene(workdir, SMALL_CONFIG, scale=0.35, buildings=40)
-    snakemake(workdir)
-    return workdir, workdir / "results" / "small"
+    return demo_run(tmp_path_factory, "small")
 
 
 @pytest.fixture(scope="module")
 def plane_run(tmp_path_factory):
     """The paper's method on the same city: the exact DTM for GCP heights, plane at z0, GCP warp."""
-    workdir = tmp_path_factory.mktemp("plane")
-    make_scene(workdir, {**SMALL_CONFIG, "scene": "plane", "terrain": "resources/demo/dtm.tif",
-                         "projection": "plane", "perspectives": SMALL_PERSPECTIVES[1:]}, scale=0.35, buildings=40)
-    snakemake(workdir)
-    return workdir, workdir / "results" / "plane"
+    return demo_run(tmp_path_factory, "plane", terrain="resources/demo/dtm.tif", projection="plane",
+                    perspectives=SMALL_PERSPECTIVES[1:])
 
 
 @pytest.fixture(scope="module")
 def paper_run(tmp_path_factory):
     """The paper's own camera and polynomial warp on the small run's city, GCPs and terrain."""
-    workdir = tmp_path_factory.mktemp("paper")
-    make_scene(workdir, {**SMALL_CONFIG, "scene": "paper", "projection": "paper",
-                         "perspectives": SMALL_PERSPECTIVES[1:2]}, scale=0.35, buildings=40)
-    snakemake(workdir)
-    return workdir, workdir / "results" / "paper"
+    return demo_run(tmp_path_factory, "paper", projection="paper", perspectives=SMALL_PERSPECTIVES[1:2])
 
 
 def test_full_pipeline_outputs(small_run):

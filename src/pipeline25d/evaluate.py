@@ -56,7 +56,7 @@ import numpy as np
 
 from .errors import ConfigError, CRSError, InputFileError, Pipeline25dError
 from .perspectives import Perspective
-from .raster import gdal, window_alpha
+from .raster import gdal, read_rgba_block, window_alpha
 
 log = logging.getLogger(__name__)
 
@@ -294,19 +294,10 @@ def _pair_grids(obl, nad, oblique_path) -> _Pairing:
 def _read_block(ds, col: int, row: int, size: int) -> tuple[np.ndarray, np.ndarray]:
     """Like :func:`_read_window`, but the block may reach past the raster: outside is alpha 0, grey 0."""
     w, h = ds.RasterXSize, ds.RasterYSize
-    c0, r0, c1, r1 = max(col, 0), max(row, 0), min(col + size, w), min(row + size, h)
-    if c0 == col and r0 == row and c1 == col + size and r1 == row + size:
+    if col >= 0 and row >= 0 and col + size <= w and row + size <= h:
         return _read_window(ds, col, row, size)
-    grey, alpha = np.zeros((size, size)), np.zeros((size, size), np.uint8)
-    if c1 > c0 and r1 > r0:
-        arr = ds.ReadAsArray(c0, r0, c1 - c0, r1 - r0)
-        if arr.ndim == 2:
-            arr = arr[None]
-        n = arr.shape[0]
-        inner = (slice(r0 - row, r1 - row), slice(c0 - col, c1 - col))
-        alpha[inner] = window_alpha(ds, arr, c0, r0, c1 - c0, r1 - r0)
-        grey[inner] = np.tensordot(_GREY, arr[:3].astype(np.float64), axes=1) if n >= 3 else arr[0]
-    return grey, alpha
+    rgb, alpha = read_rgba_block(ds, col, row, size, size)
+    return np.tensordot(rgb.astype(np.float64), _GREY, axes=([2], [0])), alpha
 
 
 # --------------------------------------------------------------------------- visible ground

@@ -106,7 +106,9 @@ def select_sites(dsm: np.ndarray, dtm: np.ndarray, grid: Grid, rules: SiteRules,
     # centred on pixel corners would give exact centroids and hide the method's own resolution.
     jx, jy = _jitter(sq_x[pick], sq_y[pick])
     px, py = x[pick] + jx * grid.res, y[pick] + jy * grid.res
-    apart = _apart(px, py, sx[r, c], sy[r, c], sq_x[pick], sq_y[pick], rules.radius, grid.res, perspectives)
+    # which of two close sites survives follows a hash of their squares, not sites elsewhere
+    apart = _apart(px, py, np.column_stack([sx[r, c], sy[r, c]]), np.lexsort((sq_y[pick], sq_x[pick], jx)),
+                   rules.radius, grid.res, perspectives)
     pick, clear, r, c, jx, jy, px, py = (a[apart] for a in (pick, clear, r, c, jx, jy, px, py))
     dz = sx[r, c] * jx * grid.res + sy[r, c] * jy * grid.res   # along the local ground plane
     return {"x": px, "y": py, "z": dsm[r, c] + dz, "ground": dtm[r, c] + dz, "sx": sx[r, c], "sy": sy[r, c],
@@ -114,14 +116,12 @@ def select_sites(dsm: np.ndarray, dtm: np.ndarray, grid: Grid, rules: SiteRules,
             "clear": clear}
 
 
-def _apart(x: np.ndarray, y: np.ndarray, sx: np.ndarray, sy: np.ndarray, sq_x: np.ndarray, sq_y: np.ndarray,
-           radius: float, res: float, perspectives: list[Perspective]) -> np.ndarray:
-    """(n,) bool: a subset of sites whose marker images cannot touch in any view.
+def _apart(x: np.ndarray, y: np.ndarray, slopes: np.ndarray, order: np.ndarray, radius: float, res: float,
+           perspectives: list[Perspective]) -> np.ndarray:
+    """(n,) bool: a subset of sites whose marker images cannot touch in any view, kept greedily in ``order``.
 
     A marker's image reaches radius·σ_max(I + cot φ·d ⊗ slope) (+ one DSM cell) from its
-    centre (the same bound the render uses to reject overlaps). Sites are kept greedily in
-    the order of a hash of their square, so which of two close sites survives does not depend
-    on sites elsewhere.
+    centre (the same bound the render uses to reject overlaps); ``slopes`` is (n, 2).
     """
     from scipy.spatial import cKDTree
 
@@ -132,12 +132,11 @@ def _apart(x: np.ndarray, y: np.ndarray, sx: np.ndarray, sy: np.ndarray, sq_x: n
         return np.ones(n, dtype=bool)
     stretch = np.ones(n)
     for p in perspectives:
-        stretch = np.maximum(stretch, image_stretch(p, np.column_stack([sx, sy])))
+        stretch = np.maximum(stretch, image_stretch(p, slopes))
     reach = radius * stretch + res
     tree = cKDTree(np.column_stack([x, y]))
     kept = np.zeros(n, dtype=bool)
-    jx, _ = _jitter(sq_x, sq_y)
-    for i in np.lexsort((sq_y, sq_x, jx)):
+    for i in order:
         near = tree.query_ball_point([x[i], y[i]], reach[i] + reach.max())
         if not any(kept[j] and np.hypot(x[i] - x[j], y[i] - y[j]) < reach[i] + reach[j] for j in near):
             kept[i] = True

@@ -61,7 +61,7 @@ from .errors import CRSError, InputFileError, Pipeline25dError
 from .evaluate import _open, _pair_grids, _same_crs
 from .footprints import Footprint, contains, rasterize, read_footprints
 from .perspectives import ID_PATTERN, Perspective
-from .raster import window_alpha
+from .raster import read_rgba_block
 
 log = logging.getLogger(__name__)
 
@@ -117,24 +117,6 @@ class HeightRow:
 # --------------------------------------------------------------------------- raster access
 
 _PAD = 4
-
-
-def _read_rgba(ds, col0: int, row0: int, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """(rgb float32 (h, w, 3), alpha uint8 (h, w)) of a window; outside the raster: alpha 0."""
-    rgb = np.zeros((height, width, 3), np.float32)
-    alpha = np.zeros((height, width), np.uint8)
-    c0, r0 = max(col0, 0), max(row0, 0)
-    c1, r1 = min(col0 + width, ds.RasterXSize), min(row0 + height, ds.RasterYSize)
-    if c1 <= c0 or r1 <= r0:
-        return rgb, alpha
-    arr = ds.ReadAsArray(c0, r0, c1 - c0, r1 - r0)
-    if arr.ndim == 2:
-        arr = arr[None]
-    sl = (slice(r0 - row0, r1 - row0), slice(c0 - col0, c1 - col0))
-    n = arr.shape[0]
-    rgb[sl] = np.moveaxis(arr[:3] if n >= 3 else np.repeat(arr[:1], 3, axis=0), 0, -1)
-    alpha[sl] = window_alpha(ds, arr, c0, r0, c1 - c0, r1 - r0)
-    return rgb, alpha
 
 
 @dataclass
@@ -599,7 +581,7 @@ def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint
         if c1 <= 0 or r1 <= 0 or c0 >= nad.RasterXSize or r0 >= nad.RasterYSize:
             tmpl: Template | str = "outside_nadir"
         else:
-            nad_rgb, nad_alpha = _read_rgba(nad, c0, r0, c1 - c0, r1 - r0)
+            nad_rgb, nad_alpha = read_rgba_block(nad, c0, r0, c1 - c0, r1 - r0)
             tmpl = build_template(fp, gt, c0, r0, nad_rgb, nad_alpha, s)
         results: dict[str, MatchResult] = {}
         matchers: dict[str, _Matcher] = {}
@@ -618,11 +600,11 @@ def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint
             if o_r1 <= o_r0 or o_c1 <= o_c0:
                 results[v.pid] = MatchResult(math.nan, 0.0, 1.0, "outside_map")
                 continue
-            obl_rgb, obl_alpha = _read_rgba(v.src, o_c0, o_r0, o_c1 - o_c0, o_r1 - o_r0)
+            obl_rgb, obl_alpha = read_rgba_block(v.src, o_c0, o_r0, o_c1 - o_c0, o_r1 - o_r0)
             off = v.offset + np.array([r0 - o_r0, c0 - o_c0], dtype=np.float64)
             # the nadir map over the same area (for the hidden-ground check)
             n_r0, n_c0 = o_r0 - int(round(v.offset[0])), o_c0 - int(round(v.offset[1]))
-            sw_rgb, sw_alpha = _read_rgba(nad, n_c0, n_r0, o_c1 - o_c0, o_r1 - o_r0)
+            sw_rgb, sw_alpha = read_rgba_block(nad, n_c0, n_r0, o_c1 - o_c0, o_r1 - o_r0)
             sweep = (sw_rgb, sw_alpha, np.array([r0 - n_r0, c0 - n_c0], dtype=np.float64))
             matchers[v.pid] = _Matcher(tmpl, obl_rgb, obl_alpha, off, v.d_px, u_max, step_m, s, sweep)
             results[v.pid] = matchers[v.pid].result()

@@ -35,8 +35,13 @@ def plan_pixel(plan: dict) -> float:
     return plan.get("pixel_size", plan["gsd"])
 
 
+def camera_of(projection: str | None) -> str:
+    """The camera a projection renders with: the paper's image plane, else the map-aligned one."""
+    return "paper" if projection == "paper" else "map"
+
+
 def plan_camera(plan: dict) -> str:
-    return "paper" if plan.get("projection") == "paper" else "map"
+    return camera_of(plan.get("projection"))
 
 
 def tile_extent(plan: dict, row: int, col: int, margin_px: int = 0) -> Extent:
@@ -72,7 +77,7 @@ def plan_perspective(p: Perspective, chunks: list[dict], candidates: list[dict],
     """
     terrain = terrain or {"projection": "plane", "dtm": None}
     relative = terrain["projection"] == "terrain"
-    camera = "paper" if terrain["projection"] == "paper" else "map"
+    camera = camera_of(terrain["projection"])
     pixel = pixel_size(gsd, p, camera)
     span = tile_span(pixel, tile_size)
     tiles: dict[tuple[int, int], dict] = {}

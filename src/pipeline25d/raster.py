@@ -54,6 +54,24 @@ def window_alpha(ds, arr: np.ndarray, col: int, row: int, width: int, height: in
     return np.full((height, width), 255, np.uint8)
 
 
+def read_rgba_block(ds, col0: int, row0: int, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """(rgb float32 (h, w, 3), alpha uint8 (h, w)) of a window that may reach past the raster
+    (outside: alpha 0, colour 0); a one-band raster is grey in all three channels."""
+    rgb = np.zeros((height, width, 3), np.float32)
+    alpha = np.zeros((height, width), np.uint8)
+    c0, r0 = max(col0, 0), max(row0, 0)
+    c1, r1 = min(col0 + width, ds.RasterXSize), min(row0 + height, ds.RasterYSize)
+    if c1 <= c0 or r1 <= r0:
+        return rgb, alpha
+    arr = ds.ReadAsArray(c0, r0, c1 - c0, r1 - r0)
+    if arr.ndim == 2:
+        arr = arr[None]
+    inner = (slice(r0 - row0, r1 - row0), slice(c0 - col0, c1 - col0))
+    rgb[inner] = np.moveaxis(arr[:3] if arr.shape[0] >= 3 else np.repeat(arr[:1], 3, axis=0), 0, -1)
+    alpha[inner] = window_alpha(ds, arr, c0, r0, c1 - c0, r1 - r0)
+    return rgb, alpha
+
+
 class DTM:
     """A terrain GeoTIFF sampled bilinearly in the scene CRS.
 

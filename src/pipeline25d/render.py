@@ -22,7 +22,8 @@ moderngl is imported lazily so the rest of the package imports where EGL is abse
 from __future__ import annotations
 
 import io
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -231,11 +232,14 @@ class TileRenderer:
             out.append((np.asarray(origin, dtype=np.float64), gpu))
         return TileGeometry(out)
 
-    def _geometry(self, chunks, view: TileView) -> tuple["TileGeometry", bool]:
-        """(geometry, owned): ``chunks`` uploaded here (owned, to release) unless already uploaded."""
+    @contextmanager
+    def _geometry(self, chunks: "Chunks", view: TileView) -> Iterator["TileGeometry"]:
+        """``chunks`` on the GPU for one pass: uploaded (and released after) unless already uploaded."""
         if isinstance(chunks, TileGeometry):
-            return chunks, False
-        return self.upload(chunks, view), True
+            yield chunks
+            return
+        with self.upload(chunks, view) as geometry:
+            yield geometry
 
     def _set(self, **uniforms) -> None:
         for name, value in uniforms.items():
@@ -269,7 +273,6 @@ class TileRenderer:
         import moderngl
 
         ctx, (w, h) = self.ctx, view.size
-        geometry, owned = self._geometry(chunks, view)
         fbo_ms = ctx.framebuffer(color_attachments=[ctx.renderbuffer((w, h), 4, samples=self.samples)],
                                  depth_attachment=ctx.depth_renderbuffer((w, h), samples=self.samples))
         fbo = ctx.simple_framebuffer((w, h), components=4)
@@ -277,13 +280,12 @@ class TileRenderer:
         ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         ctx.enable(moderngl.DEPTH_TEST)
         ctx.disable(moderngl.CULL_FACE)
-        self._draw_chunks(geometry, view)
+        with self._geometry(chunks, view) as geometry:
+            self._draw_chunks(geometry, view)
         ctx.copy_framebuffer(fbo, fbo_ms)
         rgba = _read_rgba(fbo, w, h)
         for obj in (fbo_ms, fbo):
             obj.release()
-        if owned:
-            geometry.release()
         return unpremultiply(rgba)
 
     def render_depth(self, chunks: "Chunks", view: TileView) -> np.ndarray:
@@ -291,19 +293,17 @@ class TileRenderer:
         import moderngl
 
         ctx, (w, h) = self.ctx, view.size
-        geometry, owned = self._geometry(chunks, view)
         depth = ctx.depth_texture((w, h))
         fbo = ctx.framebuffer(color_attachments=[ctx.renderbuffer((w, h), 4)], depth_attachment=depth)
         fbo.use()
         ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         ctx.enable(moderngl.DEPTH_TEST)
         ctx.disable(moderngl.CULL_FACE)
-        self._draw_chunks(geometry, view, black=True)
+        with self._geometry(chunks, view) as geometry:
+            self._draw_chunks(geometry, view, black=True)
         out = view.depth_metres(_read_depth(depth, w, h))
         fbo.release()
         depth.release()
-        if owned:
-            geometry.release()
         return out
 
     def render_markers(self, chunks: "Chunks", view: TileView,
@@ -320,7 +320,6 @@ class TileRenderer:
         import moderngl
 
         ctx, (w, h) = self.ctx, view.size
-        geometry, owned = self._geometry(chunks, view)
         depth = ctx.depth_texture((w, h))
         fbo = ctx.framebuffer(color_attachments=[ctx.renderbuffer((w, h), 4)], depth_attachment=depth)
         fbo.use()
@@ -348,14 +347,13 @@ class TileRenderer:
         alone = _marker_ids(fbo, w, h)
         marker_depth = view.depth_metres(_read_depth(depth, w, h))
         ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
-        self._draw_chunks(geometry, view, black=True)
+        with self._geometry(chunks, view) as geometry:
+            self._draw_chunks(geometry, view, black=True)
         model_depth = view.depth_metres(_read_depth(depth, w, h))
         draw_markers(depth_bias_m)
         seen = _marker_ids(fbo, w, h)
         fbo.release()
         depth.release()
-        if owned:
-            geometry.release()
         agree = np.abs(model_depth - marker_depth) <= depth_tolerance_m   # NaN (no model) disagrees
         full = _marker_stats(alone, n)[:, 0]
         full[_overlapping(points, slopes, radius_m, view)] = 0   # one marker hides another: no clean centroid

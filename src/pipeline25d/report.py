@@ -136,9 +136,10 @@ def render_markdown(rep: dict) -> str:
     for p in rep["perspectives"]:
         warp = p["warp"]["method"] + (f" {p['warp']['order']}" if p["warp"]["method"] == "polynomial" else "")
         na = p.get("check_note") or "n/a"
+        unwarped = fmt(p["unwarped_rmsd_m"], missing=p.get("unwarped_note") or na)
         lines.append(f"| {p['id']} | {p['tiles_rendered']} | {p['tiles_skipped']} | {p['n_gcp']} | {p['n_check']} | "
                      f"{warp} | {fmt(p['rmsd_m'], missing=na)} | {fmt(p['rmsd_px'], 2, missing=na)} | "
-                     f"{fmt(p['max_m'], missing=na)} | {fmt(p['unwarped_rmsd_m'], missing=p.get('unwarped_note') or na)} |")
+                     f"{fmt(p['max_m'], missing=na)} | {unwarped} |")
     paper = [p for p in rep["perspectives"] if p.get("paper_method")]
     if paper:
         lines += ["", "## The paper's method on the same check points", "",

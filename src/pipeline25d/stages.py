@@ -212,8 +212,9 @@ def scene_setup(lod_jsons: list[str], dsm_path: str | Path, terrain: str, terrai
             radius = holdout_radius(rules, grid.res)
             dtm = interpolate_dtm(_without_check_points(seed, grid, cands, radius), search)
             held = DTM.from_array(dtm, grid.geotransform, continuous=True)
-            for c in cands:
-                c["ground"] = round(float(held.sample(np.array([c["x"]]), np.array([c["y"]]))[0]), 3)
+            xy = np.array([[c["x"], c["y"]] for c in cands]).reshape(-1, 2)
+            for c, g in zip(cands, held.sample(xy[:, 0], xy[:, 1])):
+                c["ground"] = round(float(g), 3)
             log.info("DTM interpolated without the ground within %.1f m of each check point", radius)
     else:
         rows = read_csv(gcp_cfg["source"])
@@ -285,7 +286,8 @@ def chunk_ground(bounds: np.ndarray, dtm) -> list:
     gx, gy = np.meshgrid(np.linspace(lo[0], hi[0], nx), np.linspace(lo[1], hi[1], ny))
     g = dtm.sample(gx.ravel(), gy.ravel())
     if not np.isfinite(g).all() or np.abs(g).max() > 1e5:
-        raise ValueError(f"{dtm.path}: DTM heights under the chunk at {lo[:2]}..{hi[:2]} are not finite or not plausible (|h| > 100 km)")
+        raise ValueError(f"{dtm.path}: DTM heights under the chunk at {lo[:2]}..{hi[:2]} are not finite "
+                         "or not plausible (|h| > 100 km)")
     digest = hashlib.sha256(np.round(g, 2).tobytes()).hexdigest()[:12]   # cm: float noise does not count
     return [float(np.min(g)) - GROUND_MARGIN_M, float(np.max(g)) + GROUND_MARGIN_M, digest]
 
@@ -398,9 +400,7 @@ def warp(mosaic_vrt: str | Path, gcps_csv: str | Path, plan_path: str | Path, wa
     obs = read_csv(gcps_csv)
     gt = raster_geotransform(mosaic_vrt)
     choice = choose(obs, pl, gt, warp_cfg["method"], warp_cfg["order"])
-    maps_cfg = maps_cfg or {}
-    warp_to_cog(mosaic_vrt, obs, choice, pl, out_cog, maps_cfg.get("compression", "deflate"),
-                maps_cfg.get("quality", 85))
+    warp_to_cog(mosaic_vrt, obs, choice, pl, out_cog, **(maps_cfg or {}))   # compression, quality
     record = {"perspective": pl["perspective"], **choice, "n_observed": len(obs),
               "paper_method": paper_method_on(obs, pl, gt) if pl.get("projection") == "terrain" else None}
     write_json(out_json, record)
@@ -414,9 +414,10 @@ def paper_method_on(obs: list[dict], plan: dict, gt: tuple[float, ...]) -> dict 
 
     Each observed (terrain-relative) marker position is moved to where the plane projection
     puts it, by (DTM − z0)·cot φ·d: exact where the DTM is planar across the marker, since
-    the render displaced the marker by its height above that DTM. So only the method differs, not the points nor their sampling
-    noise. (The paper camera's image is an affine function of the plane projection, so its
-    polynomial warp scores the same; ``projection: paper`` renders it.)
+    the render displaced the marker by its height above that DTM. So only the method differs,
+    not the points nor their sampling noise. (The paper camera's image is an affine function
+    of the plane projection, so its polynomial warp scores the same; ``projection: paper``
+    renders it.)
     """
     from .camera import horizontal_direction, relief_factor
     from .warp import MIN_GCPS, residuals
@@ -439,9 +440,9 @@ def tms(cog: str | Path, zoom: str, out_dir: str | Path, processes: int = 1, til
         quality: int = 85) -> None:
     """gdal2tiles XYZ pyramid (web mercator) of a map, built in a temporary folder then moved.
 
-    The map is first reprojected to EPSG:3857 once, by gdalwarp in C on the grid and with
-    nearest-neighbour resampling of gdal2tiles' own warped VRT (transform exact to 0.01 px), so gdal2tiles
-    reads plain windows instead of re-warping (and re-decompressing) for every tile: the
+    The map is first reprojected to EPSG:3857 once, by gdalwarp in C on the grid and with the
+    nearest-neighbour resampling of gdal2tiles' own warped VRT (transform exact to 0.01 px), so
+    gdal2tiles reads plain windows instead of re-warping (and re-decompressing) for every tile: the
     same tiles (mean difference < 0.01 grey levels, most tiles bit-identical), 2-4x sooner.
     ``tile_format`` png or webp (lossy at ``quality``, with alpha).
     """
@@ -457,8 +458,8 @@ def tms(cog: str | Path, zoom: str, out_dir: str | Path, processes: int = 1, til
     tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
     mercator = tmp.with_suffix(".3857.tif")
     try:
-        run_tool(["gdalwarp", "-q", "-overwrite", "-t_srs", "EPSG:3857", "-r", "near", "-et", "0.01", "-dstalpha", "-multi",
-                  "-wo", f"NUM_THREADS={processes}", "-co", "TILED=YES", "-co", "COMPRESS=ZSTD",
+        run_tool(["gdalwarp", "-q", "-overwrite", "-t_srs", "EPSG:3857", "-r", "near", "-et", "0.01", "-dstalpha",
+                  "-multi", "-wo", f"NUM_THREADS={processes}", "-co", "TILED=YES", "-co", "COMPRESS=ZSTD",
                   "-co", "ZSTD_LEVEL=1", str(cog), str(mercator)])
         args = [sys.executable, "-m", "osgeo_utils.gdal2tiles", "-q", "--xyz", "-w", "none", "-r", "average",
                 f"--processes={processes}"]

@@ -199,12 +199,13 @@ def trim_object_edges(ground: np.ndarray, dsm: np.ndarray | None = None, tol: fl
     terms = [wgt, wgt * r0, wgt * c0, wgt * r0 * r0, wgt * r0 * c0, wgt * c0 * c0]
     s0, sr, sc, srr, src, scc = (box(t) for t in terms)
     tz, trz, tcz = box(z), box(z * r0), box(z * c0)
-    normal = np.stack([np.stack([s0, sr, sc], -1), np.stack([sr, srr, src], -1), np.stack([sc, src, scc], -1)], -2)
-    rhs = np.stack([tz, trz, tcz], -1)
     keep = inner.copy()
     idx = np.nonzero(edge & (s0 * window ** 2 >= 6))
     if len(idx[0]):
-        m, v = normal[idx], rhs[idx]
+        # the normal equations of the edge cells only (a whole-grid (h, w, 3, 3) stack is 9 grids)
+        rows_of_normal = ((s0, sr, sc), (sr, srr, src), (sc, src, scc))
+        m = np.stack([np.stack([a[idx] for a in row], -1) for row in rows_of_normal], -2)
+        v = np.stack([tz[idx], trz[idx], tcz[idx]], -1)
         ok = np.abs(np.linalg.det(m)) > 1e-9 * np.maximum(s0[idx], 1e-12) ** 3
         coef = np.zeros((len(m), 3))
         coef[ok] = np.linalg.solve(m[ok], v[ok][..., None])[..., 0]
