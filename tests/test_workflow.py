@@ -15,6 +15,7 @@ import yaml
 
 from conftest import REPO
 from pipeline25d.demo import generate_demo_city
+from pipeline25d.plan import plan_blocks
 
 SMALL_PERSPECTIVES = [{"azimuth": 0, "elevation": 90}, {"azimuth": 45, "elevation": 45},
                       {"azimuth": 200, "elevation": 30}]
@@ -62,7 +63,7 @@ def test_dry_run_of_the_default_config_counts_jobs_per_rule(tmp_path):
     counts = job_counts(snakemake(tmp_path, "-n").stdout)
     plans = [json.loads(p.read_text()) for p in (tmp_path / "results" / "demo" / "plans").glob("*.json")]
     assert len(plans) == 9
-    assert counts["render_tile"] == sum(len(p["tiles"]) for p in plans)
+    assert counts["render_block"] == sum(len(plan_blocks(p, 4)) for p in plans)
     assert sum(p["n_tiles_skipped"] for p in plans) > 0      # the demo's empty blocks
 
 
@@ -261,3 +262,20 @@ def test_rerun_does_nothing_and_a_changed_district_rerenders_only_its_tiles(plan
     respecified = {k for k in specs_after if specs_after[k] != specs_before.get(k)}
     assert changed == draws_chunk | respecified, (changed - draws_chunk, respecified)
     assert 0 < len(changed) < len(after)
+
+
+def test_plain_loop_reference_draws_the_same_tiles(small_run):
+    """The benchmark's plain moderngl loop covers what the render jobs covered, tile by tile."""
+    from osgeo import gdal
+
+    from pipeline25d.render_reference import plain_loop_seconds
+
+    _, results = small_run
+    plan = json.loads((results / "plans" / "az045_el45.json").read_text())
+    tiles = plan["tiles"][:4]
+    plain = plain_loop_seconds(results / "plans" / "az045_el45.json", results / "lod", 4, tiles)
+    assert plain["tiles"] == len(tiles) and plain["per_tile_s"] > 0
+    for t, cov in zip(tiles, plain["coverage"]):
+        ds = gdal.Open(str(results / "tiles" / "az045_el45" / f"{t['row']}_{t['col']}.tif"))
+        alpha = ds.GetRasterBand(4).ReadAsArray()
+        assert abs(float((alpha > 0).mean()) - cov) < 0.05, (t["row"], t["col"], cov)

@@ -105,6 +105,41 @@ def run(workdir: Path, config: dict, cores: int = 2) -> dict:
             "sizes": report["sizes"]}
 
 
+def render_against_plain_loop(results: Path, pid: str, samples: int) -> dict:
+    """Render job-seconds per tile of one perspective beside a plain moderngl loop over the same
+    tiles in one process (:mod:`pipeline25d.render_reference`), measured in the same run."""
+    from .plan import read_plan
+    from .render_reference import plain_loop_seconds
+    from .report import benchmark_rows
+
+    plan = results / "plans" / f"{pid}.json"
+    n = len(read_plan(plan)["tiles"])
+    job_s = sum(float(row["s"]) for _, row in benchmark_rows(results / "benchmarks" / "render" / pid))
+    plain = plain_loop_seconds(plan, results / "lod", samples)
+    return {"perspective": pid, "tiles": n, "job_s_per_tile": round(job_s / n, 4),
+            "plain_loop_s_per_tile": plain["per_tile_s"], "ratio": round(job_s / n / plain["per_tile_s"], 2)}
+
+
+def tms_against_gdal2tiles_default(results: Path, pid: str, work: Path) -> dict:
+    """The tms job's seconds for one map beside gdal2tiles with its defaults (``--xyz`` only,
+    same zoom levels) cutting the same COG, run here on the same machine."""
+    import shutil
+
+    from .report import benchmark_rows
+
+    ((_, row),) = benchmark_rows(results / "benchmarks" / "tms" / f"{pid}.tsv")
+    zooms = sorted(int(z.name) for z in (results / "tms" / pid).iterdir() if z.name.isdigit())
+    out = work / "gdal2tiles-default"
+    shutil.rmtree(out, ignore_errors=True)
+    t0 = time.monotonic()
+    subprocess.run([sys.executable, "-m", "osgeo_utils.gdal2tiles", "-q", "--xyz", "-z", f"{zooms[0]}-{zooms[-1]}",
+                    str(results / "maps" / f"{pid}.tif"), str(out)], check=True)
+    default_s = time.monotonic() - t0
+    shutil.rmtree(out, ignore_errors=True)
+    return {"perspective": pid, "zoom": f"{zooms[0]}-{zooms[-1]}", "tms_job_s": round(float(row["s"]), 2),
+            "gdal2tiles_default_s": round(default_s, 2), "speed_up": round(default_s / float(row["s"]), 2)}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m pipeline25d.bench", description=__doc__.split("\n\n")[0])
     ap.add_argument("--grid", default="2x2", help="districts, NXxNY (12x10 = the paper's Dataset 2 footprint)")
@@ -122,8 +157,12 @@ def main(argv: list[str] | None = None) -> int:
     districts = make_scene(work / "scene", nx, ny, args.decimate)
     result = run(work, bench_config(name, districts, args.gsd, args.perspectives), args.cores)
     result["decimate"] = args.decimate
+    oblique = next(p for p in sorted(result["check_rmsd_px"]) if not p.endswith("el90"))
+    result["render_vs_plain_loop"] = render_against_plain_loop(work / "results" / name, oblique, samples=4)
+    result["tms_vs_gdal2tiles_default"] = tms_against_gdal2tiles_default(work / "results" / name, oblique, work)
     write_text(REPO / "bench" / f"{name}.json", json.dumps(result, indent=1))
-    print(json.dumps({k: result[k] for k in ("wall_s", "tiles_rendered", "jobs", "peak_rss_mb")}))
+    print(json.dumps({k: result[k] for k in ("wall_s", "tiles_rendered", "jobs", "peak_rss_mb", "render_vs_plain_loop",
+                                      "tms_vs_gdal2tiles_default")}))
     return 0
 
 

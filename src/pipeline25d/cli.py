@@ -1,4 +1,4 @@
-"""Command line: ``python -m pipeline25d <command>`` (per-chunk and per-tile rules use it)."""
+"""Command line: ``python -m pipeline25d <command>`` (the LOD and render rules use it)."""
 
 from __future__ import annotations
 
@@ -15,10 +15,11 @@ def _lod(args) -> None:
     build_lod(args.chunk, args.out_npz, args.out_json, args.max_error, args.max_levels)
 
 
-def _render_tile(args) -> None:
-    from .stages import render_tile
+def _render_block(args) -> None:
+    from .stages import render_block
 
-    render_tile(args.plan, args.row, args.col, args.lod_dir, args.out_tif, args.out_gcps)
+    render_block(args.plan, args.block_row, args.block_col, args.block, args.lod_dir, args.tiles_dir,
+                 args.out_manifest)
 
 
 def _demo_city(args) -> None:
@@ -56,15 +57,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-levels", type=int, default=6)
     p.set_defaults(func=_lod)
 
-    p = sub.add_parser("render-tile", help="render one tile of a perspective's plan")
+    p = sub.add_parser("render-block", help="render one block of tiles of a perspective's plan")
     p.add_argument("--plan", required=True)
-    p.add_argument("--row", type=int, required=True)
-    p.add_argument("--col", type=int, required=True)
+    p.add_argument("--block-row", type=int, required=True)
+    p.add_argument("--block-col", type=int, required=True)
+    p.add_argument("--block", type=int, required=True, help="tiles per block side")
     p.add_argument("--lod-dir", required=True)
-    p.add_argument("--out-tif", required=True)
-    p.add_argument("--out-gcps", required=True)
-    p.add_argument("--spec-hash", help="ignored; in the command so Snakemake re-runs when the tile's spec changes")
-    p.set_defaults(func=_render_tile)
+    p.add_argument("--tiles-dir", required=True, help="where the tiles' files go")
+    p.add_argument("--out-manifest", required=True)
+    p.add_argument("--spec-hash", help="ignored; in the command so Snakemake re-runs when a tile's spec changes")
+    p.set_defaults(func=_render_block)
 
     p = sub.add_parser("gl-info", help="print the OpenGL renderer EGL gives us")
     p.set_defaults(func=_gl_info)

@@ -84,7 +84,10 @@ def plan_perspective(p: Perspective, chunks: list[dict], candidates: list[dict],
     for chunk in chunks:
         box, depth = projected_box(np.array(chunk["bounds"]), p, z0, chunk["ground"][:2] if relative else None, camera)
         entry = {"id": chunk["id"], "district": chunk["district"],
-                 "lod": choose_level(chunk["errors"], max_error_px * gsd)}
+                 "lod": choose_level(chunk["errors"], max_error_px * gsd),
+                 "xy": [round(float(v), 3) for v in (*chunk["bounds"][0][:2], *chunk["bounds"][1][:2])]}
+        if "hash" in chunk:
+            entry["hash"] = chunk["hash"]   # the chunk's LOD content: a changed chunk re-renders its tiles
         if relative:
             entry["ground"] = chunk["ground"][2]   # digest of the DTM under the chunk
         for r in _index_range(box.ymin, box.ymax, span):
@@ -147,6 +150,35 @@ def read_plan(path: str | Path) -> dict:
     """A plan JSON, cached per file version (Snakemake asks once per tile job)."""
     path = Path(path)
     return _read_plan_cached(str(path), path.stat().st_mtime_ns)
+
+
+def block_of(row: int, col: int, block: int) -> tuple[int, int]:
+    """The render block (block row, block col) holding tile (row, col): ``block`` x ``block`` tiles."""
+    return row // block, col // block
+
+
+def plan_blocks(plan: dict, block: int) -> dict[tuple[int, int], list[dict]]:
+    """The plan's tiles grouped by render block, each block's tiles north row first (plan order)."""
+    blocks: dict[tuple[int, int], list[dict]] = {}
+    for tile in plan["tiles"]:
+        blocks.setdefault(block_of(tile["row"], tile["col"], block), []).append(tile)
+    return blocks
+
+
+def plan_block(plan: dict, block_row: int, block_col: int, block: int) -> list[dict]:
+    """The tiles of render block (block_row, block_col), grouped once per (cached) plan."""
+    cache = plan.setdefault("_blocks", {})
+    if block not in cache:
+        cache[block] = plan_blocks(plan, block)
+    if (block_row, block_col) not in cache[block]:
+        raise KeyError(f"block ({block_row}, {block_col}) is not in the plan of {plan['perspective']['id']}")
+    return cache[block][(block_row, block_col)]
+
+
+def block_spec_hash(tiles: list[dict]) -> str:
+    """One hash over a block's tiles and their spec hashes: changes when any of them does."""
+    keys = [f"{t['row']}_{t['col']}:{t['spec_hash']}" for t in tiles]
+    return hashlib.sha256("|".join(keys).encode()).hexdigest()[:16]
 
 
 def plan_tile(plan: dict, row: int, col: int) -> dict:

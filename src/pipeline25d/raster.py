@@ -24,13 +24,14 @@ def gdal():
 
 
 def write_rgba_geotiff(path: str | Path, rgba: np.ndarray, geotransform: tuple, wkt: str) -> None:
-    """Write an (h, w, 4) uint8 image as a tiled, deflated RGBA GeoTIFF, atomically."""
+    """Write an (h, w, 4) uint8 image as a tiled RGBA GeoTIFF, atomically (ZSTD level 1: lossless
+    and ~3x faster to write than DEFLATE; these are the workflow's intermediate tiles)."""
     g = gdal()
     h, w, _ = rgba.shape
     with atomic_path(path) as tmp:
         ds = g.GetDriverByName("GTiff").Create(
             str(tmp), w, h, 4, g.GDT_Byte,
-            ["COMPRESS=DEFLATE", "TILED=YES", "PHOTOMETRIC=RGB", "ALPHA=YES"])
+            ["COMPRESS=ZSTD", "ZSTD_LEVEL=1", "TILED=YES", "PHOTOMETRIC=RGB", "ALPHA=YES"])
         ds.SetGeoTransform(geotransform)
         ds.SetProjection(wkt)
         for b, interp in enumerate((g.GCI_RedBand, g.GCI_GreenBand, g.GCI_BlueBand, g.GCI_AlphaBand)):

@@ -345,16 +345,20 @@ class TileRenderer:
         ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         draw_markers(0.0)
         alone = _marker_ids(fbo, w, h)
-        marker_depth = view.depth_metres(_read_depth(depth, w, h))
+        rows, cols = np.nonzero(alone)                # only marker pixels are compared below
+        marker_depth = _read_depth(depth, w, h)[rows, cols]
         ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         with self._geometry(chunks, view) as geometry:
             self._draw_chunks(geometry, view, black=True)
-        model_depth = view.depth_metres(_read_depth(depth, w, h))
+        model_depth = _read_depth(depth, w, h)[rows, cols]
         draw_markers(depth_bias_m)
         seen = _marker_ids(fbo, w, h)
         fbo.release()
         depth.release()
-        agree = np.abs(model_depth - marker_depth) <= depth_tolerance_m   # NaN (no model) disagrees
+        # window depth is linear in view depth (orthographic); a cleared model pixel (1.0) never agrees
+        agree = np.zeros((h, w), dtype=bool)
+        agree[rows, cols] = (np.abs(model_depth - marker_depth).astype(np.float64) * (dmax - dmin)
+                             <= depth_tolerance_m) & (model_depth < 1.0)
         full = _marker_stats(alone, n)[:, 0]
         full[_overlapping(points, slopes, radius_m, view)] = 0   # one marker hides another: no clean centroid
         sums = _marker_stats(seen, n)
@@ -425,9 +429,10 @@ def _read_rgba(fbo, w: int, h: int) -> np.ndarray:
 
 
 def _marker_ids(fbo, w: int, h: int) -> np.ndarray:
-    """(h, w) int64 marker id + 1 per pixel (0 = none) from the colour buffer, row 0 at the top."""
-    rgba = _read_rgba(fbo, w, h)
-    return rgba[..., 0].astype(np.int64) | (rgba[..., 1].astype(np.int64) << 8) | (rgba[..., 2].astype(np.int64) << 16)
+    """(h, w) marker id + 1 per pixel (0 = none) from the colour buffer (id = R + 256 G + 65536 B),
+    row 0 at the top."""
+    rgba = np.frombuffer(fbo.read(components=4), dtype="<u4").reshape(h, w)[::-1]
+    return rgba & 0xFFFFFF
 
 
 def _marker_stats(ids: np.ndarray, n: int, flag: np.ndarray | None = None) -> np.ndarray:

@@ -26,13 +26,20 @@ def input_size(config: dict) -> int:
     return total
 
 
+def benchmark_rows(folder: Path) -> list[tuple[Path, dict]]:
+    """(file, first row) of every Snakemake benchmark TSV under ``folder``."""
+    rows = []
+    for tsv in sorted(folder.rglob("*.tsv")):
+        with open(tsv) as fh:
+            rows.append((tsv, next(csv.DictReader(fh, delimiter="\t"))))
+    return rows
+
+
 def stage_timings(results: Path) -> dict[str, dict]:
     """Sum of wall seconds and max RSS (MB) per stage from Snakemake benchmark files."""
     out: dict[str, dict] = {}
-    for tsv in sorted((results / "benchmarks").rglob("*.tsv")):
+    for tsv, row in benchmark_rows(results / "benchmarks"):
         stage = tsv.relative_to(results / "benchmarks").parts[0].removesuffix(".tsv")
-        with open(tsv) as fh:
-            row = next(csv.DictReader(fh, delimiter="\t"))
         rec = out.setdefault(stage, {"jobs": 0, "seconds": 0.0, "max_rss_mb": 0.0})
         rec["jobs"] += 1
         rec["seconds"] += float(row["s"])

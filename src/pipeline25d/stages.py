@@ -15,13 +15,13 @@ import numpy as np
 
 from .atomic import write_json
 from .errors import ConfigError
-from .chunks import load_npz, pack_parts, save_npz, unpack_parts
+from .chunks import content_hash, load_npz, pack_parts, save_npz, unpack_parts
 from .gcps import CANDIDATE_FIELDS, OBSERVATION_FIELDS, assign_roles, observations, read_csv, write_csv
 from .ingest import write_chunks
 from .lod import build_levels
 from .mesh import Mesh
 from .perspectives import Perspective
-from .plan import plan_camera, plan_perspective, plan_pixel, plan_tile, read_plan, tile_extent, tile_geotransform
+from .plan import plan_block, plan_camera, plan_perspective, plan_pixel, read_plan, tile_extent, tile_geotransform
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +51,7 @@ def build_lod(chunk_path: str | Path, out_npz: str | Path, out_json: str | Path,
     for k, (parts, _) in enumerate(levels):
         arrays.update(pack_parts(parts, origin, prefix=f"L{k}_"))
     save_npz(out_npz, arrays)
-    meta = {"chunk": Path(chunk_path).stem, "bounds": mesh.bounds().tolist(),
+    meta = {"chunk": Path(chunk_path).stem, "bounds": mesh.bounds().tolist(), "hash": content_hash(arrays),
             "errors": [e for _, e in levels], "triangles": [sum(p.n_triangles for p in ps) for ps, _ in levels]}
     write_json(out_json, meta)
     return meta
@@ -305,7 +305,7 @@ def plan(perspective_id: str, lod_jsons: list[str], scene_json: str | Path, cand
     for p in lod_jsons:
         meta = json.loads(Path(p).read_text())
         chunks.append({"id": meta["chunk"], "district": Path(p).parent.name, "bounds": meta["bounds"],
-                       "errors": meta["errors"],
+                       "errors": meta["errors"], "hash": meta["hash"],
                        "ground": chunk_ground(meta["bounds"], dtm) if relative else None})
     terrain = {"projection": scene["projection"], "dtm": scene["dtm"] if relative else None}
     result = plan_perspective(Perspective.from_id(perspective_id), chunks, read_csv(candidates_csv),
@@ -317,53 +317,135 @@ def plan(perspective_id: str, lod_jsons: list[str], scene_json: str | Path, cand
 
 
 # -- render -------------------------------------------------------------------------------
-def render_tile(plan_path: str | Path, row: int, col: int, lod_dir: str | Path,
-                out_tif: str | Path, out_gcps: str | Path) -> dict:
-    """Render tile (row, col) of a plan: RGBA GeoTIFF plus the GCPs seen whole in it."""
-    from .crs import horizontal_wkt
-    from .raster import DTM, write_rgba_geotiff
-    from .render import TileRenderer, TileView, create_context
+def tile_files(tiles_dir: str | Path, row: int, col: int) -> dict[str, Path]:
+    """A tile's files: its RGBA GeoTIFF, the GCPs seen in it, and the spec hash it was rendered for."""
+    base = Path(tiles_dir) / f"{row}_{col}"
+    return {"gcps": Path(f"{base}.gcps.csv"), "tif": Path(f"{base}.tif"), "spec": Path(f"{base}.spec")}
+
+
+def _tile_current(tiles_dir: str | Path, tile: dict) -> bool:
+    """True if the tile's files exist and were rendered for its current spec hash."""
+    files = tile_files(tiles_dir, tile["row"], tile["col"])
+    return all(f.exists() for f in files.values()) and files["spec"].read_text().strip() == tile["spec_hash"]
+
+
+def render_block(plan_path: str | Path, block_row: int, block_col: int, block: int, lod_dir: str | Path,
+                 tiles_dir: str | Path, out_manifest: str | Path) -> dict:
+    """Render the tiles of one render block (``block`` x ``block`` tiles) in one process and GL context.
+
+    Each tile gets its own files (:func:`tile_files`), written GCPs, GeoTIFF, then spec hash,
+    each atomically: a tile whose ``.spec`` matches its plan entry is complete and is kept as
+    it is, so a changed district re-renders only its own tiles even though its block job runs
+    again. The manifest (written last) lists the block's tiles and which were rendered.
+    """
+    from .render import TileRenderer, create_context
 
     pl = read_plan(plan_path)
-    tile = plan_tile(pl, row, col)
+    tiles = plan_block(pl, block_row, block_col, block)
+    todo = [t for t in tiles if not _tile_current(tiles_dir, t)]
+    if todo:
+        chunks = _ChunkCache(lod_dir, todo)
+        ground = _block_ground(pl, todo)
+        ctx = create_context()
+        try:
+            renderer = TileRenderer(ctx, ambient=todo[0]["render"]["ambient"], samples=todo[0]["render"]["samples"])
+            for k, tile in enumerate(todo, 1):
+                rgba, seen = _render_tile(renderer, pl, tile, chunks.take(tile), ground)
+                _write_tile(pl, tile, rgba, seen, tiles_dir)
+                log.info("%s tile %d_%d (%d of %d): coverage %.1f%%, GCPs seen %d of %d", pl["perspective"]["id"],
+                         tile["row"], tile["col"], k, len(todo), 100 * float((rgba[..., 3] > 0).mean()),
+                         len(seen), len(tile["gcps"]))
+        finally:
+            ctx.release()
+    manifest = {"perspective": pl["perspective"]["id"], "block": [block_row, block_col],
+                "tiles": [{"row": t["row"], "col": t["col"], "spec_hash": t["spec_hash"]} for t in tiles],
+                "rendered": len(todo), "kept": len(tiles) - len(todo)}
+    write_json(out_manifest, manifest)
+    log.info("block %d_%d: %d tiles rendered, %d unchanged kept", block_row, block_col, len(todo),
+             len(tiles) - len(todo))
+    return manifest
+
+
+class _ChunkCache:
+    """Chunk LODs loaded once per block job and dropped after the last tile that draws them."""
+
+    def __init__(self, lod_dir: str | Path, tiles: list[dict]):
+        from collections import Counter
+
+        self.lod_dir = Path(lod_dir)
+        self.uses = Counter(self._key(c) for t in tiles for c in t["chunks"])
+        self.loaded: dict[tuple, tuple[np.ndarray, list]] = {}
+
+    @staticmethod
+    def _key(chunk: dict) -> tuple:
+        return chunk["district"], chunk["id"], chunk["lod"]
+
+    def take(self, tile: dict) -> list[tuple[np.ndarray, list]]:
+        out = []
+        for c in tile["chunks"]:
+            key = self._key(c)
+            if key not in self.loaded:
+                self.loaded[key] = load_chunk_level(self.lod_dir / c["district"] / f"{c['id']}.npz", c["lod"])
+            out.append(self.loaded[key])
+            self.uses[key] -= 1
+            if not self.uses[key]:
+                del self.loaded[key]
+        return out
+
+
+def _block_ground(pl: dict, tiles: list[dict]):
+    """DTM(x, y) around what the tiles draw (their chunks' and GCPs' ground extent), read once per
+    block; None in plane mode."""
+    from .raster import DTM
+
+    if pl.get("projection") != "terrain":
+        return None
+    xy = [np.array(c["xy"]).reshape(2, 2) for t in tiles for c in t["chunks"]]
+    xy += [np.array([[c["x"], c["y"]] for c in t["gcps"]]).reshape(-1, 2) for t in tiles]
+    xy = np.concatenate(xy)
+    return DTM(pl["dtm"], pl["crs"], continuous=True, window=(*xy.min(axis=0), *xy.max(axis=0))).sample
+
+
+def _render_tile(renderer, pl: dict, tile: dict, chunks: list, ground) -> tuple[np.ndarray, list[dict]]:
+    """(RGBA image, GCP observations) of one plan tile from its loaded chunks; ``ground`` = DTM(x, y)
+    in terrain-relative mode, else None."""
+    from .render import TileView
+
+    row, col = tile["row"], tile["col"]
     persp = Perspective.from_id(pl["perspective"]["id"])
     t, gsd, cfg = pl["tile_size"], pl["gsd"], tile["render"]
-    chunks = [load_chunk_level(Path(lod_dir) / c["district"] / f"{c['id']}.npz", c["lod"]) for c in tile["chunks"]]
     depth = tuple(tile["depth_range"])
-    ground = None
-    if pl.get("projection") == "terrain":   # the DTM around what this tile draws, not the whole city's
-        xy = [p.vertices[:, :2] for _, parts in chunks for p in parts if p.n_triangles]
-        xy += [np.array([[c["x"], c["y"]] for c in tile["gcps"]]).reshape(-1, 2)]
-        xy = np.concatenate(xy)
-        window = (*xy.min(axis=0), *xy.max(axis=0))
-        ground = DTM(pl["dtm"], pl["crs"], continuous=True, window=window).sample
     camera, pixel = plan_camera(pl), plan_pixel(pl)
-    ctx = create_context()
-    try:
-        renderer = TileRenderer(ctx, ambient=cfg["ambient"], samples=cfg["samples"])
-        view = TileView(persp, pl["z0"], tile_extent(pl, row, col), depth, (t, t), ground, camera)
-        with renderer.upload(chunks, view) as geometry:          # once for both passes
-            rgba = renderer.render_color(geometry, view)
-            seen = []
-            if tile["gcps"]:
-                margin = int(np.ceil(cfg["marker_px"])) + 2
-                extent = tile_extent(pl, row, col, margin)
-                view = TileView(persp, pl["z0"], extent, depth, (t + 2 * margin, t + 2 * margin), ground, camera)
-                pts = np.array([[c["x"], c["y"], c["z"]] for c in tile["gcps"]])
-                slopes = np.array([[c["sx"], c["sy"]] for c in tile["gcps"]])
-                full, sums = renderer.render_markers(geometry, view, pts, slopes, cfg["marker_px"] * gsd,
-                                                     cfg["depth_bias"],
-                                                     marker_depth_tolerance(persp, gsd, cfg["max_float_px"]))
-                seen = observations(tile["gcps"], full, sums, (extent.xmin, extent.ymax), pixel)
-    finally:
-        ctx.release()
+    view = TileView(persp, pl["z0"], tile_extent(pl, row, col), depth, (t, t), ground, camera)
+    with renderer.upload(chunks, view) as geometry:          # once for both passes
+        rgba = renderer.render_color(geometry, view)
+        seen = []
+        if tile["gcps"]:
+            margin = int(np.ceil(cfg["marker_px"])) + 2
+            extent = tile_extent(pl, row, col, margin)
+            view = TileView(persp, pl["z0"], extent, depth, (t + 2 * margin, t + 2 * margin), ground, camera)
+            pts = np.array([[c["x"], c["y"], c["z"]] for c in tile["gcps"]])
+            slopes = np.array([[c["sx"], c["sy"]] for c in tile["gcps"]])
+            full, sums = renderer.render_markers(geometry, view, pts, slopes, cfg["marker_px"] * gsd,
+                                                 cfg["depth_bias"],
+                                                 marker_depth_tolerance(persp, gsd, cfg["max_float_px"]))
+            seen = observations(tile["gcps"], full, sums, (extent.xmin, extent.ymax), pixel)
+    return rgba, seen
+
+
+def _write_tile(pl: dict, tile: dict, rgba: np.ndarray, seen: list[dict], tiles_dir: str | Path) -> None:
+    """GCPs, GeoTIFF, then the spec hash that marks the tile complete (see :func:`render_block`)."""
+    from .atomic import write_text
+    from .crs import horizontal_wkt
+    from .raster import write_rgba_geotiff
+
+    files = tile_files(tiles_dir, tile["row"], tile["col"])
+    files["spec"].unlink(missing_ok=True)
     # the paper camera's tiles lie on its image plane, which is no CRS: the warp georeferences them
-    wkt = "" if camera == "paper" else horizontal_wkt(pl["crs"])
-    write_rgba_geotiff(out_tif, rgba, tile_geotransform(pl, row, col), wkt)
-    write_csv(out_gcps, seen, OBSERVATION_FIELDS)
-    log.info("%s tile %d_%d: %d chunks, coverage %.1f%%, GCPs seen %d of %d", persp.id, row, col,
-             len(chunks), 100 * float((rgba[..., 3] > 0).mean()), len(seen), len(tile["gcps"]))
-    return {"gcps_candidates": len(tile["gcps"]), "gcps_seen": len(seen)}
+    wkt = "" if plan_camera(pl) == "paper" else horizontal_wkt(pl["crs"])
+    write_csv(files["gcps"], seen, OBSERVATION_FIELDS)
+    write_rgba_geotiff(files["tif"], rgba, tile_geotransform(pl, tile["row"], tile["col"]), wkt)
+    write_text(files["spec"], tile["spec_hash"] + "\n")
 
 
 def marker_depth_tolerance(p: Perspective, gsd: float, max_float_px: float) -> float:

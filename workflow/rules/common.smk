@@ -11,7 +11,7 @@ from pipeline25d.config import check_semantics, chunk_size, perspectives
 from pipeline25d.errors import Pipeline25dError
 from pipeline25d.ingest import CHUNK_ID_PATTERN
 from pipeline25d.perspectives import ID_PATTERN
-from pipeline25d.plan import plan_tile, read_plan
+from pipeline25d.plan import block_spec_hash, plan_block, plan_blocks, read_plan
 
 validate(config, "../../config/schema.yaml")
 try:
@@ -27,14 +27,16 @@ PERSPECTIVE_IDS = [p.id for p in perspectives(config)]
 MAX_LOD_ERROR = config["gsd"] * config["lod"]["max_error_px"]
 TERRAIN_FILE = [] if config["terrain"] in ("auto", "flat") else [config["terrain"]]
 GCP_FILE = [] if config["gcp"]["source"] == "auto" else [config["gcp"]["source"]]
-RENDER_SETTINGS = {**config["render"], "marker_px": config["gcp"]["marker_px"],
+RENDER_BLOCK = config["render"]["block"]
+# what changes a tile's pixels (the block size does not)
+RENDER_SETTINGS = {**{k: v for k, v in config["render"].items() if k != "block"}, "marker_px": config["gcp"]["marker_px"],
                    "depth_bias": config["gcp"]["depth_bias"], "max_float_px": config["gcp"]["max_float_px"]}
 
 
 wildcard_constraints:
     pid=ID_PATTERN,
-    row=r"-?\d+",
-    col=r"-?\d+",
+    brow=r"-?\d+",
+    bcol=r"-?\d+",
     district=r"[A-Za-z0-9-]+",
     chunk=CHUNK_ID_PATTERN,
 
@@ -58,17 +60,24 @@ def plan_of(pid):
     return read_plan(checkpoints.plan.get(pid=pid).output.plan)
 
 
-def tile_entry(wildcards):
-    return plan_tile(plan_of(wildcards.pid), int(wildcards.row), int(wildcards.col))
+def block_tiles(wildcards):
+    return plan_block(plan_of(wildcards.pid), int(wildcards.brow), int(wildcards.bcol), RENDER_BLOCK)
 
 
-def tile_lods(wildcards):
-    """The LOD files a tile draws: a tile depends on its own chunks only."""
-    return [f"{RESULTS}/lod/{c['district']}/{c['id']}.npz" for c in tile_entry(wildcards)["chunks"]]
+def block_lods(wildcards):
+    """The LOD files a block's tiles draw: a block depends on its own chunks only."""
+    chunks = {(c["district"], c["id"]) for t in block_tiles(wildcards) for c in t["chunks"]}
+    return [f"{RESULTS}/lod/{d}/{c}.npz" for d, c in sorted(chunks)]
 
 
-def tile_spec_hash(wildcards):
-    return tile_entry(wildcards)["spec_hash"]
+def block_hash(wildcards):
+    return block_spec_hash(block_tiles(wildcards))
+
+
+def perspective_blocks(wildcards):
+    """The render-block manifests of a perspective."""
+    blocks = plan_blocks(plan_of(wildcards.pid), RENDER_BLOCK)
+    return [f"{RESULTS}/tiles/{wildcards.pid}/block_{r}_{c}.json" for r, c in sorted(blocks)]
 
 
 def perspective_tiles(wildcards, suffix):

@@ -3,7 +3,9 @@
 
 rule gcps:
     input:
-        lambda wc: perspective_tiles(wc, ".gcps.csv"),
+        perspective_blocks,
+    params:
+        tiles=lambda wc: perspective_tiles(wc, ".gcps.csv"),
     output:
         f"{RESULTS}/gcps/{{pid}}.csv",
     log:

@@ -3,7 +3,9 @@
 
 rule mosaic:
     input:
-        lambda wc: perspective_tiles(wc, ".tif"),
+        perspective_blocks,
+    params:
+        tiles=lambda wc: perspective_tiles(wc, ".tif"),
     output:
         f"{RESULTS}/mosaic/{{pid}}.vrt",
     log:

@@ -1,25 +1,27 @@
-# One job per non-empty (perspective, row, col) tile: RGBA GeoTIFF + GCPs seen in it.
-# Inputs are the tile's own chunk LODs; the spec hash (chunks, LODs, GCPs, settings)
-# re-runs the tile when its plan entry changes, and only then.
+# One job per render block (render.block x render.block tiles of a perspective, one process and
+# GL context): each non-empty tile gets an RGBA GeoTIFF, the GCPs seen in it and its spec hash.
+# Inputs are the block's chunk LODs; the block's hash (its tiles' spec hashes) re-runs the job
+# when a tile's plan entry changes, and the job then re-renders only the tiles whose spec changed.
 
 
-rule render_tile:
+rule render_block:
     input:
-        tile_lods,
+        block_lods,
     output:
-        tif=f"{RESULTS}/tiles/{{pid}}/{{row}}_{{col}}.tif",
-        gcps=f"{RESULTS}/tiles/{{pid}}/{{row}}_{{col}}.gcps.csv",
+        f"{RESULTS}/tiles/{{pid}}/block_{{brow}}_{{bcol}}.json",
     params:
         plan=f"{RESULTS}/plans/{{pid}}.json",
         lod_dir=f"{RESULTS}/lod",
-        spec_hash=tile_spec_hash,
+        tiles_dir=f"{RESULTS}/tiles/{{pid}}",
+        block=RENDER_BLOCK,
+        spec_hash=block_hash,
     log:
-        f"{RESULTS}/logs/render/{{pid}}/{{row}}_{{col}}.log",
+        f"{RESULTS}/logs/render/{{pid}}/block_{{brow}}_{{bcol}}.log",
     benchmark:
-        f"{RESULTS}/benchmarks/render/{{pid}}/{{row}}_{{col}}.tsv"
+        f"{RESULTS}/benchmarks/render/{{pid}}/block_{{brow}}_{{bcol}}.tsv"
     group:
         "render"
     shell:
-        PYTHON + " -m pipeline25d render-tile --plan {params.plan} --row {wildcards.row} --col {wildcards.col}"
-        " --lod-dir {params.lod_dir} --out-tif {output.tif} --out-gcps {output.gcps}"
-        " --spec-hash {params.spec_hash} > {log} 2>&1"
+        PYTHON + " -m pipeline25d render-block --plan {params.plan} --block-row {wildcards.brow}"
+        " --block-col {wildcards.bcol} --block {params.block} --lod-dir {params.lod_dir}"
+        " --tiles-dir {params.tiles_dir} --out-manifest {output} --spec-hash {params.spec_hash} > {log} 2>&1"
