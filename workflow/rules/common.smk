@@ -1,15 +1,12 @@
 # Config validation (before any job), constants, wildcard constraints and input functions.
-import json
 import shlex
 import sys
-from pathlib import Path
 
 from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 
 from pipeline25d.config import check_semantics, chunk_size, perspectives
 from pipeline25d.errors import Pipeline25dError
-from pipeline25d.ingest import CHUNK_ID_PATTERN
 from pipeline25d.perspectives import ID_PATTERN
 from pipeline25d.plan import plan_tile, read_plan
 
@@ -36,7 +33,6 @@ wildcard_constraints:
     row=r"-?\d+",
     col=r"-?\d+",
     district=r"[A-Za-z0-9-]+",
-    chunk=CHUNK_ID_PATTERN,
 
 
 def district_inputs(wildcards):
@@ -44,14 +40,9 @@ def district_inputs(wildcards):
     return [spec[k] for k in ("path", "metadata") if k in spec]
 
 
-def chunk_ids(district):
-    """Chunk ids of a district, known once its ingest checkpoint has run."""
-    index = checkpoints.ingest.get(district=district).output.index
-    return sorted(json.loads(Path(index).read_text())["chunks"])
-
-
 def all_lod_meta(wildcards):
-    return [f"{RESULTS}/lod/{d}/{c}.json" for d in DISTRICTS for c in chunk_ids(d)]
+    """The per-district LOD indexes (each lists its chunks' LOD files, see stages.lod_chunks)."""
+    return expand(rules.lod.output.index, district=DISTRICTS)
 
 
 def plan_of(pid):
@@ -63,7 +54,7 @@ def tile_entry(wildcards):
 
 
 def tile_lods(wildcards):
-    """The LOD files a tile draws: a tile depends on its own chunks only."""
+    """The LOD files a tile draws (side files of the lod jobs): a tile depends on its own chunks only."""
     return [f"{RESULTS}/lod/{c['district']}/{c['id']}.npz" for c in tile_entry(wildcards)["chunks"]]
 
 
