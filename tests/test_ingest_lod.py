@@ -127,6 +127,33 @@ def test_delft_lidar_mesh_bounds_and_triangles_match_source():
 
 
 @needs_data
+@pytest.mark.parametrize("source", ["obj/testarea.obj", "delft_dsm_mesh.ply"])
+def test_surface_distances_match_trimesh_closest_point_on_real_meshes(source):
+    """Buildings with walls (OBJ) and a LiDAR surface, each simplified as a LOD level: the
+    distance from original vertices (and from points off the surface) to it, point by point."""
+    from pipeline25d.lod import simplify_part
+    from pipeline25d.proximity import surface_distances
+
+    mesh = load_district({"path": str(DATA / "delft" / source), "crs": "EPSG:28992"}, "EPSG:28992")
+    if len(mesh.parts) == 1:                                   # the LiDAR mesh: one 100 m chunk of it
+        mesh = Mesh(split_into_chunks(mesh, 100.0)["c849_4475"])
+    rng = np.random.default_rng(5)
+    for part in mesh.parts:
+        if part.n_triangles < 500:
+            continue
+        simple = simplify_part(part, 0.75)
+        origin = part.vertices.mean(axis=0)
+        pts = part.vertices[rng.choice(len(part.vertices), min(len(part.vertices), 2000), replace=False)]
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        pts = np.vstack([pts, rng.uniform(lo - 10, hi + 10, (100, 3))]) - origin
+        _, expected, _ = trimesh.proximity.closest_point(
+            trimesh.Trimesh(simple.vertices - origin, simple.faces, process=False), pts)
+        np.testing.assert_allclose(surface_distances(pts, simple.vertices - origin, simple.faces), expected,
+                                   rtol=0, atol=1e-9)
+    assert np.isinf(surface_distances(pts, simple.vertices, np.zeros((0, 3), int))).all()
+
+
+@needs_data
 def test_dtm_samples_the_same_ground_from_another_crs():
     from pipeline25d.crs import transform_points
     from pipeline25d.raster import DTM
