@@ -44,6 +44,38 @@ def test_unchanged_chunks_keep_their_files(tmp_path):
     assert len(changed) == 1
 
 
+def test_district_lod_rebuilds_only_changed_chunks_and_removes_stale_ones(tmp_path):
+    from pipeline25d.chunks import content_hash, load_npz
+    from pipeline25d.stages import build_lod, lod_chunks
+
+    chunks, lod = tmp_path / "chunks", tmp_path / "lod"
+
+    def run(part: MeshPart, max_error: float = 0.5) -> dict[str, int]:
+        for index in (chunks / "index.json", lod / "index.json"):    # as Snakemake does before re-running
+            index.unlink(missing_ok=True)
+        write_chunks(Mesh([part]), "a", 25.0, chunks, chunks / "index.json")
+        build_lod(chunks / "index.json", lod / "index.json", max_error, 4)
+        return {p.name: p.stat().st_mtime_ns for p in lod.glob("c*.npz")}
+
+    first = run(grid_part(bump=2.0))
+    entries = lod_chunks([lod / "index.json"])
+    assert len(first) == len(entries) == 16 and {e["district"] for e in entries} == {"a"}
+    for e in entries:
+        data = load_npz(e["npz"])
+        assert e["hash"] == content_hash({k: data[k] for k in data.files}) and len(e["errors"]) == int(data["n_levels"])
+
+    part = grid_part(bump=2.0)
+    part.vertices[0, 2] += 1.0                                           # one vertex of one chunk changes
+    x = part.vertices[part.faces].mean(axis=1)[:, 0] - 500000.0
+    cut = MeshPart(part.vertices, part.faces[x < 75], colors=part.colors)  # and the last column of chunks goes
+    second = run(cut)
+    assert len(second) == 12 and sum(second[k] != first[k] for k in second) == 1
+    before, after = ({e["id"]: e for e in es} for es in (entries, lod_chunks([lod / "index.json"])))
+    assert all(after[k[:-4]] == before[k[:-4]] for k in second if second[k] == first[k])   # same entries kept
+    third = run(cut, max_error=0.4)                                       # new LOD settings: every chunk again
+    assert all(third[k] != second[k] for k in third)
+
+
 def test_lod_errors_are_measured_and_levels_chosen_by_pixel_size():
     flat = build_levels(Mesh([grid_part(bump=0.0)]), max_error=0.1, max_levels=5)
     assert len(flat) >= 3 and all(e < 1e-6 for _, e in flat)          # a plane simplifies exactly
@@ -92,6 +124,33 @@ def test_delft_lidar_mesh_bounds_and_triangles_match_source():
     np.testing.assert_allclose([lo[0], hi[0], lo[1], hi[1]], [84808, 85072.5, 447412, 447641.5], atol=0.26)
     np.testing.assert_allclose([lo[2], hi[2]], [-0.47, 26.33], atol=0.005)
     assert mesh.parts[0].colors is not None
+
+
+@needs_data
+@pytest.mark.parametrize("source", ["obj/testarea.obj", "delft_dsm_mesh.ply"])
+def test_surface_distances_match_trimesh_closest_point_on_real_meshes(source):
+    """Buildings with walls (OBJ) and a LiDAR surface, each simplified as a LOD level: the
+    distance from original vertices (and from points off the surface) to it, point by point."""
+    from pipeline25d.lod import simplify_part
+    from pipeline25d.proximity import surface_distances
+
+    mesh = load_district({"path": str(DATA / "delft" / source), "crs": "EPSG:28992"}, "EPSG:28992")
+    if len(mesh.parts) == 1:                                   # the LiDAR mesh: one 100 m chunk of it
+        mesh = Mesh(split_into_chunks(mesh, 100.0)["c849_4475"])
+    rng = np.random.default_rng(5)
+    for part in mesh.parts:
+        if part.n_triangles < 500:
+            continue
+        simple = simplify_part(part, 0.75)
+        origin = part.vertices.mean(axis=0)
+        pts = part.vertices[rng.choice(len(part.vertices), min(len(part.vertices), 2000), replace=False)]
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        pts = np.vstack([pts, rng.uniform(lo - 10, hi + 10, (100, 3))]) - origin
+        _, expected, _ = trimesh.proximity.closest_point(
+            trimesh.Trimesh(simple.vertices - origin, simple.faces, process=False), pts)
+        np.testing.assert_allclose(surface_distances(pts, simple.vertices - origin, simple.faces), expected,
+                                   rtol=0, atol=1e-9)
+    assert np.isinf(surface_distances(pts, simple.vertices, np.zeros((0, 3), int))).all()
 
 
 @needs_data

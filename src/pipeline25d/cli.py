@@ -12,7 +12,7 @@ from .errors import Pipeline25dError
 def _lod(args) -> None:
     from .stages import build_lod
 
-    build_lod(args.chunk, args.out_npz, args.out_json, args.max_error, args.max_levels)
+    build_lod(args.chunk_index, args.out_index, args.max_error, args.max_levels)
 
 
 def _render_block(args) -> None:
@@ -49,10 +49,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scale", type=float, default=1.0)
     p.set_defaults(func=_demo_city)
 
-    p = sub.add_parser("lod", help="build one chunk's LOD pyramid")
-    p.add_argument("chunk")
-    p.add_argument("out_npz")
-    p.add_argument("out_json")
+    p = sub.add_parser("lod", help="build the LOD pyramids of one district's chunks")
+    p.add_argument("chunk_index", help="the district's ingest index.json (its chunk npz files beside it)")
+    p.add_argument("out_index", help="the LOD index.json to write; the chunks' LOD npz files go beside it")
     p.add_argument("--max-error", type=float, required=True, help="metres")
     p.add_argument("--max-levels", type=int, default=6)
     p.set_defaults(func=_lod)

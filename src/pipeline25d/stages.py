@@ -40,9 +40,55 @@ def ingest(spec: dict, district: str, scene_crs: str, chunk_size: float, max_geo
     return write_chunks(mesh, district, chunk_size, index_path.parent, index_path)
 
 
-def build_lod(chunk_path: str | Path, out_npz: str | Path, out_json: str | Path, max_error: float,
-              max_levels: int) -> dict:
-    """Write the LOD pyramid of one chunk (npz) and its metadata (json, written last)."""
+def build_lod(chunk_index: str | Path, out_index: str | Path, max_error: float, max_levels: int) -> dict:
+    """Write the LOD pyramid of every chunk of a district beside ``out_index``, then the index.
+
+    ``chunk_index``: the district's ingest index (its chunk npz files beside it). One npz per
+    chunk (:func:`build_chunk_lod`); a chunk whose ingest hash and LOD parameters are those of
+    the previous run keeps its file (and mtime), so no tile drawing it re-runs. The previous
+    run's entries live in ``index.hashes.json``, which is no declared output: Snakemake deletes
+    the index itself before the job. Files of chunks no longer in the district are removed.
+    Returns the index: {district, max_error, max_levels, chunks: {id: {bounds, errors, triangles, hash}}}.
+    """
+    chunk_index, out_index = Path(chunk_index), Path(out_index)
+    ingested = json.loads(chunk_index.read_text())
+    params = {"max_error": max_error, "max_levels": max_levels}
+    sidecar = out_index.with_suffix(".hashes.json")
+    kept = _reusable_lods(sidecar, params, ingested["chunks"], out_index.parent)
+    write_json(sidecar, {"params": params, "chunks": kept})   # before any npz is rewritten: no false record survives a crash
+    record = {}
+    for cid, info in sorted(ingested["chunks"].items()):
+        record[cid] = kept.get(cid) or {"source": info["hash"], **build_chunk_lod(
+            chunk_index.parent / f"{cid}.npz", out_index.parent / f"{cid}.npz", max_error, max_levels)}
+    _remove_stale_lods(out_index.parent, record)
+    write_json(sidecar, {"params": params, "chunks": record})
+    index = {"district": ingested["district"], **params,
+             "chunks": {cid: {k: v for k, v in r.items() if k != "source"} for cid, r in record.items()}}
+    write_json(out_index, index)
+    log.info("%s: %d chunk LODs built, %d unchanged", ingested["district"], len(record) - len(kept), len(kept))
+    return index
+
+
+def _reusable_lods(sidecar: Path, params: dict, chunks: dict[str, dict], out_dir: Path) -> dict[str, dict]:
+    """The previous run's entries {id: {"source": ingest hash, ...}} still valid for ``chunks``."""
+    if not sidecar.exists():
+        return {}
+    previous = json.loads(sidecar.read_text())
+    if previous.get("params") != params:
+        return {}
+    return {cid: entry for cid, entry in previous["chunks"].items()
+            if cid in chunks and entry["source"] == chunks[cid]["hash"] and (out_dir / f"{cid}.npz").exists()}
+
+
+def _remove_stale_lods(out_dir: Path, keep: dict) -> None:
+    """Remove LOD npz files of chunks not in ``keep``, and the per-chunk JSON of the former layout."""
+    for path in [*out_dir.glob("c*.npz"), *out_dir.glob("c*.json")]:
+        if path.suffix == ".json" or path.stem not in keep:
+            path.unlink()
+
+
+def build_chunk_lod(chunk_path: str | Path, out_npz: str | Path, max_error: float, max_levels: int) -> dict:
+    """Write the LOD pyramid of one chunk (npz); returns its {bounds, errors, triangles, hash}."""
     data = load_npz(chunk_path)
     origin = data["origin"]
     mesh = Mesh(unpack_parts(data, origin), source=str(chunk_path))
@@ -51,10 +97,19 @@ def build_lod(chunk_path: str | Path, out_npz: str | Path, out_json: str | Path,
     for k, (parts, _) in enumerate(levels):
         arrays.update(pack_parts(parts, origin, prefix=f"L{k}_"))
     save_npz(out_npz, arrays)
-    meta = {"chunk": Path(chunk_path).stem, "bounds": mesh.bounds().tolist(), "hash": content_hash(arrays),
-            "errors": [e for _, e in levels], "triangles": [sum(p.n_triangles for p in ps) for ps, _ in levels]}
-    write_json(out_json, meta)
-    return meta
+    return {"bounds": mesh.bounds().tolist(), "errors": [e for _, e in levels],
+            "triangles": [sum(p.n_triangles for p in ps) for ps, _ in levels], "hash": content_hash(arrays)}
+
+
+def lod_chunks(lod_indexes: list[str | Path]) -> list[dict]:
+    """Every chunk of the given district LOD indexes, in their order then by id:
+    {"id", "district", "bounds", "errors", "triangles", "hash", "npz" (its LOD file)}."""
+    out = []
+    for path in lod_indexes:
+        index = json.loads(Path(path).read_text())
+        out += [{"id": cid, "district": index["district"], **entry, "npz": str(Path(path).parent / f"{cid}.npz")}
+                for cid, entry in sorted(index["chunks"].items())]
+    return out
 
 
 def load_chunk_level(lod_npz: str | Path, level: int) -> tuple[np.ndarray, list]:
@@ -65,19 +120,24 @@ def load_chunk_level(lod_npz: str | Path, level: int) -> tuple[np.ndarray, list]
 
 
 # -- terrain: DSM from the model, DTM from the model (terrain: auto) ----------------------------
-def _lod_chunk_loaders(metas: dict[str, dict], max_error: float) -> list[tuple[np.ndarray, object]]:
-    """(bounds, load) per chunk of {lod json path: its metadata}; load() -> (origin, parts) at
-    the coarsest LOD within ``max_error`` m."""
+def _lod_chunk_loaders(chunks: list[dict], max_error: float) -> list[tuple[np.ndarray, object]]:
+    """(bounds, load) per chunk of :func:`lod_chunks`; load() -> (origin, parts) at the coarsest
+    LOD within ``max_error`` m."""
     from functools import partial
 
     from .lod import choose_level
 
-    return [(np.array(meta["bounds"]),
-             partial(load_chunk_level, Path(path).with_suffix(".npz"), choose_level(meta["errors"], max_error)))
-            for path, meta in metas.items()]
+    return [(np.array(c["bounds"]), partial(load_chunk_level, c["npz"], choose_level(c["errors"], max_error)))
+            for c in chunks]
 
 
-def build_terrain(lod_jsons: list[str], inputs: dict, scene_crs: str, gsd: float, terrain: str, ground_cfg: dict,
+def _scene_bounds(chunks: list[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every chunk's bounds (n, 2, 3) and the scene's lowest and highest corners."""
+    bounds = np.array([c["bounds"] for c in chunks])
+    return bounds, bounds[:, 0].min(axis=0), bounds[:, 1].max(axis=0)
+
+
+def build_terrain(lod_indexes: list[str], inputs: dict, scene_crs: str, gsd: float, terrain: str, ground_cfg: dict,
                   out_dsm: str | Path, out_ground: str | Path | None, out_json: str | Path) -> dict:
     """Render the scene's DSM; with ``terrain: auto`` also find its ground cells (see :mod:`pipeline25d.terrain`).
 
@@ -87,16 +147,14 @@ def build_terrain(lod_jsons: list[str], inputs: dict, scene_crs: str, gsd: float
     from .crs import horizontal_wkt
     from .terrain import Grid, auto_resolution, csf_ground, render_height_map, trim_object_edges, write_float_geotiff
 
-    metas = {path: json.loads(Path(path).read_text()) for path in lod_jsons}
-    bounds = np.array([m["bounds"] for m in metas.values()])
-    lo, hi = bounds[:, 0].min(axis=0), bounds[:, 1].max(axis=0)
+    chunks = lod_chunks(lod_indexes)
+    _, lo, hi = _scene_bounds(chunks)
     bounds_xy = (lo[0], lo[1], hi[0], hi[1])
     res = ground_cfg["resolution"]
     res = auto_resolution(bounds_xy, gsd) if res == "auto" else float(res)
     grid = Grid.covering(bounds_xy, res)
-    chunks = _lod_chunk_loaders(metas, res / 4)
     log.info("DSM: %d x %d cells of %.2f m from %d chunks", grid.width, grid.height, res, len(chunks))
-    dsm = render_height_map(chunks, grid)
+    dsm = render_height_map(_lod_chunk_loaders(chunks, res / 4), grid)
     wkt = horizontal_wkt(scene_crs)
     write_float_geotiff(out_dsm, dsm, grid, wkt)
     record = {"dsm": str(out_dsm), "resolution": res, "dsm_cells": int(np.isfinite(dsm).sum())}
@@ -157,7 +215,7 @@ def _own_terrain(inputs: dict, scene_crs: str, grid) -> dict:
 
 
 # -- scene: reference plane and GCP candidates --------------------------------------------------
-def scene_setup(lod_jsons: list[str], dsm_path: str | Path, terrain: str, terrain_path: str | Path | None,
+def scene_setup(lod_indexes: list[str], dsm_path: str | Path, terrain: str, terrain_path: str | Path | None,
                 z0_cfg, projection: str, gcp_cfg: dict, scene_crs: str, gsd: float, perspective_ids: list[str],
                 out_scene: str | Path, out_candidates: str | Path, out_dtm: str | Path | None = None,
                 max_object_size: float = 100.0) -> dict:
@@ -175,9 +233,8 @@ def scene_setup(lod_jsons: list[str], dsm_path: str | Path, terrain: str, terrai
     from .raster import DTM
     from .terrain import interpolate_dtm, read_float_geotiff, write_float_geotiff
 
-    metas = [json.loads(Path(p).read_text()) for p in lod_jsons]
-    bounds = np.array([m["bounds"] for m in metas])
-    lo, hi = bounds[:, 0].min(axis=0), bounds[:, 1].max(axis=0)
+    chunks = lod_chunks(lod_indexes)
+    bounds, lo, hi = _scene_bounds(chunks)
     dsm, grid = read_float_geotiff(dsm_path)
     xs, ys = grid.cell_centres()
     seed, radius = None, None
@@ -231,7 +288,7 @@ def scene_setup(lod_jsons: list[str], dsm_path: str | Path, terrain: str, terrai
              "dtm": None if terrain == "flat" else str(dtm_path),
              "n_candidates": len(cands), "n_check": sum(c["role"] == "check" for c in cands),
              "dtm_check_holdout_m": radius,
-             "n_chunks": len(metas)}
+             "n_chunks": len(chunks)}
     write_csv(out_candidates, cands, CANDIDATE_FIELDS)
     write_json(out_scene, scene)
     log.info("z0 %.2f m, projection %s, %d GCP candidates (%d check points)", z0, projection, len(cands),
@@ -293,7 +350,7 @@ def chunk_ground(bounds: np.ndarray, dtm) -> list:
 
 
 # -- plan ---------------------------------------------------------------------------------
-def plan(perspective_id: str, lod_jsons: list[str], scene_json: str | Path, candidates_csv: str | Path,
+def plan(perspective_id: str, lod_indexes: list[str], scene_json: str | Path, candidates_csv: str | Path,
          gsd: float, tile_size: int, max_error_px: float, crs: str, render: dict, out_plan: str | Path) -> dict:
     """Plan one perspective (see :mod:`pipeline25d.plan`); ``render`` holds render + marker settings."""
     from .raster import DTM
@@ -301,12 +358,8 @@ def plan(perspective_id: str, lod_jsons: list[str], scene_json: str | Path, cand
     scene = json.loads(Path(scene_json).read_text())
     relative = scene["projection"] == "terrain"
     dtm = DTM(scene["dtm"], crs, continuous=True) if relative else None
-    chunks = []
-    for p in lod_jsons:
-        meta = json.loads(Path(p).read_text())
-        chunks.append({"id": meta["chunk"], "district": Path(p).parent.name, "bounds": meta["bounds"],
-                       "errors": meta["errors"], "hash": meta["hash"],
-                       "ground": chunk_ground(meta["bounds"], dtm) if relative else None})
+    chunks = [{**{k: c[k] for k in ("id", "district", "bounds", "errors", "hash")},
+               "ground": chunk_ground(c["bounds"], dtm) if relative else None} for c in lod_chunks(lod_indexes)]
     terrain = {"projection": scene["projection"], "dtm": scene["dtm"] if relative else None}
     result = plan_perspective(Perspective.from_id(perspective_id), chunks, read_csv(candidates_csv),
                               scene["z0"], gsd, tile_size, max_error_px, crs, render, terrain)

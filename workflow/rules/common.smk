@@ -1,15 +1,12 @@
 # Config validation (before any job), constants, wildcard constraints and input functions.
-import json
 import shlex
 import sys
-from pathlib import Path
 
 from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 
 from pipeline25d.config import check_semantics, chunk_size, perspectives
 from pipeline25d.errors import Pipeline25dError
-from pipeline25d.ingest import CHUNK_ID_PATTERN
 from pipeline25d.perspectives import ID_PATTERN
 from pipeline25d.plan import block_spec_hash, plan_block, plan_blocks, read_plan
 
@@ -38,7 +35,6 @@ wildcard_constraints:
     brow=r"-?\d+",
     bcol=r"-?\d+",
     district=r"[A-Za-z0-9-]+",
-    chunk=CHUNK_ID_PATTERN,
 
 
 def district_inputs(wildcards):
@@ -46,14 +42,9 @@ def district_inputs(wildcards):
     return [spec[k] for k in ("path", "metadata") if k in spec]
 
 
-def chunk_ids(district):
-    """Chunk ids of a district, known once its ingest checkpoint has run."""
-    index = checkpoints.ingest.get(district=district).output.index
-    return sorted(json.loads(Path(index).read_text())["chunks"])
-
-
 def all_lod_meta(wildcards):
-    return [f"{RESULTS}/lod/{d}/{c}.json" for d in DISTRICTS for c in chunk_ids(d)]
+    """The per-district LOD indexes (each lists its chunks' LOD files, see stages.lod_chunks)."""
+    return expand(rules.lod.output.index, district=DISTRICTS)
 
 
 def plan_of(pid):
@@ -65,7 +56,7 @@ def block_tiles(wildcards):
 
 
 def block_lods(wildcards):
-    """The LOD files a block's tiles draw: a block depends on its own chunks only."""
+    """The LOD files a block's tiles draw (side files of the lod jobs): a block depends on its own chunks only."""
     chunks = {(c["district"], c["id"]) for t in block_tiles(wildcards) for c in t["chunks"]}
     return [f"{RESULTS}/lod/{d}/{c}.npz" for d, c in sorted(chunks)]
 

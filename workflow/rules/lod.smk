@@ -1,19 +1,22 @@
-# LOD pyramid per chunk (fast-simplification), with each level's measured error.
+# LOD pyramids (fast-simplification, each level with its measured error): one job per district,
+# not per chunk, so interpreter start-up and imports are paid once per district. The declared
+# output is the district's LOD index; the per-chunk LOD files beside it ({chunk}.npz) are side
+# files that render_block jobs take as inputs. A chunk whose ingest hash and LOD parameters are
+# unchanged keeps its file and mtime (record in index.hashes.json), so its tiles do not re-run.
 
 
 rule lod:
     input:
-        f"{RESULTS}/chunks/{{district}}/{{chunk}}.npz",
+        rules.ingest.output.index,
     output:
-        npz=f"{RESULTS}/lod/{{district}}/{{chunk}}.npz",
-        meta=f"{RESULTS}/lod/{{district}}/{{chunk}}.json",
+        index=f"{RESULTS}/lod/{{district}}/index.json",
     params:
         max_error=MAX_LOD_ERROR,
         max_levels=config["lod"]["max_levels"],
     log:
-        f"{RESULTS}/logs/lod/{{district}}/{{chunk}}.log",
+        f"{RESULTS}/logs/lod/{{district}}.log",
     benchmark:
-        f"{RESULTS}/benchmarks/lod/{{district}}/{{chunk}}.tsv"
+        f"{RESULTS}/benchmarks/lod/{{district}}.tsv"
     shell:
-        PYTHON + " -m pipeline25d lod {input} {output.npz} {output.meta}"
+        PYTHON + " -m pipeline25d lod {input} {output.index}"
         " --max-error {params.max_error} --max-levels {params.max_levels} > {log} 2>&1"
