@@ -11,7 +11,7 @@ APT_PACKAGES := python3-venv python3-dev build-essential gdal-bin libgdal-dev li
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 PYTHON ?= python3
 
-.PHONY: run test bench deps sysdeps clean-results
+.PHONY: run test bench sweep deps sysdeps clean-results
 
 run: deps
 	$(PY) -m pipeline25d demo-city resources/demo
@@ -27,6 +27,14 @@ test: deps
 BENCH_ARGS ?= --grid 12x10 --decimate 0.1 --name dataset2
 bench: deps
 	$(PY) -m pipeline25d.bench $(BENCH_ARGS)
+
+# Run time against error: one factor at a time around the defaults (gsd, lod.max_error_px,
+# render.samples, tile_size, projection/warp), each variant a whole run of the Delft LiDAR mesh
+# tiled 2 x 2: writes bench/<name>.json and bench/<name>.png (Pareto fronts). SWEEP_ARGS
+# overrides, e.g. make sweep SWEEP_ARGS="--quick --name quick"
+SWEEP_ARGS ?= --name sweep
+sweep: deps
+	$(PY) -m pipeline25d.sweep $(SWEEP_ARGS)
 
 deps: sysdeps $(STAMP) $(LEAFLET)
 

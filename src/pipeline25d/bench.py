@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import subprocess
 import sys
 import time
@@ -27,6 +28,7 @@ import numpy as np
 import yaml
 
 from .atomic import write_text
+from .errors import WorkflowRunError
 
 REPO = Path(__file__).resolve().parents[2]
 SOURCE = REPO.parent / "shared" / "data" / "delft" / "delft_dsm_mesh.ply"
@@ -76,21 +78,37 @@ def bench_config(name: str, districts: dict, gsd: float, perspectives: str) -> d
             "inputs": {k: {"path": str(p), "crs": "EPSG:28992"} for k, p in districts.items()}}
 
 
-def run(workdir: Path, config: dict, cores: int = 2) -> dict:
-    """Run the workflow in ``workdir`` and collect the figures."""
-    from .report import stage_timings
+def results_of(workdir: Path, config: dict) -> Path:
+    """The results folder of ``config``'s scene in ``workdir``."""
+    return workdir / "results" / config["scene"]
 
+
+def run_workflow(workdir: Path, config: dict, cores: int = 2) -> float:
+    """Run the whole workflow on ``config`` in ``workdir`` from scratch; return its wall seconds.
+
+    Earlier results of the scene are removed first, so a re-run is timed in full.
+    Raises :class:`WorkflowRunError` naming the Snakemake log when the run fails.
+    """
     workdir.mkdir(parents=True, exist_ok=True)
-    (workdir / "config.yaml").write_text(yaml.safe_dump(config))
+    for stale in (results_of(workdir, config), workdir / ".snakemake"):
+        shutil.rmtree(stale, ignore_errors=True)
+    write_text(workdir / "config.yaml", yaml.safe_dump(config))
     cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"), "--directory", str(workdir),
            "--configfile", str(workdir / "config.yaml"), f"-j{cores}"]
     t0 = time.monotonic()
     proc = subprocess.run(cmd, capture_output=True, text=True)
     wall = time.monotonic() - t0
-    (workdir / "snakemake.log").write_text(proc.stdout + proc.stderr)
+    write_text(workdir / "snakemake.log", proc.stdout + proc.stderr)
     if proc.returncode != 0:
-        raise SystemExit(f"bench: the workflow failed, see {workdir / 'snakemake.log'}")
-    results = workdir / "results" / config["scene"]
+        raise WorkflowRunError(f"the workflow failed, see {workdir / 'snakemake.log'}")
+    return wall
+
+
+def collect(workdir: Path, config: dict, wall: float, cores: int = 2) -> dict:
+    """The figures of a finished run: wall time, per-stage job-seconds and RSS, tiles, check RMSD, sizes."""
+    from .report import stage_timings
+
+    results = results_of(workdir, config)
     report = json.loads((results / "report" / "report.json").read_text())
     stages = {k: {"jobs": v["jobs"], "seconds": round(v["seconds"], 2), "max_rss_mb": round(v["max_rss_mb"], 1)}
               for k, v in stage_timings(results).items()}
@@ -102,6 +120,7 @@ def run(workdir: Path, config: dict, cores: int = 2) -> dict:
             "jobs": sum(s["jobs"] for s in stages.values()), "stages": stages,
             "peak_rss_mb": max(s["max_rss_mb"] for s in stages.values()),
             "check_rmsd_px": {p["id"]: p["rmsd_px"] for p in report["perspectives"]},
+            "check_rmsd_m": {p["id"]: p["rmsd_m"] for p in report["perspectives"]},
             "sizes": report["sizes"]}
 
 
@@ -140,6 +159,11 @@ def tms_against_gdal2tiles_default(results: Path, pid: str, work: Path) -> dict:
             "gdal2tiles_default_s": round(default_s, 2), "speed_up": round(default_s / float(row["s"]), 2)}
 
 
+def run(workdir: Path, config: dict, cores: int = 2) -> dict:
+    """Run the workflow in ``workdir`` and collect the figures."""
+    return collect(workdir, config, run_workflow(workdir, config, cores), cores)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m pipeline25d.bench", description=__doc__.split("\n\n")[0])
     ap.add_argument("--grid", default="2x2", help="districts, NXxNY (12x10 = the paper's Dataset 2 footprint)")
@@ -155,7 +179,10 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"bench: {SOURCE} not found (the shared Delft data)")
     work = REPO / "bench" / name
     districts = make_scene(work / "scene", nx, ny, args.decimate)
-    result = run(work, bench_config(name, districts, args.gsd, args.perspectives), args.cores)
+    try:
+        result = run(work, bench_config(name, districts, args.gsd, args.perspectives), args.cores)
+    except WorkflowRunError as exc:
+        raise SystemExit(f"bench: {exc}") from None
     result["decimate"] = args.decimate
     oblique = next(p for p in sorted(result["check_rmsd_px"]) if not p.endswith("el90"))
     result["render_vs_plain_loop"] = render_against_plain_loop(work / "results" / name, oblique, samples=4)

@@ -38,3 +38,7 @@ class RenderError(Pipeline25dError, RuntimeError):
 
 class GdalToolError(Pipeline25dError, RuntimeError):
     """A GDAL command-line tool exited with an error."""
+
+
+class WorkflowRunError(Pipeline25dError, RuntimeError):
+    """A whole workflow run (Snakemake) failed; the message names its log."""

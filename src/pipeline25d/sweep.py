@@ -1,0 +1,255 @@
+"""Run time against error: a one-factor-at-a-time sweep around the default settings.
+
+The defaults run once; then each factor (gsd, lod.max_error_px, render.samples, tile_size,
+projection/warp) takes its other values one at a time, everything else at its default. Each
+variant is a complete workflow run from scratch in its own folder (the runner of
+:mod:`pipeline25d.bench`), and is measured: wall seconds and summed job-seconds,
+check-point RMSD in pixels and metres (mean over the oblique views; gsd changes what a
+pixel is, so compare gsd variants in metres), the LOD error actually drawn (the largest
+over rendered chunks of the chosen level's measured error, in pixels), tiles and sizes.
+:mod:`pipeline25d.sweep_report` marks the Pareto fronts and writes ``bench/<name>.json``
+and ``bench/<name>.png``. Times compare runs of one sweep on one machine, nothing more.
+
+CLI::
+
+    python -m pipeline25d.sweep [--scene delft:2x2] [--decimate 0.25] [--name sweep] [--quick] [--resume]
+
+Scenes: ``delft:NXxNY`` (the Delft LiDAR mesh tiled by :func:`pipeline25d.bench.make_scene`),
+``demo:SCALE`` (:mod:`pipeline25d.demo`), ``rugged:SIZE`` (:mod:`pipeline25d.rugged`, relief
+0.3 × size).
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import logging
+import os
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .atomic import write_json
+from .bench import REPO, SOURCE, collect, make_scene, results_of, run_workflow
+from .errors import ConfigError, WorkflowRunError
+
+log = logging.getLogger(__name__)
+
+# projection/warp options: name -> config overrides (the default, terrain, resolves from projection: auto)
+METHODS = {"terrain": {"projection": "terrain"}, "plane": {"projection": "plane"},
+           "plane-tps": {"projection": "plane", "warp": {"method": "tps"}}, "paper": {"projection": "paper"}}
+FULL = {"gsd": (0.25, 0.5, 1.0), "lod.max_error_px": (0.25, 0.5, 1, 2, 4), "render.samples": (0, 2, 4, 8),
+        "tile_size": (256, 512, 1024, 2048), "projection": tuple(METHODS)}
+QUICK = {"gsd": (0.25, 0.5), "lod.max_error_px": (0.25, 0.5, 2, 4), "render.samples": (0, 4, 8),
+         "tile_size": (512, 1024, 2048), "projection": ("terrain", "plane", "paper")}
+SHORT = {"gsd": "gsd", "lod.max_error_px": "lod", "render.samples": "msaa", "tile_size": "tile", "projection": ""}
+PERSPECTIVES = [{"azimuth": 0, "elevation": 90}, {"azimuth": 45, "elevation": 45}, {"azimuth": 225, "elevation": 30}]
+GCP = {"spacing": 10, "holdout": 0.3}     # denser than the defaults: enough check points in the obliques of one district
+SCENE, QUICK_SCENE, DECIMATE = "delft:2x2", "delft:1x1", 0.25
+
+
+@dataclass(frozen=True)
+class Variant:
+    """One run of the sweep: ``factor`` set to ``value`` by ``overrides``, the rest at the defaults."""
+
+    name: str
+    factor: str                  # "default" for the defaults themselves
+    value: Any = None
+    overrides: dict = field(default_factory=dict)
+
+
+def nested(key: str, value: Any) -> dict:
+    """{"a": {"b": value}} for key "a.b"."""
+    head, _, rest = key.partition(".")
+    return {head: nested(rest, value) if rest else value}
+
+
+def merged(base: dict, overrides: dict) -> dict:
+    """A deep copy of ``base`` with ``overrides`` merged in (dicts key by key, the rest replaced)."""
+    out = copy.deepcopy(base)
+    for k, v in overrides.items():
+        out[k] = merged(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else copy.deepcopy(v)
+    return out
+
+
+def factor_value(factor: str, config: dict) -> Any:
+    """The value of ``factor`` in a validated config (projection: the method name of :data:`METHODS`)."""
+    if factor == "projection":
+        proj = config["projection"]
+        if proj == "auto":
+            proj = "plane" if config["terrain"] == "flat" else "terrain"
+        method = config["warp"]["method"]
+        return proj if method == "auto" or proj == "paper" else f"{proj}-{method}"
+    value = config
+    for part in factor.split("."):
+        value = value[part]
+    return value
+
+
+def variants(levels: dict[str, tuple], base: dict) -> list[Variant]:
+    """The defaults, then every other value of each factor in ``levels`` (the defaults are ``base``'s)."""
+    from .config import validate_schema
+
+    config = validate_schema(copy.deepcopy(base))
+    out = [Variant("default", "default")]
+    for factor, values in levels.items():
+        default = factor_value(factor, config)
+        for v in values:
+            if v != default:
+                name = f"{SHORT[factor]}-{v}" if SHORT[factor] else str(v)
+                out.append(Variant(name, factor, v, METHODS[v] if factor == "projection" else nested(factor, v)))
+    return out
+
+
+def build_scene(spec: str, out_dir: Path, decimate: float | None = DECIMATE) -> dict:
+    """Write scene ``spec`` (see the module doc) under ``out_dir``; return the sweep's base config."""
+    kind, _, arg = spec.partition(":")
+    unknown = ConfigError(f"sweep: unknown scene {spec!r} (delft:NXxNY, demo:SCALE or rugged:SIZE)")
+    try:
+        if kind == "delft":
+            if not SOURCE.exists():
+                raise ConfigError(f"sweep: {SOURCE} not found (the shared Delft data)")
+            nx, ny = (int(v) for v in (arg or "2x2").lower().split("x"))
+            paths = make_scene(out_dir / f"delft-{nx}x{ny}-{decimate or 1}", nx, ny, decimate)
+            crs = "EPSG:28992"
+        elif kind in ("demo", "rugged"):
+            manifest, where = _generated(kind, float(arg) if arg else None, out_dir)
+            paths = {k: where / v for k, v in manifest["districts"].items()}
+            crs = manifest["crs"]
+        else:
+            raise unknown
+    except ConfigError:
+        raise
+    except ValueError:                      # a grid or size that is not a number
+        raise unknown from None
+    return {"scene": "sweep", "crs": crs, "terrain": "auto", "perspectives": PERSPECTIVES, "gcp": dict(GCP),
+            "inputs": {k: {"path": str(p), "crs": crs} for k, p in sorted(paths.items())}}
+
+
+def _generated(kind: str, arg: float | None, out_dir: Path) -> tuple[dict, Path]:
+    """A generated city (manifest, folder): the demo city at scale ``arg`` or the rugged one of edge ``arg`` m."""
+    if kind == "demo":
+        from .demo import generate_demo_city
+
+        scale = arg or 0.5
+        where = out_dir / f"demo-{scale}"
+        return generate_demo_city(where, seed=3, n_buildings=max(8, round(200 * scale ** 2)), scale=scale), where
+    from .rugged import generate_rugged_city
+
+    size = arg or 500.0
+    where = out_dir / f"rugged-{size:g}"
+    return generate_rugged_city(where, size=size, relief=0.3 * size,
+                                n_buildings=max(4, round(250 * (size / 2000) ** 2))), where
+
+
+def lod_error_px(results: Path) -> float:
+    """The largest geometric error (px) of the LOD level any rendered tile draws of any chunk."""
+    errors: dict[tuple[str, str], list[float]] = {}
+    worst = 0.0
+    for plan_path in sorted((results / "plans").glob("*.json")):
+        plan = json.loads(plan_path.read_text())
+        for tile in plan["tiles"]:
+            for chunk in tile["chunks"]:
+                key = (chunk["district"], chunk["id"])
+                if key not in errors:
+                    errors[key] = json.loads((results / "lod" / key[0] / f"{key[1]}.json").read_text())["errors"]
+                levels = errors[key]
+                worst = max(worst, levels[min(chunk["lod"], len(levels) - 1)] / plan["gsd"])
+    return worst
+
+
+def _mean(values: list[float | None]) -> float | None:
+    found = [v for v in values if v is not None]
+    return sum(found) / len(found) if found else None
+
+
+def measure(workdir: Path, config: dict, wall: float, cores: int) -> dict:
+    """The sweep's figures of a finished run (see the module doc)."""
+    bench = collect(workdir, config, wall, cores)
+    results = results_of(workdir, config)
+    report = json.loads((results / "report" / "report.json").read_text())
+    views = [p for p in report["perspectives"] if p["elevation"] < 90] or report["perspectives"]
+    rmsd_px, rmsd_m = _mean([p["rmsd_px"] for p in views]), _mean([p["rmsd_m"] for p in views])
+    return {"wall_s": bench["wall_s"], "job_s": round(sum(s["seconds"] for s in bench["stages"].values()), 1),
+            "rmsd_px": rmsd_px, "rmsd_m": rmsd_m, "rmsd_views": [p["id"] for p in views],
+            "lod_px": round(lod_error_px(results), 4), "lod_px_bound": config["lod"]["max_error_px"],
+            "gsd": config["gsd"], "tile_size": config["tile_size"], "samples": config["render"]["samples"],
+            "projection": report["projection"],
+            "views": {p["id"]: {"warp": p["warp"]["method"], "rmsd_px": p["rmsd_px"], "rmsd_m": p["rmsd_m"],
+                                "n_check": p["n_check"]} for p in report["perspectives"]},
+            "tiles_rendered": bench["tiles_rendered"], "rendered_mpx": bench["rendered_mpx"], "jobs": bench["jobs"],
+            "peak_rss_mb": bench["peak_rss_mb"], "stages": bench["stages"],
+            "maps_mb": round(report["sizes"]["maps_bytes"] / 1e6, 2),
+            "tms_mb": round(report["sizes"]["tms_bytes"] / 1e6, 2)}
+
+
+def run_sweep(base: dict, plan: list[Variant], work: Path, cores: int = 2, resume: bool = False) -> list[dict]:
+    """Run every variant in ``work/runs/<variant>/``; return one row per variant.
+
+    A failed run gives a row with ``error`` and no figures. ``load_avg`` is the machine's
+    1-minute load average before and after the run: above ``cores`` other work shared the
+    cores and the times are inflated. With ``resume`` a variant whose row was written by an
+    earlier sweep (``variant.json``) is not run again.
+    """
+    from .config import validate_schema
+
+    rows = []
+    for k, v in enumerate(plan, 1):
+        folder = work / "runs" / v.name
+        saved = folder / "variant.json"
+        if resume and saved.exists():
+            rows.append(json.loads(saved.read_text()))
+            continue
+        config = validate_schema(merged(base, v.overrides))
+        row: dict[str, Any] = {"name": v.name, "factor": v.factor, "value": v.value}
+        log.info("sweep %d/%d: %s", k, len(plan), v.name)
+        load = os.getloadavg()[0]
+        try:
+            row |= measure(folder, config, run_workflow(folder, config, cores), cores)
+        except WorkflowRunError as exc:
+            row["error"] = str(exc)
+            log.warning("sweep: %s: %s", v.name, exc)
+        row["load_avg"] = [round(load, 2), round(os.getloadavg()[0], 2)]     # others' jobs skew the times
+        write_json(saved, row)
+        rows.append(row)
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    from .config import validate_schema
+    from .perspectives import expand
+    from .sweep_report import format_table, summarize, write_sweep
+
+    ap = argparse.ArgumentParser(prog="python -m pipeline25d.sweep", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scene", default=None, help=f"delft:NXxNY, demo:SCALE or rugged:SIZE (default {SCENE}, "
+                                                  f"{QUICK_SCENE} with --quick)")
+    ap.add_argument("--decimate", type=float, default=DECIMATE, help="delft: share of the mesh's triangles kept")
+    ap.add_argument("--name", default="sweep", help="results: bench/<name>.json, .png and bench/<name>/runs/")
+    ap.add_argument("--quick", action="store_true", help="fewer values per factor and a smaller default scene")
+    ap.add_argument("--cores", type=int, default=2)
+    ap.add_argument("--resume", action="store_true", help="keep the variants an interrupted sweep finished")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
+    spec = args.scene or (QUICK_SCENE if args.quick else SCENE)
+    work = REPO / "bench" / args.name
+    try:
+        base = build_scene(spec, work / "scene", args.decimate)
+    except ConfigError as exc:
+        raise SystemExit(str(exc)) from None
+    levels = QUICK if args.quick else FULL
+    rows = run_sweep(base, variants(levels, base), work, args.cores, args.resume)
+    config = validate_schema(copy.deepcopy(base))
+    meta = {"name": args.name, "scene": spec, "decimate": args.decimate if spec.startswith("delft") else None,
+            "perspectives": [p.id for p in expand(base["perspectives"])], "cores": args.cores, "quick": args.quick,
+            "defaults": {f: factor_value(f, config) for f in levels}, "base_config": base}
+    summary = summarize(rows, meta)
+    write_sweep(summary, REPO / "bench" / f"{args.name}.json", REPO / "bench" / f"{args.name}.png")
+    print(format_table(summary))
+    print(f"wrote bench/{args.name}.json and bench/{args.name}.png")
+    return 0 if not any("error" in r for r in rows) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

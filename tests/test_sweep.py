@@ -1,0 +1,124 @@
+"""The run-time/error sweep: Pareto fronts, the JSON and plot writer, variants, one tiny real sweep."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from pipeline25d.pareto import pareto_front
+from pipeline25d.sweep import QUICK, Variant, build_scene, merged, nested, run_sweep, variants
+from pipeline25d.sweep_report import DPI, FIGSIZE, OBJECTIVES, format_table, summarize, write_sweep
+
+NAN = math.nan
+
+
+@pytest.mark.parametrize("points, front", [
+    ([], []),
+    ([(3.0, 4.0)], [0]),
+    # hand-checked: (3, 4) is dominated by (2, 3), (5, 5) by all but nothing dominates the rest
+    ([(1, 5), (2, 3), (3, 4), (4, 1), (5, 5)], [0, 1, 3]),
+    ([(4, 1), (1, 5), (2, 3)], [1, 2, 0]),                   # ordered by the first objective
+    ([(1, 2), (1, 3)], [0]),                                  # tie on the first: the lower second wins
+    ([(1, 2), (2, 2)], [0]),                                  # tie on the second: the lower first wins
+    ([(1, 1), (2, 0), (1, 1)], [0, 2, 1]),                    # exact duplicates: neither dominates
+    ([(2, 2), (2, 2), (1, 3)], [2, 0, 1]),
+    ([(NAN, 0), (1, 1), (0, math.inf)], [1]),                 # failed measurements: on no front, dominate nothing
+])
+def test_pareto_front_hand_checked(points, front):
+    assert pareto_front(points) == front
+
+
+def test_pareto_front_matches_the_definition_on_random_ties():
+    rng = np.random.default_rng(1)
+    for _ in range(50):
+        pts = [tuple(map(float, p)) for p in rng.integers(0, 5, size=(rng.integers(1, 12), 2))]
+        brute = {i for i, p in enumerate(pts)
+                 if not any(q[0] <= p[0] and q[1] <= p[1] and q != p for q in pts)}
+        front = pareto_front(pts)
+        assert set(front) == brute and len(front) == len(brute)
+        assert [pts[i][0] for i in front] == sorted(pts[i][0] for i in front)
+
+
+def _row(name, factor, wall, rmsd, lod, value=None):
+    return {"name": name, "factor": factor, "value": value, "wall_s": wall, "job_s": 2 * wall, "rmsd_px": rmsd,
+            "rmsd_m": None if rmsd is None else rmsd * 0.25, "lod_px": lod, "tiles_rendered": 4}
+
+
+def test_summary_json_flags_match_pareto_front_and_the_plot_is_a_png(tmp_path):
+    rows = [_row("default", "default", 60.0, 0.20, 0.40),
+            _row("gsd-0.5", "gsd", 30.0, 0.25, 0.45, 0.5),
+            _row("gsd-1.0", "gsd", 20.0, 0.10, 0.30, 1.0),            # dominates the defaults on both
+            _row("msaa-0", "render.samples", 55.0, 0.30, 0.40, 0),
+            _row("msaa-8", "render.samples", 80.0, 0.20, 0.40, 8),     # ties the defaults' errors, slower
+            _row("tile-256", "tile_size", 90.0, None, 0.40, 256),     # too few check points: no RMSD
+            {"name": "plane", "factor": "projection", "value": "plane", "error": "the workflow failed"}]
+    summary = summarize(rows, {"name": "synthetic", "scene": "none", "cores": 2})
+    write_sweep(summary, tmp_path / "s.json", tmp_path / "s.png")
+    with Image.open(tmp_path / "s.png") as img:
+        assert img.format == "PNG" and img.size == (round(FIGSIZE[0] * DPI), round(FIGSIZE[1] * DPI))
+    data = json.loads((tmp_path / "s.json").read_text())
+    for obj in OBJECTIVES:
+        pts = [(r.get("wall_s", NAN), NAN if r.get(obj) is None else r[obj]) for r in rows]
+        front = pareto_front(pts)
+        assert data["front"][obj] == [rows[i]["name"] for i in front]
+        assert [r["on_front"][obj] for r in data["variants"]] == [i in front for i in range(len(rows))]
+        assert data["default_on_front"][obj] is (0 in front)
+        for factor, entry in data["factors"].items():
+            members = [i for i, r in enumerate(rows) if r["factor"] in (factor, "default")]
+            sub = pareto_front([pts[i] for i in members])
+            assert entry["default_on_front"][obj] is (0 in sub), (factor, obj)
+    assert data["front"]["rmsd_px"] == ["gsd-1.0"] and not data["default_on_front"]["lod_px"]
+    # MSAA does not change the LOD drawn, so the faster msaa-0 dominates the defaults there
+    assert data["factors"]["render.samples"]["default_on_front"] == {"rmsd_px": True, "lod_px": False}
+    assert data["factors"]["render.samples"]["front"]["rmsd_px"] == ["msaa-0", "default"]
+    table = format_table(summary)
+    assert "plane        failed" in table and "within gsd: rmsd_px no, lod_px no" in table
+
+
+def test_variants_vary_one_factor_around_the_defaults(tmp_path):
+    base = {"scene": "s", "crs": "EPSG:25832", "inputs": {"d": {"path": "x.obj"}}, "terrain": "auto"}
+    names = [v.name for v in variants(QUICK, base)]
+    assert names == ["default", "gsd-0.5", "lod-0.25", "lod-2", "lod-4", "msaa-0", "msaa-8", "tile-512", "tile-2048",
+                     "plane", "paper"]
+    moved = variants({"gsd": (0.25, 0.5), "projection": ("terrain", "plane-tps")},
+                      {**base, "gsd": 0.5, "terrain": "flat"})                 # flat: projection auto is plane
+    assert [(v.name, v.overrides) for v in moved[1:]] == [
+        ("gsd-0.25", {"gsd": 0.25}), ("terrain", {"projection": "terrain"}),
+        ("plane-tps", {"projection": "plane", "warp": {"method": "tps"}})]
+    assert merged({"lod": {"max_levels": 3}, "gsd": 1}, nested("lod.max_error_px", 2)) == \
+        {"lod": {"max_levels": 3, "max_error_px": 2}, "gsd": 1}
+
+
+@pytest.mark.slow
+def test_a_tiny_real_sweep_measures_every_variant(tmp_path):
+    """Two complete runs of a small demo city, one oblique view: real figures, no timing claims."""
+    base = build_scene("demo:0.25", tmp_path / "scene")
+    base.update({"perspectives": [{"azimuth": 45, "elevation": 45}], "gsd": 0.5, "tile_size": 256,
+                 "gcp": {"spacing": 8, "holdout": 0.3, "marker_px": 4}, "tms": {"zoom": "14-16"}})
+    plan = [Variant("default", "default"), Variant("lod-2", "lod.max_error_px", 2, nested("lod.max_error_px", 2))]
+    rows = run_sweep(base, plan, tmp_path / "work")
+    summary = summarize(rows, {"name": "tiny", "scene": "demo:0.25", "cores": 2})
+    write_sweep(summary, tmp_path / "tiny.json", tmp_path / "tiny.png")
+    data = json.loads((tmp_path / "tiny.json").read_text())
+    for row, bound in zip(data["variants"], (0.5, 2)):
+        assert "error" not in row, row
+        assert row["wall_s"] > 0 and row["job_s"] > 0 and row["tiles_rendered"] > 0
+        assert math.isfinite(row["rmsd_px"]) and math.isfinite(row["rmsd_m"]) and row["rmsd_views"] == ["az045_el45"]
+        assert abs(row["rmsd_m"] - row["rmsd_px"] * 0.5) < 1e-9
+        assert 0 <= row["lod_px"] <= bound and row["lod_px_bound"] == bound
+        assert row["maps_mb"] > 0 and row["tms_mb"] > 0
+    assert (tmp_path / "work" / "runs" / "lod-2" / "variant.json").exists()
+    assert (tmp_path / "tiny.png").stat().st_size > 0
+
+
+def test_a_failed_run_is_a_row_with_its_error_and_no_figures(tmp_path):
+    base = {"scene": "sweep", "crs": "EPSG:25832", "inputs": {"d0": {"path": str(tmp_path / "missing.obj")}}}
+    (row,) = run_sweep(base, [Variant("default", "default")], tmp_path / "work")
+    assert "the workflow failed" in row["error"] and "wall_s" not in row
+    assert "missing.obj" in (tmp_path / "work" / "runs" / "default" / "snakemake.log").read_text()
+    summary = summarize([row], {})
+    assert summary["front"] == {"rmsd_px": [], "lod_px": []} and summary["default_on_front"]["rmsd_px"] is False
