@@ -146,16 +146,15 @@ def _generated(kind: str, arg: float | None, out_dir: Path) -> tuple[dict, Path]
 
 def lod_error_px(results: Path) -> float:
     """The largest geometric error (px) of the LOD level any rendered tile draws of any chunk."""
-    errors: dict[tuple[str, str], list[float]] = {}
+    from .stages import lod_chunks
+
+    errors = {(c["district"], c["id"]): c["errors"] for c in lod_chunks(sorted((results / "lod").glob("*/index.json")))}
     worst = 0.0
     for plan_path in sorted((results / "plans").glob("*.json")):
         plan = json.loads(plan_path.read_text())
         for tile in plan["tiles"]:
             for chunk in tile["chunks"]:
-                key = (chunk["district"], chunk["id"])
-                if key not in errors:
-                    errors[key] = json.loads((results / "lod" / key[0] / f"{key[1]}.json").read_text())["errors"]
-                levels = errors[key]
+                levels = errors[(chunk["district"], chunk["id"])]
                 worst = max(worst, levels[min(chunk["lod"], len(levels) - 1)] / plan["gsd"])
     return worst
 

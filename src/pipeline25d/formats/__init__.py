@@ -67,6 +67,10 @@ def load_district(spec: dict, scene_crs: str, max_geometric_error: float | None 
         from .gltf import load_gltf
 
         mesh = Mesh(load_gltf(path), source=str(path))
+    elif fmt == "ply":
+        from .ply import load_ply
+
+        mesh = load_ply(path)
     else:
         from .meshfile import load_mesh_file
 

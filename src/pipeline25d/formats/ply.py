@@ -1,0 +1,74 @@
+"""PLY meshes through plyfile: positions, faces and vertex colours without importing trimesh.
+
+``import trimesh`` (and the scipy it pulls in) is most of an ingest job for a plain PLY
+district: seconds against the tenths that reading takes. A PLY that carries more than
+positions, faces and vertex colours (texture coordinates, for one) is left to trimesh
+(:func:`pipeline25d.formats.meshfile.load_mesh_file`), and so is one plyfile cannot parse.
+Polygons are split into triangle fans, as trimesh does.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputFileError
+from ..mesh import Mesh, MeshPart
+
+TEXTURED = {"s", "t", "u", "v", "texture_u", "texture_v", "texcoord"}
+
+
+def load_ply(path: str | Path) -> Mesh:
+    """Read a PLY mesh; falls back to trimesh for textured or unusual files."""
+    from plyfile import PlyData, PlyParseError
+
+    path = Path(path)
+    try:
+        data = PlyData.read(str(path))
+        vertex, face = data["vertex"], data["face"]
+    except (PlyParseError, KeyError, ValueError, OSError) as exc:
+        return _with_trimesh(path)
+    names = set(vertex.data.dtype.names) | set(face.data.dtype.names)
+    if names & TEXTURED or any(c.lower().startswith("texturefile") for c in data.comments):
+        return _with_trimesh(path)
+    vertices = np.column_stack([np.asarray(vertex[k], dtype=np.float64) for k in ("x", "y", "z")])
+    faces = _triangles(face, len(vertices), path)
+    colors = None
+    if {"red", "green", "blue"} <= names:
+        alpha = vertex["alpha"] if "alpha" in names else np.full(len(vertices), 255)
+        colors = np.column_stack([vertex[k] for k in ("red", "green", "blue")] + [alpha]).astype(np.uint8)
+    if not len(faces):
+        raise InputFileError(path, "contains no triangles")
+    if not np.isfinite(vertices).all():
+        raise InputFileError(path, "has non-finite vertex coordinates")
+    return Mesh([MeshPart(vertices, faces, colors=colors, name=path.stem)], source=str(path))
+
+
+def _triangles(face, n_vertices: int, path: Path) -> np.ndarray:
+    """(m, 3) int64 triangles of the face element (fans for polygons), indices checked."""
+    key = "vertex_indices" if "vertex_indices" in face.data.dtype.names else "vertex_index"
+    lists = face[key]
+    if lists.dtype != object:                        # fixed-length lists parsed as a 2D array
+        groups = [(np.arange(len(lists)), np.asarray(lists, dtype=np.int64))]
+    else:
+        lengths = np.fromiter((len(f) for f in lists), dtype=np.int64, count=len(lists))
+        groups = [(np.flatnonzero(lengths == k), np.stack(lists[lengths == k]).astype(np.int64))
+                  for k in np.unique(lengths) if k >= 3]
+    tris, order = [], []
+    for index, p in groups:                          # fan j of polygon i sorts as (i, j): file order
+        for j in range(1, p.shape[1] - 1):
+            tris.append(np.stack([p[:, 0], p[:, j], p[:, j + 1]], axis=1))
+            order.append(index * 1024 + j)
+    faces = np.concatenate(tris)[np.argsort(np.concatenate(order), kind="stable")] if tris \
+        else np.zeros((0, 3), np.int64)
+    if len(faces) and (faces.min() < 0 or faces.max() >= n_vertices):
+        raise InputFileError(path, f"has face indices outside its {n_vertices} vertices")
+    return faces
+
+
+def _with_trimesh(path: Path) -> Mesh:
+    """trimesh's reading (and its error naming the file when it cannot read it either)."""
+    from .meshfile import load_mesh_file
+
+    return load_mesh_file(path)
