@@ -363,7 +363,7 @@ def plan(perspective_id: str, lod_indexes: list[str], scene_json: str | Path, ca
     terrain = {"projection": scene["projection"], "dtm": scene["dtm"] if relative else None}
     result = plan_perspective(Perspective.from_id(perspective_id), chunks, read_csv(candidates_csv),
                               scene["z0"], gsd, tile_size, max_error_px, crs, render, terrain)
-    write_json(out_plan, result)
+    write_json(out_plan, result, indent=None)   # megabytes for a city: compact
     log.info("%s: %d tiles to render, %d empty tiles skipped", perspective_id, len(result["tiles"]),
              result["n_tiles_skipped"])
     return result
