@@ -1,10 +1,12 @@
-"""Blockwise terrain (ground filter, DTM fill, GeoTIFF writes) against the whole grid."""
+"""Blockwise terrain (ground filter, DTM fill, GCP sites, GeoTIFF writes) against the whole grid."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+from pipeline25d.gcp_sites import SiteRules, select_sites
+from pipeline25d.perspectives import Perspective
 from pipeline25d.terrain import (FloatRaster, Grid, csf_ground, dtm_blocks, float_geotiff_writer, ground_blocks,
                                  interpolate_dtm, plan_blocks, trim_object_edges)
 
@@ -95,6 +97,20 @@ def test_blockwise_dtm_equals_the_whole_grid(scene):
     for block, values in dtm_blocks(_read(seed), grid, 20, SMALL_BLOCKS):
         got[block.core] = values
     np.testing.assert_array_equal(got, expected)
+
+
+def test_blockwise_sites_equal_the_whole_grid_in_float32(scene):
+    grid, dsm, _, whole = scene
+    dsm32 = dsm.astype(np.float32)
+    dtm = interpolate_dtm(np.where(whole, dsm32, np.nan), 20)           # float32 values, as the scene stage has
+    rules = SiteRules(spacing=12.0, radius=1.0, clearance=1.0, max_roughness=0.3)
+    views = [Perspective(45, 45), Perspective(200, 60), Perspective(0, 90)]
+    expected = select_sites(dsm32.astype(np.float64), dtm, grid, rules, views)
+    got = select_sites(dsm32, dtm.astype(np.float32), grid, rules, views, max_cells=200 * 200)
+    assert len(expected["x"]) > 500
+    assert expected.keys() == got.keys()
+    for key in expected:
+        np.testing.assert_array_equal(got[key], expected[key], err_msg=key)
 
 
 def test_geotiff_written_by_blocks_reads_back(tmp_path):
