@@ -402,14 +402,14 @@ def dtm_blocks(read: Callable[[slice, slice], np.ndarray], grid: Grid, search_ce
     """(block, DTM of its core): :func:`interpolate_dtm` of the ground heights ``read(rows, cols)``
     (float64, NaN: not ground), block by block, equal to the whole grid's.
 
-    A window reaches 2 (search + 1) cells beyond its core. The fill is then exact up to
-    search + 1 cells inside the window; a core cell it leaves empty takes its nearest filled
-    cell, which is the whole grid's when it lies within the remaining search + 1 cells.
-    Where one does not (ground farther away), that block is read again with twice the margin.
+    A window reaches search + 1 cells beyond its core, so the fill is exact on the core. A core
+    cell it leaves empty takes its nearest filled cell, the whole grid's when that lies within
+    the window's margin less search + 1; where one does not (no ground that near), the block is
+    read again with twice the margin.
     """
     reach = max(int(search_cells), 1) + 1
-    for block in plan_blocks(grid.height, grid.width, 2 * reach, max_cells):
-        margin = 2 * reach
+    for block in plan_blocks(grid.height, grid.width, reach, max_cells):
+        margin = reach
         while (values := _dtm_core(read, grid, block.core, margin, search_cells)) is None:
             margin *= 2
         yield block, values
