@@ -14,6 +14,10 @@ grid. A cell is a possible site where
 The scene is divided into squares of ``spacing`` metres; each square gets the valid site
 nearest its centre, so candidates are evenly spread at the configured density. The render
 still decides per view (see :mod:`pipeline25d.render`): this only avoids wasting candidates.
+
+The per-cell tests run block by block (blocks of whole squares, each read with the few cells
+its tests reach beyond it), so their memory follows a block; the lines of sight read the whole
+DSM, which may be float32.
 """
 
 from __future__ import annotations
@@ -24,11 +28,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from .perspectives import Perspective
-from .terrain import Grid
+from .terrain import Block, Grid, plan_blocks
 
 OPTIONS_PER_SQUARE = 6       # nearest-to-centre sites tested for line of sight per square
 SIGHT_MARGIN_M = 0.05        # the DSM must stay this far below a line of sight
 MAX_SIGHT_M = 400.0          # longest line of sight checked (horizontal metres)
+SITE_BLOCK_CELLS = 1 << 20   # cells of a block of the per-cell tests (~100 bytes a cell)
 
 
 @dataclass(frozen=True)
@@ -66,54 +71,75 @@ def local_slope(dsm: np.ndarray, k: int, res: float) -> tuple[np.ndarray, np.nda
 
 
 def select_sites(dsm: np.ndarray, dtm: np.ndarray, grid: Grid, rules: SiteRules,
-                 perspectives: list[Perspective]) -> dict[str, np.ndarray]:
+                 perspectives: list[Perspective], max_cells: int = SITE_BLOCK_CELLS) -> dict[str, np.ndarray]:
     """Candidate sites: arrays x, y, z (DSM at the site), ground (DTM), sx, sy (slopes),
     square_col/square_row (the spacing square) and clear ((n, len(perspectives)) bool: the
-    lines of sight of that view are clear)."""
+    lines of sight of that view are clear).
+
+    ``dsm``, ``dtm``: (height, width) of ``grid``, float64 or float32 (tests run in float64).
+    """
+    xs, ys = grid.column_x(), grid.row_y()
+    k = max(1, int(math.ceil(rules.radius / grid.res)))
+    margin = max(k, int(math.ceil((rules.radius + rules.clearance) / grid.res))) + 1
+    cuts = [np.flatnonzero(np.diff(np.floor(v / rules.spacing))) + 1 for v in (ys, xs)]   # square edges
+    blocks = plan_blocks(grid.height, grid.width, margin, max_cells, *cuts)
+    parts = [_square_options(dsm, dtm, grid, rules, block, k) for block in blocks]
+    o = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+    clear = _clear_lines_of_sight(dsm, grid, o["x"], o["y"], o["z"], np.column_stack([o["sx"], o["sy"]]),
+                                  rules.radius, perspectives)
+    # Per square, the option seen in the most views, nearest the centre among equals. A site
+    # hidden in some views still serves the others (each view's render rejects what it cannot see).
+    views = clear.sum(axis=1)
+    keep = views > 0
+    o, views, clear = {key: v[keep] for key, v in o.items()}, views[keep], clear[keep]
+    by_rank = np.lexsort((o["dist"], -views, o["sq_y"], o["sq_x"]))
+    first = by_rank[_starts_of_runs(o["sq_x"][by_rank], o["sq_y"][by_rank])]
+    o, clear = {key: v[first] for key, v in o.items()}, clear[first]
+    # Off the cell centre by a fraction of a cell (a hash of the square, so stable): markers
+    # centred on pixel corners would give exact centroids and hide the method's own resolution.
+    jx, jy = _jitter(o["sq_x"], o["sq_y"])
+    px, py = o["x"] + jx * grid.res, o["y"] + jy * grid.res
+    slopes = np.column_stack([o["sx"], o["sy"]])
+    # which of two close sites survives follows a hash of their squares, not sites elsewhere
+    apart = _apart(px, py, slopes, np.lexsort((o["sq_y"], o["sq_x"], jx)), rules.radius, grid.res, perspectives)
+    o, clear, jx, jy, px, py = {key: v[apart] for key, v in o.items()}, clear[apart], jx[apart], jy[apart], px[apart], py[apart]
+    dz = o["sx"] * jx * grid.res + o["sy"] * jy * grid.res   # along the local ground plane
+    return {"x": px, "y": py, "z": o["z"] + dz, "ground": o["ground"] + dz, "sx": o["sx"], "sy": o["sy"],
+            "square_col": o["sq_x"].astype(np.int64), "square_row": o["sq_y"].astype(np.int64),
+            "clear": clear}
+
+
+def _square_options(dsm: np.ndarray, dtm: np.ndarray, grid: Grid, rules: SiteRules, block: Block,
+                    k: int) -> dict[str, np.ndarray]:
+    """The OPTIONS_PER_SQUARE valid sites nearest its centre of each square in ``block``'s core
+    (whole squares), as arrays x, y, z, ground, sx, sy, sq_x, sq_y and dist (to the square's centre)."""
     from scipy import ndimage as ndi
 
-    ground = ground_mask(dsm, dtm, rules.max_height)
-    # exposed: distance to the nearest non-ground cell, in metres
-    exposed = ndi.distance_transform_edt(ground) * grid.res >= rules.radius + rules.clearance
-    k = max(1, int(math.ceil(rules.radius / grid.res)))
-    sx, sy, rough = local_slope(dsm, k, grid.res)
+    d = np.asarray(dsm[block.window], dtype=np.float64)
+    t = np.asarray(dtm[block.window], dtype=np.float64)
+    ground = ground_mask(d, t, rules.max_height)
+    # exposed: distance to the nearest non-ground cell, in metres (the window reaches past that distance)
+    if ground.all() and block.window != block.core:
+        exposed = ground
+    else:
+        exposed = ndi.distance_transform_edt(ground) * grid.res >= rules.radius + rules.clearance
+    sx, sy, rough = local_slope(d, k, grid.res)
     with np.errstate(invalid="ignore"):
         slope_deg = np.degrees(np.arctan(np.hypot(sx, sy)))
         ok = exposed & (rough <= rules.max_roughness) & (slope_deg <= rules.max_slope)
-    rows, cols = np.nonzero(ok)
-    xs, ys = grid.cell_centres()
-    x, y = xs[rows, cols], ys[rows, cols]
-    # nearest-to-centre options per spacing square
+    inner = block.inner
+    rows, cols = np.nonzero(ok[inner])
+    wr, wc = rows + inner[0].start, cols + inner[1].start
+    x, y = grid.column_x()[cols + block.core[1].start], grid.row_y()[rows + block.core[0].start]
     sq_x, sq_y = np.floor(x / rules.spacing), np.floor(y / rules.spacing)
     dist = np.hypot(x - (sq_x + 0.5) * rules.spacing, y - (sq_y + 0.5) * rules.spacing)
     order = np.lexsort((dist, sq_y, sq_x))
     first = _starts_of_runs(sq_x[order], sq_y[order])
     rank = np.arange(len(order)) - np.maximum.accumulate(np.where(first, np.arange(len(order)), 0))
-    options = order[rank < OPTIONS_PER_SQUARE]
-    ro, co = rows[options], cols[options]
-    clear = _clear_lines_of_sight(dsm, grid, x[options], y[options], dsm[ro, co],
-                                  np.column_stack([sx[ro, co], sy[ro, co]]), rules.radius, perspectives)
-    # Per square, the option seen in the most views, nearest the centre among equals. A site
-    # hidden in some views still serves the others (each view's render rejects what it cannot see).
-    views = clear.sum(axis=1)
-    keep = views > 0
-    options, views, clear = options[keep], views[keep], clear[keep]
-    by_rank = np.lexsort((dist[options], -views, sq_y[options], sq_x[options]))
-    first = by_rank[_starts_of_runs(sq_x[options][by_rank], sq_y[options][by_rank])]
-    pick, clear = options[first], clear[first]
-    r, c = rows[pick], cols[pick]
-    # Off the cell centre by a fraction of a cell (a hash of the square, so stable): markers
-    # centred on pixel corners would give exact centroids and hide the method's own resolution.
-    jx, jy = _jitter(sq_x[pick], sq_y[pick])
-    px, py = x[pick] + jx * grid.res, y[pick] + jy * grid.res
-    # which of two close sites survives follows a hash of their squares, not sites elsewhere
-    apart = _apart(px, py, np.column_stack([sx[r, c], sy[r, c]]), np.lexsort((sq_y[pick], sq_x[pick], jx)),
-                   rules.radius, grid.res, perspectives)
-    pick, clear, r, c, jx, jy, px, py = (a[apart] for a in (pick, clear, r, c, jx, jy, px, py))
-    dz = sx[r, c] * jx * grid.res + sy[r, c] * jy * grid.res   # along the local ground plane
-    return {"x": px, "y": py, "z": dsm[r, c] + dz, "ground": dtm[r, c] + dz, "sx": sx[r, c], "sy": sy[r, c],
-            "square_col": sq_x[pick].astype(np.int64), "square_row": sq_y[pick].astype(np.int64),
-            "clear": clear}
+    o = order[rank < OPTIONS_PER_SQUARE]
+    r, c = wr[o], wc[o]
+    return {"x": x[o], "y": y[o], "z": d[r, c], "ground": t[r, c], "sx": sx[r, c], "sy": sy[r, c],
+            "sq_x": sq_x[o], "sq_y": sq_y[o], "dist": dist[o]}
 
 
 def _apart(x: np.ndarray, y: np.ndarray, slopes: np.ndarray, order: np.ndarray, radius: float, res: float,

@@ -142,10 +142,11 @@ def build_terrain(lod_indexes: list[str], inputs: dict, scene_crs: str, gsd: flo
     """Render the scene's DSM; with ``terrain: auto`` also find its ground cells (see :mod:`pipeline25d.terrain`).
 
     ``out_ground`` holds the ground heights (NaN elsewhere); the scene stage interpolates
-    the DTM from it once it knows the check points, which it holds out of the DTM.
+    the DTM from it once it knows the check points, which it holds out of the DTM. Both
+    rasters are written block by block: memory follows a block, not the scene.
     """
     from .crs import horizontal_wkt
-    from .terrain import Grid, auto_resolution, csf_ground, render_height_map, trim_object_edges, write_float_geotiff
+    from .terrain import Grid, auto_resolution, float_geotiff_writer, height_map_tiles
 
     chunks = lod_chunks(lod_indexes)
     _, lo, hi = _scene_bounds(chunks)
@@ -154,34 +155,15 @@ def build_terrain(lod_indexes: list[str], inputs: dict, scene_crs: str, gsd: flo
     res = auto_resolution(bounds_xy, gsd) if res == "auto" else float(res)
     grid = Grid.covering(bounds_xy, res)
     log.info("DSM: %d x %d cells of %.2f m from %d chunks", grid.width, grid.height, res, len(chunks))
-    dsm = render_height_map(_lod_chunk_loaders(chunks, res / 4), grid)
     wkt = horizontal_wkt(scene_crs)
-    write_float_geotiff(out_dsm, dsm, grid, wkt)
-    record = {"dsm": str(out_dsm), "resolution": res, "dsm_cells": int(np.isfinite(dsm).sum())}
+    dsm_cells = 0
+    with float_geotiff_writer(out_dsm, grid, wkt) as write:
+        for row, col, heights in height_map_tiles(_lod_chunk_loaders(chunks, res / 4), grid):
+            write(heights, row, col)
+            dsm_cells += int(np.isfinite(heights).sum())
+    record = {"dsm": str(out_dsm), "resolution": res, "dsm_cells": dsm_cells}
     if terrain == "auto":
-        own = _own_terrain(inputs, scene_crs, grid)
-        sources = []
-        seed = np.full(dsm.shape, np.nan)
-        if own["districts"] != sorted(inputs):
-            cloth = ground_cfg["cloth_resolution"]
-            cloth = 2 * res if cloth == "auto" else float(cloth)
-            ground = trim_object_edges(csf_ground(dsm, grid, ground_cfg["max_object_size"], cloth,
-                                                  ground_cfg["rigidness"], ground_cfg["class_threshold"]), dsm)
-            seed[ground] = dsm[ground]
-            sources.append("model surface (nadir DSM, Cloth Simulation Filter)")
-        if own["districts"]:
-            have = np.isfinite(own["heights"])
-            seed[have] = own["heights"][have]
-            sources.append("the inputs' own terrain (CityJSON TINRelief or ground objects) of "
-                           + ", ".join(own["districts"]))
-        if not np.isfinite(seed).any():
-            raise ValueError("terrain: auto found no ground in the model; give a DTM (terrain: <path>) "
-                             "or terrain: flat")
-        write_float_geotiff(out_ground, seed, grid, wkt)
-        valid = np.isfinite(dsm)
-        record.update({"source": " + ".join(sources), "ground": str(out_ground),
-                       "ground_share": float(np.isfinite(seed)[valid].mean()) if valid.any() else 0.0,
-                       "relief_m": float(np.nanmax(seed) - np.nanmin(seed))})
+        record.update(_ground_from_model(inputs, scene_crs, ground_cfg, out_dsm, out_ground, wkt))
         log.info("ground from %s: %.1f%% of the model's cells, relief %.1f m", record["source"],
                  100 * record["ground_share"], record["relief_m"])
     elif terrain == "flat":
@@ -192,12 +174,54 @@ def build_terrain(lod_indexes: list[str], inputs: dict, scene_crs: str, gsd: flo
     return record
 
 
-def _own_terrain(inputs: dict, scene_crs: str, grid) -> dict:
-    """Heights of the inputs' own terrain (CityJSON TINRelief / ground objects) on ``grid``."""
+def _ground_from_model(inputs: dict, scene_crs: str, ground_cfg: dict, dsm_path: str | Path,
+                       out_ground: str | Path, wkt: str) -> dict:
+    """Write the ground heights on the DSM's grid, block by block: the inputs' own terrain where
+    they carry one, the Cloth Simulation Filter's ground cells of the DSM elsewhere."""
+    from .terrain import FloatRaster, float_geotiff_writer, ground_blocks, plan_blocks, render_height_map
+
+    dsm_src = FloatRaster(dsm_path)
+    grid = dsm_src.grid
+    own = _own_terrain(inputs, scene_crs)
+    sources = []
+    if own["districts"] != sorted(inputs):
+        cloth = ground_cfg["cloth_resolution"]
+        cloth = 2 * grid.res if cloth == "auto" else float(cloth)
+        blocks = ground_blocks(dsm_src.read, grid, ground_cfg["max_object_size"], cloth, ground_cfg["rigidness"],
+                               ground_cfg["class_threshold"])
+        sources.append("model surface (nadir DSM, Cloth Simulation Filter)")
+    else:
+        blocks = ((b, dsm_src.read(*b.core), np.zeros(grid.window(*b.core).shape, bool))
+                  for b in plan_blocks(grid.height, grid.width, 0))
+    if own["districts"]:
+        sources.append("the inputs' own terrain (CityJSON TINRelief or ground objects) of "
+                       + ", ".join(own["districts"]))
+    n_valid, n_ground, zmin, zmax = 0, 0, np.inf, -np.inf
+    with float_geotiff_writer(out_ground, grid, wkt) as write:
+        for block, dsm, ground in blocks:
+            seed = np.where(ground, dsm, np.nan)
+            if own["chunks"]:
+                heights = render_height_map(own["chunks"], grid.window(*block.core))
+                have = np.isfinite(heights)
+                seed[have] = heights[have]
+            write(seed, block.core[0].start, block.core[1].start)
+            has = np.isfinite(seed)
+            n_valid, n_ground = n_valid + int(np.isfinite(dsm).sum()), n_ground + int(has[np.isfinite(dsm)].sum())
+            if has.any():
+                zmin, zmax = min(zmin, float(seed[has].min())), max(zmax, float(seed[has].max()))
+        if zmax < zmin:
+            raise ValueError("terrain: auto found no ground in the model; give a DTM (terrain: <path>) "
+                             "or terrain: flat")
+    return {"source": " + ".join(sources), "ground": str(out_ground),
+            "ground_share": n_ground / n_valid if n_valid else 0.0, "relief_m": zmax - zmin}
+
+
+def _own_terrain(inputs: dict, scene_crs: str) -> dict:
+    """The inputs' own terrain (CityJSON TINRelief / ground objects): the districts carrying one
+    and their meshes as (bounds, load) chunks for :func:`pipeline25d.terrain.render_height_map`."""
     from .chunks import chunk_origin
     from .formats import detect_format
     from .formats.cityjson import load_cityjson_terrain
-    from .terrain import render_height_map
 
     districts, chunks = [], []
     for name, spec in sorted(inputs.items()):
@@ -210,8 +234,7 @@ def _own_terrain(inputs: dict, scene_crs: str, grid) -> dict:
         districts.append(name)
         b = mesh.bounds()
         chunks.append((b, lambda b=b, parts=mesh.parts: (chunk_origin(b), parts)))
-    heights = render_height_map(chunks, grid) if chunks else None
-    return {"districts": districts, "heights": heights}
+    return {"districts": districts, "chunks": chunks}
 
 
 # -- scene: reference plane and GCP candidates --------------------------------------------------
@@ -226,33 +249,36 @@ def scene_setup(lod_indexes: list[str], dsm_path: str | Path, terrain: str, terr
     With auto, the ground around each check point (within :func:`holdout_radius`) is left
     out of the DTM's interpolation, so a check point measures how well the DTM predicts
     ground it has not seen, not the DSM against itself.
+
+    Memory: the DSM and the DTM are held whole as float32, 8 bytes a cell, which loses
+    nothing (the DSM is read from its float32 GeoTIFF, GDAL's fill computes in float32);
+    the DTM's interpolation and the site search run block by block.
     """
     from .crs import horizontal_wkt
     from .gcp_sites import SiteRules, select_sites
     from .gcps import candidates_from_sites
     from .raster import DTM
-    from .terrain import interpolate_dtm, read_float_geotiff, write_float_geotiff
+    from .terrain import FloatRaster, write_float_geotiff
 
     chunks = lod_chunks(lod_indexes)
     bounds, lo, hi = _scene_bounds(chunks)
-    dsm, grid = read_float_geotiff(dsm_path)
-    xs, ys = grid.cell_centres()
-    seed, radius = None, None
+    dsm_src = FloatRaster(dsm_path)
+    grid = dsm_src.grid
+    dsm = dsm_src.read_all(np.float32)
+    seed_src, radius, height_fn = None, None, None
+    search = int(np.ceil(max_object_size / 2 / grid.res))
     if terrain == "flat":
         level = float(z0_cfg) if z0_cfg != "auto" else float(np.median(bounds[:, 0, 2]))
-        dtm = np.full(dsm.shape, level)
-        height_fn = None
+        dtm = np.broadcast_to(level, grid.shape)
     elif terrain == "auto":
-        seed, _ = read_float_geotiff(terrain_path)
-        search = int(np.ceil(max_object_size / 2 / grid.res))
-        dtm = interpolate_dtm(seed, search)
-        height_fn = None
+        seed_src = FloatRaster(terrain_path)
+        dtm = _interpolated_dtm(seed_src.read, grid, search)
     else:
         height_fn = DTM(terrain_path, scene_crs, continuous=True).sample
-        dtm = height_fn(xs.ravel(), ys.ravel()).reshape(dsm.shape)
+        dtm = _sampled_dtm(height_fn, grid)
     covered = np.isfinite(dsm)
     # auto: the median ground height, rounded to whole metres so a local terrain change does not move it
-    z0 = float(z0_cfg) if z0_cfg != "auto" else float(round(np.median(dtm[covered]))) if covered.any() else float(lo[2])
+    z0 = float(z0_cfg) if z0_cfg != "auto" else float(round(_median(dtm[covered]))) if covered.any() else float(lo[2])
     if projection == "auto":
         projection = "plane" if terrain == "flat" else "terrain"
     if projection == "terrain" and terrain == "flat":
@@ -265,12 +291,13 @@ def scene_setup(lod_indexes: list[str], dsm_path: str | Path, terrain: str, terr
                           max_roughness=gcp_cfg["max_roughness"], max_slope=gcp_cfg["max_slope"])
         cands = candidates_from_sites(select_sites(dsm, dtm, grid, rules, perspectives),
                                       gcp_cfg["holdout"], gcp_cfg["seed"])
-        if seed is not None:
+        if seed_src is not None:
             radius = holdout_radius(rules, grid.res)
-            dtm = interpolate_dtm(_without_check_points(seed, grid, cands, radius), search)
-            held = DTM.from_array(dtm, grid.geotransform, continuous=True)
+            del dtm
+            dtm = _interpolated_dtm(lambda rows, cols: _without_check_points(seed_src.read(rows, cols), grid, cands,
+                                                                              radius, (rows, cols)), grid, search)
             xy = np.array([[c["x"], c["y"]] for c in cands]).reshape(-1, 2)
-            for c, g in zip(cands, held.sample(xy[:, 0], xy[:, 1])):
+            for c, g in zip(cands, _sample_continuous(dtm, grid, xy)):
                 c["ground"] = round(float(g), 3)
             log.info("DTM interpolated without the ground within %.1f m of each check point", radius)
     else:
@@ -296,6 +323,48 @@ def scene_setup(lod_indexes: list[str], dsm_path: str | Path, terrain: str, terr
     return scene
 
 
+def _interpolated_dtm(read, grid, search: int) -> np.ndarray:
+    """The DTM (float32, exact: GDAL's fill computes in float32) from the ground heights ``read(rows, cols)``."""
+    from .terrain import dtm_blocks
+
+    dtm = np.empty(grid.shape, np.float32)
+    for block, values in dtm_blocks(read, grid, search):
+        dtm[block.core] = values
+    return dtm
+
+
+def _sampled_dtm(height_fn, grid, rows_per_strip: int = 256) -> np.ndarray:
+    """A user DTM sampled at every cell centre, a strip of rows at a time."""
+    dtm = np.empty(grid.shape)
+    xs, ys = grid.column_x(), grid.row_y()
+    for r0 in range(0, grid.height, rows_per_strip):
+        gx, gy = np.meshgrid(xs, ys[r0:r0 + rows_per_strip])
+        dtm[r0:r0 + rows_per_strip] = height_fn(gx.ravel(), gy.ravel()).reshape(gx.shape)
+    return dtm
+
+
+def _median(values: np.ndarray) -> float:
+    """np.median of a (float32) vector in float64, partitioning ``values`` in place (no copy)."""
+    n = len(values)
+    values.partition([(n - 1) // 2, n // 2])
+    return (float(values[(n - 1) // 2]) + float(values[n // 2])) / 2
+
+
+def _sample_continuous(values: np.ndarray, grid, xy: np.ndarray) -> np.ndarray:
+    """Bilinear heights at (n, 2) points, as ``DTM.from_array(values, continuous=True)`` gives them,
+    each from the few cells around it (no float64 copy of the grid)."""
+    from .raster import DTM
+
+    out = np.empty(len(xy))
+    for i, (x, y) in enumerate(xy):
+        col = min(max(int((x - grid.xmin) / grid.res), 0), grid.width - 1)
+        row = min(max(int((grid.ymax - y) / grid.res), 0), grid.height - 1)
+        rows, cols = slice(max(row - 2, 0), min(row + 3, grid.height)), slice(max(col - 2, 0), min(col + 3, grid.width))
+        window = DTM.from_array(values[rows, cols], grid.window(rows, cols).geotransform, continuous=True)
+        out[i] = window.sample(np.array([x]), np.array([y]))[0]
+    return out
+
+
 def holdout_radius(rules, res: float) -> float:
     """Metres of ground around a check point left out of the DTM: its marker, the marker's
     clearance and two DTM cells, so the DTM must predict the whole marker from ground it saw
@@ -305,18 +374,26 @@ def holdout_radius(rules, res: float) -> float:
     return rules.radius + rules.clearance + 2 * res
 
 
-def _without_check_points(seed: np.ndarray, grid, cands: list[dict], radius: float) -> np.ndarray:
-    """A copy of the ground heights with the cells within ``radius`` of each check point set to NaN."""
+def _without_check_points(seed: np.ndarray, grid, cands: list[dict], radius: float,
+                          window: tuple[slice, slice] | None = None) -> np.ndarray:
+    """A copy of the ground heights with the cells within ``radius`` of each check point set to NaN.
+
+    ``window``: ``seed`` holds only these (rows, cols) of ``grid``.
+    """
     out = seed.copy()
-    xs, ys = grid.cell_centres()
+    rows, cols = window or (slice(0, grid.height), slice(0, grid.width))
+    xs, ys = grid.column_x(), grid.row_y()
     k = int(np.ceil(radius / grid.res)) + 1
     for c in cands:
         if c["role"] != "check":
             continue
         col, row = int((c["x"] - grid.xmin) / grid.res), int((grid.ymax - c["y"]) / grid.res)
-        r0, r1, c0, c1 = max(row - k, 0), min(row + k + 1, grid.height), max(col - k, 0), min(col + k + 1, grid.width)
-        near = np.hypot(xs[r0:r1, c0:c1] - c["x"], ys[r0:r1, c0:c1] - c["y"]) <= radius
-        out[r0:r1, c0:c1][near] = np.nan
+        r0, r1 = max(row - k, rows.start), min(row + k + 1, rows.stop)
+        c0, c1 = max(col - k, cols.start), min(col + k + 1, cols.stop)
+        if r0 >= r1 or c0 >= c1:
+            continue
+        near = np.hypot(xs[None, c0:c1] - c["x"], ys[r0:r1, None] - c["y"]) <= radius
+        out[r0 - rows.start:r1 - rows.start, c0 - cols.start:c1 - cols.start][near] = np.nan
     return out
 
 
