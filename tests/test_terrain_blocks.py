@@ -8,7 +8,7 @@ import pytest
 from pipeline25d.gcp_sites import SiteRules, select_sites
 from pipeline25d.perspectives import Perspective
 from pipeline25d.terrain import (FloatRaster, Grid, csf_ground, dtm_blocks, float_geotiff_writer, ground_blocks,
-                                 interpolate_dtm, plan_blocks, trim_object_edges)
+                                 interpolate_dtm, cell_blocks, trim_object_edges)
 
 E0, N0 = 600000.0, 5250000.0
 MAX_OBJECT_M = 40.0
@@ -49,7 +49,7 @@ def _read(values):
 
 
 def test_blocks_tile_the_grid_with_their_margins():
-    blocks = plan_blocks(1000, 1300, 50, 400 * 400, align=2)
+    blocks = cell_blocks(1000, 1300, 50, 400 * 400, align=2)
     count = np.zeros((1000, 1300), int)
     for b in blocks:
         count[b.core] += 1
@@ -58,7 +58,7 @@ def test_blocks_tile_the_grid_with_their_margins():
         assert wr.stop >= min(r.stop + 50, 1000) and (1000 - wr.stop) % 2 == 0 and wc.stop == min(c.stop + 50, 1300)
         assert all(s.start % 256 == 0 for s in b.core)                  # whole GeoTIFF tiles
     assert len(blocks) == 4 * 5 and (count == 1).all()
-    assert plan_blocks(100, 120, 50) == plan_blocks(100, 120, 0)         # a small grid is one block
+    assert cell_blocks(100, 120, 50) == cell_blocks(100, 120, 0)         # a small grid is one block
 
 
 def test_blockwise_ground_matches_the_whole_grid(scene):
@@ -118,7 +118,7 @@ def test_geotiff_written_by_blocks_reads_back(tmp_path):
     values = np.random.default_rng(0).normal(size=grid.shape).astype(np.float32)
     values[:40, :90] = np.nan
     with float_geotiff_writer(tmp_path / "r.tif", grid, "") as write:
-        for b in plan_blocks(*grid.shape, 0, 300 * 300):
+        for b in cell_blocks(*grid.shape, 0, 300 * 300):
             write(values[b.core], b.core[0].start, b.core[1].start)
     raster = FloatRaster(tmp_path / "r.tif")
     assert raster.grid == grid

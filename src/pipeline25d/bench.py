@@ -139,29 +139,45 @@ def render_against_plain_loop(results: Path, pid: str, samples: int) -> dict:
             "plain_loop_s_per_tile": plain["per_tile_s"], "ratio": round(job_s / n / plain["per_tile_s"], 2)}
 
 
-def tms_against_gdal2tiles_default(results: Path, pid: str, work: Path) -> dict:
-    """The tms job's seconds for one map beside gdal2tiles with its defaults (``--xyz`` only,
-    same zoom levels) cutting the same COG, run here on the same machine."""
+def tms_against_gdal2tiles_default(results: Path, pid: str, work: Path, config: dict) -> dict:
+    """The workflow's web-tile cut of one map (:func:`pipeline25d.stages.tms` with the rule's settings)
+    beside gdal2tiles with its defaults (``--xyz``, same zoom levels) on the same COG, timed back to
+    back here on an otherwise idle machine; the tms job's own seconds in the run are given too."""
     import shutil
 
+    from .config import validate_schema
     from .report import benchmark_rows
+    from .stages import tms
 
     ((_, row),) = benchmark_rows(results / "benchmarks" / "tms" / f"{pid}.tsv")
+    cog = results / "maps" / f"{pid}.tif"
     zooms = sorted(int(z.name) for z in (results / "tms" / pid).iterdir() if z.name.isdigit())
-    out = work / "gdal2tiles-default"
+    zoom = f"{zooms[0]}-{zooms[-1]}"
+    cfg = validate_schema(config)["tms"]
+    out = work / "tms-compare"
     shutil.rmtree(out, ignore_errors=True)
     t0 = time.monotonic()
-    subprocess.run([sys.executable, "-m", "osgeo_utils.gdal2tiles", "-q", "--xyz", "-z", f"{zooms[0]}-{zooms[-1]}",
-                    str(results / "maps" / f"{pid}.tif"), str(out)], check=True)
+    tms(cog, zoom, out / "ours", processes=2, tile_format=cfg["format"], quality=cfg["quality"])
+    ours_s = time.monotonic() - t0
+    t0 = time.monotonic()
+    subprocess.run([sys.executable, "-m", "osgeo_utils.gdal2tiles", "-q", "--xyz", "-z", zoom, str(cog),
+                    str(out / "default")], check=True)
     default_s = time.monotonic() - t0
     shutil.rmtree(out, ignore_errors=True)
-    return {"perspective": pid, "zoom": f"{zooms[0]}-{zooms[-1]}", "tms_job_s": round(float(row["s"]), 2),
-            "gdal2tiles_default_s": round(default_s, 2), "speed_up": round(default_s / float(row["s"]), 2)}
+    return {"perspective": pid, "zoom": zoom, "tms_s": round(ours_s, 2), "tms_job_s_in_run": round(float(row["s"]), 2),
+            "gdal2tiles_default_s": round(default_s, 2), "speed_up": round(default_s / ours_s, 2)}
 
 
-def run(workdir: Path, config: dict, cores: int = 2) -> dict:
-    """Run the workflow in ``workdir`` and collect the figures."""
-    return collect(workdir, config, run_workflow(workdir, config, cores), cores)
+def logged_wall(workdir: Path) -> float:
+    """Wall seconds of the last run in ``workdir``, from the "Elapsed time: H:MM:SS" line Snakemake logs."""
+    import re
+
+    log = workdir / "snakemake.log"
+    found = re.findall(r"Elapsed time: (\d+):(\d+):([\d.]+)", log.read_text()) if log.exists() else []
+    if not found:
+        raise WorkflowRunError(f"no finished run logged in {log}")
+    h, m, s = found[-1]
+    return int(h) * 3600 + int(m) * 60 + float(s)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -172,6 +188,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--perspectives", default="eight-45+nadir")
     ap.add_argument("--name", default=None)
     ap.add_argument("--cores", type=int, default=2)
+    ap.add_argument("--collect", action="store_true",
+                    help="collect the figures of the last finished run again instead of running (wall time from its log)")
     args = ap.parse_args(argv)
     nx, ny = (int(v) for v in args.grid.lower().split("x"))
     name = args.name or f"delft{nx}x{ny}"
@@ -179,14 +197,16 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"bench: {SOURCE} not found (the shared Delft data)")
     work = REPO / "bench" / name
     districts = make_scene(work / "scene", nx, ny, args.decimate)
+    config = bench_config(name, districts, args.gsd, args.perspectives)
     try:
-        result = run(work, bench_config(name, districts, args.gsd, args.perspectives), args.cores)
+        wall = logged_wall(work) if args.collect else run_workflow(work, config, args.cores)
     except WorkflowRunError as exc:
         raise SystemExit(f"bench: {exc}") from None
+    result = collect(work, config, wall, args.cores)
     result["decimate"] = args.decimate
     oblique = next(p for p in sorted(result["check_rmsd_px"]) if not p.endswith("el90"))
     result["render_vs_plain_loop"] = render_against_plain_loop(work / "results" / name, oblique, samples=4)
-    result["tms_vs_gdal2tiles_default"] = tms_against_gdal2tiles_default(work / "results" / name, oblique, work)
+    result["tms_vs_gdal2tiles_default"] = tms_against_gdal2tiles_default(work / "results" / name, oblique, work, config)
     write_text(REPO / "bench" / f"{name}.json", json.dumps(result, indent=1))
     print(json.dumps({k: result[k] for k in ("wall_s", "tiles_rendered", "jobs", "peak_rss_mb", "render_vs_plain_loop",
                                       "tms_vs_gdal2tiles_default")}))

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .perspectives import Perspective
-from .terrain import Block, Grid, plan_blocks
+from .terrain import Block, Grid, cell_blocks
 
 OPTIONS_PER_SQUARE = 6       # nearest-to-centre sites tested for line of sight per square
 SIGHT_MARGIN_M = 0.05        # the DSM must stay this far below a line of sight
@@ -82,7 +82,7 @@ def select_sites(dsm: np.ndarray, dtm: np.ndarray, grid: Grid, rules: SiteRules,
     k = max(1, int(math.ceil(rules.radius / grid.res)))
     margin = max(k, int(math.ceil((rules.radius + rules.clearance) / grid.res))) + 1
     cuts = [np.flatnonzero(np.diff(np.floor(v / rules.spacing))) + 1 for v in (ys, xs)]   # square edges
-    blocks = plan_blocks(grid.height, grid.width, margin, max_cells, *cuts)
+    blocks = cell_blocks(grid.height, grid.width, margin, max_cells, *cuts)
     parts = [_square_options(dsm, dtm, grid, rules, block, k) for block in blocks]
     o = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
     clear = _clear_lines_of_sight(dsm, grid, o["x"], o["y"], o["z"], np.column_stack([o["sx"], o["sy"]]),

@@ -26,10 +26,10 @@ def input_size(config: dict) -> int:
     return total
 
 
-def benchmark_rows(folder: Path) -> list[tuple[Path, dict]]:
-    """(file, first row) of every Snakemake benchmark TSV under ``folder``."""
+def benchmark_rows(where: Path) -> list[tuple[Path, dict]]:
+    """(file, first row) of a Snakemake benchmark TSV, or of every one under a folder."""
     rows = []
-    for tsv in sorted(folder.rglob("*.tsv")):
+    for tsv in [where] if where.is_file() else sorted(where.rglob("*.tsv")):
         with open(tsv) as fh:
             rows.append((tsv, next(csv.DictReader(fh, delimiter="\t"))))
     return rows

@@ -178,7 +178,7 @@ def _ground_from_model(inputs: dict, scene_crs: str, ground_cfg: dict, dsm_path:
                        out_ground: str | Path, wkt: str) -> dict:
     """Write the ground heights on the DSM's grid, block by block: the inputs' own terrain where
     they carry one, the Cloth Simulation Filter's ground cells of the DSM elsewhere."""
-    from .terrain import FloatRaster, float_geotiff_writer, ground_blocks, plan_blocks, render_height_map
+    from .terrain import FloatRaster, cell_blocks, float_geotiff_writer, ground_blocks, render_height_map
 
     dsm_src = FloatRaster(dsm_path)
     grid = dsm_src.grid
@@ -192,7 +192,7 @@ def _ground_from_model(inputs: dict, scene_crs: str, ground_cfg: dict, dsm_path:
         sources.append("model surface (nadir DSM, Cloth Simulation Filter)")
     else:
         blocks = ((b, dsm_src.read(*b.core), np.zeros(grid.window(*b.core).shape, bool))
-                  for b in plan_blocks(grid.height, grid.width, 0))
+                  for b in cell_blocks(grid.height, grid.width, 0))
     if own["districts"]:
         sources.append("the inputs' own terrain (CityJSON TINRelief or ground objects) of "
                        + ", ".join(own["districts"]))

@@ -15,7 +15,7 @@
 All heights are float64 metres in the scene CRS; the rasters are written as float32 GeoTIFFs.
 
 Memory follows a block, not the city: the DSM is written tile by tile as it is rendered, and
-the ground filter and the DTM fill run per block of cells (:func:`plan_blocks`), each on a
+the ground filter and the DTM fill run per block of cells (:func:`cell_blocks`), each on a
 window reaching far enough around its core that the core comes out as on the whole grid
 (exactly for the envelope, the edge trimming and the fill; the cloth's own edges aside).
 """
@@ -107,7 +107,7 @@ class Block(NamedTuple):
         return tuple(slice(c.start - w.start, c.stop - w.start) for c, w in zip(self.core, self.window))
 
 
-def plan_blocks(height: int, width: int, margin: int, max_cells: int = BLOCK_CELLS,
+def cell_blocks(height: int, width: int, margin: int, max_cells: int = BLOCK_CELLS,
                 row_cuts: Sequence[int] | None = None, col_cuts: Sequence[int] | None = None,
                 align: int = 1) -> list[Block]:
     """Cores tiling a height x width grid, each with a window ``margin`` cells wider on every side.
@@ -309,7 +309,7 @@ def ground_blocks(read: Callable[[slice, slice], np.ndarray], grid: Grid, max_ob
     align = q if q >= 1 and math.isclose(q * grid.res, cloth_resolution) else 1
     k, g = envelope_reach(grid.res, max_object_m)
     margin = math.ceil(max_object_m / grid.res)
-    for block in plan_blocks(grid.height, grid.width, margin, max_cells, align=align):
+    for block in cell_blocks(grid.height, grid.width, margin, max_cells, align=align):
         wide = tuple(_widen(s, k - 1 + g, n) for s, n in zip(block.window, grid.shape))
         dsm = read(*wide)
         keep = Block(block.window, wide).inner
@@ -408,7 +408,7 @@ def dtm_blocks(read: Callable[[slice, slice], np.ndarray], grid: Grid, search_ce
     read again with twice the margin.
     """
     reach = max(int(search_cells), 1) + 1
-    for block in plan_blocks(grid.height, grid.width, reach, max_cells):
+    for block in cell_blocks(grid.height, grid.width, reach, max_cells):
         margin = reach
         while (values := _dtm_core(read, grid, block.core, margin, search_cells)) is None:
             margin *= 2
