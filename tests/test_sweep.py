@@ -71,12 +71,12 @@ def test_summary_json_flags_match_pareto_front_and_the_plot_is_a_png(tmp_path):
             members = [i for i, r in enumerate(rows) if r["factor"] in (factor, "default")]
             sub = pareto_front([pts[i] for i in members])
             assert entry["default_on_front"][obj] is (0 in sub), (factor, obj)
-    assert data["front"]["rmsd_px"] == ["gsd-1.0"] and not data["default_on_front"]["lod_px"]
+    assert data["front"]["rmsd_m"] == ["gsd-1.0"] and not data["default_on_front"]["lod_px"]
     # MSAA does not change the LOD drawn, so the faster msaa-0 dominates the defaults there
-    assert data["factors"]["render.samples"]["default_on_front"] == {"rmsd_px": True, "lod_px": False}
-    assert data["factors"]["render.samples"]["front"]["rmsd_px"] == ["msaa-0", "default"]
+    assert data["factors"]["render.samples"]["default_on_front"] == {"rmsd_m": True, "lod_px": False}
+    assert data["factors"]["render.samples"]["front"]["rmsd_m"] == ["msaa-0", "default"]
     table = format_table(summary)
-    assert "plane        failed" in table and "within gsd: rmsd_px no, lod_px no" in table
+    assert "plane        failed" in table and "within gsd: rmsd_m no, lod_px no" in table
 
 
 def test_variants_vary_one_factor_around_the_defaults(tmp_path):
@@ -121,4 +121,4 @@ def test_a_failed_run_is_a_row_with_its_error_and_no_figures(tmp_path):
     assert "the workflow failed" in row["error"] and "wall_s" not in row
     assert "missing.obj" in (tmp_path / "work" / "runs" / "default" / "snakemake.log").read_text()
     summary = summarize([row], {})
-    assert summary["front"] == {"rmsd_px": [], "lod_px": []} and summary["default_on_front"]["rmsd_px"] is False
+    assert summary["front"] == {"rmsd_m": [], "lod_px": []} and summary["default_on_front"]["rmsd_m"] is False

@@ -1,7 +1,7 @@
 """Sweep results: Pareto fronts of wall time against error, written as JSON, a plot and a table.
 
 Each objective pairs wall time with one error (both minimized): check-point RMSD in
-pixels and the LOD error drawn in pixels. Fronts are taken over all variants, and per
+metres (pixels are not comparable across gsd variants) and the LOD error drawn in pixels. Fronts are taken over all variants, and per
 factor over the defaults plus that factor's variants, which says whether the default of
 that factor is a Pareto-optimal choice. A failed variant (``error`` in its row) has no
 figures and is on no front.
@@ -15,7 +15,7 @@ from pathlib import Path
 from .atomic import atomic_path, write_json
 from .pareto import pareto_front
 
-OBJECTIVES = {"rmsd_px": "check-point RMSD, px (mean of the oblique views)",
+OBJECTIVES = {"rmsd_m": "check-point RMSD, m (mean of the oblique views)",
               "lod_px": "LOD error drawn, px (largest over rendered chunks)"}
 FIGSIZE, DPI = (13.0, 5.5), 100          # the PNG is 1300 x 550 px
 LABEL_PT, LABEL_CHAR_PT, LABEL_LINE_PT = 8, 4.8, 10   # label font size, rough width of a character, line step
@@ -116,9 +116,9 @@ def _panel(ax, rows: list[dict], obj: str, factors: list[str], legend: bool) -> 
 
 
 def _label_text(row: dict, obj: str) -> str:
-    """The variant's name; with its RMSD in metres where the gsd may differ from the defaults'."""
-    if obj == "rmsd_px" and row["factor"] in ("default", "gsd") and row.get("rmsd_m") is not None:
-        return f"{row['name']} ({row['rmsd_m']:.3f} m)"
+    """The variant's name; with its RMSD in pixels where the gsd may differ from the defaults'."""
+    if obj == "rmsd_m" and row["factor"] in ("default", "gsd") and row.get("rmsd_px") is not None:
+        return f"{row['name']} ({row['rmsd_px']:.2f} px)"
     return row["name"]
 
 
