@@ -28,6 +28,7 @@ import numpy as np
 import yaml
 
 from .atomic import write_text
+from .config import validate_schema
 from .errors import WorkflowRunError
 
 REPO = Path(__file__).resolve().parents[2]
@@ -145,7 +146,6 @@ def tms_against_gdal2tiles_default(results: Path, pid: str, work: Path, config: 
     back here on an otherwise idle machine; the tms job's own seconds in the run are given too."""
     import shutil
 
-    from .config import validate_schema
     from .report import benchmark_rows
     from .stages import tms
 
@@ -205,7 +205,8 @@ def main(argv: list[str] | None = None) -> int:
     result = collect(work, config, wall, args.cores)
     result["decimate"] = args.decimate
     oblique = next(p for p in sorted(result["check_rmsd_px"]) if not p.endswith("el90"))
-    result["render_vs_plain_loop"] = render_against_plain_loop(work / "results" / name, oblique, samples=4)
+    samples = validate_schema(config)["render"]["samples"]          # the run's own MSAA setting
+    result["render_vs_plain_loop"] = render_against_plain_loop(work / "results" / name, oblique, samples)
     result["tms_vs_gdal2tiles_default"] = tms_against_gdal2tiles_default(work / "results" / name, oblique, work, config)
     write_text(REPO / "bench" / f"{name}.json", json.dumps(result, indent=1))
     print(json.dumps({k: result[k] for k in ("wall_s", "tiles_rendered", "jobs", "peak_rss_mb", "render_vs_plain_loop",

@@ -21,9 +21,6 @@ from .mesh import Mesh, MeshPart
 
 log = logging.getLogger(__name__)
 
-CHUNK_ID_PATTERN = r"c-?\d+_-?\d+"
-
-
 def chunk_id(ix: int, iy: int) -> str:
     return f"c{ix}_{iy}"
 

@@ -141,13 +141,11 @@ def _assign_gcps(tiles: dict, candidates: list[dict], p: Perspective, z0: float,
 
 @lru_cache(maxsize=256)
 def _read_plan_cached(path: str, mtime_ns: int) -> dict:
-    plan = json.loads(Path(path).read_text())
-    plan["_lookup"] = {(t["row"], t["col"]): t for t in plan["tiles"]}
-    return plan
+    return json.loads(Path(path).read_text())
 
 
 def read_plan(path: str | Path) -> dict:
-    """A plan JSON, cached per file version (Snakemake asks once per tile job)."""
+    """A plan JSON, cached per file version (Snakemake asks once per render-block job)."""
     path = Path(path)
     return _read_plan_cached(str(path), path.stat().st_mtime_ns)
 
@@ -179,11 +177,3 @@ def block_spec_hash(tiles: list[dict]) -> str:
     """One hash over a block's tiles and their spec hashes: changes when any of them does."""
     keys = [f"{t['row']}_{t['col']}:{t['spec_hash']}" for t in tiles]
     return hashlib.sha256("|".join(keys).encode()).hexdigest()[:16]
-
-
-def plan_tile(plan: dict, row: int, col: int) -> dict:
-    """The plan's entry for tile (row, col): chunks, depth range, gcps, spec hash."""
-    lookup = plan.get("_lookup") or {(t["row"], t["col"]): t for t in plan["tiles"]}   # uncached plans
-    if (row, col) not in lookup:
-        raise KeyError(f"tile ({row}, {col}) is not in the plan of {plan['perspective']['id']}")
-    return lookup[(row, col)]

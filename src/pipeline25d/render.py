@@ -359,10 +359,11 @@ class TileRenderer:
         agree = np.zeros((h, w), dtype=bool)
         agree[rows, cols] = (np.abs(model_depth - marker_depth).astype(np.float64) * (dmax - dmin)
                              <= depth_tolerance_m) & (model_depth < 1.0)
-        full = _marker_stats(alone, n)[:, 0]
+        alone_stats = _marker_stats(alone, n, agree)
+        full = alone_stats[:, 0].copy()
         full[_overlapping(points, slopes, radius_m, view)] = 0   # one marker hides another: no clean centroid
         sums = _marker_stats(seen, n)
-        sums[:, 3] = _marker_stats(alone, n, agree)[:, 3]
+        sums[:, 3] = alone_stats[:, 3]
         return full, sums
 
 
