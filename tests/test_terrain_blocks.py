@@ -124,3 +124,108 @@ def test_geotiff_written_by_blocks_reads_back(tmp_path):
     assert raster.grid == grid
     np.testing.assert_array_equal(raster.read_all(np.float32), values)
     np.testing.assert_array_equal(raster.read(slice(10, 20), slice(600, 700)), values[10:20, 600:].astype(np.float64))
+
+
+def sparse_scene():
+    """Two 1 m districts (copies of boxes_on_a_slope's corners) in a 2 x 1.5 km box of empty land."""
+    grid = Grid(E0, N0 + 1536, 1.0, 2048, 1536)
+    dsm = boxes_on_a_slope(seed=3)[1][:400, :400]
+    sparse = np.full(grid.shape, np.nan)
+    sparse[40:440, 60:460] = dsm
+    sparse[1100:1500, 1500:1900] = dsm[::-1]
+    return grid, sparse
+
+
+def test_empty_land_is_not_filtered_and_the_districts_are_as_alone(monkeypatch):
+    """A window without model costs no cloth simulation; the districts' ground is what the
+    filter finds on each district alone (the empty land between them changes nothing)."""
+    import pipeline25d.terrain as terrain
+
+    grid, dsm = sparse_scene()
+    calls = []
+    cloth = terrain._cloth_ground
+    monkeypatch.setattr(terrain, "_cloth_ground", lambda residual, *a: calls.append(residual.shape) or cloth(residual, *a))
+    ground = np.zeros(grid.shape, bool)
+    blocks = 0
+    for block, core_dsm, core_ground in ground_blocks(_read(dsm), grid, MAX_OBJECT_M, 2.0, 2, 0.5, 512 * 512):
+        np.testing.assert_array_equal(core_dsm, dsm[block.core])
+        ground[block.core] = core_ground
+        blocks += 1
+    assert blocks >= 12 and 2 <= len(calls) <= blocks // 2       # only the windows that hold a district
+    assert not ground[~np.isfinite(dsm)].any()
+    for rows, cols in [(slice(40, 440), slice(60, 460)), (slice(1100, 1500), slice(1500, 1900))]:
+        own = Grid(grid.xmin + cols.start * grid.res, grid.ymax - rows.start * grid.res, grid.res, 400, 400)
+        alone = trim_object_edges(csf_ground(dsm[rows, cols], own, MAX_OBJECT_M, 2.0, 2, 0.5), dsm[rows, cols])
+        assert (ground[rows, cols] == alone).mean() >= 0.995
+
+
+def test_dtm_only_where_it_is_needed():
+    """Blocks ``needed`` rejects stay NaN without a fill; the others equal the whole grid's DTM."""
+    grid, dsm = sparse_scene()
+    seed = np.where(np.isfinite(dsm) & (np.arange(dsm.shape[1]) % 7 != 0), dsm, np.nan)
+    expected = interpolate_dtm(seed, 20, reach_cells=80)
+    asked = []
+
+    def has_model(core):
+        return bool(np.isfinite(dsm[core]).any())
+
+    def needed(core):
+        asked.append(core)
+        return has_model(core)
+
+    got = np.full(grid.shape, -1.0)
+    for block, values in dtm_blocks(_read(seed), grid, 20, 512 * 512, needed=needed, reach_cells=80):
+        got[block.core] = values
+    used = np.zeros(grid.shape, bool)
+    for core in asked:
+        used[core] = has_model(core)
+    assert 0 < used.mean() < 0.5
+    np.testing.assert_array_equal(got[used], expected[used])
+    assert np.isnan(got[~used]).all()
+    assert np.isfinite(got[np.isfinite(dsm)]).all() and np.isnan(got[used]).any()   # reach ends in the empty land
+
+
+def test_under_chunks_meets_exactly_the_blocks_under_a_footprint():
+    from pipeline25d.stages import _under_chunks
+
+    grid = Grid(E0, N0 + 1000, 0.5, 4000, 2000)            # 2 x 1 km
+    bounds = np.array([[[E0 + 100, N0 + 900, 0], [E0 + 180, N0 + 980, 30]]])
+    needed = _under_chunks(bounds, grid)
+    assert needed((slice(0, 256), slice(0, 512)))            # holds x 100-180 m, y 20-100 m from the top
+    assert not needed((slice(0, 256), slice(512, 1024)))     # x 256-512 m
+    assert not needed((slice(256, 512), slice(0, 512)))      # y 128-256 m from the top
+    assert needed((slice(0, 256), slice(362, 512)))          # x 181-256 m: within the 2-cell margin
+
+
+def test_empty_blocks_are_not_stored(tmp_path):
+    """An all-NaN block is not written: its GeoTIFF tiles have no data on disk and read as NaN."""
+    from pipeline25d.raster import gdal
+
+    grid = Grid(E0, N0 + 512, 1.0, 768, 512)
+    values = np.full(grid.shape, np.nan, np.float32)
+    values[:256, 512:] = 7.5
+    with float_geotiff_writer(tmp_path / "r.tif", grid, "") as write:
+        for b in cell_blocks(*grid.shape, 0, 256 * 256):
+            write(values[b.core], b.core[0].start, b.core[1].start)
+    ds = gdal().Open(str(tmp_path / "r.tif"))          # kept referenced while its band is read
+    band = ds.GetRasterBand(1)
+    stored = [[bool(int(band.GetMetadataItem(f"BLOCK_OFFSET_{c}_{r}", "TIFF") or 0)) for c in range(3)]
+              for r in range(2)]
+    assert stored == [[False, False, True], [False, False, False]]
+    np.testing.assert_array_equal(FloatRaster(tmp_path / "r.tif").read_all(np.float32), values)
+
+
+def test_islands_are_the_groups_of_model_gap_cells_apart():
+    from pipeline25d.terrain import islands
+
+    valid = np.zeros((60, 80), bool)
+    valid[2:10, 3:12] = True           # A
+    valid[12:20, 3:12] = True          # B: 2 empty rows below A
+    valid[40:55, 50:78] = True         # C: far from both
+    got = [(box, mask.sum()) for box, mask in islands(valid, 5)]
+    assert [m for _, m in got] == [8 * 9 * 2, 15 * 28]
+    for box, mask in islands(valid, 5):
+        assert valid[box].sum() == mask.sum()          # each island's box holds no other island here
+    alone = list(islands(valid[:30, :20], 5))
+    assert len(alone) == 1 and alone[0][1].sum() == 144 and alone[0][1].shape == (20, 15)   # whole coarse cells
+    assert list(islands(np.zeros((9, 9), bool), 5)) == []

@@ -35,8 +35,13 @@ REPO = Path(__file__).resolve().parents[2]
 SOURCE = REPO.parent / "shared" / "data" / "delft" / "delft_dsm_mesh.ply"
 
 
-def make_scene(out_dir: Path, nx: int, ny: int, decimate: float | None = None, source: Path = SOURCE) -> dict:
-    """Write the district meshes into ``out_dir`` and return {district: path}."""
+def make_scene(out_dir: Path, nx: int, ny: int, decimate: float | None = None, source: Path = SOURCE,
+               spread: float = 1.0) -> dict:
+    """Write the district meshes into ``out_dir`` and return {district: path}.
+
+    ``spread`` is the grid pitch in district sizes: 1 packs the copies edge to edge, larger
+    values leave empty land between them (a sparse scene with the same content).
+    """
     import trimesh
 
     from .lod import simplify_part
@@ -63,8 +68,8 @@ def make_scene(out_dir: Path, nx: int, ny: int, decimate: float | None = None, s
                 v[:, 1] = lo[1] + hi[1] - v[:, 1]
             if (i + j) % 2:                           # one mirror flips the winding: flip it back
                 f = f[:, ::-1]
-            v[:, 0] += i * size[0]
-            v[:, 1] += j * size[1]
+            v[:, 0] += i * size[0] * spread
+            v[:, 1] += j * size[1] * spread
             name = f"d{i:02d}-{j:02d}"
             path = out_dir / f"{name}.ply"
             if not path.exists():

@@ -272,7 +272,8 @@ def scene_setup(lod_indexes: list[str], dsm_path: str | Path, terrain: str, terr
         dtm = np.broadcast_to(level, grid.shape)
     elif terrain == "auto":
         seed_src = FloatRaster(terrain_path)
-        dtm = _interpolated_dtm(seed_src.read, grid, search)
+        needed = _under_chunks(bounds, grid)
+        dtm = _interpolated_dtm(seed_src.read, grid, search, needed)
     else:
         height_fn = DTM(terrain_path, scene_crs, continuous=True).sample
         dtm = _sampled_dtm(height_fn, grid)
@@ -295,7 +296,8 @@ def scene_setup(lod_indexes: list[str], dsm_path: str | Path, terrain: str, terr
             radius = holdout_radius(rules, grid.res)
             del dtm
             dtm = _interpolated_dtm(lambda rows, cols: _without_check_points(seed_src.read(rows, cols), grid, cands,
-                                                                              radius, (rows, cols)), grid, search)
+                                                                              radius, (rows, cols)), grid, search,
+                                   needed)
             xy = np.array([[c["x"], c["y"]] for c in cands]).reshape(-1, 2)
             for c, g in zip(cands, _sample_continuous(dtm, grid, xy)):
                 c["ground"] = round(float(g), 3)
@@ -323,14 +325,37 @@ def scene_setup(lod_indexes: list[str], dsm_path: str | Path, terrain: str, terr
     return scene
 
 
-def _interpolated_dtm(read, grid, search: int) -> np.ndarray:
-    """The DTM (float32, exact: GDAL's fill computes in float32) from the ground heights ``read(rows, cols)``."""
+def _interpolated_dtm(read, grid, search: int, needed=None) -> np.ndarray:
+    """The DTM (float32, exact: GDAL's fill computes in float32) from the ground heights ``read(rows, cols)``.
+
+    With ``needed`` (a sparse scene's blocks under the model), the DTM reaches 4 x ``search``
+    cells (twice the largest object) beyond the ground and is NaN elsewhere: empty land costs nothing.
+    """
     from .terrain import dtm_blocks
 
     dtm = np.empty(grid.shape, np.float32)
-    for block, values in dtm_blocks(read, grid, search):
+    reach = None if needed is None else 4 * search
+    for block, values in dtm_blocks(read, grid, search, needed=needed, reach_cells=reach):
         dtm[block.core] = values
     return dtm
+
+
+def _under_chunks(bounds: np.ndarray, grid, margin_cells: int = 2):
+    """``needed(core)``: whether a block's cells (widened by ``margin_cells``) meet a chunk's footprint.
+
+    The DTM is sampled only under the model's chunks, so blocks of empty land (a sparse
+    scene) need none.
+    """
+    xy = np.asarray(bounds, dtype=np.float64)[:, :, :2]      # (n, 2 [lo, hi], 2 [x, y])
+
+    def needed(core: tuple[slice, slice]) -> bool:
+        rows, cols = core
+        pad = margin_cells * grid.res
+        x0, x1 = grid.xmin + cols.start * grid.res - pad, grid.xmin + cols.stop * grid.res + pad
+        y1, y0 = grid.ymax - rows.start * grid.res + pad, grid.ymax - rows.stop * grid.res - pad
+        return bool(np.any((xy[:, 0, 0] <= x1) & (xy[:, 1, 0] >= x0) & (xy[:, 0, 1] <= y1) & (xy[:, 1, 1] >= y0)))
+
+    return needed
 
 
 def _sampled_dtm(height_fn, grid, rows_per_strip: int = 256) -> np.ndarray:

@@ -239,15 +239,21 @@ def envelope_reach(res: float, max_object_m: float) -> tuple[int, int]:
     return k, int(4.0 * k / 6 + 0.5)
 
 
-def fill_nearest(values: np.ndarray) -> np.ndarray:
-    """NaN cells take the value of the nearest finite cell (all-NaN input stays NaN)."""
+def fill_nearest(values: np.ndarray, reach_cells: float | None = None) -> np.ndarray:
+    """NaN cells take the value of the nearest finite cell (all-NaN input stays NaN); with
+    ``reach_cells``, only those within that many cells of one."""
     bad = ~np.isfinite(values)
     if not bad.any() or bad.all():
         return values.copy()
     from scipy import ndimage as ndi   # only when needed: tile jobs read DTMs without holes
 
-    idx = ndi.distance_transform_edt(bad, return_distances=False, return_indices=True)
-    return values[tuple(idx)]
+    if reach_cells is None:
+        idx = ndi.distance_transform_edt(bad, return_distances=False, return_indices=True)
+        return values[tuple(idx)]
+    dist, idx = ndi.distance_transform_edt(bad, return_indices=True)
+    out = values[tuple(idx)]
+    out[dist > reach_cells] = np.nan
+    return out
 
 
 def csf_ground(dsm: np.ndarray, grid: Grid, max_object_m: float, cloth_resolution: float,
@@ -257,24 +263,64 @@ def csf_ground(dsm: np.ndarray, grid: Grid, max_object_m: float, cloth_resolutio
         return np.zeros(dsm.shape, dtype=bool)
     residual = dsm - lower_envelope(dsm, grid.res, max_object_m)
     whole = (slice(0, grid.height), slice(0, grid.width))
-    return _cloth_ground(residual, grid, whole, cloth_resolution, rigidness, class_threshold)
+    return _cloth_ground(residual, grid, whole, cloth_resolution, rigidness, class_threshold,
+                         island_gap(max_object_m, grid.res))
+
+
+def island_gap(max_object_m: float, res: float) -> int:
+    """Cells of empty land that separate two islands of model: the largest object's size."""
+    return max(math.ceil(max_object_m / res), 1)
+
+
+def islands(valid: np.ndarray, gap: int) -> Iterator[tuple[tuple[slice, slice], np.ndarray]]:
+    """(bounding slices, mask within them) of each group of ``valid`` cells; groups lie at least
+    ``gap`` cells apart (cells within ``gap`` of each other always share one; one group: the
+    bounding box of all)."""
+    from scipy import ndimage as ndi
+
+    h, w = valid.shape
+    g = max(int(gap), 1)
+    coarse_shape = (-(-h // g), -(-w // g))
+    padded = np.zeros((coarse_shape[0] * g, coarse_shape[1] * g), bool)
+    padded[:h, :w] = valid
+    coarse = padded.reshape(coarse_shape[0], g, coarse_shape[1], g).any(axis=(1, 3))
+    del padded
+    labels, n = ndi.label(coarse, structure=np.ones((3, 3)))
+    for k, (rs, cs) in enumerate(ndi.find_objects(labels), start=1):
+        box = (slice(rs.start * g, min(rs.stop * g, h)), slice(cs.start * g, min(cs.stop * g, w)))
+        if n == 1:
+            yield box, valid[box]
+            return
+        own = np.repeat(np.repeat(labels[rs, cs] == k, g, axis=0), g, axis=1)
+        yield box, valid[box] & own[:box[0].stop - box[0].start, :box[1].stop - box[1].start]
 
 
 def _cloth_ground(residual: np.ndarray, grid: Grid, window: tuple[slice, slice], cloth_resolution: float,
-                  rigidness: int, class_threshold: float) -> np.ndarray:
+                  rigidness: int, class_threshold: float, gap: int) -> np.ndarray:
     """CSF ground mask of the cells ``window`` of ``grid`` given their detrended heights (NaN: none).
 
-    Points are placed relative to the grid's corner, so a window's points are the whole grid's.
+    Each island of model (:func:`islands`, ``gap`` cells apart) gets its own cloth, spanning
+    the island rather than the empty land around it, where a cloth would only fall for its
+    500 iterations. Points are placed relative to the grid's corner, so a window's points are
+    the whole grid's.
     """
+    valid = np.isfinite(residual)
+    mask = np.zeros_like(valid)
+    rows, cols = window
+    xs, ys = grid.column_x()[cols] - grid.xmin, grid.row_y()[rows] - grid.ymax
+    for (r, c), cells in islands(valid, gap):
+        mask[r, c] = _cloth_of(residual[r, c], cells, xs[c], ys[r], cloth_resolution, rigidness, class_threshold)
+    return mask
+
+
+def _cloth_of(residual: np.ndarray, valid: np.ndarray, xs: np.ndarray, ys: np.ndarray, cloth_resolution: float,
+              rigidness: int, class_threshold: float) -> np.ndarray:
+    """CSF ground mask of one island: cells ``valid`` at (``xs``, ``ys``) with heights ``residual``."""
     import CSF
 
-    valid = np.isfinite(residual)
-    if not valid.any():
-        return valid
-    rows, cols = window
     pts = np.empty((int(valid.sum()), 3))
-    pts[:, 0] = np.broadcast_to(grid.column_x()[cols] - grid.xmin, valid.shape)[valid]
-    pts[:, 1] = np.broadcast_to((grid.row_y()[rows] - grid.ymax)[:, None], valid.shape)[valid]
+    pts[:, 0] = np.broadcast_to(xs, valid.shape)[valid]
+    pts[:, 1] = np.broadcast_to(ys[:, None], valid.shape)[valid]
     pts[:, 2] = residual[valid]
     csf = CSF.CSF()
     csf.params.bSloopSmooth = True
@@ -313,9 +359,14 @@ def ground_blocks(read: Callable[[slice, slice], np.ndarray], grid: Grid, max_ob
         wide = tuple(_widen(s, k - 1 + g, n) for s, n in zip(block.window, grid.shape))
         dsm = read(*wide)
         keep = Block(block.window, wide).inner
+        if not np.isfinite(dsm[keep]).any():     # no model in the window: no ground, nothing to filter
+            core = dsm[keep][block.inner]
+            yield block, core, np.zeros(core.shape, bool)
+            continue
         residual = dsm[keep] - lower_envelope(dsm, grid.res, max_object_m, keep)
         dsm = dsm[keep]
-        ground = _cloth_ground(residual, grid, block.window, cloth_resolution, rigidness, class_threshold)
+        ground = _cloth_ground(residual, grid, block.window, cloth_resolution, rigidness, class_threshold,
+                               island_gap(max_object_m, grid.res))
         del residual
         ground = trim_object_edges(ground, dsm)
         yield block, dsm[block.inner], ground[block.inner]
@@ -367,16 +418,17 @@ def trim_object_edges(ground: np.ndarray, dsm: np.ndarray | None = None, tol: fl
 
 
 # -- DTM --------------------------------------------------------------------------------------
-def interpolate_dtm(seed: np.ndarray, search_cells: int) -> np.ndarray:
+def interpolate_dtm(seed: np.ndarray, search_cells: int, reach_cells: float | None = None) -> np.ndarray:
     """Fill the NaN cells of ``seed`` (ground heights) with GDAL's inverse-distance FillNodata.
 
     The search reaches ``search_cells`` (half the widest object is enough); cells beyond it
-    take their nearest value. A change to the ground therefore alters the DTM only within
-    that reach, which keeps district updates local.
+    take their nearest value, up to ``reach_cells`` from it (default: everywhere; beyond, NaN:
+    empty land far from any model needs no DTM). A change to the ground therefore alters the
+    DTM only within that reach, which keeps district updates local.
     """
     if not np.isfinite(seed).any():
         raise ValueError("no ground cells to build a DTM from")
-    return fill_nearest(_fill_nodata(seed, search_cells))
+    return fill_nearest(_fill_nodata(seed, search_cells), reach_cells)
 
 
 def _fill_nodata(seed: np.ndarray, search_cells: int) -> np.ndarray:
@@ -398,9 +450,15 @@ def _fill_nodata(seed: np.ndarray, search_cells: int) -> np.ndarray:
 
 
 def dtm_blocks(read: Callable[[slice, slice], np.ndarray], grid: Grid, search_cells: int,
-               max_cells: int = BLOCK_CELLS) -> Iterator[tuple[Block, np.ndarray]]:
+               max_cells: int = BLOCK_CELLS,
+               needed: Callable[[tuple[slice, slice]], bool] | None = None,
+               reach_cells: float | None = None) -> Iterator[tuple[Block, np.ndarray]]:
     """(block, DTM of its core): :func:`interpolate_dtm` of the ground heights ``read(rows, cols)``
     (float64, NaN: not ground), block by block, equal to the whole grid's.
+
+    ``needed(core)``: False for a block nothing is drawn on (empty land in a sparse scene),
+    which then stays NaN and costs nothing; default every block. ``reach_cells``: as in
+    :func:`interpolate_dtm`; it also bounds how wide a block is read.
 
     A window reaches search + 1 cells beyond its core, so the fill is exact on the core. A core
     cell it leaves empty takes its nearest filled cell, the whole grid's when that lies within
@@ -409,19 +467,22 @@ def dtm_blocks(read: Callable[[slice, slice], np.ndarray], grid: Grid, search_ce
     """
     reach = max(int(search_cells), 1) + 1
     for block in cell_blocks(grid.height, grid.width, reach, max_cells):
+        if needed is not None and not needed(block.core):
+            yield block, np.full(tuple(s.stop - s.start for s in block.core), np.nan)
+            continue
         margin = reach
-        while (values := _dtm_core(read, grid, block.core, margin, search_cells)) is None:
+        while (values := _dtm_core(read, grid, block.core, margin, search_cells, reach_cells)) is None:
             margin *= 2
         yield block, values
 
 
 def _dtm_core(read: Callable[[slice, slice], np.ndarray], grid: Grid, core: tuple[slice, slice], margin: int,
-              search_cells: int) -> np.ndarray | None:
+              search_cells: int, reach_cells: float | None = None) -> np.ndarray | None:
     """The DTM of ``core`` from a window ``margin`` cells wider, or None if that is too narrow."""
     window = tuple(_widen(s, margin, n) for s, n in zip(core, grid.shape))
     inner = Block(core, window).inner
     if all(w.start == 0 and w.stop == n for w, n in zip(window, grid.shape)):
-        return interpolate_dtm(read(*window), search_cells)[inner]
+        return interpolate_dtm(read(*window), search_cells, reach_cells)[inner]
     filled = _fill_nodata(read(*window), search_cells)
     values = filled[inner].copy()
     empty = ~np.isfinite(values)
@@ -434,14 +495,18 @@ def _dtm_core(read: Callable[[slice, slice], np.ndarray], grid: Grid, core: tupl
     source = np.full(filled.shape, np.nan)
     source[exact] = filled[exact]
     del filled
+    # a nearest cell found within margin - reach is the whole grid's; one beyond reach_cells counts for none
+    capped = reach_cells is not None and margin - reach > reach_cells
     if not np.isfinite(source).any():
-        return None
+        return np.full(values.shape, np.nan) if capped else None
     from scipy import ndimage as ndi
 
     dist, idx = ndi.distance_transform_edt(~np.isfinite(source), return_indices=True)
-    if dist[inner][empty].max() > margin - reach:
+    if not capped and dist[inner][empty].max() > margin - reach:
         return None
     values[empty] = source[tuple(i[inner] for i in idx)][empty]
+    if capped:
+        values[empty & (dist[inner] > reach_cells)] = np.nan
     return values
 
 
@@ -475,12 +540,13 @@ def float_geotiff_writer(path: str | Path, grid: Grid, wkt: str) -> Iterator[Cal
 
     Float32 keeps heights to ~1e-5 m at 100 m, finer than the nadir render's depth steps.
     A written block leaves GDAL's cache at once (memory O(block)); blocks covering whole
-    TIFF_TILE tiles write each tile once.
+    TIFF_TILE tiles write each tile once. All-NaN blocks are not written: the file is sparse
+    (GDAL reads unwritten tiles as nodata), so empty land costs neither time nor disk.
     """
     g = gdal()
     with atomic_path(path) as tmp:
         ds = g.GetDriverByName("GTiff").Create(str(tmp), grid.width, grid.height, 1, g.GDT_Float32,
-                                               ["COMPRESS=DEFLATE", "PREDICTOR=3", "TILED=YES",
+                                               ["COMPRESS=DEFLATE", "PREDICTOR=3", "TILED=YES", "SPARSE_OK=TRUE",
                                                 f"BLOCKXSIZE={TIFF_TILE}", f"BLOCKYSIZE={TIFF_TILE}"])
         ds.SetGeoTransform(grid.geotransform)
         ds.SetProjection(wkt)
@@ -488,6 +554,8 @@ def float_geotiff_writer(path: str | Path, grid: Grid, wkt: str) -> Iterator[Cal
         band.SetNoDataValue(float("nan"))
 
         def write(values: np.ndarray, row: int, col: int) -> None:
+            if not np.isfinite(values).any():
+                return
             band.WriteArray(values.astype(np.float32, copy=False), col, row)
             band.FlushCache()
 
