@@ -11,7 +11,7 @@ APT_PACKAGES := python3-venv python3-dev build-essential gdal-bin libgdal-dev li
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 PYTHON ?= python3
 
-.PHONY: run test bench sweep deps sysdeps clean-results
+.PHONY: run test bench bench-sparse sweep deps sysdeps clean-results
 
 run: deps
 	$(PY) -m pipeline25d demo-city resources/demo
@@ -27,6 +27,12 @@ test: deps
 BENCH_ARGS ?= --grid 12x10 --decimate 0.1 --name dataset2
 bench: deps
 	$(PY) -m pipeline25d.bench $(BENCH_ARGS)
+
+# A sparse scene against the same content packed: 3 x 3 Delft districts spread 11 district
+# sizes apart (about 6.1 x 5.3 km) and edge to edge; writes bench/sparse.json with the
+# sparse : packed wall-time ratio.
+bench-sparse: deps
+	$(PY) -m pipeline25d.bench --grid 3x3 --decimate 0.1 --spread 11 --name sparse
 
 # Run time against error: one factor at a time around the defaults (gsd, lod.max_error_px,
 # render.samples, tile_size, projection/warp), each variant a whole run of the Delft LiDAR mesh

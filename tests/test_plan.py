@@ -47,3 +47,22 @@ def test_a_chunk_content_change_rehashes_only_the_tiles_and_blocks_that_draw_it(
     b_before, b_after = plan_blocks(before, 4), plan_blocks(after, 4)
     rehashed = {k for k in b_after if block_spec_hash(b_after[k]) != block_spec_hash(b_before[k])}
     assert rehashed == {block_of(r, c, 4) for r, c in draws}
+
+
+def test_a_tiles_content_box_holds_its_chunks_projected_boxes_and_no_more():
+    from pipeline25d.camera import projected_box
+
+    chunks = [{"id": "a", "district": "d", "bounds": [[3.0, 4.0, 0.0], [21.0, 9.0, 12.0]], "errors": [0.0],
+               "ground": None}]
+    plan = plan_perspective(Perspective(45, 45), chunks, [], 0.0, 0.5, 64, 1.0, "EPSG:25832", {"samples": 4})
+    box, _ = projected_box(np.array(chunks[0]["bounds"]), Perspective(45, 45), 0.0, None, "map")
+    span = 32.0
+    covered = []
+    for t in plan["tiles"]:
+        x0, y0, x1, y1 = t["content"]
+        assert t["col"] * span <= x0 < x1 <= (t["col"] + 1) * span and t["row"] * span <= y0 < y1 <= (t["row"] + 1) * span
+        assert all(abs(v / 0.5 - round(v / 0.5)) < 1e-9 for v in t["content"])      # whole pixels
+        covered.append(t["content"])
+    c = np.array(covered)
+    assert c[:, 0].min() <= box.xmin < c[:, 0].min() + 0.5 and c[:, 2].max() - 0.5 < box.xmax <= c[:, 2].max()
+    assert c[:, 1].min() <= box.ymin < c[:, 1].min() + 0.5 and c[:, 3].max() - 0.5 < box.ymax <= c[:, 3].max()

@@ -10,7 +10,7 @@ import numpy as np
 from PIL import Image
 
 from pipeline25d.raster import write_rgba_geotiff
-from pipeline25d.stages import tms
+from pipeline25d.web_tiles import tms
 
 
 def test_tiles_match_a_default_gdal2tiles_cut(tmp_path):

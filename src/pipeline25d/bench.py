@@ -146,13 +146,13 @@ def render_against_plain_loop(results: Path, pid: str, samples: int) -> dict:
 
 
 def tms_against_gdal2tiles_default(results: Path, pid: str, work: Path, config: dict) -> dict:
-    """The workflow's web-tile cut of one map (:func:`pipeline25d.stages.tms` with the rule's settings)
+    """The workflow's web-tile cut of one map (:func:`pipeline25d.web_tiles.tms` with the rule's settings)
     beside gdal2tiles with its defaults (``--xyz``, same zoom levels) on the same COG, timed back to
     back here on an otherwise idle machine; the tms job's own seconds in the run are given too."""
     import shutil
 
     from .report import benchmark_rows
-    from .stages import tms
+    from .web_tiles import tms
 
     ((_, row),) = benchmark_rows(results / "benchmarks" / "tms" / f"{pid}.tsv")
     cog = results / "maps" / f"{pid}.tif"
@@ -193,6 +193,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--perspectives", default="eight-45+nadir")
     ap.add_argument("--name", default=None)
     ap.add_argument("--cores", type=int, default=2)
+    ap.add_argument("--spread", type=float, default=1.0,
+                    help="grid pitch in district sizes; > 1 leaves empty land between districts and also runs "
+                         "the packed twin (spread 1) to give the sparse : packed wall-time ratio")
     ap.add_argument("--collect", action="store_true",
                     help="collect the figures of the last finished run again instead of running (wall time from its log)")
     args = ap.parse_args(argv)
@@ -200,6 +203,8 @@ def main(argv: list[str] | None = None) -> int:
     name = args.name or f"delft{nx}x{ny}"
     if not SOURCE.exists():
         raise SystemExit(f"bench: {SOURCE} not found (the shared Delft data)")
+    if args.spread > 1:
+        return sparse_against_packed(name, nx, ny, args)
     work = REPO / "bench" / name
     districts = make_scene(work / "scene", nx, ny, args.decimate)
     config = bench_config(name, districts, args.gsd, args.perspectives)
@@ -216,6 +221,26 @@ def main(argv: list[str] | None = None) -> int:
     write_text(REPO / "bench" / f"{name}.json", json.dumps(result, indent=1))
     print(json.dumps({k: result[k] for k in ("wall_s", "tiles_rendered", "jobs", "peak_rss_mb", "render_vs_plain_loop",
                                       "tms_vs_gdal2tiles_default")}))
+    return 0
+
+
+def sparse_against_packed(name: str, nx: int, ny: int, args) -> int:
+    """Run the packed twin (spread 1) and then the sparse scene, back to back: bench/<name>.json."""
+    runs = {}
+    for label, spread in (("packed", 1.0), ("sparse", args.spread)):
+        work = REPO / "bench" / f"{name}-{label}"
+        districts = make_scene(work / "scene", nx, ny, args.decimate, spread=spread)
+        config = bench_config(f"{name}-{label}", districts, args.gsd, args.perspectives)
+        try:
+            wall = logged_wall(work) if args.collect else run_workflow(work, config, args.cores)
+        except WorkflowRunError as exc:
+            raise SystemExit(f"bench: {exc}") from None
+        runs[label] = {**collect(work, config, wall, args.cores), "spread": spread, "decimate": args.decimate}
+    result = {"name": name, "sparse_to_packed_wall": round(runs["sparse"]["wall_s"] / runs["packed"]["wall_s"], 2),
+              **runs}
+    write_text(REPO / "bench" / f"{name}.json", json.dumps(result, indent=1))
+    print(json.dumps({"sparse_to_packed_wall": result["sparse_to_packed_wall"],
+                      **{k: {"wall_s": v["wall_s"], "tiles_rendered": v["tiles_rendered"]} for k, v in runs.items()}}))
     return 0
 
 

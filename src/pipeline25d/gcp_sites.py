@@ -83,7 +83,9 @@ def select_sites(dsm: np.ndarray, dtm: np.ndarray, grid: Grid, rules: SiteRules,
     margin = max(k, int(math.ceil((rules.radius + rules.clearance) / grid.res))) + 1
     cuts = [np.flatnonzero(np.diff(np.floor(v / rules.spacing))) + 1 for v in (ys, xs)]   # square edges
     blocks = cell_blocks(grid.height, grid.width, margin, max_cells, *cuts)
-    parts = [_square_options(dsm, dtm, grid, rules, block, k) for block in blocks]
+    # blocks of empty land (a sparse scene) hold no site: skipped, but one keeps the result's keys
+    with_model = [b for b in blocks if np.isfinite(dsm[b.window]).any()] or blocks[:1]
+    parts = [_square_options(dsm, dtm, grid, rules, block, k) for block in with_model]
     o = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
     clear = _clear_lines_of_sight(dsm, grid, o["x"], o["y"], o["z"], np.column_stack([o["sx"], o["sy"]]),
                                   rules.radius, perspectives)

@@ -5,7 +5,8 @@ Tiles lie on a global grid: tile (row, col) covers map x in [col·S, (col+1)·S)
 extent therefore do not depend on the rest of the scene: adding or changing a district
 leaves the other tiles' jobs untouched. A tile that no chunk's projected bounding box
 touches is empty and gets no job. Each tile carries its own depth range (from its
-chunks) and the GCP candidates whose projected centre it holds.
+chunks), the GCP candidates whose projected centre it holds and its content box (where its
+chunks' projected boxes meet it: nothing outside can be drawn).
 """
 
 from __future__ import annotations
@@ -52,9 +53,16 @@ def tile_extent(plan: dict, row: int, col: int, margin_px: int = 0) -> Extent:
     return Extent(col * span - m, row * span - m, (col + 1) * span + m, (row + 1) * span + m)
 
 
-def tile_geotransform(plan: dict, row: int, col: int) -> tuple[float, ...]:
-    """GDAL geotransform of tile (row, col) (top-left corner, north up)."""
-    e = tile_extent(plan, row, col)
+def tile_content(plan: dict, tile: dict) -> tuple[Extent, tuple[int, int]]:
+    """The extent a tile renders and its size in pixels: its content box (whole pixels), or the
+    whole tile for plans without one. Nothing can be drawn outside it."""
+    px = plan_pixel(plan)
+    e = Extent(*tile["content"]) if "content" in tile else tile_extent(plan, tile["row"], tile["col"])
+    return e, (max(round((e.xmax - e.xmin) / px), 1), max(round((e.ymax - e.ymin) / px), 1))
+
+
+def extent_geotransform(plan: dict, e: Extent) -> tuple[float, ...]:
+    """GDAL geotransform of a render extent (top-left corner, north up)."""
     return (e.xmin, plan_pixel(plan), 0.0, e.ymax, 0.0, -plan_pixel(plan))
 
 
@@ -92,8 +100,11 @@ def plan_perspective(p: Perspective, chunks: list[dict], candidates: list[dict],
             entry["ground"] = chunk["ground"][2]   # digest of the DTM under the chunk
         for r in _index_range(box.ymin, box.ymax, span):
             for c in _index_range(box.xmin, box.xmax, span):
-                tile = tiles.setdefault((r, c), {"row": r, "col": c, "chunks": [], "depth_range": [math.inf, -math.inf]})
+                tile = tiles.setdefault((r, c), {"row": r, "col": c, "chunks": [], "depth_range": [math.inf, -math.inf],
+                                                 "content": [math.inf, math.inf, -math.inf, -math.inf]})
                 tile["chunks"].append(entry)
+                tile["content"] = [min(tile["content"][0], box.xmin), min(tile["content"][1], box.ymin),
+                                   max(tile["content"][2], box.xmax), max(tile["content"][3], box.ymax)]
                 tile["depth_range"] = [min(tile["depth_range"][0], depth[0] - DEPTH_MARGIN_M),
                                        max(tile["depth_range"][1], depth[1] + DEPTH_MARGIN_M)]
     if not tiles:
@@ -107,6 +118,7 @@ def plan_perspective(p: Perspective, chunks: list[dict], candidates: list[dict],
     out_tiles = []
     for key in sorted(tiles, key=lambda k: (-k[0], k[1])):
         tile = tiles[key]
+        tile["content"] = _content_in_tile(tile["content"], key, span, pixel)
         tile["chunks"].sort(key=lambda t: (t["district"], t["id"]))
         tile["render"] = render
         tile["spec_hash"] = hashlib.sha256(json.dumps([frame, tile], sort_keys=True).encode()).hexdigest()[:16]
@@ -119,6 +131,16 @@ def plan_perspective(p: Perspective, chunks: list[dict], candidates: list[dict],
         "n_tiles_total": total,
         "n_tiles_skipped": total - len(out_tiles),
     }
+
+
+def _content_in_tile(box: list[float], key: tuple[int, int], span: float, pixel: float) -> list[float]:
+    """The tile's share of its chunks' projected boxes, grown to whole pixels: where it can hold data."""
+    r, c = key
+    x0, y0 = max(box[0], c * span), max(box[1], r * span)
+    x1, y1 = min(box[2], (c + 1) * span), min(box[3], (r + 1) * span)
+    snap = [math.floor(x0 / pixel) * pixel, math.floor(y0 / pixel) * pixel,
+            math.ceil(x1 / pixel) * pixel, math.ceil(y1 / pixel) * pixel]
+    return [round(v, 6) for v in snap]
 
 
 def _assign_gcps(tiles: dict, candidates: list[dict], p: Perspective, z0: float, span: float,

@@ -16,7 +16,7 @@ import numpy as np
 
 from .camera import clip_matrix
 from .perspectives import Perspective
-from .plan import plan_camera, read_plan, tile_extent
+from .plan import plan_camera, read_plan, tile_content
 
 VERTEX = """
 #version 330
@@ -59,7 +59,8 @@ def plain_loop_seconds(plan_path: str | Path, lod_dir: str | Path, samples: int,
             fbo_ms.use()
             ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
             ctx.enable(moderngl.DEPTH_TEST)
-            extent = tile_extent(pl, tile["row"], tile["col"])
+            extent, (w, h) = tile_content(pl, tile)        # the jobs render the same window
+            ctx.viewport = (0, 0, w, h)
             for c in tile["chunks"]:
                 origin, parts = load_chunk_level(Path(lod_dir) / c["district"] / f"{c['id']}.npz", c["lod"])
                 matrix = clip_matrix(persp, pl["z0"], extent, tuple(tile["depth_range"]), origin, plan_camera(pl))
@@ -77,7 +78,7 @@ def plain_loop_seconds(plan_path: str | Path, lod_dir: str | Path, samples: int,
                     for b in buffers:
                         b.release()
             ctx.copy_framebuffer(fbo, fbo_ms)
-            image = Image.frombytes("RGBA", size, fbo.read(components=4))
+            image = Image.frombytes("RGBA", (w, h), fbo.read(viewport=(0, 0, w, h), components=4))
             image.save(io.BytesIO(), format="PNG")
             coverage.append(float((np.asarray(image)[..., 3] > 0).mean()))
         seconds = time.perf_counter() - start

@@ -190,36 +190,114 @@ def build_mosaic(tiles: list[str], out_vrt: str | Path) -> None:
         run_tool(["gdalbuildvrt", "-q", str(tmp), *tiles])
 
 
+def cog_codec(compression: str, quality: int) -> list[str]:
+    """The COG driver's creation options for ``compression`` (deflate, jpeg or webp) at ``quality``."""
+    # DEFLATE level 1 after horizontal differencing: smaller than level 6 alone and ~25 % faster
+    if compression == "deflate":
+        return ["COMPRESS=DEFLATE", "PREDICTOR=2", "LEVEL=1"]
+    return [f"COMPRESS={compression.upper()}", f"QUALITY={int(quality)}"]
+
+
 def warp_to_cog(mosaic: str | Path, obs: list[dict], choice: dict, plan: dict, out: str | Path,
-                compression: str = "deflate", quality: int = 85) -> None:
+                compression: str = "deflate", quality: int = 85,
+                parts: list[tuple[int, int, int, int]] | None = None) -> list[list[float]]:
     """Write the north-up COG: gdalwarp with the chosen GCP warp, or a plain copy for none.
 
     ``compression``: deflate (lossless RGBA), jpeg (RGB + the alpha as a mask, which the COG
-    driver makes) or webp (RGBA), the last two at ``quality``.
+    driver makes) or webp (RGBA), the last two at ``quality``. ``parts``: the tile rectangles of
+    :func:`pipeline25d.map_parts.tile_parts`; more than one makes a sparse map, warped part by
+    part (see :mod:`pipeline25d.map_parts`). Returns each part's bounds [xmin, ymin, xmax, ymax]
+    on the map (one part: the whole map's).
     """
     from .crs import horizontal_wkt
 
     crs = horizontal_wkt(plan["crs"])
-    # DEFLATE level 1 after horizontal differencing: smaller than level 6 alone and ~25 % faster
-    codec = ["-co", "COMPRESS=DEFLATE", "-co", "PREDICTOR=2", "-co", "LEVEL=1"] if compression == "deflate" else \
-        ["-co", f"COMPRESS={compression.upper()}", "-co", f"QUALITY={int(quality)}"]
+    codec = [opt for c in cog_codec(compression, quality) for opt in ("-co", c)]
     # overviews by averaging (the COG driver's default, cubic, costs ~25 % more of the whole copy)
     cog = ["-of", "COG", *codec, "-co", "OVERVIEWS=AUTO", "-co", "RESAMPLING=AVERAGE"]
     with atomic_path(out) as tmp:
-        if choice["method"] == "none":
-            run_tool(["gdal_translate", "-q", *cog, str(mosaic), str(tmp)])
-            return
-        train = [r for r in obs if r["role"] == "gcp"]
-        gcps = gdal_gcps(train, raster_geotransform(mosaic))
         gcp_vrt = Path(tmp).with_suffix(".gcps.vrt")
         try:
-            gdal().Translate(str(gcp_vrt), str(mosaic), format="VRT", GCPs=gcps, outputSRS=crs)
-            method = ["-tps"] if choice["method"] == "tps" else ["-order", str(choice["order"])]
-            gsd = str(plan["gsd"])
-            run_tool(["gdalwarp", "-q", *method, "-r", "bilinear", "-t_srs", crs, "-tr", gsd, gsd, "-tap",
-                      "-dstalpha", "-multi", "-wo", "NUM_THREADS=ALL_CPUS", *cog, str(gcp_vrt), str(tmp)])
+            source = Path(mosaic)
+            if choice["method"] != "none":
+                train = [r for r in obs if r["role"] == "gcp"]
+                gdal().Translate(str(gcp_vrt), str(mosaic), format="VRT", GCPs=gdal_gcps(train, raster_geotransform(mosaic)),
+                                 outputSRS=crs)
+                source = gcp_vrt
+            if parts and len(parts) > 1:
+                return _warp_parts(source, mosaic, choice, plan, crs, parts, tmp, compression, quality)
+            if choice["method"] == "none":
+                run_tool(["gdal_translate", "-q", *cog, str(mosaic), str(tmp)])
+            else:
+                gsd = str(plan["gsd"])
+                run_tool(["gdalwarp", "-q", *_method_args(choice), "-r", "bilinear", "-t_srs", crs, "-tr", gsd, gsd,
+                          "-tap", "-dstalpha", "-multi", "-wo", "NUM_THREADS=ALL_CPUS", *cog, str(source), str(tmp)])
+            ds = gdal().Open(str(tmp))
+            gt, w, h = ds.GetGeoTransform(), ds.RasterXSize, ds.RasterYSize
+            return [[gt[0], gt[3] + h * gt[5], gt[0] + w * gt[1], gt[3]]]
         finally:
             gcp_vrt.unlink(missing_ok=True)
+
+
+def _method_args(choice: dict) -> list[str]:
+    return ["-tps"] if choice["method"] == "tps" else ["-order", str(choice["order"])]
+
+
+def _warp_parts(source: Path, mosaic: str | Path, choice: dict, plan: dict, crs: str,
+                parts: list[tuple[int, int, int, int]], out: Path, compression: str,
+                quality: int) -> list[list[float]]:
+    """A sparse COG: each part warped onto the map grid with its overviews, then assembled."""
+    from .map_parts import assemble_sparse_cog, map_grid, overview_factors, part_bounds
+
+    g = gdal()
+    mosaic_gt = raster_geotransform(mosaic)
+    if choice["method"] == "none":
+        def to_map(x, y):
+            return x, y
+    else:
+        options = (["METHOD=GCP_TPS"] if choice["method"] == "tps"
+                   else ["METHOD=GCP_POLYNOMIAL", f"MAX_GCP_ORDER={choice['order']}"])
+        transformer = g.Transformer(g.Open(str(source)), None, options)
+
+        def to_map(x, y):
+            pix = np.column_stack([(x - mosaic_gt[0]) / mosaic_gt[1], (y - mosaic_gt[3]) / mosaic_gt[5], np.zeros(len(x))])
+            xy, _ = transformer.TransformPoints(0, pix.tolist())
+            xy = np.asarray(xy)
+            return xy[:, 0], xy[:, 1]
+
+    gsd = plan["gsd"]
+    gt, width, height, windows = map_grid(part_bounds(plan, parts, to_map), gsd)
+    factors = overview_factors(width, height)
+    warp_options = {"dstSRS": crs, "xRes": gsd, "yRes": gsd, "dstAlpha": True, "multithread": True,
+                    "warpOptions": ["NUM_THREADS=ALL_CPUS"], "format": "GTiff",
+                    "creationOptions": ["TILED=YES", "COMPRESS=ZSTD", "ZSTD_LEVEL=1"],
+                    "resampleAlg": "near" if choice["method"] == "none" else "bilinear"}
+    if choice["method"] == "tps":
+        warp_options["tps"] = True
+    elif choice["method"] != "none":
+        warp_options["polynomialOrder"] = choice["order"]
+    part_files = []
+    try:
+        for k, win in enumerate(windows):
+            path = out.with_suffix(f".part{k}.tif")
+            part_files.append((path, win))
+            bounds = (gt[0] + win.col0 * gsd, gt[3] - win.row1 * gsd, gt[0] + win.col1 * gsd, gt[3] - win.row0 * gsd)
+            g.Warp(str(path), str(source), outputBounds=bounds, **warp_options)
+            ds = g.Open(str(path), 1)
+            if factors:
+                ds.BuildOverviews("AVERAGE", factors)
+            ds = None
+        # jpeg: the alpha becomes a mask, whose overviews the COG driver must make (over the whole map)
+        overviews = ["OVERVIEWS=AUTO", "RESAMPLING=AVERAGE"] if compression == "jpeg" else ["OVERVIEWS=FORCE_USE_EXISTING"]
+        cog_options = [*cog_codec(compression, quality), *overviews]
+        log.info("sparse map: %d parts, %d x %d px, %.1f%% of it in parts", len(windows), width, height,
+                 100 * sum(w.width * w.height for w in windows) / (width * height))
+        assemble_sparse_cog(part_files, width, height, gt, crs, out, cog_options)
+    finally:
+        for path, _ in part_files:
+            path.unlink(missing_ok=True)
+            Path(str(path) + ".ovr").unlink(missing_ok=True)
+    return [[gt[0] + w.col0 * gsd, gt[3] - w.row1 * gsd, gt[0] + w.col1 * gsd, gt[3] - w.row0 * gsd] for w in windows]
 
 
 def raster_geotransform(path: str | Path) -> tuple[float, ...]:

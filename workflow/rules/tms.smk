@@ -3,7 +3,8 @@
 
 rule tms:
     input:
-        rules.warp.output.cog,
+        cog=rules.warp.output.cog,
+        meta=rules.warp.output.meta,
     output:
         directory(f"{RESULTS}/tms/{{pid}}"),
     params:
