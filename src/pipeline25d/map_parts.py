@@ -48,6 +48,11 @@ class Window(NamedTuple):
         return self.row1 - self.row0
 
 
+def window_bounds(gt: tuple[float, ...], win: Window) -> tuple[float, float, float, float]:
+    """(xmin, ymin, xmax, ymax) of a window on a north-up grid with geotransform ``gt``."""
+    return (gt[0] + win.col0 * gt[1], gt[3] + win.row1 * gt[5], gt[0] + win.col1 * gt[1], gt[3] + win.row0 * gt[5])
+
+
 def tile_parts(cells: Iterable[tuple[int, int]], gap: int = PART_GAP_TILES,
                dense_share: float = DENSE_SHARE) -> list[tuple[int, int, int, int]]:
     """Rectangles (row0, col0, row1, col1), inclusive, grouping the tiles (row, col).

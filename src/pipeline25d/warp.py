@@ -53,13 +53,17 @@ def predict(method: str, order: int, train: list[dict], query: list[dict], gt: t
     g = gdal()
     ds = g.GetDriverByName("MEM").Create("", 1, 1, 1)
     ds.SetGCPs(gdal_gcps(train, gt), "")
-    options = ["METHOD=GCP_TPS"] if method == "tps" else ["METHOD=GCP_POLYNOMIAL", f"MAX_GCP_ORDER={order}"]
-    tr = g.Transformer(ds, None, options)
+    tr = g.Transformer(ds, None, transformer_options(method, order))
     pts = np.column_stack([to_pixels(query, gt), np.zeros(len(query))]).tolist()
     out, ok = tr.TransformPoints(0, pts)
     out = np.array(out, dtype=np.float64)[:, :2]
     out[~np.asarray(ok, dtype=bool)] = np.nan
     return out
+
+
+def transformer_options(method: str, order: int) -> list[str]:
+    """GDAL GCP transformer options of a warp method (tps, or polynomial of ``order``)."""
+    return ["METHOD=GCP_TPS"] if method == "tps" else ["METHOD=GCP_POLYNOMIAL", f"MAX_GCP_ORDER={order}"]
 
 
 def _errors(method: str, order: int, train: list[dict], query: list[dict], gt: tuple[float, ...]) -> np.ndarray:
@@ -247,7 +251,7 @@ def _warp_parts(source: Path, mosaic: str | Path, choice: dict, plan: dict, crs:
                 parts: list[tuple[int, int, int, int]], out: Path, compression: str,
                 quality: int) -> list[list[float]]:
     """A sparse COG: each part warped onto the map grid with its overviews, then assembled."""
-    from .map_parts import assemble_sparse_cog, map_grid, overview_factors, part_bounds
+    from .map_parts import assemble_sparse_cog, map_grid, overview_factors, part_bounds, window_bounds
 
     g = gdal()
     mosaic_gt = raster_geotransform(mosaic)
@@ -255,9 +259,7 @@ def _warp_parts(source: Path, mosaic: str | Path, choice: dict, plan: dict, crs:
         def to_map(x, y):
             return x, y
     else:
-        options = (["METHOD=GCP_TPS"] if choice["method"] == "tps"
-                   else ["METHOD=GCP_POLYNOMIAL", f"MAX_GCP_ORDER={choice['order']}"])
-        transformer = g.Transformer(g.Open(str(source)), None, options)
+        transformer = g.Transformer(g.Open(str(source)), None, transformer_options(choice["method"], choice["order"]))
 
         def to_map(x, y):
             pix = np.column_stack([(x - mosaic_gt[0]) / mosaic_gt[1], (y - mosaic_gt[3]) / mosaic_gt[5], np.zeros(len(x))])
@@ -281,8 +283,7 @@ def _warp_parts(source: Path, mosaic: str | Path, choice: dict, plan: dict, crs:
         for k, win in enumerate(windows):
             path = out.with_suffix(f".part{k}.tif")
             part_files.append((path, win))
-            bounds = (gt[0] + win.col0 * gsd, gt[3] - win.row1 * gsd, gt[0] + win.col1 * gsd, gt[3] - win.row0 * gsd)
-            g.Warp(str(path), str(source), outputBounds=bounds, **warp_options)
+            g.Warp(str(path), str(source), outputBounds=window_bounds(gt, win), **warp_options)
             ds = g.Open(str(path), 1)
             if factors:
                 ds.BuildOverviews("AVERAGE", factors)
@@ -297,7 +298,7 @@ def _warp_parts(source: Path, mosaic: str | Path, choice: dict, plan: dict, crs:
         for path, _ in part_files:
             path.unlink(missing_ok=True)
             Path(str(path) + ".ovr").unlink(missing_ok=True)
-    return [[gt[0] + w.col0 * gsd, gt[3] - w.row1 * gsd, gt[0] + w.col1 * gsd, gt[3] - w.row0 * gsd] for w in windows]
+    return [list(window_bounds(gt, w)) for w in windows]
 
 
 def raster_geotransform(path: str | Path) -> tuple[float, ...]:
