@@ -2,38 +2,65 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+import pytest
 
 from pipeline25d.perspectives import Perspective
-from pipeline25d.plan import block_of, block_spec_hash, plan_block, plan_blocks, plan_perspective
+from pipeline25d.plan import (TILE_OVERHEAD, TOP_LEVEL, block_node, block_spec_hash, plan_block, plan_blocks,
+                              plan_perspective, tile_cost)
 
 
-def test_block_of_floors_negative_rows_and_cols():
-    assert block_of(0, 0, 4) == (0, 0)
-    assert block_of(3, 3, 4) == (0, 0)
-    assert block_of(4, -1, 4) == (1, -1)
-    assert block_of(-4, -5, 4) == (-1, -2)
-
-
-def _plan(hashes: dict | None = None) -> dict:
+def _plan(hashes: dict | None = None, pitch: float = 100.0, size: float = 100.0, n=(5, 3)) -> dict:
+    """Chunks of ``size`` m on a ``pitch`` m grid (pitch > size: empty land between them)."""
     chunks = [{"id": f"c{i}_{j}", "district": "d", "errors": [0.0],
-               "bounds": [[i * 100.0, j * 100.0, 0.0], [i * 100.0 + 100, j * 100.0 + 100, 30.0]],
+               "bounds": [[i * pitch, j * pitch, 0.0], [i * pitch + size, j * pitch + size, 30.0]],
                "ground": None, **({"hash": hashes[(i, j)]} if hashes else {})}
-              for i in range(5) for j in range(3)]
+              for i in range(n[0]) for j in range(n[1])]
     return plan_perspective(Perspective(45, 45), chunks, [], 0.0, 0.5, 64, 1.0, "EPSG:25832", {"samples": 4})
 
 
-def test_blocks_partition_the_tiles_into_squares_of_the_block_size():
-    plan = _plan()
-    blocks = plan_blocks(plan, 3)
+def _check_quadtree(plan: dict, block: int) -> dict[str, list[dict]]:
+    """The defining properties of plan_blocks: a partition into quadtree squares, each within
+    the budget or a smallest square, and no square whose parent would have been within it."""
+    blocks = plan_blocks(plan, block)
     tiles = [(t["row"], t["col"]) for ts in blocks.values() for t in ts]
     assert sorted(tiles) == sorted((t["row"], t["col"]) for t in plan["tiles"])     # each tile once
-    for (br, bc), ts in blocks.items():
-        assert 1 <= len(ts) <= 9
-        assert all(block_of(t["row"], t["col"], 3) == (br, bc) for t in ts)
-    assert len(blocks) < len(plan["tiles"]) / 4
-    some = next(iter(blocks))
-    assert plan_block(plan, *some, 3) == blocks[some]
+    budget = block * block * (1 + TILE_OVERHEAD) * plan["tile_size"] ** 2
+    cost = lambda ts: sum(tile_cost(plan, t) for t in ts)
+    inside = lambda t, r0, c0, side: r0 <= t["row"] < r0 + side and c0 <= t["col"] < c0 + side
+    for bid, ts in blocks.items():
+        r0, c0, side, level, quadrants = block_node(bid, block)
+        assert all(inside(t, r0, c0, side) for t in ts)
+        assert (level == 0 and not quadrants) or cost(ts) <= budget
+        assert [plan["tiles"].index(t) for t in ts] == sorted(plan["tiles"].index(t) for t in ts)   # plan order
+        if quadrants:                  # children of a node that was split, each in one of those quadrants
+            half = side // 2
+            assert len(quadrants) > 1 and quadrants == "".join(sorted(set(quadrants)))
+            assert all(any(inside(t, r0 + int(q) // 2 * half, c0 + int(q) % 2 * half, half) for q in quadrants)
+                       for t in ts)
+            assert cost([t for t in plan["tiles"] if inside(t, r0, c0, side)]) > budget     # it was split
+        elif level < TOP_LEVEL:        # its parent was split: the parent's tiles cost more than the budget
+            pr, pc, pside = r0 // (2 * side) * 2 * side, c0 // (2 * side) * 2 * side, 2 * side
+            assert cost([t for t in plan["tiles"] if inside(t, pr, pc, pside)]) > budget
+    return blocks
+
+
+def test_dense_land_gets_block_squares_and_sparse_land_fewer_jobs_than_a_fixed_grid():
+    dense = _check_quadtree(_plan(), 3)
+    assert all(block_node(b, 3)[3] == 0 for b, ts in dense.items() if len(ts) == 9)     # full squares stay squares
+    fixed = lambda plan, b: {(t["row"] // b, t["col"] // b) for t in plan["tiles"]}
+    assert len(dense) <= len(fixed(_plan(), 3))
+    sparse_plan = _plan(pitch=1000.0, size=20.0, n=(4, 4))       # 16 small buildings, 1 km apart
+    sparse = _check_quadtree(sparse_plan, 3)
+    least = math.ceil(sum(tile_cost(sparse_plan, t) for t in sparse_plan["tiles"])
+                      / (9 * (1 + TILE_OVERHEAD) * 64 ** 2))      # jobs no grouping can go below
+    assert len(sparse) <= 2 * least < len(fixed(sparse_plan, 3)) / 2
+    some = next(iter(sparse))
+    assert plan_block(sparse_plan, some, 3) == sparse[some]
+    with pytest.raises(KeyError, match="not in the plan"):
+        plan_block(sparse_plan, "0_99_99", 3)
 
 
 def test_a_chunk_content_change_rehashes_only_the_tiles_and_blocks_that_draw_it():
@@ -45,8 +72,10 @@ def test_a_chunk_content_change_rehashes_only_the_tiles_and_blocks_that_draw_it(
     draws = {(t["row"], t["col"]) for t in after["tiles"] if any(c["id"] == "c2_1" for c in t["chunks"])}
     assert changed == draws and 0 < len(changed) < len(after["tiles"])
     b_before, b_after = plan_blocks(before, 4), plan_blocks(after, 4)
+    assert b_before.keys() == b_after.keys()        # same content boxes: the same grouping
     rehashed = {k for k in b_after if block_spec_hash(b_after[k]) != block_spec_hash(b_before[k])}
-    assert rehashed == {block_of(r, c, 4) for r, c in draws}
+    assert rehashed == {k for k, ts in b_after.items() if any((t["row"], t["col"]) in draws for t in ts)}
+    assert 0 < len(rehashed) < len(b_after)
 
 
 def test_a_tiles_content_box_holds_its_chunks_projected_boxes_and_no_more():

@@ -18,8 +18,7 @@ def _lod(args) -> None:
 def _render_block(args) -> None:
     from .stages import render_block
 
-    render_block(args.plan, args.block_row, args.block_col, args.block, args.lod_dir, args.tiles_dir,
-                 args.out_manifest)
+    render_block(args.plan, args.block_id, args.block, args.lod_dir, args.tiles_dir, args.out_manifest)
 
 
 def _demo_city(args) -> None:
@@ -58,9 +57,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("render-block", help="render one block of tiles of a perspective's plan")
     p.add_argument("--plan", required=True)
-    p.add_argument("--block-row", type=int, required=True)
-    p.add_argument("--block-col", type=int, required=True)
-    p.add_argument("--block", type=int, required=True, help="tiles per block side")
+    p.add_argument("--block-id", required=True, help="<level>_<row>_<col>, see plan.plan_blocks")
+    p.add_argument("--block", type=int, required=True, help="render.block: a dense job's tiles per side")
     p.add_argument("--lod-dir", required=True)
     p.add_argument("--tiles-dir", required=True, help="where the tiles' files go")
     p.add_argument("--out-manifest", required=True)

@@ -172,27 +172,97 @@ def read_plan(path: str | Path) -> dict:
     return _read_plan_cached(str(path), path.stat().st_mtime_ns)
 
 
-def block_of(row: int, col: int, block: int) -> tuple[int, int]:
-    """The render block (block row, block col) holding tile (row, col): ``block`` x ``block`` tiles."""
-    return row // block, col // block
+TILE_OVERHEAD = 0.25     # a tile's fixed cost (files, marker pass) in full tiles' pixels
+TOP_LEVEL = 20           # the quadtree's roots: block x 2**20 tiles a side, more than any plan holds
 
 
-def plan_blocks(plan: dict, block: int) -> dict[tuple[int, int], list[dict]]:
-    """The plan's tiles grouped by render block, each block's tiles north row first (plan order)."""
-    blocks: dict[tuple[int, int], list[dict]] = {}
-    for tile in plan["tiles"]:
-        blocks.setdefault(block_of(tile["row"], tile["col"], block), []).append(tile)
-    return blocks
+def tile_cost(plan: dict, tile: dict) -> float:
+    """A tile's render cost in pixels: its content box plus a fixed share of a whole tile."""
+    _, (w, h) = tile_content(plan, tile)
+    return w * h + TILE_OVERHEAD * plan["tile_size"] ** 2
 
 
-def plan_block(plan: dict, block_row: int, block_col: int, block: int) -> list[dict]:
-    """The tiles of render block (block_row, block_col), grouped once per (cached) plan."""
+def plan_blocks(plan: dict, block: int) -> dict[str, list[dict]]:
+    """The plan's tiles grouped into render jobs, tiles in plan order (ids: :func:`block_node`).
+
+    A quadtree over the tile grid: a node at level L holds the tiles of a square of
+    ``block * 2**L`` tiles a side (rows and cols floor-divided, so it is fixed by position
+    alone). A node whose tiles cost at most ``block`` x ``block`` whole tiles
+    (:func:`tile_cost`) is one job ``"<level>_<row>_<col>"``. A costlier one splits into its
+    four children, down to squares of ``block`` x ``block`` tiles: a child still too costly
+    splits in turn, and the others, taken in Z order, are packed into jobs within that budget
+    (``"<level>_<row>_<col>_<quadrants>"``). Dense land gets ``block`` x ``block`` squares;
+    sparse land, where content boxes are small or tiles far apart, gets fewer, larger jobs.
+    A change of content regroups only the nodes above it.
+    """
+    budget = block * block * (1 + TILE_OVERHEAD) * plan["tile_size"] ** 2
+    costs = [tile_cost(plan, t) for t in plan["tiles"]]
+    blocks: dict[str, list[int]] = {}
+
+    def cost(members: list[int]) -> float:
+        return sum(costs[i] for i in members)
+
+    def visit(level: int, key: tuple[int, int], members: list[int]) -> None:
+        if level == 0 or cost(members) <= budget:
+            blocks[f"{level}_{key[0]}_{key[1]}"] = members
+            return
+        children = _group_by_node(plan, members, block << (level - 1))
+        quadrant = {k: 2 * (k[0] - 2 * key[0]) + k[1] - 2 * key[1] for k in children}
+        run: list[tuple[int, int]] = []          # the children packed so far, and their cost
+        run_cost = 0.0
+
+        def flush() -> None:
+            if len(run) == 1:
+                blocks[f"{level - 1}_{run[0][0]}_{run[0][1]}"] = children[run[0]]
+            elif run:
+                quadrants = "".join(str(quadrant[k]) for k in run)
+                blocks[f"{level}_{key[0]}_{key[1]}_{quadrants}"] = sorted(i for k in run for i in children[k])
+            run.clear()
+
+        for child in sorted(children, key=quadrant.get):
+            child_cost = cost(children[child])
+            if child_cost > budget:
+                flush()
+                visit(level - 1, child, children[child])
+                continue
+            if run_cost + child_cost > budget:
+                flush()
+            if not run:
+                run_cost = 0.0
+            run.append(child)
+            run_cost += child_cost
+        flush()
+
+    for key, members in _group_by_node(plan, range(len(plan["tiles"])), block << TOP_LEVEL).items():
+        visit(TOP_LEVEL, key, members)
+    return {bid: [plan["tiles"][i] for i in members] for bid, members in blocks.items()}
+
+
+def block_node(block_id: str, block: int) -> tuple[int, int, int, int, str]:
+    """A block id's quadtree node: (first row, first col, side in tiles, level, quadrants taken:
+    "" for the whole node)."""
+    level, row, col, *quadrants = block_id.split("_")
+    side = block << int(level)
+    return int(row) * side, int(col) * side, side, int(level), "".join(quadrants)
+
+
+def _group_by_node(plan: dict, members, side: int) -> dict[tuple[int, int], list[int]]:
+    """Tile indices grouped by the node of ``side`` x ``side`` tiles holding them, in plan order."""
+    nodes: dict[tuple[int, int], list[int]] = {}
+    for i in members:
+        tile = plan["tiles"][i]
+        nodes.setdefault((tile["row"] // side, tile["col"] // side), []).append(i)
+    return nodes
+
+
+def plan_block(plan: dict, block_id: str, block: int) -> list[dict]:
+    """The tiles of render block ``block_id`` (see :func:`plan_blocks`), grouped once per (cached) plan."""
     cache = plan.setdefault("_blocks", {})
     if block not in cache:
         cache[block] = plan_blocks(plan, block)
-    if (block_row, block_col) not in cache[block]:
-        raise KeyError(f"block ({block_row}, {block_col}) is not in the plan of {plan['perspective']['id']}")
-    return cache[block][(block_row, block_col)]
+    if block_id not in cache[block]:
+        raise KeyError(f"block {block_id} is not in the plan of {plan['perspective']['id']}")
+    return cache[block][block_id]
 
 
 def block_spec_hash(tiles: list[dict]) -> str:

@@ -485,9 +485,9 @@ def _tile_current(tiles_dir: str | Path, tile: dict) -> bool:
     return all(f.exists() for f in files.values()) and files["spec"].read_text().strip() == tile["spec_hash"]
 
 
-def render_block(plan_path: str | Path, block_row: int, block_col: int, block: int, lod_dir: str | Path,
-                 tiles_dir: str | Path, out_manifest: str | Path) -> dict:
-    """Render the tiles of one render block (``block`` x ``block`` tiles) in one process and GL context.
+def render_block(plan_path: str | Path, block_id: str, block: int, lod_dir: str | Path, tiles_dir: str | Path,
+                 out_manifest: str | Path) -> dict:
+    """Render the tiles of one render block (:func:`~pipeline25d.plan.plan_blocks`) in one process and GL context.
 
     Each tile gets its own files (:func:`tile_files`), written GCPs, GeoTIFF, then spec hash,
     each atomically: a tile whose ``.spec`` matches its plan entry is complete and is kept as
@@ -497,7 +497,7 @@ def render_block(plan_path: str | Path, block_row: int, block_col: int, block: i
     from .render import TileRenderer, create_context
 
     pl = read_plan(plan_path)
-    tiles = plan_block(pl, block_row, block_col, block)
+    tiles = plan_block(pl, block_id, block)
     todo = [t for t in tiles if not _tile_current(tiles_dir, t)]
     if todo:
         chunks = _ChunkCache(lod_dir, todo)
@@ -513,11 +513,11 @@ def render_block(plan_path: str | Path, block_row: int, block_col: int, block: i
                          len(seen), len(tile["gcps"]))
         finally:
             ctx.release()
-    manifest = {"perspective": pl["perspective"]["id"], "block": [block_row, block_col],
+    manifest = {"perspective": pl["perspective"]["id"], "block": block_id,
                 "tiles": [{"row": t["row"], "col": t["col"], "spec_hash": t["spec_hash"]} for t in tiles],
                 "rendered": len(todo), "kept": len(tiles) - len(todo)}
     write_json(out_manifest, manifest)
-    log.info("block %d_%d: %d tiles rendered, %d unchanged kept", block_row, block_col, len(todo),
+    log.info("block %s: %d tiles rendered, %d unchanged kept", block_id, len(todo),
              len(tiles) - len(todo))
     return manifest
 

@@ -32,8 +32,7 @@ RENDER_SETTINGS = {**{k: v for k, v in config["render"].items() if k != "block"}
 
 wildcard_constraints:
     pid=ID_PATTERN,
-    brow=r"-?\d+",
-    bcol=r"-?\d+",
+    block=r"\d+_-?\d+_-?\d+(_[0-3]+)?",
     district=r"[A-Za-z0-9-]+",
 
 
@@ -52,7 +51,7 @@ def plan_of(pid):
 
 
 def block_tiles(wildcards):
-    return plan_block(plan_of(wildcards.pid), int(wildcards.brow), int(wildcards.bcol), RENDER_BLOCK)
+    return plan_block(plan_of(wildcards.pid), wildcards.block, RENDER_BLOCK)
 
 
 def block_lods(wildcards):
@@ -68,7 +67,7 @@ def block_hash(wildcards):
 def perspective_blocks(wildcards):
     """The render-block manifests of a perspective."""
     blocks = plan_blocks(plan_of(wildcards.pid), RENDER_BLOCK)
-    return [f"{RESULTS}/tiles/{wildcards.pid}/block_{r}_{c}.json" for r, c in sorted(blocks)]
+    return [f"{RESULTS}/tiles/{wildcards.pid}/block_{b}.json" for b in sorted(blocks)]
 
 
 def perspective_tiles(wildcards, suffix):

@@ -1,5 +1,6 @@
-# One job per render block (render.block x render.block tiles of a perspective, one process and
-# GL context): each non-empty tile gets an RGBA GeoTIFF, the GCPs seen in it and its spec hash.
+# One job per render block (a quadtree node of a perspective's tiles that costs at most render.block
+# x render.block whole tiles, see plan.plan_blocks; one process and GL context): each non-empty tile
+# gets an RGBA GeoTIFF, the GCPs seen in it and its spec hash.
 # Inputs are the block's chunk LODs; the block's hash (its tiles' spec hashes) re-runs the job
 # when a tile's plan entry changes, and the job then re-renders only the tiles whose spec changed.
 
@@ -8,7 +9,7 @@ rule render_block:
     input:
         block_lods,
     output:
-        f"{RESULTS}/tiles/{{pid}}/block_{{brow}}_{{bcol}}.json",
+        f"{RESULTS}/tiles/{{pid}}/block_{{block}}.json",
     params:
         plan=f"{RESULTS}/plans/{{pid}}.json",
         lod_dir=f"{RESULTS}/lod",
@@ -16,12 +17,12 @@ rule render_block:
         block=RENDER_BLOCK,
         spec_hash=block_hash,
     log:
-        f"{RESULTS}/logs/render/{{pid}}/block_{{brow}}_{{bcol}}.log",
+        f"{RESULTS}/logs/render/{{pid}}/block_{{block}}.log",
     benchmark:
-        f"{RESULTS}/benchmarks/render/{{pid}}/block_{{brow}}_{{bcol}}.tsv"
+        f"{RESULTS}/benchmarks/render/{{pid}}/block_{{block}}.tsv"
     group:
         "render"
     shell:
-        PYTHON + " -m pipeline25d render-block --plan {params.plan} --block-row {wildcards.brow}"
-        " --block-col {wildcards.bcol} --block {params.block} --lod-dir {params.lod_dir}"
+        PYTHON + " -m pipeline25d render-block --plan {params.plan} --block-id {wildcards.block}"
+        " --block {params.block} --lod-dir {params.lod_dir}"
         " --tiles-dir {params.tiles_dir} --out-manifest {output} --spec-hash {params.spec_hash} > {log} 2>&1"
