@@ -185,6 +185,48 @@ def test_dtm_only_where_it_is_needed():
     assert np.isfinite(got[np.isfinite(dsm)]).all() and np.isnan(got[used]).any()   # reach ends in the empty land
 
 
+def test_near_windows_take_each_cell_near_the_mask_once_with_all_it_can_see():
+    from scipy import ndimage as ndi
+
+    from pipeline25d.terrain import near_windows
+
+    rng = np.random.default_rng(5)
+    mask = np.zeros((300, 410), bool)
+    mask[rng.integers(0, 300, 12), rng.integers(0, 410, 12)] = True        # a dozen scattered cells
+    mask[:3, 400:] = True
+    reach = 9
+    windows = near_windows(mask, reach, cell=16)
+    taken = np.zeros(mask.shape, int)
+    for (rows, cols), take in windows:
+        assert take.shape == (rows.stop - rows.start, cols.stop - cols.start)
+        taken[rows, cols] += take
+        for r, c in zip(*np.nonzero(take)):               # all True cells within reach of a taken cell are inside
+            r, c = r + rows.start, c + cols.start
+            near = mask[max(r - reach, 0):r + reach + 1, max(c - reach, 0):c + reach + 1].sum()
+            assert mask[rows, cols][max(r - reach - rows.start, 0):r + reach + 1 - rows.start,
+                                    max(c - reach - cols.start, 0):c + reach + 1 - cols.start].sum() == near
+    chess = ndi.distance_transform_cdt(~mask, metric="chessboard")
+    assert (taken <= 1).all() and (taken[chess <= reach] == 1).all()
+    assert len(windows) > 3 and taken.mean() < 0.5
+    assert near_windows(np.zeros((5, 5), bool), 3) == []
+
+
+def test_the_fill_of_a_sparse_window_equals_gdals_fill_of_all_of_it():
+    """The fill runs only on the ground's box grown by the search; GDAL's FillNodata run over the
+    whole window (its reference) gives the same values, NaN beyond the search included."""
+    from pipeline25d.terrain import _fill_nodata, _fill_window
+
+    rng = np.random.default_rng(3)
+    seed = np.full((400, 500), np.nan)
+    patch = rng.normal(5.0, 1.0, (60, 40))
+    patch[rng.random(patch.shape) < 0.6] = np.nan                  # gaps inside the ground
+    seed[300:360, 420:460] = patch                                 # ground in one corner, empty land elsewhere
+    got = _fill_nodata(seed, 12)
+    np.testing.assert_array_equal(got, _fill_window(seed, 12))
+    assert np.isnan(got[:200, :300]).all() and np.isfinite(got[300:360, 420:460]).all()
+    assert np.isnan(_fill_nodata(np.full((5, 5), np.nan), 3)).all()
+
+
 def test_under_chunks_meets_exactly_the_blocks_under_a_footprint():
     from pipeline25d.stages import _under_chunks
 

@@ -434,8 +434,47 @@ def interpolate_dtm(seed: np.ndarray, search_cells: int, reach_cells: float | No
 def _fill_nodata(seed: np.ndarray, search_cells: int) -> np.ndarray:
     """FillNodata's inverse-distance fill of ``seed`` within ``search_cells`` (NaN beyond).
 
-    A cell depends only on the seed within ``search_cells`` rows and columns of it.
+    A cell depends only on the seed within ``search_cells`` rows and columns of it, so only
+    the seed's bounding box grown by that much is filled (a sparse window is mostly empty
+    land, where FillNodata would search the whole distance from every cell for nothing).
     """
+    out = np.full(seed.shape, np.nan)
+    for window, take in near_windows(np.isfinite(seed), max(int(search_cells), 1) + 1):
+        out[window][take] = _fill_window(seed[window], search_cells)[take]
+    return out
+
+
+def near_windows(mask: np.ndarray, reach: int, cell: int = 64) -> list[tuple[tuple[slice, slice], np.ndarray]]:
+    """The windows of an array where something is within ``reach`` cells of ``mask``'s True cells.
+
+    The array is cut into squares of ``cell`` cells; the squares within ``reach`` (rows and
+    columns) of a True cell are grouped by 8-connectivity. Each group gives (window, take):
+    its bounding box grown by ``reach`` (within the array) and, on that window, its own
+    cells. Every True cell within ``reach`` of a taken cell lies in the window, so anything
+    that looks no farther than ``reach`` computed on the window alone is exact on the taken
+    cells; a cell that no group takes is farther than ``reach`` from every True cell. A
+    sparse scene's few districts thus cost their surroundings, not the empty land between.
+    """
+    from scipy import ndimage as ndi
+
+    h, w = mask.shape
+    nr, nc = -(-h // cell), -(-w // cell)
+    padded = np.zeros((nr * cell, nc * cell), bool)
+    padded[:h, :w] = mask
+    squares = padded.reshape(nr, cell, nc, cell).any(axis=(1, 3))
+    k = -(-int(reach) // cell)
+    kept = ndi.binary_dilation(squares, np.ones((2 * k + 1, 2 * k + 1), bool)) if squares.any() else squares
+    labels, _ = ndi.label(kept, np.ones((3, 3), bool))
+    out = []
+    for label, (rs, cs) in enumerate(ndi.find_objects(labels), 1):
+        window = (slice(max(rs.start * cell - reach, 0), min(rs.stop * cell + reach, h)),
+                  slice(max(cs.start * cell - reach, 0), min(cs.stop * cell + reach, w)))
+        own = np.repeat(np.repeat(labels == label, cell, axis=0), cell, axis=1)[:h, :w]
+        out.append((window, own[window]))
+    return out
+
+
+def _fill_window(seed: np.ndarray, search_cells: int) -> np.ndarray:
     g = gdal()
     h, w = seed.shape
     nodata = -1e30
@@ -463,14 +502,15 @@ def dtm_blocks(read: Callable[[slice, slice], np.ndarray], grid: Grid, search_ce
     A window reaches search + 1 cells beyond its core, so the fill is exact on the core. A core
     cell it leaves empty takes its nearest filled cell, the whole grid's when that lies within
     the window's margin less search + 1; where one does not (no ground that near), the block is
-    read again with twice the margin.
+    read again with twice the margin. With ``reach_cells`` the first window sees that far.
     """
     reach = max(int(search_cells), 1) + 1
     for block in cell_blocks(grid.height, grid.width, reach, max_cells):
         if needed is not None and not needed(block.core):
             yield block, np.full(tuple(s.stop - s.start for s in block.core), np.nan)
             continue
-        margin = reach
+        # with a reach, the first window already sees as far as any cell may take a value from
+        margin = reach if reach_cells is None else reach + int(np.ceil(reach_cells)) + 1
         while (values := _dtm_core(read, grid, block.core, margin, search_cells, reach_cells)) is None:
             margin *= 2
         yield block, values
@@ -501,12 +541,19 @@ def _dtm_core(read: Callable[[slice, slice], np.ndarray], grid: Grid, core: tupl
         return np.full(values.shape, np.nan) if capped else None
     from scipy import ndimage as ndi
 
+    if capped:          # a cell farther than reach_cells from every filled cell stays NaN: measure only near those
+        nearest = np.full(source.shape, np.nan)
+        for near, take in near_windows(np.isfinite(source), int(np.ceil(reach_cells)) + 1):
+            dist, idx = ndi.distance_transform_edt(~np.isfinite(source[near]), return_indices=True)
+            found = source[near][tuple(idx)]
+            found[dist > reach_cells] = np.nan
+            nearest[near][take] = found[take]
+        values[empty] = nearest[inner][empty]
+        return values
     dist, idx = ndi.distance_transform_edt(~np.isfinite(source), return_indices=True)
-    if not capped and dist[inner][empty].max() > margin - reach:
+    if dist[inner][empty].max() > margin - reach:
         return None
     values[empty] = source[tuple(i[inner] for i in idx)][empty]
-    if capped:
-        values[empty & (dist[inner] > reach_cells)] = np.nan
     return values
 
 
