@@ -17,12 +17,12 @@ import logging
 import shutil
 import sys
 import tempfile
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
 from .atomic import replace_dir
+from .errors import GdalToolError
 from .raster import gdal
 from .warp import run_tool
 
@@ -59,21 +59,30 @@ def tms(cog: str | Path, zoom: str, out_dir: str | Path, processes: int = 1, til
         raise
 
 
+def _mercator_args(threads: int, extra: list[str] | None = None) -> list[str]:
+    return ["-q", "-overwrite", "-t_srs", WEB_MERCATOR, "-r", "near", "-et", "0.01", "-dstalpha", "-multi",
+            "-wo", f"NUM_THREADS={threads}", "-co", "TILED=YES", "-co", "COMPRESS=ZSTD", "-co", "ZSTD_LEVEL=1",
+            *(extra or [])]
+
+
 def _to_mercator(src: str | Path, dst: Path, threads: int, extra: list[str] | None = None) -> None:
-    run_tool(["gdalwarp", "-q", "-overwrite", "-t_srs", WEB_MERCATOR, "-r", "near", "-et", "0.01", "-dstalpha",
-              "-multi", "-wo", f"NUM_THREADS={threads}", "-co", "TILED=YES", "-co", "COMPRESS=ZSTD",
-              "-co", "ZSTD_LEVEL=1", *(extra or []), str(src), str(dst)])
+    run_tool(["gdalwarp", *_mercator_args(threads, extra), str(src), str(dst)])
 
 
-def _gdal2tiles(src: Path, out: Path, zoom: str, processes: int, tile_format: str, quality: int,
-                exclude_empty: bool = False) -> None:
-    args = [sys.executable, "-m", "osgeo_utils.gdal2tiles", "-q", "--xyz", "-w", "none", "-r", "average",
-            f"--processes={processes}", *(["--exclude"] if exclude_empty else [])]
+def _gdal2tiles_args(zoom: str, processes: int, tile_format: str, quality: int, exclude_empty: bool) -> list[str]:
+    args = ["-q", "--xyz", "-w", "none", "-r", "average", f"--processes={processes}",
+            *(["--exclude"] if exclude_empty else [])]
     if tile_format == "webp":
         args += ["--tiledriver=WEBP", f"--webp-quality={int(quality)}"]
     if zoom != "auto":
         args += ["-z", zoom]
-    run_tool(args + [str(src), str(out)])
+    return args
+
+
+def _gdal2tiles(src: Path, out: Path, zoom: str, processes: int, tile_format: str, quality: int,
+                exclude_empty: bool = False) -> None:
+    run_tool([sys.executable, "-m", "osgeo_utils.gdal2tiles",
+              *_gdal2tiles_args(zoom, processes, tile_format, quality, exclude_empty), str(src), str(out)])
 
 
 def mercator_grid(cog: str | Path) -> tuple[tuple[float, ...], int, int]:
@@ -138,23 +147,42 @@ def _cut_parts(cog: Path, parts: list[list[float]], zoom: str, out: Path, proces
     windows = [w for w in (part_window(p, wkt, gt, width, height, max_zoom) for p in parts) if w is not None]
     work = out.with_suffix(".parts")
     work.mkdir()
-
-    def cut(k: int) -> Path:
-        mercator, tiles = work / f"part{k}.3857.tif", work / f"part{k}"
-        bounds = windows[k]
-        _to_mercator(cog, mercator, 1, ["-tr", repr(gt[1]), repr(-gt[5]), "-te", *map(repr, bounds)])
-        # a part's raster ends on whole base tiles, up to a pixel past them: skip the empty slivers
-        _gdal2tiles(mercator, tiles, zooms, 1, tile_format, quality, exclude_empty=True)
-        mercator.unlink()
-        return tiles
-
+    jobs = [(str(cog), window, (gt[1], -gt[5]), zooms, str(work / f"part{k}"), tile_format, quality)
+            for k, window in enumerate(windows)]
     try:
-        with ThreadPoolExecutor(max_workers=max(processes, 1)) as pool:
-            cuts = list(pool.map(cut, range(len(windows))))
-        shared = sum(merge_tiles(c, out, tile_format, quality) for c in cuts)
+        if processes > 1 and len(jobs) > 1:
+            # forked workers (as gdal2tiles' own pool): each cuts many parts, one interpreter start each
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            with ProcessPoolExecutor(min(processes, len(jobs)), mp_context=multiprocessing.get_context("fork")) as pool:
+                cuts = list(pool.map(_cut_part, *zip(*jobs)))
+        else:
+            cuts = [_cut_part(*job) for job in jobs]
+        shared = sum(merge_tiles(Path(c), out, tile_format, quality) for c in cuts)
         log.info("web tiles of %d parts, zooms %s; %d tiles shared by parts composited", len(windows), zooms, shared)
     finally:
         shutil.rmtree(work, ignore_errors=True)
+
+
+def _cut_part(cog: str, window: tuple[float, ...], res: tuple[float, float], zooms: str, tiles: str,
+              tile_format: str, quality: int) -> str:
+    """One part: gdalwarp to its window of the map's mercator grid, then gdal2tiles, both in this
+    process (their Python APIs take the command lines' arguments). Returns its tile folder."""
+    from osgeo_utils import gdal2tiles
+
+    mercator = f"{tiles}.3857.tif"
+    extra = ["-tr", *map(repr, res), "-te", *map(repr, window)]
+    log.info("part %s: gdalwarp %s, gdal2tiles", Path(tiles).name, " ".join(extra))
+    gdal().Warp(mercator, cog, options=_mercator_args(1, extra))
+    # a part's raster ends on whole base tiles, up to a pixel past them: skip the empty slivers
+    args = ["gdal2tiles", *_gdal2tiles_args(zooms, 1, tile_format, quality, exclude_empty=True), mercator, tiles]
+    try:
+        gdal2tiles.submain(args)
+    except SystemExit as exc:          # gdal2tiles exits on a bad argument or input
+        raise GdalToolError(f"gdal2tiles failed on {mercator} (exit {exc.code})") from None
+    Path(mercator).unlink()
+    return tiles
 
 
 def merge_tiles(src: Path, dst: Path, tile_format: str, quality: int) -> int:
