@@ -32,6 +32,15 @@ def test_pareto_front_hand_checked(points, front):
     assert pareto_front(points) == front
 
 
+def test_a_tolerance_makes_differences_within_the_noise_ties():
+    points = [(10.0, 1.0), (9.0, 1.0), (7.0, 1.0), (12.0, 0.5)]
+    assert pareto_front(points) == [2, 3]
+    assert pareto_front(points, (1.5, 0.0)) == [2, 3]                # 7 is faster than 9 by more than 1.5
+    assert pareto_front(points, (2.5, 0.0)) == [2, 1, 3]            # 9 is within 2.5 of 7, 10 is not
+    assert pareto_front(points, (3.5, 0.0)) == [2, 1, 0, 3]
+    assert pareto_front(points, (3.5, 0.6)) == [2, 1, 0, 3]
+
+
 def test_pareto_front_matches_the_definition_on_random_ties():
     rng = np.random.default_rng(1)
     for _ in range(50):
@@ -73,10 +82,44 @@ def test_summary_json_flags_match_pareto_front_and_the_plot_is_a_png(tmp_path):
             assert entry["default_on_front"][obj] is (0 in sub), (factor, obj)
     assert data["front"]["rmsd_m"] == ["gsd-1.0"] and not data["default_on_front"]["lod_px"]
     # MSAA does not change the LOD drawn, so the faster msaa-0 dominates the defaults there
-    assert data["factors"]["render.samples"]["default_on_front"] == {"rmsd_m": True, "lod_px": False}
+    assert data["factors"]["render.samples"]["default_on_front"] == {"rmsd_m": True, "lod_px": False,
+                                                                     "map_mad": False}    # no map error measured
     assert data["factors"]["render.samples"]["front"]["rmsd_m"] == ["msaa-0", "default"]
     table = format_table(summary)
-    assert "plane        failed" in table and "within gsd: rmsd_m no, lod_px no" in table
+    assert "plane        failed" in table and "within gsd: rmsd_m no, lod_px no, map_mad no" in table
+
+
+def test_the_noise_band_of_the_defaults_repeats_ties_runs_within_it():
+    rows = [{**_row("default", "default", 31.0, 0.2, 0.4), "wall_runs": [30.0, 31.0, 33.0]},
+            _row("tile-512", "tile_size", 29.0, 0.2, 0.4, 512),            # 2 s faster, same errors: noise
+            _row("gsd-0.5", "gsd", 20.0, 0.2, 0.4, 0.5)]                     # 11 s faster: dominates
+    summary = summarize(rows, {})
+    assert summary["wall_noise_s"] == 3.0
+    assert summary["factors"]["tile_size"]["default_on_front"]["rmsd_m"] is True
+    assert summary["factors"]["gsd"]["default_on_front"]["rmsd_m"] is False
+    assert summarize([{**rows[0], "wall_runs": [31.0]}, rows[1]], {})["default_on_front"]["rmsd_m"] is False
+    assert "noise band (spread of the defaults' runs): 3.0 s" in format_table(summary)
+
+
+def test_map_error_is_the_mean_colour_difference_over_covered_pixels(tmp_path):
+    from pipeline25d.crs import horizontal_wkt
+    from pipeline25d.raster import write_rgba_geotiff
+    from pipeline25d.sweep import map_error
+
+    ref = np.zeros((40, 50, 4), np.uint8)
+    ref[10:30, 10:40] = (100, 120, 140, 255)
+    run = ref.copy()
+    run[10:30, 10:20, :3] += 12                     # a third of the covered pixels 12 grey levels off
+    run[30:32, 10:40] = (100, 120, 140, 255)        # two more rows covered (60 px, 120-ish off on average)
+    gt = (1000.0, 0.5, 0.0, 2000.0, 0.0, -0.5)
+    for name, img in (("ref", ref), ("run", run)):
+        (tmp_path / name / "maps").mkdir(parents=True)
+        write_rgba_geotiff(tmp_path / name / "maps" / "v.tif", img, gt, horizontal_wkt("EPSG:28992"))
+    covered = 20 * 30 + 60
+    expected = (200 * 12 + 60 * (100 + 120 + 140) / 3) / covered
+    assert map_error(tmp_path / "run", tmp_path / "ref", ["v"]) == pytest.approx(expected, abs=1e-3)
+    assert map_error(tmp_path / "ref", tmp_path / "ref", ["v"]) == 0.0
+    assert map_error(tmp_path / "run", tmp_path / "ref", ["missing"]) is None
 
 
 def test_variants_vary_one_factor_around_the_defaults(tmp_path):
@@ -100,7 +143,7 @@ def test_a_tiny_real_sweep_measures_every_variant(tmp_path):
     base.update({"perspectives": [{"azimuth": 45, "elevation": 45}], "gsd": 0.5, "tile_size": 256,
                  "gcp": {"spacing": 8, "holdout": 0.3, "marker_px": 4}, "tms": {"zoom": "14-16"}})
     plan = [Variant("default", "default"), Variant("lod-2", "lod.max_error_px", 2, nested("lod.max_error_px", 2))]
-    rows = run_sweep(base, plan, tmp_path / "work")
+    rows = run_sweep(base, plan, tmp_path / "work", repeats=2)
     summary = summarize(rows, {"name": "tiny", "scene": "demo:0.25", "cores": 2})
     write_sweep(summary, tmp_path / "tiny.json", tmp_path / "tiny.png")
     data = json.loads((tmp_path / "tiny.json").read_text())
@@ -111,6 +154,9 @@ def test_a_tiny_real_sweep_measures_every_variant(tmp_path):
         assert abs(row["rmsd_m"] - row["rmsd_px"] * 0.5) < 1e-9
         assert 0 <= row["lod_px"] <= bound and row["lod_px_bound"] == bound
         assert row["maps_mb"] > 0 and row["tms_mb"] > 0
+        assert 0 < row["map_mad"] < 20          # against MSAA 8: edges differ a little, nothing moves
+    assert len(data["variants"][0]["wall_runs"]) == 2 and "wall_runs" not in data["variants"][1]
+    assert data["wall_noise_s"] >= 0
     assert (tmp_path / "work" / "runs" / "lod-2" / "variant.json").exists()
     assert (tmp_path / "tiny.png").stat().st_size > 0
 
@@ -121,4 +167,5 @@ def test_a_failed_run_is_a_row_with_its_error_and_no_figures(tmp_path):
     assert "the workflow failed" in row["error"] and "wall_s" not in row
     assert "missing.obj" in (tmp_path / "work" / "runs" / "default" / "snakemake.log").read_text()
     summary = summarize([row], {})
-    assert summary["front"] == {"rmsd_m": [], "lod_px": []} and summary["default_on_front"]["rmsd_m"] is False
+    assert summary["front"] == {"rmsd_m": [], "lod_px": [], "map_mad": []}
+    assert summary["default_on_front"]["rmsd_m"] is False

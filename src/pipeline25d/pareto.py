@@ -3,25 +3,22 @@
 from __future__ import annotations
 
 import math
-from itertools import groupby
 
 
-def pareto_front(points: list[tuple[float, float]]) -> list[int]:
+def pareto_front(points: list[tuple[float, float]], tolerance: tuple[float, float] = (0.0, 0.0)) -> list[int]:
     """Indices of the points no other point dominates, ordered by the first objective.
 
-    A point dominates another when it is no worse on both objectives and better on one.
-    Exact duplicates therefore all stay on the front (neither dominates the other); of
-    points tied on one objective only those lowest on the other stay. A point with a
-    non-finite coordinate (NaN, inf: a failed measurement) is neither on the front nor
-    dominates anything. Equal first objectives are ordered by index.
+    A point dominates another when it is no worse on both objectives and better on one by
+    more than that objective's ``tolerance`` (a measurement's noise: a run 0.5 s faster within
+    a 2 s noise band is not better). Exact duplicates therefore all stay on the front (neither
+    dominates the other). A point with a non-finite coordinate (NaN, inf: a failed
+    measurement) is neither on the front nor dominates anything. Equal first objectives are
+    ordered by index.
     """
-    finite = sorted((x, y, i) for i, (x, y) in enumerate(points) if math.isfinite(x) and math.isfinite(y))
-    front: list[int] = []
-    best_y = math.inf          # the lowest second objective among points with a smaller first one
-    for _, group in groupby(finite, key=lambda p: p[0]):
-        group = list(group)
-        low = group[0][1]      # sorted: the group's lowest second objective comes first
-        if low < best_y:
-            front += [i for _, y, i in group if y == low]
-            best_y = low
-    return front
+    tx, ty = tolerance
+    finite = [(x, y, i) for i, (x, y) in enumerate(points) if math.isfinite(x) and math.isfinite(y)]
+
+    def dominates(a: tuple, b: tuple) -> bool:
+        return a[0] <= b[0] and a[1] <= b[1] and (a[0] < b[0] - tx or a[1] < b[1] - ty)
+
+    return [p[2] for p in sorted(finite) if not any(dominates(q, p) for q in finite)]

@@ -6,9 +6,14 @@ variant is a complete workflow run from scratch in its own folder (the runner of
 :mod:`pipeline25d.bench`), and is measured: wall seconds and summed job-seconds,
 check-point RMSD in pixels and metres (mean over the oblique views; gsd changes what a
 pixel is, so compare gsd variants in metres), the LOD error actually drawn (the largest
-over rendered chunks of the chosen level's measured error, in pixels), tiles and sizes.
-:mod:`pipeline25d.sweep_report` marks the Pareto fronts and writes ``bench/<name>.json``
-and ``bench/<name>.png``. Times compare runs of one sweep on one machine, nothing more.
+over rendered chunks of the chosen level's measured error, in pixels), the map error (mean
+absolute difference of its oblique maps from a reference run's: the defaults with MSAA 8
+and the finest LOD, on the reference's grid; it sees antialiasing, LOD, gsd and seams, which
+check points on exposed ground do not), tiles and sizes. The defaults run ``repeats`` times:
+their median is their time and the spread the noise band, within which no run counts as
+faster. :mod:`pipeline25d.sweep_report` marks the Pareto fronts and writes
+``bench/<name>.json`` and ``bench/<name>.png``. Times compare runs of one sweep on one
+machine, nothing more.
 
 CLI::
 
@@ -48,6 +53,7 @@ SHORT = {"gsd": "gsd", "lod.max_error_px": "lod", "render.samples": "msaa", "til
 PERSPECTIVES = [{"azimuth": 0, "elevation": 90}, {"azimuth": 45, "elevation": 45}, {"azimuth": 225, "elevation": 30}]
 GCP = {"spacing": 10, "holdout": 0.3}     # denser than the defaults: enough check points in the obliques of one district
 SCENE, QUICK_SCENE, DECIMATE = "delft:2x2", "delft:1x1", 0.25
+REFERENCE = {"render": {"samples": 8}, "lod": {"max_error_px": 0.05}}     # the map error's reference run
 
 
 @dataclass(frozen=True)
@@ -159,13 +165,41 @@ def lod_error_px(results: Path) -> float:
     return worst
 
 
+def map_error(results: Path, reference: Path, views: list[str]) -> float | None:
+    """Mean absolute difference (grey levels, colour times alpha, over pixels either map covers)
+    of ``results``' maps of ``views`` from ``reference``'s, each resampled (bilinear) onto the
+    reference map's grid; None where a map is missing."""
+    import numpy as np
+
+    from .raster import gdal
+
+    g = gdal()
+    total, count = 0.0, 0
+    for view in views:
+        ref_path, run_path = reference / "maps" / f"{view}.tif", results / "maps" / f"{view}.tif"
+        if not (ref_path.exists() and run_path.exists()):
+            return None
+        ref = g.Open(str(ref_path))
+        gt, w, h = ref.GetGeoTransform(), ref.RasterXSize, ref.RasterYSize
+        bounds = (gt[0], gt[3] + h * gt[5], gt[0] + w * gt[1], gt[3])
+        run = g.Warp("", str(run_path), format="MEM", outputBounds=bounds, width=w, height=h,
+                     resampleAlg="bilinear", dstSRS=ref.GetProjection())
+        a, b = (ds.ReadAsArray().astype(np.float64) for ds in (ref, run))
+        a_rgb, b_rgb = a[:3] * a[3] / 255, b[:3] * b[3] / 255
+        seen = (a[3] > 0) | (b[3] > 0)
+        total += float(np.abs(a_rgb - b_rgb)[:, seen].sum()) / 3
+        count += int(seen.sum())
+    return round(total / count, 4) if count else None
+
+
 def _mean(values: list[float | None]) -> float | None:
     found = [v for v in values if v is not None]
     return sum(found) / len(found) if found else None
 
 
-def measure(workdir: Path, config: dict, wall: float, cores: int) -> dict:
-    """The sweep's figures of a finished run (see the module doc)."""
+def measure(workdir: Path, config: dict, wall: float, cores: int, reference: Path | None = None) -> dict:
+    """The sweep's figures of a finished run (see the module doc); ``reference``: the reference
+    run's results folder, for the map error."""
     bench = collect(workdir, config, wall, cores)
     results = results_of(workdir, config)
     report = json.loads((results / "report" / "report.json").read_text())
@@ -174,6 +208,7 @@ def measure(workdir: Path, config: dict, wall: float, cores: int) -> dict:
     return {"wall_s": bench["wall_s"], "job_s": round(sum(s["seconds"] for s in bench["stages"].values()), 1),
             "rmsd_px": rmsd_px, "rmsd_m": rmsd_m, "rmsd_views": [p["id"] for p in views],
             "lod_px": round(lod_error_px(results), 4), "lod_px_bound": config["lod"]["max_error_px"],
+            "map_mad": map_error(results, reference, [p["id"] for p in views]) if reference else None,
             "gsd": config["gsd"], "tile_size": config["tile_size"], "samples": config["render"]["samples"],
             "projection": report["projection"],
             "views": {p["id"]: {"warp": p["warp"]["method"], "rmsd_px": p["rmsd_px"], "rmsd_m": p["rmsd_m"],
@@ -184,24 +219,33 @@ def measure(workdir: Path, config: dict, wall: float, cores: int) -> dict:
             "tms_mb": round(report["sizes"]["tms_bytes"] / 1e6, 2)}
 
 
-def run_sweep(base: dict, plan: list[Variant], work: Path, cores: int = 2, resume: bool = False) -> list[dict]:
+def run_sweep(base: dict, plan: list[Variant], work: Path, cores: int = 2, resume: bool = False,
+              repeats: int = 3) -> list[dict]:
     """Run every variant in ``work/runs/<variant>/``; return one row per variant.
 
-    A failed run gives a row with ``error`` and no figures. ``load_avg`` is the machine's
-    1-minute load average before and after the run: above ``cores`` other work shared the
-    cores and the times are inflated. With ``resume`` a variant whose row was written by an
-    earlier sweep (``variant.json``) is not run again.
+    First, untimed, the reference run (the defaults with :data:`REFERENCE`), whose maps the map
+    error compares with; it also pays the cold file caches and bytecode compilation the first
+    run of a session pays (a first run took 37 s where runs of identical work took 31-33 s).
+    The defaults run ``repeats`` times (``wall_runs``; ``wall_s`` is their median). A failed
+    run gives a row with ``error`` and no figures. ``load_avg`` is the machine's 1-minute load
+    average before and after the run: above ``cores`` other work shared the cores and the
+    times are inflated. With ``resume`` a variant whose row was written by an earlier sweep
+    (``variant.json``) is not run again.
     """
+    from statistics import median
+
     from .config import validate_schema
 
-    if not (resume and all((work / "runs" / v.name / "variant.json").exists() for v in plan)):
-        # untimed: the first run of a session pays cold file caches and bytecode compilation
-        # (the defaults, run first, took 37 s where runs of identical work took 31-33 s)
-        log.info("sweep: warm-up run (untimed)")
+    ref_config = validate_schema(merged(base, REFERENCE))
+    ref_dir = work / "runs" / "reference"
+    reference: Path | None = results_of(ref_dir, ref_config)
+    if not (resume and (reference / "report" / "report.json").exists()):
+        log.info("sweep: reference run (MSAA 8, finest LOD; untimed, also the warm-up)")
         try:
-            run_workflow(work / "runs" / "warm-up", validate_schema(base), cores)
-        except WorkflowRunError:
-            pass                       # the defaults' own run below records the failure
+            run_workflow(ref_dir, ref_config, cores)
+        except WorkflowRunError as exc:
+            log.warning("sweep: the reference run failed, no map error: %s", exc)
+            reference = None
 
     rows = []
     for k, v in enumerate(plan, 1):
@@ -215,7 +259,11 @@ def run_sweep(base: dict, plan: list[Variant], work: Path, cores: int = 2, resum
         log.info("sweep %d/%d: %s", k, len(plan), v.name)
         load = os.getloadavg()[0]
         try:
-            row |= measure(folder, config, run_workflow(folder, config, cores), cores)
+            walls = [run_workflow(folder if r == 0 else folder.with_name(f"{v.name}-repeat{r}"), config, cores)
+                     for r in range(repeats if v.factor == "default" else 1)]
+            row |= measure(folder, config, median(walls), cores, reference)
+            if len(walls) > 1:
+                row["wall_runs"] = [round(w, 1) for w in walls]
         except WorkflowRunError as exc:
             row["error"] = str(exc)
             log.warning("sweep: %s: %s", v.name, exc)
@@ -238,6 +286,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="fewer values per factor and a smaller default scene")
     ap.add_argument("--cores", type=int, default=2)
     ap.add_argument("--resume", action="store_true", help="keep the variants an interrupted sweep finished")
+    ap.add_argument("--repeats", type=int, default=3, help="runs of the defaults (their spread is the noise band)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     spec = args.scene or (QUICK_SCENE if args.quick else SCENE)
@@ -247,7 +296,7 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         raise SystemExit(str(exc)) from None
     levels = QUICK if args.quick else FULL
-    rows = run_sweep(base, variants(levels, base), work, args.cores, args.resume)
+    rows = run_sweep(base, variants(levels, base), work, args.cores, args.resume, args.repeats)
     config = validate_schema(copy.deepcopy(base))
     meta = {"name": args.name, "scene": spec, "decimate": args.decimate if spec.startswith("delft") else None,
             "perspectives": [p.id for p in expand(base["perspectives"])], "cores": args.cores, "quick": args.quick,

@@ -1,10 +1,12 @@
 """Sweep results: Pareto fronts of wall time against error, written as JSON, a plot and a table.
 
 Each objective pairs wall time with one error (both minimized): check-point RMSD in
-metres (pixels are not comparable across gsd variants) and the LOD error drawn in pixels. Fronts are taken over all variants, and per
+metres (pixels are not comparable across gsd variants), the LOD error drawn in pixels, and
+the map error against a reference render. Fronts are taken over all variants, and per
 factor over the defaults plus that factor's variants, which says whether the default of
-that factor is a Pareto-optimal choice. A failed variant (``error`` in its row) has no
-figures and is on no front.
+that factor is a Pareto-optimal choice. A run is faster than another only by more than the
+noise band (the spread of the defaults' repeated runs). A failed variant (``error`` in its
+row) has no figures and is on no front.
 """
 
 from __future__ import annotations
@@ -16,8 +18,9 @@ from .atomic import atomic_path, write_json
 from .pareto import pareto_front
 
 OBJECTIVES = {"rmsd_m": "check-point RMSD, m (mean of the oblique views)",
-              "lod_px": "LOD error drawn, px (largest over rendered chunks)"}
-FIGSIZE, DPI = (13.0, 5.5), 100          # the PNG is 1300 x 550 px
+              "lod_px": "LOD error drawn, px (largest over rendered chunks)",
+              "map_mad": "map error, grey levels (mean abs. difference from MSAA 8, finest LOD)"}
+FIGSIZE, DPI = (18.0, 5.5), 100          # the PNG is 1800 x 550 px
 LABEL_PT, LABEL_CHAR_PT, LABEL_LINE_PT = 8, 4.8, 10   # label font size, rough width of a character, line step
 LOG_SPAN = 20                            # an error axis spanning more than this ratio is logarithmic
 
@@ -30,14 +33,23 @@ def _points(rows: list[dict], objective: str) -> list[tuple[float, float]]:
     return [(_num(r.get("wall_s")), _num(r.get(objective))) for r in rows]
 
 
+def wall_noise(rows: list[dict]) -> float:
+    """The noise band of wall time: the spread of the defaults' repeated runs (0 without repeats)."""
+    runs = next((r.get("wall_runs") or [] for r in rows if r["factor"] == "default"), [])
+    return round(max(runs) - min(runs), 1) if len(runs) > 1 else 0.0
+
+
 def summarize(rows: list[dict], meta: dict) -> dict:
     """``meta`` plus the rows (each with ``on_front`` per objective), the fronts by variant name,
-    whether the defaults are on them, and the same per factor."""
+    whether the defaults are on them, and the same per factor; wall times differing by no more
+    than :func:`wall_noise` count as equal."""
     rows = [dict(r) for r in rows]
     default = next((i for i, r in enumerate(rows) if r["factor"] == "default"), None)
+    noise = wall_noise(rows)
+    tolerance = (noise, 0.0)
     front, default_on = {}, {}
     for obj in OBJECTIVES:
-        idx = pareto_front(_points(rows, obj))
+        idx = pareto_front(_points(rows, obj), tolerance)
         front[obj] = [rows[i]["name"] for i in idx]
         default_on[obj] = default in idx
         for i, r in enumerate(rows):
@@ -48,16 +60,16 @@ def summarize(rows: list[dict], meta: dict) -> dict:
         entry: dict = {"variants": [rows[i]["name"] for i in members], "front": {}, "default_on_front": {}}
         for obj in OBJECTIVES:
             points = _points(rows, obj)
-            idx = [members[j] for j in pareto_front([points[i] for i in members])]
+            idx = [members[j] for j in pareto_front([points[i] for i in members], tolerance)]
             entry["front"][obj] = [rows[i]["name"] for i in idx]
             entry["default_on_front"][obj] = default in idx
         factors[factor] = entry
-    return {**meta, "objectives": OBJECTIVES, "front": front, "default_on_front": default_on, "factors": factors,
-            "variants": rows}
+    return {**meta, "objectives": OBJECTIVES, "wall_noise_s": noise, "front": front, "default_on_front": default_on,
+            "factors": factors, "variants": rows}
 
 
 def plot_sweep(summary: dict, path: str | Path) -> None:
-    """Two panels, wall time against each error: every variant labelled, the defaults a star,
+    """One panel per objective, wall time against its error: every variant labelled, the defaults a star,
     the Pareto front a step line through ringed points."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -66,7 +78,7 @@ def plot_sweep(summary: dict, path: str | Path) -> None:
     factors = list(dict.fromkeys(r["factor"] for r in rows if r["factor"] != "default"))
     fig = Figure(figsize=FIGSIZE, dpi=DPI, layout="constrained")
     FigureCanvasAgg(fig)
-    axes = fig.subplots(1, 2, sharey=True)
+    axes = fig.subplots(1, len(OBJECTIVES), sharey=True)
     axes[0].set_ylabel("wall time of the whole run, s")
     for ax, obj in zip(axes, OBJECTIVES):
         _panel(ax, rows, obj, factors, legend=ax is axes[0])
@@ -79,7 +91,7 @@ def plot_sweep(summary: dict, path: str | Path) -> None:
     failed = len(summary["variants"]) - len(rows)
     fig.suptitle(f"{summary.get('name', 'sweep')}: {summary.get('scene', '')}, {len(rows)} runs on "
                  f"{summary.get('cores', '?')} cores" + (f" ({failed} failed, not shown)" if failed else "")
-                 + ", lower left is better")
+                 + f", lower left is better; wall-time noise band {summary.get('wall_noise_s', 0)} s")
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")
 
@@ -110,7 +122,7 @@ def _panel(ax, rows: list[dict], obj: str, factors: list[str], legend: bool) -> 
     else:
         right = 1.25 * hi or 1.0
         ax.set_xlim(-0.02 * right, right)                   # points at 0 whole, not cut by the axis
-    if hi == 0:
+    if hi == 0 and obj == "lod_px":
         ax.text(0.5, 0.5, "every run drew full-detail levels only (error 0)", transform=ax.transAxes,
                 ha="center", color="0.4")
 
@@ -157,8 +169,8 @@ def _fmt(value: float | None, nd: int) -> str:
 
 def format_table(summary: dict) -> str:
     """A plain-text table of the variants and which fronts hold them, then the defaults' verdicts."""
-    lines = [f"{'variant':<12} {'wall s':>7} {'job s':>7} {'RMSD px':>8} {'RMSD m':>7} {'LOD px':>7} {'tiles':>6}"
-             f" {'load':>5}  on front"]
+    lines = [f"{'variant':<12} {'wall s':>7} {'job s':>7} {'RMSD px':>8} {'RMSD m':>7} {'LOD px':>7} {'map MAD':>8}"
+             f" {'tiles':>6} {'load':>5}  on front"]
     for r in summary["variants"]:
         if "error" in r:
             lines.append(f"{r['name']:<12} failed: {r['error']}")
@@ -166,11 +178,13 @@ def format_table(summary: dict) -> str:
         on = ", ".join(obj for obj in OBJECTIVES if r["on_front"][obj]) or "-"
         load = _fmt(sum(r["load_avg"]) / 2, 1) if r.get("load_avg") else "-"
         lines.append(f"{r['name']:<12} {r['wall_s']:>7.1f} {r['job_s']:>7.1f} {_fmt(r['rmsd_px'], 3):>8} "
-                     f"{_fmt(r['rmsd_m'], 3):>7} {_fmt(r['lod_px'], 3):>7} {r['tiles_rendered']:>6} {load:>5}  {on}")
+                     f"{_fmt(r['rmsd_m'], 3):>7} {_fmt(r['lod_px'], 3):>7} {_fmt(r.get('map_mad'), 2):>8} "
+                     f"{r['tiles_rendered']:>6} {load:>5}  {on}")
 
     def verdict(flags: dict) -> str:
         return ", ".join(f"{obj} {'yes' if flags[obj] else 'no'}" for obj in OBJECTIVES)
 
-    lines += ["", f"defaults on the front of all runs: {verdict(summary['default_on_front'])}"]
+    lines += ["", f"wall-time noise band (spread of the defaults' runs): {summary.get('wall_noise_s', 0)} s",
+              f"defaults on the front of all runs: {verdict(summary['default_on_front'])}"]
     lines += [f"  within {factor}: {verdict(f['default_on_front'])}" for factor, f in summary["factors"].items()]
     return "\n".join(lines)
