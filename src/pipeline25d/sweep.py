@@ -7,8 +7,9 @@ variant is a complete workflow run from scratch in its own folder (the runner of
 check-point RMSD in pixels and metres (mean over the oblique views; gsd changes what a
 pixel is, so compare gsd variants in metres), the LOD error actually drawn (the largest
 over rendered chunks of the chosen level's measured error, in pixels), the map error (mean
-absolute difference of its oblique maps from a reference run's: the defaults with MSAA 8
-and the finest LOD, on the reference's grid; it sees antialiasing, LOD, gsd and seams, which
+absolute difference of its oblique maps from a reference run's: the defaults with the most
+MSAA samples the renderer has (8, clamped to the GL limit: 4 on llvmpipe) and the finest
+LOD, on the reference's grid; it sees antialiasing, LOD, gsd and seams, which
 check points on exposed ground do not), tiles and sizes. The defaults run ``repeats`` times:
 their median is their time and the spread the noise band, within which no run counts as
 faster. :mod:`pipeline25d.sweep_report` marks the Pareto fronts and writes
@@ -240,7 +241,7 @@ def run_sweep(base: dict, plan: list[Variant], work: Path, cores: int = 2, resum
     ref_dir = work / "runs" / "reference"
     reference: Path | None = results_of(ref_dir, ref_config)
     if not (resume and (reference / "report" / "report.json").exists()):
-        log.info("sweep: reference run (MSAA 8, finest LOD; untimed, also the warm-up)")
+        log.info("sweep: reference run (most MSAA samples, finest LOD; untimed, also the warm-up)")
         try:
             run_workflow(ref_dir, ref_config, cores)
         except WorkflowRunError as exc:

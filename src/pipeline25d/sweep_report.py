@@ -19,7 +19,7 @@ from .pareto import pareto_front
 
 OBJECTIVES = {"rmsd_m": "check-point RMSD, m (mean of the oblique views)",
               "lod_px": "LOD error drawn, px (largest over rendered chunks)",
-              "map_mad": "map error, grey levels (mean abs. difference from MSAA 8, finest LOD)"}
+              "map_mad": "map error, grey levels (mean abs. difference from most MSAA, finest LOD)"}
 FIGSIZE, DPI = (18.0, 5.5), 100          # the PNG is 1800 x 550 px
 LABEL_PT, LABEL_CHAR_PT, LABEL_LINE_PT = 8, 4.8, 10   # label font size, rough width of a character, line step
 LOG_SPAN = 20                            # an error axis spanning more than this ratio is logarithmic
