@@ -11,7 +11,7 @@ APT_PACKAGES := python3-venv python3-dev build-essential gdal-bin libgdal-dev li
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 PYTHON ?= python3
 
-.PHONY: run test bench bench-sparse sweep deps sysdeps clean-results
+.PHONY: run test bench bench-sparse bench-coarse sweep deps sysdeps clean-results
 
 run: deps
 	$(PY) -m pipeline25d demo-city resources/demo
@@ -33,6 +33,12 @@ bench: deps
 # sparse : packed wall-time ratio.
 bench-sparse: deps
 	$(PY) -m pipeline25d.bench --grid 3x3 --decimate 0.1 --spread 11 --name sparse
+
+# A coarse map of a large area: 2 x 2 districts of the Delft mesh decimated to ~7k triangles
+# each (28k in all) and stretched 15 x in x and y (about 7.9 x 6.9 km), 9 maps at gsd 2 m;
+# writes bench/coarse.json
+bench-coarse: deps
+	$(PY) -m pipeline25d.bench --grid 2x2 --decimate 0.058 --stretch 15 --gsd 2 --name coarse
 
 # Run time against error: one factor at a time around the defaults (gsd, lod.max_error_px,
 # render.samples, tile_size, projection/warp), each variant a whole run of the Delft LiDAR mesh

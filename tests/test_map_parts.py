@@ -3,6 +3,8 @@ that equals the map warped whole."""
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 
@@ -183,3 +185,15 @@ def test_web_tiles_of_the_parts_are_the_whole_cut_where_there_is_data(two_towns,
         diffs[int(rel.parts[0])].append(np.abs(rgba(tmp_path / "parts" / rel) - rgba(tmp_path / "whole" / rel)).mean())
     assert max(diffs[zooms[-1]]) <= 0.01                       # max zoom: the same pixels
     assert max(max(v) for v in diffs.values()) <= 1.0          # shared overview tiles: composites
+
+
+def test_gdal_block_cache_is_capped_in_process_and_for_the_tools(monkeypatch):
+    """A job's memory must not grow with the map: GDAL's default cache (5 % of RAM) is capped."""
+    from pipeline25d.raster import CACHE_MB, gdal, tool_env
+
+    if "GDAL_CACHEMAX" not in os.environ:
+        assert gdal().GetCacheMax() <= CACHE_MB << 20
+    monkeypatch.delenv("GDAL_CACHEMAX", raising=False)
+    assert tool_env()["GDAL_CACHEMAX"] == str(CACHE_MB)
+    monkeypatch.setenv("GDAL_CACHEMAX", "1024")            # the user's own setting wins
+    assert tool_env()["GDAL_CACHEMAX"] == "1024"

@@ -36,11 +36,12 @@ SOURCE = REPO.parent / "shared" / "data" / "delft" / "delft_dsm_mesh.ply"
 
 
 def make_scene(out_dir: Path, nx: int, ny: int, decimate: float | None = None, source: Path = SOURCE,
-               spread: float = 1.0) -> dict:
+               spread: float = 1.0, stretch: float = 1.0) -> dict:
     """Write the district meshes into ``out_dir`` and return {district: path}.
 
     ``spread`` is the grid pitch in district sizes: 1 packs the copies edge to edge, larger
-    values leave empty land between them (a sparse scene with the same content).
+    values leave empty land between them (a sparse scene with the same content). ``stretch``
+    scales x and y (not z): a coarse mesh over a large area.
     """
     import trimesh
 
@@ -54,7 +55,9 @@ def make_scene(out_dir: Path, nx: int, ny: int, decimate: float | None = None, s
     if decimate:
         part = simplify_part(MeshPart(vertices=verts, faces=faces, colors=colors), 1.0 - decimate)
         verts, faces, colors = part.vertices, part.faces, part.colors
-    lo, hi = verts.min(axis=0), verts.max(axis=0)
+    lo = verts.min(axis=0)
+    verts[:, :2] = lo[:2] + (verts[:, :2] - lo[:2]) * stretch
+    hi = verts.max(axis=0)
     size = hi - lo
     out_dir.mkdir(parents=True, exist_ok=True)
     districts = {}
@@ -196,6 +199,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--spread", type=float, default=1.0,
                     help="grid pitch in district sizes; > 1 leaves empty land between districts and also runs "
                          "the packed twin (spread 1) to give the sparse : packed wall-time ratio")
+    ap.add_argument("--stretch", type=float, default=1.0,
+                    help="scale each district's x and y (not z) by this: a coarse mesh over a large area")
     ap.add_argument("--collect", action="store_true",
                     help="collect the figures of the last finished run again instead of running (wall time from its log)")
     args = ap.parse_args(argv)
@@ -206,14 +211,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.spread > 1:
         return sparse_against_packed(name, nx, ny, args)
     work = REPO / "bench" / name
-    districts = make_scene(work / "scene", nx, ny, args.decimate)
+    districts = make_scene(work / "scene", nx, ny, args.decimate, stretch=args.stretch)
     config = bench_config(name, districts, args.gsd, args.perspectives)
     try:
         wall = logged_wall(work) if args.collect else run_workflow(work, config, args.cores)
     except WorkflowRunError as exc:
         raise SystemExit(f"bench: {exc}") from None
     result = collect(work, config, wall, args.cores)
-    result["decimate"] = args.decimate
+    result["decimate"], result["stretch"] = args.decimate, args.stretch
     oblique = next(p for p in sorted(result["check_rmsd_px"]) if not p.endswith("el90"))
     samples = validate_schema(config)["render"]["samples"]          # the run's own MSAA setting
     result["render_vs_plain_loop"] = render_against_plain_loop(work / "results" / name, oblique, samples)

@@ -5,6 +5,7 @@
 
 from __future__ import annotations
 
+import os
 from functools import lru_cache
 from pathlib import Path
 
@@ -14,13 +15,25 @@ from .atomic import atomic_path
 from .errors import InputFileError
 
 
+CACHE_MB = 256      # GDAL's block cache per job (its default, 5 % of RAM, is what a sparse map's COG filled)
+
+
 @lru_cache(maxsize=1)
 def gdal():
-    """The osgeo.gdal module with exceptions enabled (imported on first use)."""
+    """The osgeo.gdal module with exceptions enabled (imported on first use), its block cache
+    capped at :data:`CACHE_MB` unless ``GDAL_CACHEMAX`` is set: a job's memory then does not
+    grow with the size of the rasters it writes."""
     from osgeo import gdal as _gdal
 
     _gdal.UseExceptions()
+    if "GDAL_CACHEMAX" not in os.environ and _gdal.GetCacheMax() > CACHE_MB << 20:
+        _gdal.SetCacheMax(CACHE_MB << 20)
     return _gdal
+
+
+def tool_env() -> dict[str, str]:
+    """The environment of a GDAL command-line tool: this one, with the same block cache cap."""
+    return {"GDAL_CACHEMAX": str(CACHE_MB), **os.environ}
 
 
 def write_rgba_geotiff(path: str | Path, rgba: np.ndarray, geotransform: tuple, wkt: str) -> None:

@@ -22,7 +22,7 @@ import numpy as np
 
 from .atomic import atomic_path
 from .errors import GdalToolError
-from .raster import gdal
+from .raster import gdal, tool_env
 
 log = logging.getLogger(__name__)
 
@@ -183,7 +183,7 @@ def choose(obs: list[dict], plan: dict, gt: tuple[float, ...], method: str, orde
 def run_tool(args: list[str]) -> None:
     """Run a GDAL command-line tool; GdalToolError with its stderr on failure."""
     log.info("%s", " ".join(args))
-    proc = subprocess.run(args, capture_output=True, text=True)
+    proc = subprocess.run(args, capture_output=True, text=True, env=tool_env())
     if proc.returncode != 0:
         raise GdalToolError(f"{args[0]} failed ({proc.returncode}): {proc.stderr.strip()[-2000:]}")
 
