@@ -10,7 +10,7 @@ import pytest
 from PIL import Image
 
 from pipeline25d.pareto import pareto_front
-from pipeline25d.sweep import QUICK, Variant, build_scene, merged, nested, run_sweep, variants
+from pipeline25d.sweep import QUICK, Variant, build_scene, merged, nested, run_sweep, schedule, variants
 from pipeline25d.sweep_report import DPI, FIGSIZE, OBJECTIVES, format_table, summarize, write_sweep
 
 NAN = math.nan
@@ -99,6 +99,16 @@ def test_the_noise_band_of_the_defaults_repeats_ties_runs_within_it():
     assert summary["factors"]["gsd"]["default_on_front"]["rmsd_m"] is False
     assert summarize([{**rows[0], "wall_runs": [31.0]}, rows[1]], {})["default_on_front"]["rmsd_m"] is False
     assert "noise band (spread of the defaults' runs): 3.0 s" in format_table(summary)
+
+
+def test_the_defaults_repeats_are_spread_through_the_sweep():
+    plan = [Variant("default", "default")] + [Variant(f"v{k}", "f", k) for k in range(1, 7)]
+    order = [(v.name, r) for v, r in schedule(plan, 3)]
+    assert order == [("default", 0), ("v1", 0), ("v2", 0), ("v3", 0), ("default", 1), ("v4", 0), ("v5", 0),
+                     ("v6", 0), ("default", 2)]
+    assert [(v.name, r) for v, r in schedule(plan[:1], 3)] == [("default", 0), ("default", 1), ("default", 2)]
+    assert [(v.name, r) for v, r in schedule(plan, 1)] == [(v.name, 0) for v in plan]
+    assert [(v.name, r) for v, r in schedule(plan[1:3], 3)] == [("v1", 0), ("v2", 0)]
 
 
 def test_map_error_is_the_mean_colour_difference_over_covered_pixels(tmp_path):

@@ -227,11 +227,12 @@ def run_sweep(base: dict, plan: list[Variant], work: Path, cores: int = 2, resum
     First, untimed, the reference run (the defaults with :data:`REFERENCE`), whose maps the map
     error compares with; it also pays the cold file caches and bytecode compilation the first
     run of a session pays (a first run took 37 s where runs of identical work took 31-33 s).
-    The defaults run ``repeats`` times (``wall_runs``; ``wall_s`` is their median). A failed
-    run gives a row with ``error`` and no figures. ``load_avg`` is the machine's 1-minute load
-    average before and after the run: above ``cores`` other work shared the cores and the
-    times are inflated. With ``resume`` a variant whose row was written by an earlier sweep
-    (``variant.json``) is not run again.
+    The defaults run ``repeats`` times, spread through the sweep (:func:`schedule`;
+    ``wall_runs``, ``wall_s`` is their median). A failed run gives a row with ``error`` and no
+    figures. ``load_avg`` is the lowest and highest 1-minute load average seen before and after
+    the variant's runs: above ``cores`` other work shared the cores and the times are inflated.
+    With ``resume`` a variant whose row was written by an earlier sweep (``variant.json``) is
+    not run again.
     """
     from statistics import median
 
@@ -248,30 +249,61 @@ def run_sweep(base: dict, plan: list[Variant], work: Path, cores: int = 2, resum
             log.warning("sweep: the reference run failed, no map error: %s", exc)
             reference = None
 
-    rows = []
-    for k, v in enumerate(plan, 1):
-        folder = work / "runs" / v.name
-        saved = folder / "variant.json"
-        if resume and saved.exists():
-            rows.append(json.loads(saved.read_text()))
+    walls: dict[str, list[float]] = {}
+    errors: dict[str, str] = {}
+    loads: dict[str, list[float]] = {}
+    todo = [(v, r) for v, r in schedule(plan, repeats) if not (resume and _saved(work, v).exists())]
+    for k, (v, r) in enumerate(todo, 1):
+        if v.name in errors:
             continue
-        config = validate_schema(merged(base, v.overrides))
-        row: dict[str, Any] = {"name": v.name, "factor": v.factor, "value": v.value}
-        log.info("sweep %d/%d: %s", k, len(plan), v.name)
-        load = os.getloadavg()[0]
+        folder = work / "runs" / (v.name if r == 0 else f"{v.name}-repeat{r}")
+        log.info("sweep %d/%d: %s%s", k, len(todo), v.name, f" (repeat {r})" if r else "")
+        loads.setdefault(v.name, []).append(round(os.getloadavg()[0], 2))
         try:
-            walls = [run_workflow(folder if r == 0 else folder.with_name(f"{v.name}-repeat{r}"), config, cores)
-                     for r in range(repeats if v.factor == "default" else 1)]
-            row |= measure(folder, config, median(walls), cores, reference)
-            if len(walls) > 1:
-                row["wall_runs"] = [round(w, 1) for w in walls]
+            walls.setdefault(v.name, []).append(run_workflow(folder, validate_schema(merged(base, v.overrides)), cores))
         except WorkflowRunError as exc:
-            row["error"] = str(exc)
+            errors[v.name] = str(exc)
             log.warning("sweep: %s: %s", v.name, exc)
-        row["load_avg"] = [round(load, 2), round(os.getloadavg()[0], 2)]     # others' jobs skew the times
-        write_json(saved, row)
+        loads[v.name].append(round(os.getloadavg()[0], 2))
+
+    rows = []
+    for v in plan:
+        if resume and _saved(work, v).exists():
+            rows.append(json.loads(_saved(work, v).read_text()))
+            continue
+        row: dict[str, Any] = {"name": v.name, "factor": v.factor, "value": v.value}
+        if v.name in errors:
+            row["error"] = errors[v.name]
+        else:
+            config = validate_schema(merged(base, v.overrides))
+            row |= measure(work / "runs" / v.name, config, median(walls[v.name]), cores, reference)
+            if len(walls[v.name]) > 1:
+                row["wall_runs"] = [round(w, 1) for w in walls[v.name]]
+        row["load_avg"] = [min(loads[v.name]), max(loads[v.name])]      # others' jobs skew the times
+        write_json(_saved(work, v), row)
         rows.append(row)
     return rows
+
+
+def _saved(work: Path, variant: Variant) -> Path:
+    return work / "runs" / variant.name / "variant.json"
+
+
+def schedule(plan: list[Variant], repeats: int) -> list[tuple[Variant, int]]:
+    """The order of the runs: (variant, repeat), the defaults' repeats spread evenly through the
+    sweep (first, then after every len(plan) / repeats variants), so that their spread also
+    holds whatever drifts while the sweep runs (a machine's load, its clock)."""
+    default = next((v for v in plan if v.factor == "default"), None)
+    others = [v for v in plan if v is not default]
+    if default is None:
+        return [(v, 0) for v in others]
+    after: dict[int, list[int]] = {}            # how many other variants run before each repeat
+    for r in range(1, repeats):
+        after.setdefault(round(r * len(others) / (repeats - 1)), []).append(r)
+    order = [(default, 0)] + [(default, r) for r in after.get(0, [])]
+    for k, v in enumerate(others, 1):
+        order += [(v, 0)] + [(default, r) for r in after.get(k, [])]
+    return order
 
 
 def main(argv: list[str] | None = None) -> int:
