@@ -11,7 +11,7 @@ APT_PACKAGES := python3-venv python3-dev build-essential gdal-bin libgdal-dev li
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 PYTHON ?= python3
 
-.PHONY: run test bench bench-sparse bench-coarse sweep deps sysdeps clean-results
+.PHONY: run test bench bench-sparse bench-coarse killtest sweep deps sysdeps clean-results
 
 run: deps
 	$(PY) -m pipeline25d demo-city resources/demo
@@ -39,6 +39,12 @@ bench-sparse: deps
 # writes bench/coarse.json
 bench-coarse: deps
 	$(PY) -m pipeline25d.bench --grid 2x2 --decimate 0.058 --stretch 15 --gsd 2 --name coarse
+
+# Kill-safe resume: 20 runs of the demo city (scale 0.5) interrupted at random moments by
+# SIGKILL, SIGINT and SIGTERM in turn, resumed, and compared with an uninterrupted run
+# (sha256 of every map and web tile); writes bench/killtest.json
+killtest: deps
+	$(PY) -m pipeline25d.killtest --trials 20
 
 # Run time against error: one factor at a time around the defaults (gsd, lod.max_error_px,
 # render.samples, tile_size, projection/warp), each variant a whole run of the Delft LiDAR mesh

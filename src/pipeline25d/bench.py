@@ -92,6 +92,12 @@ def results_of(workdir: Path, config: dict) -> Path:
     return workdir / "results" / config["scene"]
 
 
+def workflow_command(workdir: Path, cores: int = 2) -> list[str]:
+    """Snakemake on this repository's workflow in ``workdir``, with ``workdir/config.yaml``."""
+    return [sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"), "--directory", str(workdir),
+            "--configfile", str(workdir / "config.yaml"), f"-j{cores}"]
+
+
 def run_workflow(workdir: Path, config: dict, cores: int = 2) -> float:
     """Run the whole workflow on ``config`` in ``workdir`` from scratch; return its wall seconds.
 
@@ -102,8 +108,7 @@ def run_workflow(workdir: Path, config: dict, cores: int = 2) -> float:
     for stale in (results_of(workdir, config), workdir / ".snakemake"):
         shutil.rmtree(stale, ignore_errors=True)
     write_text(workdir / "config.yaml", yaml.safe_dump(config))
-    cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"), "--directory", str(workdir),
-           "--configfile", str(workdir / "config.yaml"), f"-j{cores}"]
+    cmd = workflow_command(workdir, cores)
     t0 = time.monotonic()
     proc = subprocess.run(cmd, capture_output=True, text=True)
     wall = time.monotonic() - t0

@@ -122,7 +122,7 @@ def build_scene(spec: str, out_dir: Path, decimate: float | None = DECIMATE) -> 
             paths = make_scene(out_dir / f"delft-{nx}x{ny}-{decimate or 1}", nx, ny, decimate)
             crs = "EPSG:28992"
         elif kind in ("demo", "rugged"):
-            manifest, where = _generated(kind, float(arg) if arg else None, out_dir)
+            manifest, where = generated_city(kind, float(arg) if arg else None, out_dir)
             paths = {k: where / v for k, v in manifest["districts"].items()}
             crs = manifest["crs"]
         else:
@@ -135,7 +135,7 @@ def build_scene(spec: str, out_dir: Path, decimate: float | None = DECIMATE) -> 
             "inputs": {k: {"path": str(p), "crs": crs} for k, p in sorted(paths.items())}}
 
 
-def _generated(kind: str, arg: float | None, out_dir: Path) -> tuple[dict, Path]:
+def generated_city(kind: str, arg: float | None, out_dir: Path) -> tuple[dict, Path]:
     """A generated city (manifest, folder): the demo city at scale ``arg`` or the rugged one of edge ``arg`` m."""
     if kind == "demo":
         from .demo import generate_demo_city

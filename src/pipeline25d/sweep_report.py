@@ -89,7 +89,7 @@ def plot_sweep(summary: dict, path: str | Path) -> None:
                     for r in rows if math.isfinite(_num(r.get(obj)))])
     fig.legend(loc="outside lower center", ncols=len(factors) + 2, fontsize=9, frameon=False)
     failed = len(summary["variants"]) - len(rows)
-    fig.suptitle(f"{summary.get('name', 'sweep')}: {summary.get('scene', '')}, {len(rows)} runs on "
+    fig.suptitle(f"{summary.get('name', 'sweep')}: {summary.get('scene', '')}, {len(rows)} variants on "
                  f"{summary.get('cores', '?')} cores" + (f" ({failed} failed, not shown)" if failed else "")
                  + f", lower left is better; wall-time noise band {summary.get('wall_noise_s', 0)} s")
     with atomic_path(path) as tmp:

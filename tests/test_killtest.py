@@ -1,0 +1,48 @@
+"""Kill-safe resume: runs interrupted by SIGKILL, SIGINT and SIGTERM resume to byte-identical outputs."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+
+import pytest
+
+from pipeline25d.killtest import demo_config, differences, live_members, output_digests, run_trials
+
+
+def test_digests_cover_maps_and_web_tiles_and_differences_name_each_path(tmp_path):
+    (tmp_path / "maps").mkdir()
+    (tmp_path / "tms" / "a" / "16" / "1").mkdir(parents=True)
+    (tmp_path / "maps" / "a.tif").write_bytes(b"map")
+    (tmp_path / "maps" / "a.json").write_text("{}")            # not an output compared
+    (tmp_path / "tms" / "a" / "16" / "1" / "2.webp").write_bytes(b"tile")
+    got = output_digests(tmp_path)
+    assert sorted(got) == ["maps/a.tif", "tms/a/16/1/2.webp"]
+    want = {**got, "maps/a.tif": "0" * 64, "maps/b.tif": "1" * 64}
+    assert differences(got, want) == ["maps/a.tif", "maps/b.tif"]
+    assert differences(got, got) == []
+
+
+def test_live_members_sees_a_process_group_until_it_is_gone():
+    proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"], start_new_session=True)
+    try:
+        assert live_members(proc.pid) == [proc.pid]
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    assert live_members(proc.pid) == []
+
+
+@pytest.mark.slow
+def test_runs_killed_interrupted_and_terminated_resume_to_identical_maps_and_tiles(tmp_path):
+    """Three trials on a small demo city, one per signal; make killtest runs twenty."""
+    config = demo_config(tmp_path / "scene", 0.25, [{"azimuth": 45, "elevation": 45},
+                                                    {"azimuth": 225, "elevation": 45}])
+    result = run_trials(tmp_path / "work", config, 3, ["KILL", "INT", "TERM"], seed=3)
+    assert result["files_compared"] > 10
+    for rec in result["trials"]:
+        assert rec["ok"] and rec["identical"] and rec["resume_rc"] == 0, rec
+        assert not rec["finished_before_signal"], rec          # the signal came while it ran
+        if rec["signal"] != "KILL":
+            assert rec["stopped"] and rec["stop_s"] < 10, rec
