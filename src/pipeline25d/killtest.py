@@ -67,12 +67,19 @@ def live_members(pgid: int) -> list[int]:
     return pids
 
 
+def _default_signals() -> None:
+    """In the child before exec: SIGINT and SIGTERM as a terminal would deliver them (a shell
+    starts background commands with SIGINT ignored, and an ignored signal stays ignored across exec)."""
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_DFL)
+
+
 def interrupt(workdir: Path, cores: int, sig: signal.Signals, at_s: float, stop_limit: float) -> dict:
     """Start the workflow in ``workdir`` as a new process group, send ``sig`` to the group after
     ``at_s`` seconds and wait for it to stop; SIGKILL it after ``stop_limit`` s if it has not."""
     with open(workdir / "interrupted.log", "w") as out:
         proc = subprocess.Popen(workflow_command(workdir, cores), stdout=out, stderr=subprocess.STDOUT,
-                                start_new_session=True)
+                                start_new_session=True, preexec_fn=_default_signals)
         try:
             proc.wait(timeout=at_s)
             return {"finished_before_signal": True, "rc": proc.returncode}
@@ -84,11 +91,19 @@ def interrupt(workdir: Path, cores: int, sig: signal.Signals, at_s: float, stop_
             proc.poll()
             time.sleep(0.05)
         stop_s = time.monotonic() - sent
-        stopped = not live_members(proc.pid)
-        if not stopped:
+        left = [_cmdline(pid) for pid in live_members(proc.pid)]
+        if left:
             os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
-    return {"finished_before_signal": False, "stop_s": round(stop_s, 2), "stopped": stopped}
+    return {"finished_before_signal": False, "stop_s": round(stop_s, 2), "stopped": not left,
+            **({"left_running": left} if left else {})}
+
+
+def _cmdline(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")[:160]
+    except OSError:
+        return f"{pid} (gone)"
 
 
 def trial(workdir: Path, config: dict, sig_name: str, at_s: float, reference: dict[str, str], cores: int = 2,
