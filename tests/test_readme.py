@@ -1,0 +1,84 @@
+"""Every command the README shows works as written from the repository root, with no PATH set by hand.
+
+Each command is checked as far as it can be without its inputs: programs are the venv's or
+make, make targets dry-run (``make -n``), Snakemake commands dry-run (``-n``) on their
+configs, and Python modules answer ``--help`` with every option the README gives them.
+``make run``/``make test`` themselves run in CI from a fresh clone (``.ci/run``).
+"""
+
+from __future__ import annotations
+
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+README = (REPO / "README.md").read_text()
+PROGRAM = re.compile(r"(make|python3?|snakemake|pytest|pip)\b|\.venv/bin/")
+
+
+def shown_commands() -> list[str]:
+    """Command lines of the README's fenced blocks (comments dropped) and its inline commands."""
+    commands = []
+    for block in re.findall(r"```[a-z]*\n(.*?)```", README, re.S):
+        for line in block.splitlines():
+            line = re.sub(r"\s+#.*$", "", line).strip()
+            if line and not line.startswith("#"):
+                commands.append(line)
+    commands += [code for code in re.findall(r"`([^`\n]+)`", README) if PROGRAM.match(code)]
+    return list(dict.fromkeys(commands))
+
+
+COMMANDS = shown_commands()
+
+
+def test_the_readme_shows_the_commands_a_new_user_needs():
+    assert COMMANDS[:2] == ["make run", "make test"]            # the first two, as the guide asks
+    assert any(c.startswith(".venv/bin/snakemake") for c in COMMANDS)
+    assert any(c.startswith(".venv/bin/python -m") for c in COMMANDS)
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_no_command_relies_on_path(command):
+    args = shlex.split(command)
+    if args[0] == "python3" and args[1] == "-m":                # Debian's own Python: the standard library only
+        assert args[2].split(".")[0] in sys.stdlib_module_names, f"{command!r} needs the venv's Python"
+        return
+    assert args[0] == "make" or args[0].startswith(".venv/bin/"), \
+        f"{command!r} runs {args[0]!r} from PATH, which a fresh clone does not set up"
+
+
+@pytest.mark.parametrize("command", [c for c in COMMANDS if c.startswith("make ")])
+def test_make_targets_dry_run(command):
+    proc = subprocess.run(shlex.split(command)[:1] + ["-n"] + shlex.split(command)[1:], cwd=REPO,
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+
+
+@pytest.mark.parametrize("command", [c for c in COMMANDS if c.startswith(".venv/bin/snakemake")])
+def test_snakemake_commands_dry_run(command):
+    args = shlex.split(command)
+    if "--unlock" in args:
+        pytest.skip("--unlock only acts on a locked folder")
+    for k, arg in enumerate(args[:-1]):
+        if arg == "--configfile":
+            assert (REPO / args[k + 1]).exists(), f"{args[k + 1]} is not in the repository"
+    proc = subprocess.run(args + ["-n", "--quiet"], cwd=REPO, capture_output=True, text=True)
+    if proc.returncode and "shared/data" in proc.stdout + proc.stderr and not (REPO.parent / "shared").exists():
+        pytest.skip("the shared data are not beside this checkout")
+    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-2000:]
+
+
+@pytest.mark.parametrize("command", [c for c in COMMANDS if c.startswith(".venv/bin/python -m")])
+def test_python_modules_take_the_options_shown(command):
+    args = shlex.split(command)
+    module = args[2]
+    sub = [args[3]] if len(args) > 3 and re.fullmatch(r"[a-z][a-z-]*", args[3]) else []
+    proc = subprocess.run([args[0], "-m", module, *sub, "--help"], cwd=REPO, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    for option in (a.split("=")[0] for a in args if a.startswith("--")):
+        assert option in proc.stdout, f"{module} {' '.join(sub)} has no option {option}"
