@@ -14,3 +14,27 @@ def test_measurements_never_print_as_zero():
 def test_size_ratio_puts_the_larger_side_first():
     assert _ratio(34.5) == "34.5 : 1"
     assert _ratio(19.76 / 423.86) == "1 : 21.5"          # maps larger than the model: not "0.0 : 1"
+
+
+def test_stage_timings_count_only_this_configurations_jobs(tmp_path):
+    """Benchmark files an earlier configuration left behind (a removed district, a render block of
+    another grouping) do not count in the report's timings."""
+    from pipeline25d.report import current_jobs, stage_timings
+
+    def tsv(rel: str, seconds: float) -> None:
+        path = tmp_path / "benchmarks" / rel
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(f"s\th:m:s\tmax_rss\n{seconds}\t0:00:01\t100.0\n")
+
+    tsv("scene.tsv", 1.0)
+    tsv("lod/d0.tsv", 2.0)
+    tsv("lod/gone.tsv", 50.0)                            # a district no longer in the config
+    tsv("warp/az045_el45.tsv", 3.0)
+    tsv("warp/az135_el45.tsv", 60.0)                     # a perspective no longer asked for
+    tsv("render/az045_el45/block_0_1_2.tsv", 4.0)
+    tsv("render/az045_el45/block_0_9_9.tsv", 70.0)       # an older grouping's block
+    current = current_jobs({"d0"}, {"az045_el45": {"0_1_2"}})
+    got = stage_timings(tmp_path, current)
+    assert {k: (v["jobs"], v["seconds"]) for k, v in got.items()} == \
+        {"scene": (1, 1.0), "lod": (1, 2.0), "warp": (1, 3.0), "render": (1, 4.0)}
+    assert stage_timings(tmp_path)["render"]["jobs"] == 2         # without the filter: every file

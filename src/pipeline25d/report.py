@@ -8,6 +8,7 @@ from pathlib import Path
 
 from .atomic import write_json, write_text
 from .perspectives import Perspective
+from .plan import plan_blocks
 from .raster import gdal
 
 
@@ -35,10 +36,13 @@ def benchmark_rows(where: Path) -> list[tuple[Path, dict]]:
     return rows
 
 
-def stage_timings(results: Path) -> dict[str, dict]:
-    """Sum of wall seconds and max RSS (MB) per stage from Snakemake benchmark files."""
+def stage_timings(results: Path, current=None) -> dict[str, dict]:
+    """Sum of wall seconds and max RSS (MB) per stage from Snakemake benchmark files; with
+    ``current(path relative to benchmarks/)``, only the files it accepts (see :func:`current_jobs`)."""
     out: dict[str, dict] = {}
     for tsv, row in benchmark_rows(results / "benchmarks"):
+        if current is not None and not current(tsv.relative_to(results / "benchmarks")):
+            continue
         stage = tsv.relative_to(results / "benchmarks").parts[0].removesuffix(".tsv")
         rec = out.setdefault(stage, {"jobs": 0, "seconds": 0.0, "max_rss_mb": 0.0})
         rec["jobs"] += 1
@@ -47,6 +51,20 @@ def stage_timings(results: Path) -> dict[str, dict]:
         if rss not in ("NA", "-", ""):
             rec["max_rss_mb"] = max(rec["max_rss_mb"], float(rss))
     return out
+
+
+def current_jobs(districts: set[str], blocks: dict[str, set[str]]):
+    """``current(benchmark file)``: whether it belongs to a job of this configuration, whose
+    ``districts`` and perspectives' render ``blocks`` (ids by perspective) are given. Files an
+    earlier configuration left (a removed district or perspective, a render block of another
+    grouping) are not this run's."""
+    def current(rel: Path) -> bool:
+        if len(rel.parts) == 1:                              # scene.tsv, terrain.tsv
+            return True
+        if rel.parts[0] == "render":
+            return rel.parts[1] in blocks and rel.stem.removeprefix("block_") in blocks[rel.parts[1]]
+        return rel.stem in districts or rel.stem in blocks
+    return current
 
 
 def lonlat_bounds(cog: Path) -> list[float]:
@@ -70,9 +88,10 @@ def build_report(config: dict, results: str | Path) -> dict:
     scene = json.loads((results / "scene.json").read_text())
     terrain_meta = results / "terrain" / "terrain.json"
     terrain = json.loads(terrain_meta.read_text()) if terrain_meta.exists() else {"source": scene.get("terrain")}
-    persp = []
+    persp, blocks = [], {}
     for pid in sorted(p.id for p in perspectives(config)):
         plan = json.loads((results / "plans" / f"{pid}.json").read_text())
+        blocks[pid] = set(plan_blocks(plan, config["render"]["block"]))
         warp = json.loads((results / "maps" / f"{pid}.json").read_text())
         cog = results / "maps" / f"{pid}.tif"
         p = Perspective.from_id(pid)
@@ -101,7 +120,7 @@ def build_report(config: dict, results: str | Path) -> dict:
         "perspectives": persp,
         "sizes": {"model_bytes": model, "maps_bytes": maps, "tms_bytes": tms,
                   "model_to_maps": model / maps if maps else None},
-        "timings": stage_timings(results),
+        "timings": stage_timings(results, current_jobs(set(config["inputs"]), blocks)),
     }
 
 
