@@ -87,3 +87,33 @@ def test_jpeg_maps_keep_their_transparency_as_a_mask_that_the_readers_use(tmp_pa
         assert (alpha[:150, :200] == 0).all() and (alpha[200:, 250:] == 255).all(), codec
     assert gdal.Open(str(tmp_path / "jpeg.tif")).RasterCount == 3
     assert sizes["jpeg"] < sizes["deflate"] / 2 and sizes["webp"] < sizes["deflate"] / 2, sizes
+
+
+def test_a_cut_removes_what_a_killed_cut_of_the_same_map_left(tmp_path):
+    _smooth_map(tmp_path / "map.tif")
+    stale_dir, stale_file = tmp_path / ".out.k1ll3d", tmp_path / ".out.3857.tif"
+    (stale_dir / "17" / "1").mkdir(parents=True)
+    (stale_dir / "17" / "1" / "2.png").write_bytes(b"half a tile")
+    stale_file.write_bytes(b"half a raster")
+    (tmp_path / ".other.k1ll3d").mkdir()                   # another map's: not this cut's to remove
+    tms(tmp_path / "map.tif", "auto", tmp_path / "out", tile_format="png")
+    assert not stale_dir.exists() and not stale_file.exists() and (tmp_path / ".other.k1ll3d").exists()
+    assert any((tmp_path / "out").rglob("*.png"))
+
+
+def test_sigterm_removes_a_jobs_temporaries_like_ctrl_c(tmp_path):
+    """A job stopped by SIGTERM (a scheduler's cancel) leaves no temporary file behind."""
+    import signal
+    import time
+
+    script = (f"import time; from pipeline25d.atomic import atomic_path; from pipeline25d.logsetup import log_to\n"
+              f"log_to({str(tmp_path / 'job.log')!r})\n"
+              f"with atomic_path({str(tmp_path / 'out.tif')!r}) as tmp:\n"
+              f"    tmp.write_bytes(b'partial'); print('ready', flush=True); time.sleep(60)\n")
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "ready"
+    assert len(list(tmp_path.glob(".out.tif.*"))) == 1
+    t0 = time.monotonic()
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=10) == 128 + signal.SIGTERM and time.monotonic() - t0 < 5
+    assert not list(tmp_path.glob(".out.tif.*")) and not (tmp_path / "out.tif").exists()

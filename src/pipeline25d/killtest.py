@@ -43,9 +43,20 @@ STOP_LIMIT_S = 10.0
 
 
 def output_digests(results: Path) -> dict[str, str]:
-    """sha256 of every map (maps/*.tif) and web tile (tms/**) of a results folder, by relative path."""
+    """sha256 of every map (maps/*.tif) and web tile (tms/**) of a results folder, by relative
+    path; hidden names (a job's temporaries, see :mod:`pipeline25d.atomic`) are not outputs."""
     files = sorted(results.glob("maps/*.tif")) + sorted(p for p in results.glob("tms/**/*") if p.is_file())
-    return {str(p.relative_to(results)): hashlib.sha256(p.read_bytes()).hexdigest() for p in files}
+    return {str(p.relative_to(results)): hashlib.sha256(p.read_bytes()).hexdigest() for p in files
+            if not _hidden(p.relative_to(results))}
+
+
+def temporaries(results: Path) -> list[str]:
+    """Hidden files and folders anywhere in a results folder: what an interrupted job left."""
+    return sorted(str(p.relative_to(results)) for p in results.rglob(".*") if not _hidden(p.parent.relative_to(results)))
+
+
+def _hidden(rel: Path) -> bool:
+    return any(part.startswith(".") for part in rel.parts)
 
 
 def differences(got: dict[str, str], want: dict[str, str]) -> list[str]:
@@ -120,6 +131,7 @@ def trial(workdir: Path, config: dict, sig_name: str, at_s: float, reference: di
     resumed = subprocess.run(workflow_command(workdir, cores), capture_output=True, text=True)
     write_text(workdir / "resumed.log", unlock.stdout + unlock.stderr + resumed.stdout + resumed.stderr)
     differ = differences(output_digests(results_of(workdir, config)), reference)
+    record["temporaries_left"] = temporaries(results_of(workdir, config))
     record.update({"unlock_rc": unlock.returncode, "resume_rc": resumed.returncode,
                    "identical": resumed.returncode == 0 and not differ, "differing": differ[:20]})
     record["ok"] = record["identical"] and (sig_name == "KILL" or record.get("stopped", True))

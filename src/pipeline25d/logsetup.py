@@ -1,10 +1,21 @@
-"""Logging for Snakemake script jobs: everything to the rule's log file."""
+"""Set-up of a job's process: its log (everything to the rule's log file) and its signals."""
 
 from __future__ import annotations
 
 import logging
+import signal
+import sys
+
+
+def exit_on_sigterm() -> None:
+    """SIGTERM (a scheduler's cancel, Snakemake stopping its jobs) raises SystemExit like Ctrl-C
+    raises KeyboardInterrupt, so a job's ``finally`` and ``except BaseException`` blocks remove
+    its temporary files (by default SIGTERM ends Python at once, leaving them behind)."""
+    signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
 
 
 def log_to(path: str) -> None:
+    """Log a Snakemake script job to ``path``, and make it stop cleanly on SIGTERM."""
     logging.basicConfig(filename=path, level=logging.INFO, force=True,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    exit_on_sigterm()

@@ -42,6 +42,8 @@ def tms(cog: str | Path, zoom: str, out_dir: str | Path, processes: int = 1, til
     """
     out_dir = Path(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
+    for stale in out_dir.parent.glob(f".{out_dir.name}.*"):        # what a killed cut left behind
+        shutil.rmtree(stale) if stale.is_dir() else stale.unlink()
     tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
     try:
         if parts and len(parts) > 1:
