@@ -51,8 +51,10 @@ def output_digests(results: Path) -> dict[str, str]:
 
 
 def temporaries(results: Path) -> list[str]:
-    """Hidden files and folders anywhere in a results folder: what an interrupted job left."""
-    return sorted(str(p.relative_to(results)) for p in results.rglob(".*") if not _hidden(p.parent.relative_to(results)))
+    """Hidden files and folders anywhere in a results folder (Snakemake's own
+    ``.snakemake_timestamp`` markers aside): what an interrupted job left."""
+    return sorted(str(p.relative_to(results)) for p in results.rglob(".*")
+                  if p.name != ".snakemake_timestamp" and not _hidden(p.parent.relative_to(results)))
 
 
 def _hidden(rel: Path) -> bool:
