@@ -40,11 +40,13 @@ bench-sparse: deps
 bench-coarse: deps
 	$(PY) -m pipeline25d.bench --grid 2x2 --decimate 0.058 --stretch 15 --gsd 2 --name coarse
 
-# Kill-safe resume: 20 runs of the demo city (scale 0.5) interrupted at random moments by
-# SIGKILL, SIGINT and SIGTERM in turn, resumed, and compared with an uninterrupted run
-# (sha256 of every map and web tile); writes bench/killtest.json
+# Kill-safe resume: runs of the demo city (scale 0.5) interrupted at random moments, 20 by
+# SIGKILL and 10 by SIGINT and SIGTERM in turn, resumed, and compared with an uninterrupted
+# run (sha256 of every map and web tile); writes bench/killtest-sigkill.json and
+# bench/killtest-stop.json
 killtest: deps
-	$(PY) -m pipeline25d.killtest --trials 20
+	$(PY) -m pipeline25d.killtest --trials 20 --signals KILL --seed 2 --name killtest-sigkill
+	$(PY) -m pipeline25d.killtest --trials 10 --signals INT,TERM --seed 3 --name killtest-stop
 
 # Run time against error: one factor at a time around the defaults (gsd, lod.max_error_px,
 # render.samples, tile_size, projection/warp), each variant a whole run of the Delft LiDAR mesh
