@@ -54,7 +54,8 @@ def test_pareto_front_matches_the_definition_on_random_ties():
 
 def _row(name, factor, wall, rmsd, lod, value=None):
     return {"name": name, "factor": factor, "value": value, "wall_s": wall, "job_s": 2 * wall, "rmsd_px": rmsd,
-            "rmsd_m": None if rmsd is None else rmsd * 0.25, "lod_px": lod, "tiles_rendered": 4}
+            "rmsd_m": None if rmsd is None else rmsd * 0.25, "lod_px": lod,
+            "gsd": value if factor == "gsd" else 0.25, "tiles_rendered": 4}
 
 
 def test_summary_json_flags_match_pareto_front_and_the_plot_is_a_png(tmp_path):
@@ -70,8 +71,10 @@ def test_summary_json_flags_match_pareto_front_and_the_plot_is_a_png(tmp_path):
     with Image.open(tmp_path / "s.png") as img:
         assert img.format == "PNG" and img.size == (round(FIGSIZE[0] * DPI), round(FIGSIZE[1] * DPI))
     data = json.loads((tmp_path / "s.json").read_text())
+    # the LOD objective is in metres: px times the run's gsd (a gsd-1.0 pixel is four of the defaults')
+    assert [r.get("lod_m") for r in data["variants"]] == [0.1, 0.225, 0.3, 0.1, 0.1, 0.1, None]
     for obj in OBJECTIVES:
-        pts = [(r.get("wall_s", NAN), NAN if r.get(obj) is None else r[obj]) for r in rows]
+        pts = [(r.get("wall_s", NAN), NAN if r.get(obj) is None else r[obj]) for r in data["variants"]]
         front = pareto_front(pts)
         assert data["front"][obj] == [rows[i]["name"] for i in front]
         assert [r["on_front"][obj] for r in data["variants"]] == [i in front for i in range(len(rows))]
@@ -80,13 +83,13 @@ def test_summary_json_flags_match_pareto_front_and_the_plot_is_a_png(tmp_path):
             members = [i for i, r in enumerate(rows) if r["factor"] in (factor, "default")]
             sub = pareto_front([pts[i] for i in members])
             assert entry["default_on_front"][obj] is (0 in sub), (factor, obj)
-    assert data["front"]["rmsd_m"] == ["gsd-1.0"] and not data["default_on_front"]["lod_px"]
+    assert data["front"]["rmsd_m"] == ["gsd-1.0"] and not data["default_on_front"]["lod_m"]
     # MSAA does not change the LOD drawn, so the faster msaa-0 dominates the defaults there
-    assert data["factors"]["render.samples"]["default_on_front"] == {"rmsd_m": True, "lod_px": False,
+    assert data["factors"]["render.samples"]["default_on_front"] == {"rmsd_m": True, "lod_m": False,
                                                                      "map_mad": False}    # no map error measured
     assert data["factors"]["render.samples"]["front"]["rmsd_m"] == ["msaa-0", "default"]
     table = format_table(summary)
-    assert "plane        failed" in table and "within gsd: rmsd_m no, lod_px no, map_mad no" in table
+    assert "plane        failed" in table and "within gsd: rmsd_m no, lod_m yes, map_mad no" in table
 
 
 def test_the_noise_band_of_the_defaults_repeats_ties_runs_within_it():
@@ -182,5 +185,5 @@ def test_a_failed_run_is_a_row_with_its_error_and_no_figures(tmp_path):
     assert "the workflow failed" in row["error"] and "wall_s" not in row
     assert "missing.obj" in (tmp_path / "work" / "runs" / "default" / "snakemake.log").read_text()
     summary = summarize([row], {})
-    assert summary["front"] == {"rmsd_m": [], "lod_px": [], "map_mad": []}
+    assert summary["front"] == {"rmsd_m": [], "lod_m": [], "map_mad": []}
     assert summary["default_on_front"]["rmsd_m"] is False

@@ -1,7 +1,7 @@
 """Sweep results: Pareto fronts of wall time against error, written as JSON, a plot and a table.
 
-Each objective pairs wall time with one error (both minimized): check-point RMSD in
-metres (pixels are not comparable across gsd variants), the LOD error drawn in pixels, and
+Each objective pairs wall time with one error (both minimized): check-point RMSD and the
+LOD error drawn, both in metres (pixels are not comparable across gsd variants), and
 the map error against a reference render. Fronts are taken over all variants, and per
 factor over the defaults plus that factor's variants, which says whether the default of
 that factor is a Pareto-optimal choice. A run is faster than another only by more than the
@@ -18,7 +18,7 @@ from .atomic import atomic_path, write_json
 from .pareto import pareto_front
 
 OBJECTIVES = {"rmsd_m": "check-point RMSD, m (mean of the oblique views)",
-              "lod_px": "LOD error drawn, px (largest over rendered chunks)",
+              "lod_m": "LOD error drawn, m (largest over rendered chunks; px at the run's gsd)",
               "map_mad": "map error, grey levels (mean abs. difference from most MSAA, finest LOD)"}
 FIGSIZE, DPI = (18.0, 5.5), 100          # the PNG is 1800 x 550 px
 LABEL_PT, LABEL_CHAR_PT, LABEL_LINE_PT = 8, 4.8, 10   # label font size, rough width of a character, line step
@@ -44,6 +44,9 @@ def summarize(rows: list[dict], meta: dict) -> dict:
     whether the defaults are on them, and the same per factor; wall times differing by no more
     than :func:`wall_noise` count as equal."""
     rows = [dict(r) for r in rows]
+    for r in rows:                   # the LOD error in metres: a pixel of a gsd variant is another size
+        if r.get("lod_px") is not None and r.get("gsd") is not None:
+            r["lod_m"] = round(r["lod_px"] * r["gsd"], 4)
     default = next((i for i, r in enumerate(rows) if r["factor"] == "default"), None)
     noise = wall_noise(rows)
     tolerance = (noise, 0.0)
@@ -122,15 +125,16 @@ def _panel(ax, rows: list[dict], obj: str, factors: list[str], legend: bool) -> 
     else:
         right = 1.25 * hi or 1.0
         ax.set_xlim(-0.02 * right, right)                   # points at 0 whole, not cut by the axis
-    if hi == 0 and obj == "lod_px":
+    if hi == 0 and obj == "lod_m":
         ax.text(0.5, 0.5, "every run drew full-detail levels only (error 0)", transform=ax.transAxes,
                 ha="center", color="0.4")
 
 
 def _label_text(row: dict, obj: str) -> str:
-    """The variant's name; with its RMSD in pixels where the gsd may differ from the defaults'."""
-    if obj == "rmsd_m" and row["factor"] in ("default", "gsd") and row.get("rmsd_px") is not None:
-        return f"{row['name']} ({row['rmsd_px']:.2f} px)"
+    """The variant's name; with its error in pixels where the gsd may differ from the defaults'."""
+    px = {"rmsd_m": row.get("rmsd_px"), "lod_m": row.get("lod_px")}.get(obj)
+    if row["factor"] in ("default", "gsd") and px is not None:
+        return f"{row['name']} ({px:.2f} px)"
     return row["name"]
 
 
