@@ -3,22 +3,16 @@
 from __future__ import annotations
 
 import subprocess
-import sys
 import time
 
 import pytest
 import yaml
 
 from pipeline25d.atomic import write_text
-from pipeline25d.bench import REPO, results_of, run_workflow
+from pipeline25d.bench import results_of, run_workflow, workflow_command
 from pipeline25d.killtest import demo_config, output_digests
 
 ONE_VIEW = [{"azimuth": 45, "elevation": 45}]
-
-
-def _command(workdir, config_file):
-    return [sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"), "--directory", str(workdir),
-            "--configfile", str(config_file), "-j1"]
 
 
 @pytest.mark.slow
@@ -29,14 +23,14 @@ def test_two_scenes_run_side_by_side_and_the_same_scene_twice_is_refused(tmp_pat
     work.mkdir()
     for name, config in configs.items():
         write_text(work / f"{name}.yaml", yaml.safe_dump(config))
-    first = subprocess.Popen(_command(work, work / "north.yaml"), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                             text=True)
+    first = subprocess.Popen(workflow_command(work, 1, work / "north.yaml"), stdout=subprocess.PIPE,
+                             stderr=subprocess.STDOUT, text=True)
     locks = work / ".snakemake" / "locks"
     while first.poll() is None and not (locks.is_dir() and any(locks.iterdir())):
         time.sleep(0.1)
     assert first.poll() is None, "the first run ended before a second could start beside it"
-    again = subprocess.run(_command(work, work / "north.yaml"), capture_output=True, text=True)
-    other = subprocess.run(_command(work, work / "south.yaml"), capture_output=True, text=True)
+    again = subprocess.run(workflow_command(work, 1, work / "north.yaml"), capture_output=True, text=True)
+    other = subprocess.run(workflow_command(work, 1, work / "south.yaml"), capture_output=True, text=True)
     out, _ = first.communicate()
     assert first.returncode == 0, out[-2000:]
     assert again.returncode != 0 and "cannot be locked" in again.stdout + again.stderr

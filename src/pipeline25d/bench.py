@@ -92,10 +92,11 @@ def results_of(workdir: Path, config: dict) -> Path:
     return workdir / "results" / config["scene"]
 
 
-def workflow_command(workdir: Path, cores: int = 2) -> list[str]:
-    """Snakemake on this repository's workflow in ``workdir``, with ``workdir/config.yaml``."""
+def workflow_command(workdir: Path, cores: int = 2, configfile: Path | None = None) -> list[str]:
+    """Snakemake on this repository's workflow in ``workdir``, with ``configfile`` (default
+    ``workdir/config.yaml``)."""
     return [sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"), "--directory", str(workdir),
-            "--configfile", str(workdir / "config.yaml"), f"-j{cores}"]
+            "--configfile", str(configfile or workdir / "config.yaml"), f"-j{cores}"]
 
 
 def run_workflow(workdir: Path, config: dict, cores: int = 2) -> float:

@@ -252,6 +252,7 @@ def run_sweep(base: dict, plan: list[Variant], work: Path, cores: int = 2, resum
     walls: dict[str, list[float]] = {}
     errors: dict[str, str] = {}
     loads: dict[str, list[float]] = {}
+    configs = {v.name: validate_schema(merged(base, v.overrides)) for v in plan}
     todo = [(v, r) for v, r in schedule(plan, repeats) if not (resume and _saved(work, v).exists())]
     for k, (v, r) in enumerate(todo, 1):
         if v.name in errors:
@@ -260,7 +261,7 @@ def run_sweep(base: dict, plan: list[Variant], work: Path, cores: int = 2, resum
         log.info("sweep %d/%d: %s%s", k, len(todo), v.name, f" (repeat {r})" if r else "")
         loads.setdefault(v.name, []).append(round(os.getloadavg()[0], 2))
         try:
-            walls.setdefault(v.name, []).append(run_workflow(folder, validate_schema(merged(base, v.overrides)), cores))
+            walls.setdefault(v.name, []).append(run_workflow(folder, configs[v.name], cores))
         except WorkflowRunError as exc:
             errors[v.name] = str(exc)
             log.warning("sweep: %s: %s", v.name, exc)
@@ -275,8 +276,7 @@ def run_sweep(base: dict, plan: list[Variant], work: Path, cores: int = 2, resum
         if v.name in errors:
             row["error"] = errors[v.name]
         else:
-            config = validate_schema(merged(base, v.overrides))
-            row |= measure(work / "runs" / v.name, config, median(walls[v.name]), cores, reference)
+            row |= measure(work / "runs" / v.name, configs[v.name], median(walls[v.name]), cores, reference)
             if len(walls[v.name]) > 1:
                 row["wall_runs"] = [round(w, 1) for w in walls[v.name]]
         row["load_avg"] = [min(loads[v.name]), max(loads[v.name])]      # others' jobs skew the times
@@ -291,8 +291,8 @@ def _saved(work: Path, variant: Variant) -> Path:
 
 def schedule(plan: list[Variant], repeats: int) -> list[tuple[Variant, int]]:
     """The order of the runs: (variant, repeat), the defaults' repeats spread evenly through the
-    sweep (first, then after every len(plan) / repeats variants), so that their spread also
-    holds whatever drifts while the sweep runs (a machine's load, its clock)."""
+    sweep (first, then after every (number of other variants) / (repeats - 1) of them, the
+    last at the end), so that their spread also holds whatever drifts while the sweep runs."""
     default = next((v for v in plan if v.factor == "default"), None)
     others = [v for v in plan if v is not default]
     if default is None:

@@ -435,8 +435,9 @@ def _fill_nodata(seed: np.ndarray, search_cells: int) -> np.ndarray:
     """FillNodata's inverse-distance fill of ``seed`` within ``search_cells`` (NaN beyond).
 
     A cell depends only on the seed within ``search_cells`` rows and columns of it, so only
-    the seed's bounding box grown by that much is filled (a sparse window is mostly empty
-    land, where FillNodata would search the whole distance from every cell for nothing).
+    the windows around groups of seed cells are filled (:func:`near_windows`; a sparse window
+    is mostly empty land, where FillNodata would search the whole distance from every cell
+    for nothing).
     """
     out = np.full(seed.shape, np.nan)
     for window, take in near_windows(np.isfinite(seed), max(int(search_cells), 1) + 1):
@@ -465,12 +466,12 @@ def near_windows(mask: np.ndarray, reach: int, cell: int = 64) -> list[tuple[tup
     k = -(-int(reach) // cell)
     kept = ndi.binary_dilation(squares, np.ones((2 * k + 1, 2 * k + 1), bool)) if squares.any() else squares
     labels, _ = ndi.label(kept, np.ones((3, 3), bool))
+    cell_labels = np.repeat(np.repeat(labels, cell, axis=0), cell, axis=1)[:h, :w]      # each cell's group
     out = []
     for label, (rs, cs) in enumerate(ndi.find_objects(labels), 1):
         window = (slice(max(rs.start * cell - reach, 0), min(rs.stop * cell + reach, h)),
                   slice(max(cs.start * cell - reach, 0), min(cs.stop * cell + reach, w)))
-        own = np.repeat(np.repeat(labels == label, cell, axis=0), cell, axis=1)[:h, :w]
-        out.append((window, own[window]))
+        out.append((window, cell_labels[window] == label))
     return out
 
 

@@ -43,7 +43,10 @@ def tms(cog: str | Path, zoom: str, out_dir: str | Path, processes: int = 1, til
     out_dir = Path(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     for stale in out_dir.parent.glob(f".{out_dir.name}.*"):        # what a killed cut left behind
-        shutil.rmtree(stale) if stale.is_dir() else stale.unlink()
+        if stale.is_dir():
+            shutil.rmtree(stale)
+        else:
+            stale.unlink()
     tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
     try:
         if parts and len(parts) > 1:
@@ -181,7 +184,9 @@ def _cut_part(cog: str, window: tuple[float, ...], res: tuple[float, float], zoo
     args = ["gdal2tiles", *_gdal2tiles_args(zooms, 1, tile_format, quality, exclude_empty=True), mercator, tiles]
     try:
         gdal2tiles.submain(args)
-    except SystemExit as exc:          # gdal2tiles exits on a bad argument or input
+    except SystemExit as exc:          # gdal2tiles exits with 2 on a bad argument or input
+        if exc.code != 2:
+            raise                      # not gdal2tiles' own: SIGTERM (logsetup.exit_on_sigterm)
         raise GdalToolError(f"gdal2tiles failed on {mercator} (exit {exc.code})") from None
     Path(mercator).unlink()
     return tiles
