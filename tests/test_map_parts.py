@@ -156,35 +156,40 @@ def test_sparse_map_equals_the_map_warped_whole(two_towns, method, tmp_path):
             assert diff.max() <= 1 and diff.mean() < 0.01, (f, diff.max(), diff.mean())
 
 
-def test_web_tiles_of_the_parts_are_the_whole_cut_where_there_is_data(two_towns, tmp_path):
-    """Cut part by part: the same tiles as gdal2tiles over the whole map wherever a tile holds
-    data (shared low-zoom tiles composited), and no tile over the empty land between the towns."""
+def test_web_tiles_of_a_sparse_map_are_gdal2tiles_cut_where_there_is_data(two_towns, tmp_path):
+    """A sparse map is cut only where it holds data: the tiles gdal2tiles cuts over the whole
+    map wherever a tile holds data, and no tile over the empty land between the towns."""
+    import subprocess
+    import sys
+
     from PIL import Image
 
     from pipeline25d.web_tiles import tms
 
     d, plan, cells = two_towns
-    bounds = warp_to_cog(d / "mosaic.vrt", [], {"method": "none", "order": 0}, plan, tmp_path / "map.tif",
-                         parts=tile_parts(cells))
-    tms(tmp_path / "map.tif", "auto", tmp_path / "whole", processes=2)
-    tms(tmp_path / "map.tif", "auto", tmp_path / "parts", processes=2, parts=bounds)
+    warp_to_cog(d / "mosaic.vrt", [], {"method": "none", "order": 0}, plan, tmp_path / "map.tif",
+                parts=tile_parts(cells))
+    stats = tms(tmp_path / "map.tif", "auto", tmp_path / "ours", processes=2)
+    subprocess.run([sys.executable, "-m", "osgeo_utils.gdal2tiles", "-q", "--xyz", "-w", "none", "-r", "average",
+                    str(tmp_path / "map.tif"), str(tmp_path / "whole")], check=True)
     whole = {p.relative_to(tmp_path / "whole") for p in (tmp_path / "whole").rglob("*.png")}
-    parts = {p.relative_to(tmp_path / "parts") for p in (tmp_path / "parts").rglob("*.png")}
-    assert parts <= whole and len(parts) < 0.5 * len(whole)
+    ours = {p.relative_to(tmp_path / "ours") for p in (tmp_path / "ours").rglob("*.png")}
+    assert ours <= whole and len(ours) < 0.5 * len(whole) and stats["web_tiles"] == len(ours)
     zooms = sorted({int(p.parts[0]) for p in whole})
-    assert sorted({int(p.parts[0]) for p in parts}) == zooms and len(zooms) >= 4
+    assert sorted({int(p.parts[0]) for p in ours}) == zooms and len(zooms) >= 4
 
     def rgba(path):
         with Image.open(path) as im:
             return np.asarray(im.convert("RGBA"), dtype=float)
 
-    for rel in sorted(whole - parts):                        # skipped tiles hold nothing
+    for rel in sorted(whole - ours):                         # skipped tiles hold nothing
         assert rgba(tmp_path / "whole" / rel)[..., 3].max() == 0, rel
     diffs = {z: [] for z in zooms}
-    for rel in sorted(parts):
-        diffs[int(rel.parts[0])].append(np.abs(rgba(tmp_path / "parts" / rel) - rgba(tmp_path / "whole" / rel)).mean())
-    assert max(diffs[zooms[-1]]) <= 0.01                       # max zoom: the same pixels
-    assert max(max(v) for v in diffs.values()) <= 1.0          # shared overview tiles: composites
+    for rel in sorted(ours):
+        diffs[int(rel.parts[0])].append(np.abs(rgba(tmp_path / "ours" / rel) - rgba(tmp_path / "whole" / rel)).mean())
+    # gdal2tiles warps on its own: nearest-neighbour picks differ where its transform's approximation does
+    every = [d for v in diffs.values() for d in v]
+    assert np.mean(every) < 0.05 and max(every) < 1.0, (np.mean(every), max(every))
 
 
 def test_gdal_block_cache_is_capped_in_process_and_for_the_tools(monkeypatch):

@@ -10,7 +10,8 @@ import numpy as np
 from PIL import Image
 
 from pipeline25d.raster import write_rgba_geotiff
-from pipeline25d.web_tiles import tms
+from pipeline25d.crs import transform_points
+from pipeline25d.web_tiles import BLOCK_TILES, WEB_MERCATOR, tms
 
 
 def test_tiles_match_a_default_gdal2tiles_cut(tmp_path):
@@ -117,3 +118,64 @@ def test_sigterm_removes_a_jobs_temporaries_like_ctrl_c(tmp_path):
     proc.send_signal(signal.SIGTERM)
     assert proc.wait(timeout=10) == 128 + signal.SIGTERM and time.monotonic() - t0 < 5
     assert not list(tmp_path.glob(".out.tif.*")) and not (tmp_path / "out.tif").exists()
+
+
+def _tile_files(root):
+    return {str(p.relative_to(root)): p for p in sorted(root.rglob("*.png"))}
+
+
+def test_an_update_recuts_only_the_web_tiles_a_changed_district_reaches_and_equals_a_fresh_cut(tmp_path):
+    """A map changed in one small square: the kept pyramid is updated in place of the tiles
+    over that square (and those above them), every other published tile keeps its file, and
+    the result is byte for byte the pyramid cut from scratch."""
+    import hashlib
+    import os
+
+    from pipeline25d.crs import horizontal_wkt
+
+    wkt = horizontal_wkt("EPSG:25832")
+    gt = (691000.0, 0.5, 0.0, 5334000.0, 0.0, -0.5)
+    rng = np.random.default_rng(1)
+    h, w = 2400, 3000
+    before = np.zeros((h, w, 4), np.uint8)
+    before[..., :3] = rng.integers(0, 255, (h, w, 3), dtype=np.uint8)
+    before[..., 3] = 255
+    before[:300, :400] = 0
+    after = before.copy()
+    r0, c0 = 900, 1300
+    after[r0:r0 + 120, c0:c0 + 150, :3] = 255 - after[r0:r0 + 120, c0:c0 + 150, :3]   # the changed "district"
+    write_rgba_geotiff(tmp_path / "a.tif", before, gt, wkt)
+    write_rgba_geotiff(tmp_path / "b.tif", after, gt, wkt)
+    work, out = tmp_path / "work", tmp_path / "out"
+    first = tms(tmp_path / "a.tif", "auto", out, processes=2, work_dir=work)
+    assert first["full"] and first["web_tiles_redone"] == first["web_tiles"] > 50
+    old = {k: os.stat(p).st_ino for k, p in _tile_files(out).items()}
+    again = tms(tmp_path / "a.tif", "auto", out, processes=2, work_dir=work)
+    assert not again["full"] and again["web_tiles_redone"] == 0 and again["blocks_warped"] == 0
+    update = tms(tmp_path / "b.tif", "auto", out, processes=2, work_dir=work)
+    fresh = tms(tmp_path / "b.tif", "auto", tmp_path / "fresh", processes=2)
+    got, want = _tile_files(out), _tile_files(tmp_path / "fresh")
+    assert sorted(got) == sorted(want)
+
+    def sha(p):
+        return hashlib.sha256(p.read_bytes()).hexdigest()
+
+    assert [k for k in want if sha(got[k]) != sha(want[k])] == []
+    assert update["web_tiles"] == fresh["web_tiles"] == len(want)
+    # only tiles near the changed square were written again (within a block of it); their count is the update's
+    redone = {k for k, p in got.items() if os.stat(p).st_ino != old.get(k)}
+    assert len(redone) == update["web_tiles_redone"] > 0
+    max_zoom = int(update["zooms"].split("-")[1])
+    base = [k for k in got if k.startswith(f"{max_zoom}/")]
+    assert 0 < len([k for k in redone if k in base]) < 0.25 * len(base)
+    minx, maxy = gt[0] + c0 * gt[1], gt[3] + r0 * gt[5]
+    corners = transform_points(np.array([[minx, maxy - 120 * 0.5, 0.0], [minx + 150 * 0.5, maxy, 0.0]]), wkt,
+                               WEB_MERCATOR)
+    world = 2 * 20037508.342789244
+    slack = BLOCK_TILES * world / 2 ** max_zoom
+    for key in redone:
+        z, x, y = (int(v) for v in key[:-4].split("/"))
+        span = world / 2 ** z
+        x0, y1 = x * span - world / 2, world / 2 - y * span
+        assert x0 < corners[1, 0] + slack and x0 + span > corners[0, 0] - slack, key
+        assert y1 - span < corners[1, 1] + slack and y1 > corners[0, 1] - slack, key

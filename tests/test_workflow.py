@@ -217,6 +217,19 @@ def _tile_mtimes(results: Path) -> dict[str, int]:
     return {str(p.relative_to(results / "tiles")): p.stat().st_mtime_ns for p in (results / "tiles").rglob("*.tif")}
 
 
+def _web_tiles(results: Path) -> dict[str, tuple[int, str]]:
+    """Every published web tile: (inode, sha256) by path."""
+    import hashlib
+
+    return {str(p.relative_to(results / "tms")): (p.stat().st_ino, hashlib.sha256(p.read_bytes()).hexdigest())
+            for p in (results / "tms").rglob("*") if p.is_file() and not p.name.startswith(".")}
+
+
+def _warp_of(results: Path, pid: str) -> tuple:
+    meta = json.loads((results / "maps" / f"{pid}.json").read_text())
+    return meta["method"], meta["order"], meta["n_observed"], meta["rmsd_m"]
+
+
 def _tile_specs(results: Path) -> dict[str, str]:
     out = {}
     for plan_file in (results / "plans").glob("*.json"):
@@ -231,6 +244,8 @@ def test_rerun_does_nothing_and_a_changed_district_rerenders_only_its_tiles(plan
     workdir, results = plane_run
     assert "Nothing to be done" in snakemake(workdir, "-n").stdout
     before = _tile_mtimes(results)
+    web_before = _web_tiles(results)
+    warps_before = {p.stem: _warp_of(results, p.stem) for p in (results / "maps").glob("*.json")}
     lod_before = {p: p.stat().st_mtime_ns for p in (results / "lod").rglob("*.npz")}
 
     # Touching a district re-ingests it, but its chunks are unchanged: nothing re-renders.
@@ -263,6 +278,36 @@ def test_rerun_does_nothing_and_a_changed_district_rerenders_only_its_tiles(plan
     respecified = {k for k in specs_after if specs_after[k] != specs_before.get(k)}
     assert changed == draws_chunk | respecified, (changed - draws_chunk, respecified)
     assert 0 < len(changed) < len(after)
+    # the web tiles: a pyramid is cut again in full only where its map's GCP warp changed (the
+    # re-rendered tiles observe their GCPs again); elsewhere only the tiles over the change are
+    # written, and a tile written again keeps its bytes where its pixels did not change
+    web_after = _web_tiles(results)
+    redone = {k for k, (ino, _) in web_after.items() if web_before.get(k, (None,))[0] != ino}
+    differ = {k for k, (_, sha) in web_after.items() if web_before.get(k, (None, None))[1] != sha}
+    assert differ and differ <= redone
+    for pid, warp in warps_before.items():
+        stats = json.loads((results / "work" / "tms" / f"{pid}.json").read_text())
+        assert stats["web_tiles_redone"] == len({k for k in redone if k.startswith(f"{pid}/")})
+        if stats["full"]:
+            assert _warp_of(results, pid) != warp, pid
+    # the report says what this run redid
+    updates = json.loads((results / "report" / "report.json").read_text())["updates"]
+    for pid, u in updates.items():
+        assert u["tiles_redone"] == len({k for k in changed if k.startswith(f"{pid}/")})
+        assert u["web_tiles_redone"] == len({k for k in redone if k.startswith(f"{pid}/")})
+        assert u["web_tiles"] == len({k for k in web_after if k.startswith(f"{pid}/")})
+    assert "## Redone since the last report" in (results / "report" / "report.md").read_text()
+
+    # A new reference plane changes every oblique tile's pixels: all re-render.
+    config = yaml.safe_load((workdir / "config.yaml").read_text())
+    scene = json.loads((results / "scene.json").read_text())
+    (workdir / "config.yaml").write_text(yaml.safe_dump({**config, "z0": scene["z0"] + 2.0}))
+    snakemake(workdir)
+    manifests = [json.loads(p.read_text()) for p in (results / "tiles").glob("*/block_*.json")]
+    assert manifests and all(m["rendered"] == len(m["tiles"]) for m in manifests)
+    assert all(v != before.get(k) for k, v in _tile_mtimes(results).items())
+    updates = json.loads((results / "report" / "report.json").read_text())["updates"]
+    assert all(u["tiles_redone"] == u["tiles"] for u in updates.values())
 
 
 def test_plain_loop_reference_draws_the_same_tiles(small_run):

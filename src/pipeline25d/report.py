@@ -191,11 +191,47 @@ def render_markdown(rep: dict) -> str:
               "| stage | jobs | seconds (sum) | max RSS MB |", "|---|---:|---:|---:|"]
     for stage, t in rep["timings"].items():
         lines.append(f"| {stage} | {t['jobs']} | {t['seconds']:.1f} | {t['max_rss_mb']:.0f} |")
+    if rep.get("updates"):
+        lines += ["", "## Redone since the last report", "",
+                  "Map tiles whose spec (chunks, LODs, GCPs, frame, render settings) changed are rendered again;"
+                  " web tiles are cut again only where the map's pixels changed (see README, District updates).", "",
+                  "| perspective | map tiles redone | of | web tiles redone | of | web cut |",
+                  "|---|---:|---:|---:|---:|---|"]
+        for pid, u in rep["updates"].items():
+            lines.append(f"| {pid} | {u['tiles_redone']} | {u['tiles']} | {u['web_tiles_redone']} | {u['web_tiles']} | "
+                         f"{u['web_cut']} |")
     return "\n".join(lines) + "\n"
 
 
 def write_report(config: dict, results: str | Path, out_json: str | Path, out_md: str | Path) -> dict:
     rep = build_report(config, results)
+    rep["updates"], seen = updates_since_last_report(Path(results), rep["perspectives"])
     write_json(out_json, rep)
     write_text(out_md, render_markdown(rep))
+    write_json(Path(results) / "work" / "reported.json", seen, indent=None)
     return rep
+
+
+def updates_since_last_report(results: Path, perspectives: list[dict]) -> tuple[dict, dict]:
+    """What the runs since the last report redid, per perspective: map tiles rendered again
+    (tiles whose spec hash is not the one last reported) and web tiles cut again (from the
+    tms jobs' own figures, counted once: a tms job that did not run since adds nothing).
+    Returns that and the state to remember (work/reported.json)."""
+    state_path = results / "work" / "reported.json"
+    last = json.loads(state_path.read_text()) if state_path.exists() else {}
+    seen, out = {}, {}
+    for p in perspectives:
+        pid = p["id"]
+        plan = json.loads((results / "plans" / f"{pid}.json").read_text())
+        specs = {f"{t['row']}_{t['col']}": t["spec_hash"] for t in plan["tiles"]}
+        stats_path = results / "work" / "tms" / f"{pid}.json"
+        stats = json.loads(stats_path.read_text())
+        stamp = stats_path.stat().st_mtime_ns
+        before = last.get(pid, {})
+        tiles_redone = sum(1 for k, h in specs.items() if before.get("specs", {}).get(k) != h)
+        web_redone = 0 if before.get("tms_stamp") == stamp else stats["web_tiles_redone"]
+        out[pid] = {"tiles": len(specs), "tiles_redone": tiles_redone, "web_tiles": stats["web_tiles"],
+                    "web_tiles_redone": web_redone,
+                    "web_cut": "none" if not web_redone else "full" if stats["full"] else "update"}
+        seen[pid] = {"specs": specs, "tms_stamp": stamp}
+    return out, seen

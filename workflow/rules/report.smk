@@ -7,6 +7,7 @@ rule report:
         cogs=expand(f"{RESULTS}/maps/{{pid}}.tif", pid=PERSPECTIVE_IDS),
         plans=expand(f"{RESULTS}/plans/{{pid}}.json", pid=PERSPECTIVE_IDS),
         tms=expand(f"{RESULTS}/tms/{{pid}}", pid=PERSPECTIVE_IDS),
+        tms_stats=expand(f"{RESULTS}/work/tms/{{pid}}.json", pid=PERSPECTIVE_IDS),
         scene=rules.scene.output.scene,
     output:
         json=f"{RESULTS}/report/report.json",

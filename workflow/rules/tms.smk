@@ -1,16 +1,19 @@
-# gdal2tiles XYZ pyramid per perspective.
+# gdal2tiles XYZ pyramid per perspective, kept in work/tms/{pid} and updated where the map changed
+# (see pipeline25d.web_tiles); the published folder hard-links the kept tiles. The stats file says
+# how many web tiles the run redid.
 
 
 rule tms:
     input:
         cog=rules.warp.output.cog,
-        meta=rules.warp.output.meta,
     output:
-        directory(f"{RESULTS}/tms/{{pid}}"),
+        tiles=directory(f"{RESULTS}/tms/{{pid}}"),
+        stats=f"{RESULTS}/work/tms/{{pid}}.json",
     params:
         zoom=config["tms"]["zoom"],
         tile_format=config["tms"]["format"],
         quality=config["tms"]["quality"],
+        work=f"{RESULTS}/work/tms/{{pid}}",
     threads: 2
     log:
         f"{RESULTS}/logs/tms/{{pid}}.log",
