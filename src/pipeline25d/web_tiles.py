@@ -281,12 +281,17 @@ def cut(blocks: list[Path], tiles: Path, gt: tuple[float, ...], width: int, heig
 
 
 def _run(fn, items: list, processes: int) -> None:
-    """``fn`` over ``items``, in forked worker processes when there are several (as gdal2tiles' own pool)."""
+    """``fn`` over ``items``, in forked worker processes when there are several (as gdal2tiles' own pool).
+
+    concurrent.futures, not multiprocessing.Pool: the pool's exit terminates its workers,
+    which can leave one waiting for a queue lock a terminated sibling held (seen: a hung job).
+    """
     if processes > 1 and len(items) > 1:
         import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
 
-        with multiprocessing.get_context("fork").Pool(min(processes, len(items))) as pool:
-            for _ in pool.imap_unordered(fn, items, chunksize=max(1, min(64, len(items) // (4 * processes)))):
+        with ProcessPoolExecutor(min(processes, len(items)), mp_context=multiprocessing.get_context("fork")) as pool:
+            for _ in pool.map(fn, items, chunksize=max(1, min(64, len(items) // (4 * processes)))):
                 pass
     else:
         for item in items:
