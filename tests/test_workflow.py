@@ -218,10 +218,11 @@ def _tile_mtimes(results: Path) -> dict[str, int]:
 
 
 def _web_tiles(results: Path) -> dict[str, tuple[int, str]]:
-    """Every published web tile: (inode, sha256) by path."""
+    """Every published web tile: ((inode, mtime), sha256) by path (a freed inode number is reused)."""
     import hashlib
 
-    return {str(p.relative_to(results / "tms")): (p.stat().st_ino, hashlib.sha256(p.read_bytes()).hexdigest())
+    return {str(p.relative_to(results / "tms")): ((p.stat().st_ino, p.stat().st_mtime_ns),
+                                                   hashlib.sha256(p.read_bytes()).hexdigest())
             for p in (results / "tms").rglob("*") if p.is_file() and not p.name.startswith(".")}
 
 
