@@ -99,15 +99,17 @@ def workflow_command(workdir: Path, cores: int = 2, configfile: Path | None = No
             "--configfile", str(configfile or workdir / "config.yaml"), f"-j{cores}"]
 
 
-def run_workflow(workdir: Path, config: dict, cores: int = 2) -> float:
-    """Run the whole workflow on ``config`` in ``workdir`` from scratch; return its wall seconds.
+def run_workflow(workdir: Path, config: dict, cores: int = 2, from_scratch: bool = True) -> float:
+    """Run the whole workflow on ``config`` in ``workdir``; return its wall seconds.
 
-    Earlier results of the scene are removed first, so a re-run is timed in full.
+    ``from_scratch``: earlier results of the scene are removed first, so a re-run is timed
+    in full; otherwise the run updates them (as a user's re-run does).
     Raises :class:`WorkflowRunError` naming the Snakemake log when the run fails.
     """
     workdir.mkdir(parents=True, exist_ok=True)
-    for stale in (results_of(workdir, config), workdir / ".snakemake"):
-        shutil.rmtree(stale, ignore_errors=True)
+    if from_scratch:
+        for stale in (results_of(workdir, config), workdir / ".snakemake"):
+            shutil.rmtree(stale, ignore_errors=True)
     write_text(workdir / "config.yaml", yaml.safe_dump(config))
     cmd = workflow_command(workdir, cores)
     t0 = time.monotonic()

@@ -21,7 +21,6 @@ CLI::
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import shutil
 import sys
@@ -31,8 +30,9 @@ from pathlib import Path
 import numpy as np
 
 from .atomic import write_text
-from .bench import REPO, SOURCE, bench_config, make_scene, results_of, run_workflow, workflow_command
-from .killtest import differences, output_digests
+from .bench import REPO, SOURCE, bench_config, make_scene, results_of, run_workflow
+from .errors import WorkflowRunError
+from .killtest import differences, file_digests, output_digests
 
 BUDGET_OVER_SHARE = 0.20     # the issue's bound: the district's area share of the full run + 20 % of it
 
@@ -49,12 +49,6 @@ def new_model(path: Path) -> None:
     trimesh.Trimesh(v, np.asarray(mesh.faces)[:, ::-1], vertex_colors=colors, process=False).export(path)
 
 
-def checksums(folder: Path, pattern: str) -> dict[str, str]:
-    """sha256 of the files under ``folder`` matching ``pattern``, hidden names left out."""
-    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(folder.glob(pattern)) if p.is_file() and not any(s.startswith(".") for s in p.parts)}
-
-
 def stage_seconds(benchmarks: Path, since: float) -> dict[str, float]:
     """Job-seconds per stage of the jobs whose benchmark file was written after ``since``."""
     from .report import benchmark_rows
@@ -65,19 +59,6 @@ def stage_seconds(benchmarks: Path, since: float) -> dict[str, float]:
             stage = tsv.relative_to(benchmarks).parts[0].removesuffix(".tsv")
             out[stage] = round(out.get(stage, 0.0) + float(row["s"]), 1)
     return out
-
-
-def timed_update(work: Path, config: dict, cores: int) -> float:
-    """Run the workflow again in ``work`` (nothing removed first); its wall seconds."""
-    import subprocess
-
-    t0 = time.monotonic()
-    proc = subprocess.run(workflow_command(work, cores), capture_output=True, text=True)
-    wall = time.monotonic() - t0
-    write_text(work / "update.log", proc.stdout + proc.stderr)
-    if proc.returncode != 0:
-        raise SystemExit(f"district update: the update run failed, see {work / 'update.log'}")
-    return wall
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -109,12 +90,15 @@ def main(argv: list[str] | None = None) -> int:
     city = work / "city"
     full_s = run_workflow(city, config, args.cores)
     results = results_of(city, config)
-    tiles_before, web_before = checksums(results / "tiles", "*/*.tif"), checksums(results / "tms", "**/*")
+    tiles_before, web_before = file_digests(results / "tiles", "*/*.tif"), file_digests(results / "tms", "**/*")
     new_model(districts[args.district])
     started = time.time()
-    update_s = timed_update(city, config, args.cores)
+    try:
+        update_s = run_workflow(city, config, args.cores, from_scratch=False)
+    except WorkflowRunError as exc:
+        raise SystemExit(f"district update: the update run failed: {exc}") from None
     job_seconds = stage_seconds(results / "benchmarks", started)
-    tiles_after, web_after = checksums(results / "tiles", "*/*.tif"), checksums(results / "tms", "**/*")
+    tiles_after, web_after = file_digests(results / "tiles", "*/*.tif"), file_digests(results / "tms", "**/*")
     report = json.loads((results / "report" / "report.json").read_text())
     fresh = work / "fresh"
     run_workflow(fresh, config, args.cores)

@@ -43,11 +43,16 @@ STOP_LIMIT_S = 10.0
 
 
 def output_digests(results: Path) -> dict[str, str]:
-    """sha256 of every map (maps/*.tif) and web tile (tms/**) of a results folder, by relative
-    path; hidden names (a job's temporaries, see :mod:`pipeline25d.atomic`) are not outputs."""
-    files = sorted(results.glob("maps/*.tif")) + sorted(p for p in results.glob("tms/**/*") if p.is_file())
-    return {str(p.relative_to(results)): hashlib.sha256(p.read_bytes()).hexdigest() for p in files
-            if not _hidden(p.relative_to(results))}
+    """sha256 of every map (maps/*.tif) and web tile (tms/**) of a results folder, by relative path."""
+    return file_digests(results, "maps/*.tif", "tms/**/*")
+
+
+def file_digests(folder: Path, *patterns: str) -> dict[str, str]:
+    """sha256 of the files under ``folder`` matching ``patterns``, by relative path; hidden
+    names (a job's temporaries, see :mod:`pipeline25d.atomic`) are not outputs."""
+    files = sorted(p for pattern in patterns for p in folder.glob(pattern) if p.is_file())
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest() for p in files
+            if not _hidden(p.relative_to(folder))}
 
 
 def temporaries(results: Path) -> list[str]:

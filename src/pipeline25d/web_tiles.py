@@ -9,12 +9,12 @@ by ``create_overview_tile``. It reads plain windows instead of re-warping for ev
 and only tiles that hold data are written, so a sparse map costs its districts, not its
 bounding box.
 
-A pyramid kept in a work folder is *updated*: the map's COG blocks are hashed, and only
-the web-mercator blocks within reach of a changed COG block are warped again; their base
-tiles (those whose read window meets them) and every tile above those are deleted and cut
-again. As every block is always warped on its own window, an update gives the same tiles,
-byte for byte, as a cut from scratch. A state file journals the blocks being redone, so a
-killed update is finished by the next one.
+A pyramid kept in a work folder is *updated*: the map is hashed in squares of
+:data:`CELL_PX` pixels, and only the web-mercator blocks within reach of a changed square are
+warped again; the base tiles whose read window meets that reach and every tile above them are
+deleted and cut again. As every block is always warped on its own window, an update gives
+the same tiles, byte for byte, as a cut from scratch. A state file journals the reach being
+redone, so a killed update is finished by the next one.
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from .atomic import atomic_path, replace_dir, write_json
+from .map_parts import Window, box_outline, window_bounds
 from .raster import gdal
 
 log = logging.getLogger(__name__)
@@ -171,8 +172,7 @@ def cell_bounds(cell_id: str, grid: list) -> list[float]:
     gt, width, height, cell = grid[:6], grid[6], grid[7], grid[8]
     col, row = (int(v) for v in cell_id.split("_"))
     c0, r0 = col * cell, row * cell
-    c1, r1 = min(c0 + cell, width), min(r0 + cell, height)
-    return [gt[0] + c0 * gt[1], gt[3] + r1 * gt[5], gt[0] + c1 * gt[1], gt[3] + r0 * gt[5]]
+    return list(window_bounds(gt, Window(c0, r0, min(c0 + cell, width), min(r0 + cell, height))))
 
 
 def _block_metres(max_zoom: int) -> tuple[float, float]:
@@ -188,7 +188,6 @@ def mercator_reach(bounds: list[list[float]], crs_wkt: str, gt: tuple[float, ...
     ``bounds`` reach: each one's reprojected outline, grown by :data:`MARGIN_PX` and clipped
     (nearest-neighbour: a pixel beyond it never reads the rectangle)."""
     from .crs import transform_points
-    from .map_parts import box_outline
 
     if not bounds:
         return []
@@ -207,9 +206,7 @@ def mercator_reach(bounds: list[list[float]], crs_wkt: str, gt: tuple[float, ...
 def blocks_meeting(window: tuple[int, int, int, int], gt: tuple[float, ...], max_zoom: int) -> set[tuple[int, int]]:
     """The web-mercator blocks (bx, by; y up) that a pixel window of the grid meets."""
     origin, size = _block_metres(max_zoom)
-    c0, r0, c1, r1 = window
-    x0, x1 = gt[0] + c0 * gt[1], gt[0] + c1 * gt[1]
-    y1, y0 = gt[3] + r0 * gt[5], gt[3] + r1 * gt[5]
+    x0, y0, x1, y1 = window_bounds(gt, Window(*window))
     bx0, bx1 = int(np.floor((x0 + origin) / size)), int(np.floor((x1 + origin) / size))
     by0, by1 = int(np.floor((y0 + origin) / size)), int(np.floor((y1 + origin) / size))
     return {(bx, by) for bx in range(bx0, bx1 + 1) for by in range(by0, by1 + 1)}
@@ -230,8 +227,8 @@ def block_window(block: tuple[int, int], gt: tuple[float, ...], width: int, heig
 
 def _warp_block(cog: str, blocks_dir: str, gt: tuple[float, ...], job: tuple[tuple[int, int], tuple[int, ...]]) -> None:
     """Warp the map onto one block's window of its web-mercator grid (written atomically)."""
-    block, (c0, r0, c1, r1) = job
-    bounds = (gt[0] + c0 * gt[1], gt[3] + r1 * gt[5], gt[0] + c1 * gt[1], gt[3] + r0 * gt[5])
+    block, window = job
+    bounds = window_bounds(gt, Window(*window))
     extra = ["-tr", repr(gt[1]), repr(-gt[5]), "-te", *map(repr, bounds)]
     with atomic_path(Path(blocks_dir) / f"{block[0]}_{block[1]}.tif") as tmp:
         gdal().Warp(str(tmp), cog, options=_mercator_args(1, extra))
