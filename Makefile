@@ -7,11 +7,11 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 LEAFLET := build/node_modules/leaflet/dist/leaflet.js
 APT_PACKAGES := python3-venv python3-dev build-essential gdal-bin libgdal-dev libegl1 libegl-mesa0 \
-                libgl1-mesa-dri libgles2
+                libgl1-mesa-dri libgles2 slurmctld slurmd slurm-client munge
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 PYTHON ?= python3
 
-.PHONY: run test bench bench-sparse bench-coarse bench-district killtest sweep deps sysdeps clean-results
+.PHONY: run test bench bench-sparse bench-coarse bench-district killtest sweep slurm-bench deps sysdeps clean-results
 
 run: deps
 	$(PY) -m pipeline25d demo-city resources/demo
@@ -62,6 +62,12 @@ killtest: deps
 SWEEP_ARGS ?= --name sweep
 sweep: deps
 	$(PY) -m pipeline25d.sweep $(SWEEP_ARGS)
+
+# The SLURM profile (profiles/slurm) on a one-node SLURM cluster started on this machine (needs
+# root): the demo city (scale 0.5, nine perspectives) with -j2 and through SLURM; writes
+# bench/slurm.json (jobs, submissions, both wall times, byte-identical maps and tiles or not)
+slurm-bench: deps
+	$(PY) -m pipeline25d.slurm_cluster --scale 0.5 --name slurm
 
 deps: sysdeps $(STAMP) $(LEAFLET)
 

@@ -23,6 +23,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Mapping, Sequence
 
 import numpy as np
 import yaml
@@ -92,28 +93,31 @@ def results_of(workdir: Path, config: dict) -> Path:
     return workdir / "results" / config["scene"]
 
 
-def workflow_command(workdir: Path, cores: int = 2, configfile: Path | None = None) -> list[str]:
+def workflow_command(workdir: Path, cores: int | None = 2, configfile: Path | None = None) -> list[str]:
     """Snakemake on this repository's workflow in ``workdir``, with ``configfile`` (default
-    ``workdir/config.yaml``)."""
+    ``workdir/config.yaml``); ``cores`` None leaves ``-j`` to the profiles."""
     return [sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"), "--directory", str(workdir),
-            "--configfile", str(configfile or workdir / "config.yaml"), f"-j{cores}"]
+            "--configfile", str(configfile or workdir / "config.yaml"), *([f"-j{cores}"] if cores else [])]
 
 
-def run_workflow(workdir: Path, config: dict, cores: int = 2, from_scratch: bool = True) -> float:
+def run_workflow(workdir: Path, config: dict, cores: int | None = 2, from_scratch: bool = True, *,
+                 extra: Sequence[str] = (), env: Mapping[str, str] | None = None) -> float:
     """Run the whole workflow on ``config`` in ``workdir``; return its wall seconds.
 
     ``from_scratch``: earlier results of the scene are removed first, so a re-run is timed
-    in full; otherwise the run updates them (as a user's re-run does).
-    Raises :class:`WorkflowRunError` naming the Snakemake log when the run fails.
+    in full; otherwise the run updates them (as a user's re-run does). ``extra`` arguments
+    are added to the Snakemake command (e.g. a profile), which runs with ``env`` (default:
+    this process's). Raises :class:`WorkflowRunError` naming the Snakemake log when the run
+    fails.
     """
     workdir.mkdir(parents=True, exist_ok=True)
     if from_scratch:
         for stale in (results_of(workdir, config), workdir / ".snakemake"):
             shutil.rmtree(stale, ignore_errors=True)
     write_text(workdir / "config.yaml", yaml.safe_dump(config))
-    cmd = workflow_command(workdir, cores)
+    cmd = workflow_command(workdir, cores) + list(extra)
     t0 = time.monotonic()
-    proc = subprocess.run(cmd, capture_output=True, text=True)
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
     wall = time.monotonic() - t0
     write_text(workdir / "snakemake.log", proc.stdout + proc.stderr)
     if proc.returncode != 0:

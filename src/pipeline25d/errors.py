@@ -42,3 +42,7 @@ class GdalToolError(Pipeline25dError, RuntimeError):
 
 class WorkflowRunError(Pipeline25dError, RuntimeError):
     """A whole workflow run (Snakemake) failed; the message names its log."""
+
+
+class ClusterError(Pipeline25dError, RuntimeError):
+    """The local SLURM cluster (tests, benchmarks) did not start or stop; the message names the daemon and its log."""
