@@ -3,6 +3,7 @@ with its defaults on the same map."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 
@@ -182,3 +183,46 @@ def test_an_update_recuts_only_the_web_tiles_a_changed_district_reaches_and_equa
         x0, y1 = x * span - world / 2, world / 2 - y * span
         assert x0 < corners[1, 0] + slack and x0 + span > corners[0, 0] - slack, key
         assert y1 - span < corners[1, 1] + slack and y1 > corners[0, 1] - slack, key
+
+
+def test_sigterm_stops_a_cut_at_once_and_the_next_cut_finishes_it(tmp_path):
+    """SIGTERM to a cut's process group (as Snakemake and SLURM stop a job) while its workers cut:
+    the job ends within seconds with no worker left, and the next run of the same cut gives the
+    pyramid cut from scratch."""
+    import hashlib
+    import signal
+    import time
+
+    from pipeline25d.crs import horizontal_wkt
+
+    rng = np.random.default_rng(2)
+    h, w = 3000, 4000
+    rgba = np.zeros((h, w, 4), np.uint8)
+    rgba[..., :3] = rng.integers(0, 255, (h, w, 3), dtype=np.uint8)
+    rgba[..., 3] = 255
+    write_rgba_geotiff(tmp_path / "map.tif", rgba, (691000.0, 0.5, 0.0, 5334000.0, 0.0, -0.5),
+                       horizontal_wkt("EPSG:25832"))
+    work, out = tmp_path / "work", tmp_path / "out"
+    script = (f"from pipeline25d.logsetup import log_to; from pipeline25d.web_tiles import tms\n"
+              f"log_to({str(tmp_path / 'job.log')!r})\n"
+              f"tms({str(tmp_path / 'map.tif')!r}, 'auto', {str(out)!r}, processes=2, work_dir={str(work)!r})\n")
+    proc = subprocess.Popen([sys.executable, "-c", script], start_new_session=True)
+    deadline = time.monotonic() + 120
+    while not any((work / "tiles").rglob("*.png")) and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+    assert proc.poll() is None, "the cut ended before any tile was written: make the map larger"
+    os.killpg(proc.pid, signal.SIGTERM)
+    cut_before = sum(1 for _ in (work / "tiles").rglob("*.png"))
+    assert proc.wait(timeout=10) == 128 + signal.SIGTERM                # the issue's bound
+    time.sleep(0.5)
+    left = subprocess.run(["pgrep", "-s", str(proc.pid)], capture_output=True, text=True).stdout.split()
+    assert left == []
+    # the workers stopped with their tile in hand: they did not go on to the rest of the stage
+    assert sum(1 for _ in (work / "tiles").rglob("*.png")) <= cut_before + 2
+    assert not out.exists()                                    # nothing published that looks complete
+    tms(tmp_path / "map.tif", "auto", out, processes=2, work_dir=work)
+    tms(tmp_path / "map.tif", "auto", tmp_path / "fresh", processes=2)
+    got, want = _tile_files(out), _tile_files(tmp_path / "fresh")
+    assert sorted(got) == sorted(want) and len(want) > 50
+    assert [k for k in want if hashlib.sha256(got[k].read_bytes()).digest()
+            != hashlib.sha256(want[k].read_bytes()).digest()] == []

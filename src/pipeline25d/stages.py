@@ -631,8 +631,10 @@ def mosaic(tiles: list[str], out_vrt: str | Path) -> None:
 
 
 def warp(mosaic_vrt: str | Path, gcps_csv: str | Path, plan_path: str | Path, warp_cfg: dict,
-         out_cog: str | Path, out_json: str | Path, maps_cfg: dict | None = None) -> dict:
-    """Choose the warp by cross-validation on the GCPs, write the COG, and record the check-point scores."""
+         out_cog: str | Path, out_json: str | Path, maps_cfg: dict | None = None,
+         work_dir: str | Path | None = None) -> dict:
+    """Choose the warp by cross-validation on the GCPs, write the COG, and record the check-point
+    scores. ``work_dir`` keeps the warped map for the next run to patch."""
     from .map_parts import tile_parts
     from .warp import choose, raster_geotransform, warp_to_cog
 
@@ -641,7 +643,7 @@ def warp(mosaic_vrt: str | Path, gcps_csv: str | Path, plan_path: str | Path, wa
     gt = raster_geotransform(mosaic_vrt)
     choice = choose(obs, pl, gt, warp_cfg["method"], warp_cfg["order"])
     parts = tile_parts((t["row"], t["col"]) for t in pl["tiles"])
-    bounds = warp_to_cog(mosaic_vrt, obs, choice, pl, out_cog, parts=parts, **(maps_cfg or {}))   # compression, quality
+    bounds = warp_to_cog(mosaic_vrt, obs, choice, pl, out_cog, parts=parts, work_dir=work_dir, **(maps_cfg or {}))   # compression, quality
     record = {"perspective": pl["perspective"], **choice, "n_observed": len(obs), "parts": bounds,
               "paper_method": paper_method_on(obs, pl, gt) if pl.get("projection") == "terrain" else None}
     write_json(out_json, record)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import math
+import shutil
 import subprocess
 from pathlib import Path
 
@@ -204,14 +205,16 @@ def cog_codec(compression: str, quality: int) -> list[str]:
 
 def warp_to_cog(mosaic: str | Path, obs: list[dict], choice: dict, plan: dict, out: str | Path,
                 compression: str = "deflate", quality: int = 85,
-                parts: list[tuple[int, int, int, int]] | None = None) -> list[list[float]]:
-    """Write the north-up COG: gdalwarp with the chosen GCP warp, or a plain copy for none.
+                parts: list[tuple[int, int, int, int]] | None = None,
+                work_dir: str | Path | None = None) -> list[list[float]]:
+    """Write the north-up COG: the mosaic warped with the chosen GCP warp, or a plain copy for none.
 
     ``compression``: deflate (lossless RGBA), jpeg (RGB + the alpha as a mask, which the COG
     driver makes) or webp (RGBA), the last two at ``quality``. ``parts``: the tile rectangles of
     :func:`pipeline25d.map_parts.tile_parts`; more than one makes a sparse map, warped part by
     part (see :mod:`pipeline25d.map_parts`). Returns each part's bounds [xmin, ymin, xmax, ymax]
-    on the map (one part: the whole map's).
+    on the map (one part: the whole map's). A dense map's warp is kept in ``work_dir`` and
+    patched where the mosaic changed (:mod:`pipeline25d.map_patch`).
     """
     from .crs import horizontal_wkt
 
@@ -233,18 +236,22 @@ def warp_to_cog(mosaic: str | Path, obs: list[dict], choice: dict, plan: dict, o
             if choice["method"] == "none":
                 run_tool(["gdal_translate", "-q", *cog, str(mosaic), str(tmp)])
             else:
-                gsd = str(plan["gsd"])
-                run_tool(["gdalwarp", "-q", *_method_args(choice), "-r", "bilinear", "-t_srs", crs, "-tr", gsd, gsd,
-                          "-tap", "-dstalpha", "-multi", "-wo", "NUM_THREADS=ALL_CPUS", *cog, str(source), str(tmp)])
+                from .map_patch import patched_map
+
+                kept_dir = Path(work_dir) if work_dir else Path(tmp).with_suffix(".blocks")
+                try:
+                    kept, _ = patched_map(source, choice, crs, plan["gsd"], kept_dir)
+                    run_tool(["gdal_translate", "-q", *cog, str(kept), str(tmp)])
+                finally:
+                    if not work_dir:
+                        shutil.rmtree(kept_dir, ignore_errors=True)
+            if choice["method"] == "none" and work_dir:
+                shutil.rmtree(work_dir, ignore_errors=True)        # a kept warp of an earlier run
             ds = gdal().Open(str(tmp))
             gt, w, h = ds.GetGeoTransform(), ds.RasterXSize, ds.RasterYSize
             return [[gt[0], gt[3] + h * gt[5], gt[0] + w * gt[1], gt[3]]]
         finally:
             gcp_vrt.unlink(missing_ok=True)
-
-
-def _method_args(choice: dict) -> list[str]:
-    return ["-tps"] if choice["method"] == "tps" else ["-order", str(choice["order"])]
 
 
 def _warp_parts(source: Path, mosaic: str | Path, choice: dict, plan: dict, crs: str,

@@ -20,17 +20,18 @@ redone, so a killed update is finished by the next one.
 from __future__ import annotations
 
 import hashlib
-import json
 import logging
 import os
 import shutil
+import signal
 import tempfile
 from functools import partial
 from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_path, replace_dir, write_json
+from .atomic import atomic_path, replace_dir
+from .journal import read_state, write_state
 from .map_parts import Window, box_outline, window_bounds
 from .raster import gdal
 
@@ -105,7 +106,7 @@ def update_pyramid(cog: str | Path, zoom: str, work: Path, processes: int = 1, t
            "quality": int(quality) if tile_format == "webp" else None, "block_tiles": BLOCK_TILES}
     map_grid, cells = map_cells(cog)
     key["map"] = map_grid
-    state = _read_state(work)
+    state = read_state(work)
     full = state is None or state["key"] != key
     if full:
         shutil.rmtree(work, ignore_errors=True)
@@ -117,13 +118,14 @@ def update_pyramid(cog: str | Path, zoom: str, work: Path, processes: int = 1, t
     # journal first: a killed update is redone by the next one, whatever the map is by then
     reach = [(0, 0, width, height)] if full else \
         [tuple(w) for w in state["dirty"]] + mercator_reach(changed, wkt, gt, width, height)
-    _write_state(work, {**state, "dirty": reach})
+    write_state(work, {**state, "dirty": reach})
     todo = sorted({b for w in reach for b in blocks_meeting(w, gt, max_zoom)})
     jobs = [(b, w) for b, w in ((b, block_window(b, gt, width, height, max_zoom)) for b in todo) if w is not None]
-    _run(partial(_warp_block, str(cog), str(work / "blocks"), gt), jobs, processes)
-    redone = cut(sorted((work / "blocks").glob("*.tif")), work / "tiles", gt, width, height, zooms, reach,
-                 processes, tile_format, quality)
-    _write_state(work, {"key": key, "cells": cells, "dirty": []})
+    with Workers(processes) as workers:
+        workers.map(partial(_warp_block, str(cog), str(work / "blocks"), gt), jobs)
+        redone = cut(sorted((work / "blocks").glob("*.tif")), work / "tiles", gt, width, height, zooms, reach,
+                     workers, tile_format, quality)
+    write_state(work, {"key": key, "cells": cells, "dirty": []})
     stats = {"full": full, "map_cells_changed": len(changed), "blocks_warped": len(jobs),
              "web_tiles_redone": redone, "web_tiles": sum(1 for p in (work / "tiles").rglob("*") if p.is_file()),
              "zooms": zooms}
@@ -131,16 +133,6 @@ def update_pyramid(cog: str | Path, zoom: str, work: Path, processes: int = 1, t
              "full cut" if full else "update", len(changed), len(cells), len(jobs), redone, stats["web_tiles"])
     return stats
 
-
-def _read_state(work: Path) -> dict | None:
-    try:
-        return json.loads((work / "state.json").read_text())
-    except (FileNotFoundError, json.JSONDecodeError):
-        return None
-
-
-def _write_state(work: Path, state: dict) -> None:
-    write_json(work / "state.json", {**state, "dirty": [list(w) for w in state["dirty"]]}, indent=None)
 
 
 def map_cells(cog: str | Path, cell: int = CELL_PX) -> tuple[list, dict[str, str]]:
@@ -235,7 +227,7 @@ def _warp_block(cog: str, blocks_dir: str, gt: tuple[float, ...], job: tuple[tup
 
 
 def cut(blocks: list[Path], tiles: Path, gt: tuple[float, ...], width: int, height: int, zooms: str,
-        windows: list[tuple[int, int, int, int]], processes: int, tile_format: str, quality: int) -> int:
+        windows: list[tuple[int, int, int, int]], workers: Workers, tile_format: str, quality: int) -> int:
     """Cut again, with gdal2tiles' own tile functions, every web tile that ``windows`` (pixel
     windows of the web-mercator grid whose blocks were warped again) reach: the base tiles
     whose read window meets one, and all tiles above them. Their old files are deleted first,
@@ -248,7 +240,7 @@ def cut(blocks: list[Path], tiles: Path, gt: tuple[float, ...], width: int, heig
     vrt = tiles.parent / "blocks.vrt"
     bounds = (gt[0], gt[3] + height * gt[5], gt[0] + width * gt[1], gt[3])
     gdal().BuildVRT(str(vrt), [str(b) for b in blocks], outputBounds=bounds, xRes=gt[1], yRes=-gt[5])
-    _, _, options = g2t.process_args([*_gdal2tiles_args(zooms, processes, tile_format, quality, True),
+    _, _, options = g2t.process_args([*_gdal2tiles_args(zooms, workers.processes, tile_format, quality, True),
                                       str(vrt), str(tiles)])
     conf, details = g2t.worker_tile_details(str(vrt), str(tiles), options)
     try:
@@ -263,13 +255,13 @@ def cut(blocks: list[Path], tiles: Path, gt: tuple[float, ...], width: int, heig
         for z, cells in reach.items():
             for x, y in cells:
                 (tiles / str(z) / str(x) / f"{y}.{conf.tile_extension}").unlink(missing_ok=True)
-        _run(partial(g2t.create_base_tile, conf), base, processes)
+        workers.map(partial(g2t.create_base_tile, conf), base)
         for base_z in range(conf.tmaxz, conf.tminz, -1):
             groups = [grp for grp in g2t.group_overview_base_tiles(base_z, str(tiles), conf)
                       if (grp[0][0] >> 1, g2t.GDAL2Tiles.getYTile(grp[0][1] >> 1, base_z - 1, options))
                       in reach[base_z - 1]]
-            _run(partial(g2t.create_overview_tile, base_z, output_folder=str(tiles), tile_job_info=conf,
-                         options=options), groups, processes)
+            workers.map(partial(g2t.create_overview_tile, base_z, output_folder=str(tiles), tile_job_info=conf,
+                         options=options), groups)
     finally:
         shutil.rmtree(os.path.dirname(conf.src_file), ignore_errors=True)
         vrt.unlink(missing_ok=True)
@@ -277,22 +269,49 @@ def cut(blocks: list[Path], tiles: Path, gt: tuple[float, ...], width: int, heig
                for z, cells in reach.items() for x, y in cells)
 
 
-def _run(fn, items: list, processes: int) -> None:
-    """``fn`` over ``items``, in forked worker processes when there are several (as gdal2tiles' own pool).
+class Workers:
+    """One pool of forked worker processes (as gdal2tiles' own) for every stage of a cut, started
+    at the first stage with more than one item; a stage of one item runs in this process.
+    A worker dies on SIGTERM (it would otherwise, with the job's SystemExit handler, fail one
+    tile and take the next), and leaving on an exception kills the workers at once.
 
     concurrent.futures, not multiprocessing.Pool: the pool's exit terminates its workers,
     which can leave one waiting for a queue lock a terminated sibling held (seen: a hung job).
     """
-    if processes > 1 and len(items) > 1:
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
 
-        with ProcessPoolExecutor(min(processes, len(items)), mp_context=multiprocessing.get_context("fork")) as pool:
-            for _ in pool.map(fn, items, chunksize=max(1, min(64, len(items) // (4 * processes)))):
-                pass
-    else:
-        for item in items:
-            fn(item)
+    def __init__(self, processes: int):
+        self.processes = processes
+        self.pool = None
+
+    def __enter__(self) -> "Workers":
+        return self
+
+    def __exit__(self, exc_type, *exc) -> None:
+        if self.pool is None:
+            return
+        if exc_type is None:
+            self.pool.shutdown()
+            return
+        # stopping (an error, or SIGTERM's SystemExit): the tiles in flight are not waited for;
+        # the state's journal has them cut again by the next run
+        for proc in list(self.pool._processes.values()):        # no public way before Python 3.14
+            proc.kill()
+        self.pool.shutdown(wait=False, cancel_futures=True)
+
+    def map(self, fn, items: list) -> None:
+        """``fn`` over ``items``; their results are not kept."""
+        if self.processes <= 1 or len(items) <= 1:
+            for item in items:
+                fn(item)
+            return
+        if self.pool is None:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            self.pool = ProcessPoolExecutor(self.processes, mp_context=multiprocessing.get_context("fork"),
+                                            initializer=signal.signal, initargs=(signal.SIGTERM, signal.SIG_DFL))
+        for _ in self.pool.map(fn, items, chunksize=max(1, min(64, len(items) // (4 * self.processes)))):
+            pass
 
 
 def _mercator_args(threads: int, extra: list[str] | None = None) -> list[str]:

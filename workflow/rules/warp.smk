@@ -12,6 +12,7 @@ rule warp:
     params:
         warp=config["warp"],
         maps=config["maps"],
+        work=f"{RESULTS}/work/warp/{{pid}}",
     log:
         f"{RESULTS}/logs/warp/{{pid}}.log",
     benchmark:

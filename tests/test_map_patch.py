@@ -1,0 +1,129 @@
+"""A warped map kept and patched: an update warps only the blocks a changed tile reaches and
+equals, byte for byte, a map warped from scratch; block-wise warping matches one gdalwarp."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+
+from pipeline25d import map_patch
+from pipeline25d.crs import horizontal_wkt
+from pipeline25d.map_patch import block_window, patched_map
+from pipeline25d.raster import gdal, write_rgba_geotiff
+from pipeline25d.warp import build_mosaic, gdal_gcps, raster_geotransform, warp_to_cog
+
+GSD, TILE, ROWS, COLS = 0.5, 128, 10, 12
+CRS = "EPSG:25832"
+BLOCK = 256                     # small blocks, so that this small map has many
+CHANGED = (4, 5)                # the tile replaced
+
+
+def _pixels(row: int, col: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(1000 * seed + 31 * row + col)
+    rgba = rng.integers(0, 256, (TILE, TILE, 4), dtype=np.uint8)
+    rgba[..., 3] = 255
+    return rgba
+
+
+def _write_tile(d, row, col, seed=0) -> str:
+    path = d / f"{row}_{col}.tif"
+    span = TILE * GSD
+    write_rgba_geotiff(path, _pixels(row, col, seed), (col * span, GSD, 0.0, (ROWS - row) * span, 0.0, -GSD),
+                       horizontal_wkt(CRS))
+    return str(path)
+
+
+def _observations(shift: float = 0.0) -> list[dict]:
+    """GCPs of a smooth warp: a rotation by ~0.6° and a shift (metres)."""
+    rng = np.random.default_rng(7)
+    rows = []
+    for k, (mx, my) in enumerate(rng.uniform([0, 0], [COLS * TILE * GSD, ROWS * TILE * GSD], (40, 2))):
+        rows.append({"id": k, "map_x": mx, "map_y": my, "x": mx + 0.01 * my + 0.7 + shift,
+                     "y": my - 0.01 * mx - 0.4, "z": 0.0, "role": "gcp"})
+    return rows
+
+
+def _source(d, obs) -> str:
+    mosaic = d / "mosaic.vrt"
+    build_mosaic([str(p) for p in sorted(d.glob("*_*.tif"))], mosaic)
+    src = d / "gcps.vrt"
+    gdal().Translate(str(src), str(mosaic), format="VRT", outputSRS=horizontal_wkt(CRS),
+                     GCPs=gdal_gcps(obs, raster_geotransform(mosaic)))
+    return str(src)
+
+
+def _pixels_of(path) -> np.ndarray:
+    return gdal().Open(str(path)).ReadAsArray().astype(int)
+
+
+def test_a_patch_warps_only_the_blocks_a_changed_tile_reaches_and_equals_a_fresh_warp(tmp_path, monkeypatch):
+    monkeypatch.setattr(map_patch, "BLOCK_PX", BLOCK)
+    d = tmp_path / "tiles"
+    d.mkdir()
+    for r in range(ROWS):
+        for c in range(COLS):
+            _write_tile(d, r, c)
+    choice, crs = {"method": "polynomial", "order": 1}, horizontal_wkt(CRS)
+    src = _source(d, _observations())
+    kept, first = patched_map(src, choice, crs, GSD, tmp_path / "kept")
+    assert first["full"] and first["blocks_warped"] == first["blocks"] >= 30
+    before = _pixels_of(kept)
+
+    # block by block, as one gdalwarp of the whole map does (up to its own approximation)
+    whole = gdal().Warp(str(tmp_path / "whole.tif"), src, **map_patch.warp_options(choice, crs, GSD))
+    assert whole.GetGeoTransform() == gdal().Open(str(kept)).GetGeoTransform()
+    diff = np.abs(whole.ReadAsArray().astype(int) - before)
+    whole = None
+    assert diff.mean() < 0.05 and np.percentile(diff, 99.9) <= 8, (diff.mean(), diff.max())
+
+    _write_tile(d, *CHANGED, seed=1)
+    src = _source(d, _observations())
+    kept, patch = patched_map(src, choice, crs, GSD, tmp_path / "kept")
+    assert not patch["full"] and patch["mosaic_cells_changed"] == 1        # the tile is one 128 px square
+    assert 1 <= patch["blocks_warped"] <= 4 < first["blocks"]
+    after = _pixels_of(kept)
+    _, fresh = patched_map(src, choice, crs, GSD, tmp_path / "fresh")
+    assert fresh["full"]
+    np.testing.assert_array_equal(after, _pixels_of(tmp_path / "fresh" / "map.tif"))
+
+    # the blocks whose pixels changed lie where the warp takes the tile, and were all warped again
+    width, height = after.shape[2], after.shape[1]
+    changed = {(bx, by) for bx in range(-(-width // BLOCK)) for by in range(-(-height // BLOCK))
+               if (before[:, (w := block_window(bx, by, width, height)).row0:w.row1, w.col0:w.col1]
+                   != after[:, w.row0:w.row1, w.col0:w.col1]).any()}
+    assert changed and len(changed) <= patch["blocks_warped"]
+    gt = gdal().Open(str(kept)).GetGeoTransform()
+    r, c = CHANGED
+    x, y = (c + 0.5) * TILE * GSD, (ROWS - r - 0.5) * TILE * GSD          # the tile's centre, then warped
+    x, y = x + 0.01 * y + 0.7, y - 0.01 * x - 0.4
+    assert (int((x - gt[0]) / gt[1]) // BLOCK, int((y - gt[3]) / gt[5]) // BLOCK) in changed
+
+    # nothing changed: nothing warped; other GCPs: everything
+    _, same = patched_map(src, choice, crs, GSD, tmp_path / "kept")
+    assert not same["full"] and same["blocks_warped"] == 0
+    _, moved = patched_map(_source(d, _observations(shift=1.0)), choice, crs, GSD, tmp_path / "kept")
+    assert moved["full"] and moved["blocks_warped"] == moved["blocks"]
+
+
+def test_the_cog_of_a_patched_warp_equals_a_fresh_one_byte_for_byte(tmp_path, monkeypatch):
+    monkeypatch.setattr(map_patch, "BLOCK_PX", BLOCK)
+    d = tmp_path / "tiles"
+    d.mkdir()
+    cells = [(r, c) for r in range(4) for c in range(5)]
+    for r, c in cells:
+        _write_tile(d, r, c)
+    plan = {"crs": CRS, "gsd": GSD, "tile_size": TILE, "tiles": [{"row": r, "col": c} for r, c in cells]}
+    choice, obs = {"method": "polynomial", "order": 1}, _observations()
+    build_mosaic([str(p) for p in sorted(d.glob("*_*.tif"))], d / "mosaic.vrt")
+    warp_to_cog(d / "mosaic.vrt", obs, choice, plan, tmp_path / "a.tif", work_dir=tmp_path / "kept")
+    _write_tile(d, 1, 2, seed=1)
+    warp_to_cog(d / "mosaic.vrt", obs, choice, plan, tmp_path / "a.tif", work_dir=tmp_path / "kept")
+    warp_to_cog(d / "mosaic.vrt", obs, choice, plan, tmp_path / "b.tif")            # from scratch, no kept warp
+    assert (tmp_path / "a.tif").read_bytes() == (tmp_path / "b.tif").read_bytes()
+    assert not (tmp_path / "b.blocks").exists() and not list(tmp_path.glob(".b.tif*"))
+    # a map that needs no warp keeps nothing
+    warp_to_cog(d / "mosaic.vrt", obs, {"method": "none", "order": 0}, plan, tmp_path / "a.tif",
+                work_dir=tmp_path / "kept")
+    assert not (tmp_path / "kept").exists()
+    shutil.rmtree(d)
