@@ -316,3 +316,37 @@ def test_maps_that_cannot_be_served_are_named_with_the_problem(tmp_path):
     with pytest.raises(MapServiceError, match="x.map: no maps to publish"):
         write_mapfile("x", [], tmp_path / "x.map")
     assert not (tmp_path / "x.map").exists()
+
+
+@pytest.mark.slow
+def test_the_workflow_maps_are_served_as_they_are(tmp_path, mapserv):
+    """A small demo city through the workflow up to its wms rule; each whole map served in its
+    own CRS equals the COG (rendered maps have antialiased, partly transparent edges)."""
+    from pipeline25d.bench import run_workflow
+    from pipeline25d.killtest import demo_config
+
+    config = {**demo_config(tmp_path / "scene", 0.25, [{"azimuth": 45, "elevation": 45}, {"azimuth": 0, "elevation": 90}]),
+              "scene": "wmsdemo"}
+    t0 = time.monotonic()
+    run_workflow(tmp_path / "run", config, extra=["results/wmsdemo/wms/wmsdemo.map"])
+    results = tmp_path / "run" / "results" / "wmsdemo"
+    assert not (results / "tms").exists()                  # only what the mapfile needs ran
+    moved = shutil.move(results, tmp_path / "moved")
+    server = start(Path(moved) / "wms" / "wmsdemo.map", mapserv)
+    try:
+        root = ET.fromstring(request(server, REQUEST="GetCapabilities")[1]).find(f"{WMS}Capability/{WMS}Layer")
+        assert {e.findtext(f"{WMS}Name") for e in root.findall(f"{WMS}Layer")} == {"az045_el45", "az000_el90"}
+        partial = transparent = 0
+        for pid in ("az045_el45", "az000_el90"):
+            cog = Path(moved) / "maps" / f"{pid}.tif"
+            ds = gdal().Open(str(cog))
+            assert ds.GetGeoTransform()[1] == GSD == config["gsd"]
+            w, h = min(ds.RasterXSize, 2048), min(ds.RasterYSize, 2048)    # the whole map (MapServer's MAXSIZE is 4096)
+            found = compare_window(server, cog, 0, 0, w, h)
+            partial += found["n_partial"]
+            transparent += int((cog_rgba(cog)[3, :h, :w] == 0).sum())
+            print(pid, f"{ds.RasterXSize} x {ds.RasterYSize} px", found, f"{time.monotonic() - t0:.0f} s")
+        assert partial > 0 and transparent > 0         # antialiased edges and empty land were compared too
+    finally:
+        server.shutdown()
+        server.server_close()
