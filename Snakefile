@@ -22,6 +22,7 @@ include: "workflow/rules/mosaic.smk"
 include: "workflow/rules/warp.smk"
 include: "workflow/rules/tms.smk"
 include: "workflow/rules/report.smk"
+include: "workflow/rules/wms.smk"
 
 
 rule all:
@@ -30,4 +31,5 @@ rule all:
         expand(f"{RESULTS}/tms/{{pid}}", pid=PERSPECTIVE_IDS),
         f"{RESULTS}/report/report.json",
         f"{RESULTS}/viewer/index.html",
+        rules.wms.output.mapfile,
     default_target: True

@@ -57,7 +57,8 @@ def test_dry_run_of_the_default_config_counts_jobs_per_rule(tmp_path):
     make_scene(tmp_path, config)
     out = snakemake(tmp_path, "-n").stdout
     assert job_counts(out) == {"ingest": 4, "lod": 4, "terrain": 1, "scene": 1, "plan": 9, "gcps": 9, "mosaic": 9,
-                               "warp": 9, "tms": 9, "report": 1, "viewer": 1, "all": 1, "total": 58}
+                               "warp": 9, "tms": 9, "report": 1, "viewer": 1, "wms": 1, "all": 1,
+                               "total": 59}
     # Once the plans exist the tile jobs are known: one per non-empty tile, none for empty ones.
     pids = [f"az{a:03d}_el45" for a in range(0, 360, 45)] + ["az000_el90"]
     snakemake(tmp_path, *[f"results/demo/plans/{pid}.json" for pid in pids])

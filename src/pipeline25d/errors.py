@@ -46,3 +46,7 @@ class WorkflowRunError(Pipeline25dError, RuntimeError):
 
 class ClusterError(Pipeline25dError, RuntimeError):
     """The local SLURM cluster (tests, benchmarks) did not start or stop; the message names the daemon and its log."""
+
+
+class MapServiceError(Pipeline25dError, RuntimeError):
+    """A map service (the WMS mapfile, MapServer) cannot be set up; the message names the file."""

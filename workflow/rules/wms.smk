@@ -1,0 +1,15 @@
+# Map services: a MapServer mapfile publishing every perspective's map as a WMS layer
+# (pipeline25d.wms); its paths are relative to it, so the results folder can move.
+
+
+rule wms:
+    input:
+        maps=expand(rules.warp.output.cog, pid=PERSPECTIVE_IDS),
+    output:
+        mapfile=f"{RESULTS}/wms/{config['scene']}.map",
+    params:
+        scene=config["scene"],
+    log:
+        f"{RESULTS}/logs/wms.log",
+    script:
+        "../scripts/wms.py"
