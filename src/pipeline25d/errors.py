@@ -46,3 +46,7 @@ class WorkflowRunError(Pipeline25dError, RuntimeError):
 
 class ClusterError(Pipeline25dError, RuntimeError):
     """The local SLURM cluster (tests, benchmarks) did not start or stop; the message names the daemon and its log."""
+
+
+class MeasureError(Pipeline25dError, ValueError):
+    """A measurement on a map cannot be made (a nadir map, too few points, a facade seen edge-on)."""
