@@ -63,3 +63,13 @@ def vertical_edge(building: dict, azimuth: float, elevation: float) -> tuple[np.
     base = corners[np.argmin(corners @ d)]
     height = building["eave_z"] - terrain_height(base[0], base[1])
     return base, base + height * np.cos(f) / np.sin(f) * d, height
+
+
+def roof_colour(results: Path, building: dict) -> np.ndarray:
+    """(3,) float RGB of a demo building's roof on the run's nadir map, at its footprint centre."""
+    from osgeo import gdal
+
+    nadir = gdal.Open(str(results / "maps" / "az000_el90.tif"))
+    gt = nadir.GetGeoTransform()
+    x, y = np.mean(building["footprint"], axis=0)
+    return nadir.ReadAsArray(int((x - gt[0]) / gt[1]), int((y - gt[3]) / gt[5]), 1, 1)[:3, 0, 0].astype(float)

@@ -12,7 +12,7 @@ import sys
 import numpy as np
 import pytest
 
-from conftest import vertical_edge
+from conftest import roof_colour, vertical_edge
 from pipeline25d.camera import project
 from pipeline25d.errors import InputFileError, MeasureError
 from pipeline25d.measure import facade_area, ground_length, measure_height, open_map, pixel_to_map
@@ -133,12 +133,10 @@ def roof_on_map(results, building: dict, p: Perspective) -> np.ndarray | None:
     centre = fp.mean(axis=0)                      # a rectangle's centroid
     area = 0.5 * abs(np.sum(fp[:, 0] * np.roll(fp[:, 1], -1) - np.roll(fp[:, 0], -1) * fp[:, 1]))
     expected = vertical_edge({**building, "footprint": [centre]}, p.azimuth, p.elevation)[1]
-    nadir, oblique = (gdal.Open(str(results / "maps" / f"{pid}.tif")) for pid in ("az000_el90", p.id))
+    oblique = gdal.Open(str(results / "maps" / f"{p.id}.tif"))
     gt = oblique.GetGeoTransform()
-    ngt = nadir.GetGeoTransform()
-    roof = nadir.ReadAsArray(int((centre[0] - ngt[0]) / ngt[1]), int((centre[1] - ngt[3]) / ngt[5]), 1, 1)[:3, 0, 0]
     rgb = oblique.ReadAsArray()[:3].astype(float)
-    label, _ = ndimage.label(np.abs(rgb - roof[:, None, None]).max(axis=0) <= 12)
+    label, _ = ndimage.label(np.abs(rgb - roof_colour(results, building)[:, None, None]).max(axis=0) <= 12)
     here = label[int((expected[1] - gt[3]) / gt[5]), int((expected[0] - gt[0]) / gt[1])]
     rows, cols = np.nonzero(label == here)
     if not here or abs(len(rows) * gt[1] ** 2 / area - 1) > 0.08:

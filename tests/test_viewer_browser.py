@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import vertical_edge
+from conftest import roof_colour, vertical_edge
 from pipeline25d.crs import transform_points
 
 CHROMIUM = shutil.which("chromium")
@@ -108,13 +108,9 @@ def assert_shows_roof(page, results: Path, building: dict, corner: np.ndarray, i
     the roof's centre: the tiles lie where the measuring clicks go."""
     import io
 
-    from osgeo import gdal
     from PIL import Image
 
-    nadir = gdal.Open(str(results / "maps" / "az000_el90.tif"))
-    gt = nadir.GetGeoTransform()
-    x, y = np.mean(building["footprint"], axis=0)
-    roof = nadir.ReadAsArray(int((x - gt[0]) / gt[1]), int((y - gt[3]) / gt[5]), 1, 1)[:3, 0, 0].astype(float)
+    roof = roof_colour(results, building)
     at = np.round(corner + 12 * (inside - corner) / np.linalg.norm(inside - corner)).astype(int)
     shown = np.asarray(Image.open(io.BytesIO(page.screenshot())).convert("RGB"))[at[1], at[0]].astype(float)
     assert np.abs(shown - roof).max() <= 20, (building["id"], shown, roof)
