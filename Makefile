@@ -7,7 +7,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 LEAFLET := build/node_modules/leaflet/dist/leaflet.js
 APT_PACKAGES := python3-venv python3-dev build-essential gdal-bin libgdal-dev libegl1 libegl-mesa0 \
-                libgl1-mesa-dri libgles2 slurmctld slurmd slurm-client munge cgi-mapserver mapserver-bin
+                libgl1-mesa-dri libgles2 slurmctld slurmd slurm-client munge cgi-mapserver mapserver-bin chromium
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 PYTHON ?= python3
 

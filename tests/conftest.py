@@ -38,3 +38,38 @@ def box_part(lo, hi, rgba=(200, 60, 40, 255)) -> MeshPart:
 def ground_part(x0, y0, x1, y1, z, rgba=(90, 140, 60, 255)) -> MeshPart:
     verts = np.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]], dtype=float)
     return MeshPart(verts, np.array([[0, 1, 2], [0, 2, 3]]), colors=np.tile(np.array(rgba, np.uint8), (4, 1)))
+
+
+@pytest.fixture(scope="session")
+def small_run(tmp_path_factory):
+    """The small demo city (test_workflow.SMALL_CONFIG) run end to end once per session, with no DTM
+    given (terrain from the model, terrain-relative projection): (workdir, results)."""
+    from test_workflow import demo_run
+
+    return demo_run(tmp_path_factory, "small")
+
+
+def vertical_edge(building: dict, azimuth: float, elevation: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """A demo building's (truth.json entry) vertical edge nearest the camera, from the geometry alone:
+    (base, top) map positions on a terrain-relative map and its true height (eave − terrain) in metres.
+
+    The nearest corner (smallest p·d) has both its facades facing the camera, so its edge is seen.
+    """
+    from pipeline25d.demo import terrain_height
+
+    t, f = np.radians(azimuth), np.radians(elevation)
+    d = np.array([np.sin(t), np.cos(t)])
+    corners = np.asarray(building["footprint"], dtype=np.float64)
+    base = corners[np.argmin(corners @ d)]
+    height = building["eave_z"] - terrain_height(base[0], base[1])
+    return base, base + height * np.cos(f) / np.sin(f) * d, height
+
+
+def roof_colour(results: Path, building: dict) -> np.ndarray:
+    """(3,) float RGB of a demo building's roof on the run's nadir map, at its footprint centre."""
+    from osgeo import gdal
+
+    nadir = gdal.Open(str(results / "maps" / "az000_el90.tif"))
+    gt = nadir.GetGeoTransform()
+    x, y = np.mean(building["footprint"], axis=0)
+    return nadir.ReadAsArray(int((x - gt[0]) / gt[1]), int((y - gt[3]) / gt[5]), 1, 1)[:3, 0, 0].astype(float)

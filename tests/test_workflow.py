@@ -95,12 +95,6 @@ def demo_run(tmp_path_factory, scene: str, **overrides) -> tuple[Path, Path]:
 
 
 @pytest.fixture(scope="module")
-def small_run(tmp_path_factory):
-    """The demo city with no DTM given: terrain from the model, terrain-relative projection."""
-    return demo_run(tmp_path_factory, "small")
-
-
-@pytest.fixture(scope="module")
 def plane_run(tmp_path_factory):
     """The paper's method on the same city: the exact DTM for GCP heights, plane at z0, GCP warp."""
     return demo_run(tmp_path_factory, "plane", terrain="resources/demo/dtm.tif", projection="plane",

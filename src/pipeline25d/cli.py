@@ -36,6 +36,22 @@ def _gl_info(args) -> None:
         print(f"{key}: {value}")
 
 
+def _measure(args) -> None:
+    import numpy as np
+
+    from .errors import MeasureError
+    from .measure import describe, open_map, pixel_to_map
+
+    try:
+        points = np.array([[float(v) for v in text.split(",")] for text in args.points], dtype=np.float64)
+    except ValueError:
+        points = np.zeros((0, 3))
+    if points.ndim != 2 or points.shape[1] != 2:
+        raise MeasureError(f"points must be X,Y pairs such as 691057.2,5334063.8; got {' '.join(args.points)}")
+    info = open_map(args.map)
+    print(describe(info, args.kind, pixel_to_map(info, points) if args.pixel else points))
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="pipeline25d", description=__doc__)
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -64,6 +80,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out-manifest", required=True)
     p.add_argument("--spec-hash", help="ignored; in the command so Snakemake re-runs when a tile's spec changes")
     p.set_defaults(func=_render_block)
+
+    p = sub.add_parser("measure", help="measure a height, a ground length or a facade area on a map",
+                       description="Heights: base and top of a vertical edge; lengths: ground points; "
+                                   "facade: a polygon on one facade whose first edge is horizontal (see pipeline25d.measure).")
+    p.add_argument("map", help="a perspective's map, results/<scene>/maps/<id>.tif")
+    p.add_argument("kind", choices=["height", "length", "facade"])
+    p.add_argument("points", nargs="+", metavar="X,Y", help="map CRS coordinates (or pixel column,row with --pixel)")
+    p.add_argument("--pixel", action="store_true", help="points are pixel (column,row) of the map, GDAL's convention")
+    p.set_defaults(func=_measure)
 
     p = sub.add_parser("gl-info", help="print the OpenGL renderer EGL gives us")
     p.set_defaults(func=_gl_info)

@@ -50,3 +50,7 @@ class ClusterError(Pipeline25dError, RuntimeError):
 
 class MapServiceError(Pipeline25dError, RuntimeError):
     """A map service (the WMS mapfile, MapServer) cannot be set up; the message names the file."""
+
+
+class MeasureError(Pipeline25dError, ValueError):
+    """A measurement on a map cannot be made (a nadir map, too few points, a facade seen edge-on)."""

@@ -1,7 +1,11 @@
 """The web viewer: a Leaflet page over the gdal2tiles pyramids with a perspective switch.
 
 Leaflet is copied next to the page (from the npm package the Makefile installs into
-build/), so the viewer works offline and from a plain static file server.
+build/), and so are the viewer's own viewer.js and viewer.css, so the viewer works offline
+and from a plain static file server. The page is given, per perspective, its azimuth,
+elevation and gsd (for measuring heights) and the runs of tiles its pyramid holds (so the
+browser never asks for a tile that was not written: empty tiles are not cut), and, per
+scene, a quadratic from web-mercator metres to the scene CRS (measurements are made there).
 """
 
 from __future__ import annotations
@@ -10,6 +14,8 @@ import json
 import os
 import shutil
 from pathlib import Path
+
+import numpy as np
 
 from .atomic import write_text
 from .errors import Pipeline25dError
@@ -42,17 +48,61 @@ def zoom_range(tms_dir: Path) -> tuple[int, int]:
     return zooms[0], zooms[-1]
 
 
+def tile_runs(tms_dir: Path, ext: str) -> dict[str, dict[str, list[list[int]]]]:
+    """The pyramid's tiles as {z: {x: [[y0, y1], ...]}}, inclusive runs of consecutive y: a map's
+    tiles per column are a few runs, so this stays small at city scale."""
+    cols: dict[str, dict[str, list[int]]] = {}
+    for path in tms_dir.glob(f"*/*/*.{ext}"):
+        z, x = path.parent.parent.name, path.parent.name
+        cols.setdefault(z, {}).setdefault(x, []).append(int(path.stem))
+    runs: dict[str, dict[str, list[list[int]]]] = {}
+    for z, xs in cols.items():
+        for x, ys in xs.items():
+            out: list[list[int]] = []
+            for y in sorted(ys):
+                if out and y == out[-1][1] + 1:
+                    out[-1][1] = y
+                else:
+                    out.append([y, y])
+            runs.setdefault(z, {})[x] = out
+    return runs
+
+
+def mercator_to_scene(crs: str, lonlat_bounds: list[float], n: int = 7) -> dict:
+    """Quadratic least-squares fit of scene CRS (x, y) over web-mercator metres (X, Y) on an n × n grid
+    over [west, south, east, north]: x = Σ coef·[1, u, v, u², uv, v²] with u, v = ((X, Y) − origin) / scale.
+    Its worst error on the grid is ``max_error_m`` (well under a millimetre over a city)."""
+    from .crs import transform_points
+
+    w, s, e, n_ = lonlat_bounds
+    lon, lat = np.meshgrid(np.linspace(w, e, n), np.linspace(s, n_, n))
+    ll = np.column_stack([lon.ravel(), lat.ravel(), np.zeros(lon.size)])
+    merc = transform_points(ll, "EPSG:4326", "EPSG:3857")[:, :2]
+    scene = transform_points(ll, "EPSG:4326", crs)[:, :2]
+    origin = merc.mean(axis=0)
+    scale = float(np.abs(merc - origin).max()) or 1.0
+    u, v = ((merc - origin) / scale).T
+    terms = np.column_stack([np.ones_like(u), u, v, u * u, u * v, v * v])
+    coef = np.linalg.lstsq(terms, scene, rcond=None)[0]
+    return {"origin": origin.tolist(), "scale": scale, "x": coef[:, 0].tolist(), "y": coef[:, 1].tolist(),
+            "max_error_m": float(np.abs(terms @ coef - scene).max())}
+
+
 def write_viewer(report_json: str | Path, out_html: str | Path) -> None:
     report = json.loads(Path(report_json).read_text())
     results = Path(report_json).resolve().parents[1]
     entries = []
     for p in report["perspectives"]:
-        zmin, zmax = zoom_range(results / "tms" / p["id"])
+        tms_dir = results / "tms" / p["id"]
+        zmin, zmax = zoom_range(tms_dir)
+        ext = tile_extension(tms_dir)
         warp = p["warp"]["method"] + (f" {p['warp']['order']}" if p["warp"]["method"] == "polynomial" else "")
-        entries.append({"id": p["id"], "azimuth": p["azimuth"], "elevation": p["elevation"],
+        entries.append({"id": p["id"], "azimuth": p["azimuth"], "elevation": p["elevation"], "gsd": report["gsd"],
                         "rmsd_m": p["rmsd_m"], "rmsd_px": p["rmsd_px"], "warp": warp,
                         "lonlat_bounds": p["lonlat_bounds"], "min_zoom": zmin, "max_zoom": zmax,
-                        "ext": tile_extension(results / "tms" / p["id"])})
+                        "ext": ext, "tiles": tile_runs(tms_dir, ext)})
+    bounds = np.array([p["lonlat_bounds"] for p in entries])
+    to_scene = mercator_to_scene(report["crs"], [*bounds[:, :2].min(axis=0), *bounds[:, 2:].max(axis=0)])
     out_html = Path(out_html)
     dest = out_html.parent / "leaflet"
     dest.mkdir(parents=True, exist_ok=True)
@@ -60,5 +110,8 @@ def write_viewer(report_json: str | Path, out_html: str | Path) -> None:
     for name in ("leaflet.js", "leaflet.css"):
         shutil.copyfile(src / name, dest / name)
     shutil.copytree(src / "images", dest / "images", dirs_exist_ok=True)
-    html = TEMPLATE.read_text().replace("@SCENE@", report["scene"]).replace("@PERSPECTIVES@", json.dumps(entries))
+    for name in ("viewer.js", "viewer.css"):
+        shutil.copyfile(TEMPLATE.with_name(name), out_html.parent / name)
+    html = (TEMPLATE.read_text().replace("@SCENE@", report["scene"]).replace("@PERSPECTIVES@", json.dumps(entries))
+            .replace("@TO_SCENE@", json.dumps(to_scene)))
     write_text(out_html, html)
