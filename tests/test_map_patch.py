@@ -44,13 +44,14 @@ def _observations(shift: float = 0.0) -> list[dict]:
     return rows
 
 
-def _source(d, obs) -> str:
+def _source(d, obs) -> tuple[str, str]:
+    """The mosaic of the tiles in ``d``, and a VRT of it with GCPs ``obs``."""
     mosaic = d / "mosaic.vrt"
     build_mosaic([str(p) for p in sorted(d.glob("*_*.tif"))], mosaic)
     src = d / "gcps.vrt"
     gdal().Translate(str(src), str(mosaic), format="VRT", outputSRS=horizontal_wkt(CRS),
                      GCPs=gdal_gcps(obs, raster_geotransform(mosaic)))
-    return str(src)
+    return str(mosaic), str(src)
 
 
 def _pixels_of(path) -> np.ndarray:
@@ -65,9 +66,9 @@ def test_a_patch_warps_only_the_blocks_a_changed_tile_reaches_and_equals_a_fresh
         for c in range(COLS):
             _write_tile(d, r, c)
     choice, crs = {"method": "polynomial", "order": 1}, horizontal_wkt(CRS)
-    src = _source(d, _observations())
-    kept, first = patched_map(src, choice, crs, GSD, tmp_path / "kept")
-    assert first["full"] and first["blocks_warped"] == first["blocks"] >= 30
+    mosaic, src = _source(d, _observations())
+    kept, first = patched_map(mosaic, src, choice, crs, GSD, tmp_path / "kept")
+    assert first["full"] and first["blocks_redone"] == first["blocks"] >= 30
     before = _pixels_of(kept)
 
     # block by block, as one gdalwarp of the whole map does (up to its own approximation)
@@ -78,21 +79,23 @@ def test_a_patch_warps_only_the_blocks_a_changed_tile_reaches_and_equals_a_fresh
     assert diff.mean() < 0.05 and np.percentile(diff, 99.9) <= 8, (diff.mean(), diff.max())
 
     _write_tile(d, *CHANGED, seed=1)
-    src = _source(d, _observations())
-    kept, patch = patched_map(src, choice, crs, GSD, tmp_path / "kept")
+    mosaic, src = _source(d, _observations())
+    kept, patch = patched_map(mosaic, src, choice, crs, GSD, tmp_path / "kept")
     assert not patch["full"] and patch["mosaic_cells_changed"] == 1        # the tile is one 128 px square
-    assert 1 <= patch["blocks_warped"] <= 4 < first["blocks"]
+    assert 1 <= patch["blocks_redone"] <= 4 < first["blocks"]
     after = _pixels_of(kept)
-    _, fresh = patched_map(src, choice, crs, GSD, tmp_path / "fresh")
+    _, fresh = patched_map(mosaic, src, choice, crs, GSD, tmp_path / "fresh")
     assert fresh["full"]
     np.testing.assert_array_equal(after, _pixels_of(tmp_path / "fresh" / "map.tif"))
+    for level in range(2):                                                 # and their overviews
+        np.testing.assert_array_equal(_overview(kept, level), _overview(tmp_path / "fresh" / "map.tif", level))
 
     # the blocks whose pixels changed lie where the warp takes the tile, and were all warped again
     width, height = after.shape[2], after.shape[1]
     changed = {(bx, by) for bx in range(-(-width // BLOCK)) for by in range(-(-height // BLOCK))
-               if (before[:, (w := block_window(bx, by, width, height)).row0:w.row1, w.col0:w.col1]
+               if (before[:, (w := block_window(bx, by, width, height, BLOCK)).row0:w.row1, w.col0:w.col1]
                    != after[:, w.row0:w.row1, w.col0:w.col1]).any()}
-    assert changed and len(changed) <= patch["blocks_warped"]
+    assert changed and len(changed) <= patch["blocks_redone"]
     gt = gdal().Open(str(kept)).GetGeoTransform()
     r, c = CHANGED
     x, y = (c + 0.5) * TILE * GSD, (ROWS - r - 0.5) * TILE * GSD          # the tile's centre, then warped
@@ -100,10 +103,45 @@ def test_a_patch_warps_only_the_blocks_a_changed_tile_reaches_and_equals_a_fresh
     assert (int((x - gt[0]) / gt[1]) // BLOCK, int((y - gt[3]) / gt[5]) // BLOCK) in changed
 
     # nothing changed: nothing warped; other GCPs: everything
-    _, same = patched_map(src, choice, crs, GSD, tmp_path / "kept")
-    assert not same["full"] and same["blocks_warped"] == 0
-    _, moved = patched_map(_source(d, _observations(shift=1.0)), choice, crs, GSD, tmp_path / "kept")
-    assert moved["full"] and moved["blocks_warped"] == moved["blocks"]
+    _, same = patched_map(mosaic, src, choice, crs, GSD, tmp_path / "kept")
+    assert not same["full"] and same["blocks_redone"] == 0
+    _, moved = patched_map(*_source(d, _observations(shift=1.0)), choice, crs, GSD, tmp_path / "kept")
+    assert moved["full"] and moved["blocks_redone"] == moved["blocks"]
+
+
+def _overview(path, level: int) -> np.ndarray:
+    ds = gdal().Open(str(path))
+    return np.stack([ds.GetRasterBand(b + 1).GetOverview(level).ReadAsArray() for b in range(ds.RasterCount)])
+
+
+def test_an_unwarped_map_is_patched_in_the_blocks_its_changed_tile_lies_in(tmp_path, monkeypatch):
+    """No warp: the map is the mosaic; a changed tile redoes exactly the block it lies in, and the
+    kept map equals the mosaic, its block-built overviews the COG driver's (to rounding)."""
+    monkeypatch.setattr(map_patch, "BLOCK_PX", BLOCK)
+    d = tmp_path / "tiles"
+    d.mkdir()
+    for r in range(ROWS):
+        for c in range(COLS):
+            _write_tile(d, r, c)
+    none, crs = {"method": "none", "order": 0}, horizontal_wkt(CRS)
+    mosaic, src = _source(d, _observations())
+    patched_map(mosaic, src, none, crs, GSD, tmp_path / "kept")
+    _write_tile(d, 3, 5, seed=1)                   # rows 384..511, columns 640..767: blocks (2, 1)
+    mosaic, src = _source(d, _observations())
+    kept, patch = patched_map(mosaic, src, none, crs, GSD, tmp_path / "kept")
+    assert not patch["full"] and patch["blocks_redone"] == 1 and patch["mosaic_cells_changed"] == 1
+    np.testing.assert_array_equal(_pixels_of(kept), _pixels_of(mosaic))
+    cog = gdal().Translate(str(tmp_path / "ref.tif"), mosaic, format="COG",
+                           creationOptions=["OVERVIEWS=AUTO", "RESAMPLING=AVERAGE", "COMPRESS=DEFLATE"])
+    cog = None
+    ref = gdal().Open(str(tmp_path / "ref.tif"))
+    levels = ref.GetRasterBand(1).GetOverviewCount()
+    ref = None
+    assert levels == 2
+    for level in range(levels):
+        diff = np.abs(_overview(kept, level).astype(int) - _overview(tmp_path / "ref.tif", level))
+        # averaging rounds once per level or once overall: at most one grey level apart
+        assert diff.max() <= 1 and diff.mean() < 0.25, (level, diff.max(), diff.mean())
 
 
 def test_the_cog_of_a_patched_warp_equals_a_fresh_one_byte_for_byte(tmp_path, monkeypatch):
@@ -122,8 +160,11 @@ def test_the_cog_of_a_patched_warp_equals_a_fresh_one_byte_for_byte(tmp_path, mo
     warp_to_cog(d / "mosaic.vrt", obs, choice, plan, tmp_path / "b.tif")            # from scratch, no kept warp
     assert (tmp_path / "a.tif").read_bytes() == (tmp_path / "b.tif").read_bytes()
     assert not (tmp_path / "b.blocks").exists() and not list(tmp_path.glob(".b.tif*"))
-    # a map that needs no warp keeps nothing
-    warp_to_cog(d / "mosaic.vrt", obs, {"method": "none", "order": 0}, plan, tmp_path / "a.tif",
-                work_dir=tmp_path / "kept")
-    assert not (tmp_path / "kept").exists()
+    # a map that needs no warp is kept too: the same, one block patched
+    none = {"method": "none", "order": 0}
+    warp_to_cog(d / "mosaic.vrt", obs, none, plan, tmp_path / "a.tif", work_dir=tmp_path / "kept")
+    _write_tile(d, 2, 3, seed=2)
+    warp_to_cog(d / "mosaic.vrt", obs, none, plan, tmp_path / "a.tif", work_dir=tmp_path / "kept")
+    warp_to_cog(d / "mosaic.vrt", obs, none, plan, tmp_path / "b.tif")
+    assert (tmp_path / "a.tif").read_bytes() == (tmp_path / "b.tif").read_bytes()
     shutil.rmtree(d)

@@ -203,6 +203,14 @@ def cog_codec(compression: str, quality: int) -> list[str]:
     return [f"COMPRESS={compression.upper()}", f"QUALITY={int(quality)}"]
 
 
+def cog_options(compression: str, quality: int) -> list[str]:
+    """The COG driver's options for a map copied from a raster with its overviews built: its codec,
+    and those overviews kept (jpeg: the alpha becomes a mask, whose overviews the COG driver
+    must make, averaging over the whole map)."""
+    overviews = ["OVERVIEWS=AUTO", "RESAMPLING=AVERAGE"] if compression == "jpeg" else ["OVERVIEWS=FORCE_USE_EXISTING"]
+    return [*cog_codec(compression, quality), *overviews]
+
+
 def warp_to_cog(mosaic: str | Path, obs: list[dict], choice: dict, plan: dict, out: str | Path,
                 compression: str = "deflate", quality: int = 85,
                 parts: list[tuple[int, int, int, int]] | None = None,
@@ -213,15 +221,13 @@ def warp_to_cog(mosaic: str | Path, obs: list[dict], choice: dict, plan: dict, o
     driver makes) or webp (RGBA), the last two at ``quality``. ``parts``: the tile rectangles of
     :func:`pipeline25d.map_parts.tile_parts`; more than one makes a sparse map, warped part by
     part (see :mod:`pipeline25d.map_parts`). Returns each part's bounds [xmin, ymin, xmax, ymax]
-    on the map (one part: the whole map's). A dense map's warp is kept in ``work_dir`` and
-    patched where the mosaic changed (:mod:`pipeline25d.map_patch`).
+    on the map (one part: the whole map's). A dense map is kept in ``work_dir`` with its
+    overviews and patched where the mosaic changed (:mod:`pipeline25d.map_patch`).
     """
     from .crs import horizontal_wkt
 
     crs = horizontal_wkt(plan["crs"])
-    codec = [opt for c in cog_codec(compression, quality) for opt in ("-co", c)]
-    # overviews by averaging (the COG driver's default, cubic, costs ~25 % more of the whole copy)
-    cog = ["-of", "COG", *codec, "-co", "OVERVIEWS=AUTO", "-co", "RESAMPLING=AVERAGE"]
+    cog = [opt for c in cog_options(compression, quality) for opt in ("-co", c)]
     with atomic_path(out) as tmp:
         gcp_vrt = Path(tmp).with_suffix(".gcps.vrt")
         try:
@@ -233,20 +239,15 @@ def warp_to_cog(mosaic: str | Path, obs: list[dict], choice: dict, plan: dict, o
                 source = gcp_vrt
             if parts and len(parts) > 1:
                 return _warp_parts(source, mosaic, choice, plan, crs, parts, tmp, compression, quality)
-            if choice["method"] == "none":
-                run_tool(["gdal_translate", "-q", *cog, str(mosaic), str(tmp)])
-            else:
-                from .map_patch import patched_map
+            from .map_patch import patched_map
 
-                kept_dir = Path(work_dir) if work_dir else Path(tmp).with_suffix(".blocks")
-                try:
-                    kept, _ = patched_map(source, choice, crs, plan["gsd"], kept_dir)
-                    run_tool(["gdal_translate", "-q", *cog, str(kept), str(tmp)])
-                finally:
-                    if not work_dir:
-                        shutil.rmtree(kept_dir, ignore_errors=True)
-            if choice["method"] == "none" and work_dir:
-                shutil.rmtree(work_dir, ignore_errors=True)        # a kept warp of an earlier run
+            kept_dir = Path(work_dir) if work_dir else Path(tmp).with_suffix(".blocks")
+            try:
+                kept, _ = patched_map(mosaic, source, choice, crs, plan["gsd"], kept_dir)
+                run_tool(["gdal_translate", "-q", "-of", "COG", *cog, str(kept), str(tmp)])
+            finally:
+                if not work_dir:
+                    shutil.rmtree(kept_dir, ignore_errors=True)
             ds = gdal().Open(str(tmp))
             gt, w, h = ds.GetGeoTransform(), ds.RasterXSize, ds.RasterYSize
             return [[gt[0], gt[3] + h * gt[5], gt[0] + w * gt[1], gt[3]]]
@@ -295,12 +296,9 @@ def _warp_parts(source: Path, mosaic: str | Path, choice: dict, plan: dict, crs:
             if factors:
                 ds.BuildOverviews("AVERAGE", factors)
             ds = None
-        # jpeg: the alpha becomes a mask, whose overviews the COG driver must make (over the whole map)
-        overviews = ["OVERVIEWS=AUTO", "RESAMPLING=AVERAGE"] if compression == "jpeg" else ["OVERVIEWS=FORCE_USE_EXISTING"]
-        cog_options = [*cog_codec(compression, quality), *overviews]
         log.info("sparse map: %d parts, %d x %d px, %.1f%% of it in parts", len(windows), width, height,
                  100 * sum(w.width * w.height for w in windows) / (width * height))
-        assemble_sparse_cog(part_files, width, height, gt, crs, out, cog_options)
+        assemble_sparse_cog(part_files, width, height, gt, crs, out, cog_options(compression, quality))
     finally:
         for path, _ in part_files:
             path.unlink(missing_ok=True)
