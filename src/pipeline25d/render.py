@@ -42,7 +42,7 @@ uniform mat4 u_mvp;
 uniform vec4 u_shear;        // clip-space shift per metre of ground height (terrain-relative mode)
 uniform float u_zbias;
 in vec3 in_pos;
-in float in_ground;          // DTM height under the vertex minus z0 (0 in plane mode)
+in float in_ground;          // DTM height under the vertex minus its chunk origin's height (0 in plane mode)
 in vec4 in_color;
 in vec2 in_uv;
 out vec3 v_pos;
@@ -96,7 +96,11 @@ class TileView:
     camera: str = "map"            # "map" (map-aligned) or "paper" (the paper's image plane)
 
     def matrix(self, origin: np.ndarray) -> np.ndarray:
-        return clip_matrix(self.perspective, self.z0, self.extent, self.depth_range, origin, self.camera)
+        """Clip matrix for vertices relative to ``origin``. In terrain-relative mode its reference
+        plane is the origin's height, matching :meth:`ground_offsets`: the result is the same
+        (every vertex subtracts its own ground), but both float32 terms stay small."""
+        z0 = self.z0 if self.ground is None else float(origin[2])
+        return clip_matrix(self.perspective, z0, self.extent, self.depth_range, origin, self.camera)
 
     def shear(self, matrix: np.ndarray) -> tuple[float, float, float, float]:
         """u_shear: the clip-space map shift per metre of ground height (zero in plane mode)."""
@@ -104,11 +108,13 @@ class TileView:
             return (0.0, 0.0, 0.0, 0.0)
         return (float(matrix[0, 2]), float(matrix[1, 2]), 0.0, 0.0)
 
-    def ground_offsets(self, vertices: np.ndarray) -> np.ndarray | None:
-        """(n,) float32 DTM height − z0 under scene-CRS vertices, or None in plane mode."""
+    def ground_offsets(self, vertices: np.ndarray, origin: np.ndarray) -> np.ndarray | None:
+        """(n,) float32 DTM height under scene-CRS vertices minus ``origin``'s height (their chunk's),
+        or None in plane mode. Relative to z0 instead, a DTM thousands of metres from z0 cost
+        0.01 px and more at low elevations (float32 shear × height against the matrix offset)."""
         if self.ground is None:
             return None
-        return (self.ground(vertices[:, 0], vertices[:, 1]) - self.z0).astype(np.float32)
+        return (self.ground(vertices[:, 0], vertices[:, 1]) - float(origin[2])).astype(np.float32)
 
     def depth_metres(self, window_depth: np.ndarray) -> np.ndarray:
         """View depth in metres from GL window depth in [0, 1] (1 = cleared: NaN)."""
@@ -215,7 +221,7 @@ class TileRenderer:
         """The chunks on the GPU, once for every pass of a tile (they share the view's ground).
 
         Vertices go to float32 relative to their chunk's origin; in terrain-relative mode
-        each also carries DTM − z0 under it. Release the result (or use it in ``with``).
+        each also carries the DTM under it relative to the origin's height. Release the result (or use it in ``with``).
         """
         out = []
         for origin, parts in chunks:
@@ -225,7 +231,7 @@ class TileRenderer:
                     continue
                 textured = part.texture is not None and part.uv is not None
                 mesh = self._vao(part.vertices - origin, part.faces, part.colors, part.uv if textured else None,
-                                 view.ground_offsets(part.vertices))
+                                 view.ground_offsets(part.vertices, origin))
                 mesh.texture = part.texture if textured else None
                 mesh.coloured = part.colors is not None
                 gpu.append(mesh)
@@ -328,7 +334,7 @@ class TileRenderer:
         n = len(points)
         origin = points.mean(axis=0) if n else np.zeros(3)
         verts, faces, colors = marker_geometry(points - origin, slopes, radius_m)
-        ground = view.ground_offsets(verts + origin)
+        ground = view.ground_offsets(verts + origin, origin)
         dmin, dmax = view.depth_range
 
         def draw_markers(bias_m: float):
