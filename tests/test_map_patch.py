@@ -54,17 +54,23 @@ def _source(d, obs) -> tuple[str, str]:
     return str(mosaic), str(src)
 
 
-def _pixels_of(path) -> np.ndarray:
-    return gdal().Open(str(path)).ReadAsArray().astype(int)
-
-
-def test_a_patch_warps_only_the_blocks_a_changed_tile_reaches_and_equals_a_fresh_warp(tmp_path, monkeypatch):
+def _tiles(tmp_path, monkeypatch):
+    """ROWS x COLS tiles in tmp_path/tiles, and small map blocks."""
     monkeypatch.setattr(map_patch, "BLOCK_PX", BLOCK)
     d = tmp_path / "tiles"
     d.mkdir()
     for r in range(ROWS):
         for c in range(COLS):
             _write_tile(d, r, c)
+    return d
+
+
+def _pixels_of(path) -> np.ndarray:
+    return gdal().Open(str(path)).ReadAsArray().astype(int)
+
+
+def test_a_patch_warps_only_the_blocks_a_changed_tile_reaches_and_equals_a_fresh_warp(tmp_path, monkeypatch):
+    d = _tiles(tmp_path, monkeypatch)
     choice, crs = {"method": "polynomial", "order": 1}, horizontal_wkt(CRS)
     mosaic, src = _source(d, _observations())
     kept, first = patched_map(mosaic, src, choice, crs, GSD, tmp_path / "kept")
@@ -117,12 +123,7 @@ def _overview(path, level: int) -> np.ndarray:
 def test_an_unwarped_map_is_patched_in_the_blocks_its_changed_tile_lies_in(tmp_path, monkeypatch):
     """No warp: the map is the mosaic; a changed tile redoes exactly the block it lies in, and the
     kept map equals the mosaic, its block-built overviews the COG driver's (to rounding)."""
-    monkeypatch.setattr(map_patch, "BLOCK_PX", BLOCK)
-    d = tmp_path / "tiles"
-    d.mkdir()
-    for r in range(ROWS):
-        for c in range(COLS):
-            _write_tile(d, r, c)
+    d = _tiles(tmp_path, monkeypatch)
     none, crs = {"method": "none", "order": 0}, horizontal_wkt(CRS)
     mosaic, src = _source(d, _observations())
     patched_map(mosaic, src, none, crs, GSD, tmp_path / "kept")
