@@ -40,12 +40,12 @@ bench-sparse: deps
 bench-coarse: deps
 	$(PY) -m pipeline25d.bench --grid 2x2 --decimate 0.058 --stretch 15 --gsd 2 --name coarse
 
-# District update: a 4 x 3 district city (the bench's Delft tiles) run from scratch, one district
+# District update: a 4 x 3 district city (the bench's Delft tiles, gsd 0.125) run from scratch, one district
 # replaced by a new model and the workflow run again; the update's wall time against the full run's
 # and the district's area share, the map and web tiles that changed, and the update against a
 # run from scratch of the updated city (byte for byte); writes bench/districts.json
 bench-district: deps
-	$(PY) -m pipeline25d.district_update --grid 4x3 --decimate 0.1 --district d01-01 --name districts
+	$(PY) -m pipeline25d.district_update --grid 4x3 --decimate 0.1 --gsd 0.125 --district d01-01 --name districts
 
 # Kill-safe resume: runs of the demo city (scale 0.5) interrupted at random moments, 20 by
 # SIGKILL and 10 by SIGINT and SIGTERM in turn, resumed, and compared with an uninterrupted

@@ -15,7 +15,7 @@ updated scene must give the same maps and web tiles, byte for byte. Writes
 
 CLI::
 
-    python -m pipeline25d.district_update --grid 4x3 --decimate 0.1 --district d01-01 --name districts
+    python -m pipeline25d.district_update --grid 4x3 --decimate 0.1 --gsd 0.125 --district d01-01 --name districts
 """
 
 from __future__ import annotations
@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--grid", default="4x3", help="districts, NXxNY")
     ap.add_argument("--decimate", type=float, default=0.1, help="share of the source's triangles to keep")
     ap.add_argument("--district", default="d01-01", help="the district to replace")
-    ap.add_argument("--gsd", type=float, default=0.25)
+    ap.add_argument("--gsd", type=float, default=0.125, help="fine enough that a district spans several render tiles")
     ap.add_argument("--perspectives", default="eight-45+nadir")
     ap.add_argument("--cores", type=int, default=2)
     ap.add_argument("--name", default="districts")

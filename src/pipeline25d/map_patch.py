@@ -78,7 +78,7 @@ def patched_map(mosaic: str | Path, source: str | Path, choice: dict, crs: str, 
     grid = None
     factors = overview_factors(width, height)
     size = max(BLOCK_PX, factors[-1] if factors else 1)      # a block holds whole pixels of every overview
-    key = {"version": STATE_VERSION, "method": choice["method"], "order": choice["order"], "crs": crs,
+    key = {"version": STATE_VERSION, "method": choice["method"], "order": choice.get("order"), "crs": crs,
            "gcps": _gcps_digest(source) if warped else None, "grid": [*gt, width, height], "block": size,
            "overviews": factors}
     mosaic_grid, cells = map_cells(mosaic)
@@ -192,7 +192,7 @@ def _create_kept(path: Path, gt: tuple[float, ...], width: int, height: int, ban
     g = gdal()
     ds = g.GetDriverByName("GTiff").Create(str(path), width, height, bands, g.GDT_Byte,
                                            ["TILED=YES", "BLOCKXSIZE=512", "BLOCKYSIZE=512", "COMPRESS=ZSTD",
-                                            "ZSTD_LEVEL=1", "SPARSE_OK=TRUE", "BIGTIFF=IF_SAFER",
+                                            "ZSTD_LEVEL=1", "SPARSE_OK=TRUE", "BIGTIFF=IF_SAFER", "INTERLEAVE=BAND",
                                             *(["PHOTOMETRIC=RGB"] if bands >= 4 else []), "ALPHA=YES"])
     ds.SetGeoTransform(gt)
     ds.SetProjection(crs)

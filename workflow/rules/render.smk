@@ -20,8 +20,6 @@ rule render_block:
         f"{RESULTS}/logs/render/{{pid}}/block_{{block}}.log",
     benchmark:
         f"{RESULTS}/benchmarks/render/{{pid}}/block_{{block}}.tsv"
-    group:
-        "render"
     shell:
         PYTHON + " -m pipeline25d render-block --plan {params.plan} --block-id {wildcards.block}"
         " --block {params.block} --lod-dir {params.lod_dir}"
