@@ -132,12 +132,6 @@ def test_adjacent_tiles_share_edges_and_one_pixel_grid(gsd: float, size: int, x:
         assert abs((v - lo_a) / (w_a / size) - (v - lo_o) / (w_o / size) - d * size) <= 1e-6
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "hypothesis found: a chunk box ending exactly on a tile edge also plans the next tile with a "
-    "zero-size content box, and snapping a content box to pixels can round it one pixel past its "
-    "tile. The fix (branch hypothesis, 62afc49) made Snakemake 9.27 stop the SLURM-profile run "
-    "with 'BUG: Out of jobs ready to be started' (tests/test_slurm.py), not yet understood, so it "
-    "is held back"))
 @settings(max_examples=MATH_EXAMPLES)
 @given(gsds, st.integers(64, 512), eastings, northings, heights, st.integers(0, 359), st.integers(5, 90),
        st.floats(0.1, 3.0), st.floats(0.1, 3.0), st.floats(0.0, 3.0))

@@ -4,9 +4,9 @@ Tiles lie on a global grid: tile (row, col) covers map x in [col·S, (col+1)·S)
 [row·S, (row+1)·S) with S = tile_size·gsd, so rows count northward. A tile's id and
 extent therefore do not depend on the rest of the scene: adding or changing a district
 leaves the other tiles' jobs untouched. A tile that no chunk's projected bounding box
-touches is empty and gets no job. Each tile carries its own depth range (from its
-chunks), the GCP candidates whose projected centre it holds and its content box (where its
-chunks' projected boxes meet it: nothing outside can be drawn).
+overlaps (touching its edge is not enough) is empty and gets no job. Each tile carries its
+own depth range (from its chunks), the GCP candidates whose projected centre it holds and
+its content box (where its chunks' projected boxes meet it: nothing outside can be drawn).
 """
 
 from __future__ import annotations
@@ -67,7 +67,10 @@ def extent_geotransform(plan: dict, e: Extent) -> tuple[float, ...]:
 
 
 def _index_range(lo: float, hi: float, span: float) -> range:
-    return range(math.floor(lo / span), math.floor(hi / span) + 1)
+    """Grid cells of ``span`` that [lo, hi] overlaps with positive length (one for lo == hi): a box
+    ending on a cell edge does not reach the next cell, which would get an empty job."""
+    first = math.floor(lo / span)
+    return range(first, max(math.ceil(hi / span), first + 1))
 
 
 def plan_perspective(p: Perspective, chunks: list[dict], candidates: list[dict], z0: float, gsd: float,
@@ -134,13 +137,17 @@ def plan_perspective(p: Perspective, chunks: list[dict], candidates: list[dict],
 
 
 def _content_in_tile(box: list[float], key: tuple[int, int], span: float, pixel: float) -> list[float]:
-    """The tile's share of its chunks' projected boxes, grown to whole pixels: where it can hold data."""
+    """The tile's share of its chunks' projected boxes, grown to whole pixels (at least one) within
+    the tile: where it can hold data. Where it reaches a tile edge it takes that edge's very value,
+    so neighbours' boxes meet exactly (snapping the edge itself can round a pixel past it)."""
     r, c = key
-    x0, y0 = max(box[0], c * span), max(box[1], r * span)
-    x1, y1 = min(box[2], (c + 1) * span), min(box[3], (r + 1) * span)
-    snap = [math.floor(x0 / pixel) * pixel, math.floor(y0 / pixel) * pixel,
-            math.ceil(x1 / pixel) * pixel, math.ceil(y1 / pixel) * pixel]
-    return [round(v, 6) for v in snap]
+    out = []
+    for lo, hi, i in ((box[0], box[2], c), (box[1], box[3], r)):
+        start, end = i * span, (i + 1) * span
+        a = max(math.floor(lo / pixel) * pixel, start)
+        b = min(max(math.ceil(hi / pixel) * pixel, a + pixel), end)
+        out.append((a, b))
+    return [round(v, 6) for v in (out[0][0], out[1][0], out[0][1], out[1][1])]
 
 
 def _assign_gcps(tiles: dict, candidates: list[dict], p: Perspective, z0: float, span: float,
