@@ -38,14 +38,21 @@ KEPT = "map.tif"
 
 
 def warp_options(choice: dict, crs: str, gsd: float) -> dict:
-    """gdal.Warp keywords of the chosen GCP warp onto the map grid (as gdalwarp -tap at ``gsd``)."""
+    """gdal.Warp keywords of the chosen GCP warp onto the map grid (as gdalwarp -tap at ``gsd``);
+    for no warp, a nearest-neighbour copy onto that grid."""
     opts = {"dstSRS": crs, "xRes": gsd, "yRes": gsd, "targetAlignedPixels": True, "dstAlpha": True,
-            "resampleAlg": "bilinear", "multithread": True, "warpOptions": ["NUM_THREADS=ALL_CPUS"]}
+            "resampleAlg": "near" if choice["method"] == "none" else "bilinear", "multithread": True,
+            "warpOptions": ["NUM_THREADS=ALL_CPUS"]}
     if choice["method"] == "tps":
         opts["tps"] = True
-    else:
+    elif choice["method"] != "none":
         opts["polynomialOrder"] = choice["order"]
     return opts
+
+
+def window_warp_options(choice: dict, crs: str, gsd: float) -> dict:
+    """:func:`warp_options` for a window given by its own bounds (no -tap re-alignment)."""
+    return {k: v for k, v in warp_options(choice, crs, gsd).items() if k != "targetAlignedPixels"}
 
 
 def source_to_map(source: str | Path, choice: dict):
@@ -104,7 +111,7 @@ def patched_map(mosaic: str | Path, source: str | Path, choice: dict, crs: str, 
     for bx, by in todo:
         win = block_window(bx, by, width, height, size)
         if warped:
-            opts = {k: v for k, v in warp_options(choice, crs, gsd).items() if k not in ("xRes", "yRes", "targetAlignedPixels")}
+            opts = {k: v for k, v in window_warp_options(choice, crs, gsd).items() if k not in ("xRes", "yRes")}
             block = g.Warp("", str(source), format="MEM", outputBounds=window_bounds(gt, win), width=win.width,
                            height=win.height, **opts)
         else:

@@ -261,31 +261,24 @@ def _warp_parts(source: Path, mosaic: str | Path, choice: dict, plan: dict, crs:
     """A sparse COG: each part warped onto the map grid with its overviews, then assembled."""
     from .map_parts import assemble_sparse_cog, map_grid, overview_factors, part_bounds, window_bounds
 
+    from .map_patch import source_to_map, window_warp_options
+
     g = gdal()
     mosaic_gt = raster_geotransform(mosaic)
     if choice["method"] == "none":
         def to_map(x, y):
             return x, y
     else:
-        transformer = g.Transformer(g.Open(str(source)), None, transformer_options(choice["method"], choice["order"]))
+        pixels_to_map = source_to_map(source, choice)
 
         def to_map(x, y):
-            pix = np.column_stack([(x - mosaic_gt[0]) / mosaic_gt[1], (y - mosaic_gt[3]) / mosaic_gt[5], np.zeros(len(x))])
-            xy, _ = transformer.TransformPoints(0, pix.tolist())
-            xy = np.asarray(xy)
-            return xy[:, 0], xy[:, 1]
+            return pixels_to_map((x - mosaic_gt[0]) / mosaic_gt[1], (y - mosaic_gt[3]) / mosaic_gt[5])
 
     gsd = plan["gsd"]
     gt, width, height, windows = map_grid(part_bounds(plan, parts, to_map), gsd)
     factors = overview_factors(width, height)
-    warp_options = {"dstSRS": crs, "xRes": gsd, "yRes": gsd, "dstAlpha": True, "multithread": True,
-                    "warpOptions": ["NUM_THREADS=ALL_CPUS"], "format": "GTiff",
-                    "creationOptions": ["TILED=YES", "COMPRESS=ZSTD", "ZSTD_LEVEL=1"],
-                    "resampleAlg": "near" if choice["method"] == "none" else "bilinear"}
-    if choice["method"] == "tps":
-        warp_options["tps"] = True
-    elif choice["method"] != "none":
-        warp_options["polynomialOrder"] = choice["order"]
+    warp_options = {**window_warp_options(choice, crs, gsd), "format": "GTiff",
+                    "creationOptions": ["TILED=YES", "COMPRESS=ZSTD", "ZSTD_LEVEL=1"]}
     part_files = []
     try:
         for k, win in enumerate(windows):
