@@ -238,3 +238,60 @@ def test_invalid_inputs(tmp_path):
     not_city.write_text(json.dumps({"type": "FeatureCollection"}))
     with pytest.raises(InputFileError, match="not CityJSON"):
         load_cityjson(not_city, RD)
+
+
+def test_lod_selection_takes_the_asked_level(tmp_path):
+    """LOD1 is a 10 m box, LOD2 the same walls with a gable to 14 m: each choice is visible in
+    the heights and triangle counts, so a reader that ignored ``lod`` would fail."""
+    box = [[0, 0, 0], [8, 0, 0], [8, 6, 0], [0, 6, 0], [0, 0, 10], [8, 0, 10], [8, 6, 10], [0, 6, 10]]
+    ridge = [[0, 3, 14], [8, 3, 14]]
+    v = box + ridge
+    walls = [[[0, 3, 2, 1]], [[0, 1, 5, 4]], [[1, 2, 6, 5]], [[2, 3, 7, 6]], [[3, 0, 4, 7]]]
+    lod1 = [walls + [[[4, 5, 6, 7]]]]
+    gables = [[[4, 5, 9, 8]], [[6, 7, 8, 9]], [[5, 6, 9]], [[7, 4, 8]]]   # two roof planes, two gable ends
+    objects = {
+        "b": {"type": "Building", "geometry": [
+            {"type": "Solid", "lod": "1", "boundaries": lod1},
+            {"type": "Solid", "lod": "2", "boundaries": [walls + gables]}]},
+        "only2": {"type": "Building", "geometry": [
+            {"type": "MultiSurface", "lod": "2", "boundaries": [[[0, 1, 2]]]}]},
+    }
+    path = _model(tmp_path, objects, v)
+
+    def top_and_count(lod):
+        mesh = load_cityjson(path, "EPSG:7415", lod=lod)
+        return float(mesh.bounds()[1, 2]), mesh.n_triangles
+
+    lod1_tris, lod2_tris = 12, 5 * 2 + 2 * 2 + 2 * 1
+    assert top_and_count("1") == (10.0, lod1_tris + 1)        # "only2" has no LOD1 or lower: its lowest (2) is kept
+    assert top_and_count("2") == (14.0, lod2_tris + 1)
+    assert top_and_count("2.2") == (14.0, lod2_tris + 1)      # highest at or below 2.2
+    assert top_and_count("0") == (10.0, lod1_tris + 1)        # none at or below 0: each object's lowest
+    assert top_and_count(None) == (14.0, lod2_tris + 1)       # default: each object's highest
+
+
+def test_many_geometry_instances_land_on_their_anchors(tmp_path):
+    """Instances of two templates at many anchors, mixed with a plain geometry: every triangle
+    must sit at its own anchor (the instance vertices are appended in one go at the end)."""
+    templates = {"templates": [{"type": "MultiSurface", "lod": "1", "boundaries": [[[0, 1, 2]]]},
+                               {"type": "MultiSurface", "lod": "1", "boundaries": [[[3, 4, 5]]]}],
+                 "vertices-templates": [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 0], [2, 0, 0], [0, 0, 3]]}
+    eye = list(np.eye(4).ravel())
+    n = 40
+    anchors = [[100.0 + 10 * i, 200.0, float(i)] for i in range(n)]
+    plain = [[0.0, 0.0, 50.0], [1.0, 0.0, 50.0], [0.0, 1.0, 50.0]]
+    objects = {f"t{i}": {"type": "SolitaryVegetationObject", "geometry": [
+        {"type": "GeometryInstance", "template": i % 2, "boundaries": [i], "transformationMatrix": eye}]}
+        for i in range(n)}
+    objects["plain"] = {"type": "Building", "geometry": [
+        {"type": "MultiSurface", "lod": "1", "boundaries": [[[n, n + 1, n + 2]]]}]}
+    path = _model(tmp_path, objects, anchors + plain, **{"geometry-templates": templates})
+    mesh = load_cityjson(path, "EPSG:7415")
+    tris = np.concatenate([p.vertices[p.faces] for p in mesh.parts])
+
+    def key(triangle) -> tuple:
+        return tuple(sorted(tuple(np.round(np.asarray(c, dtype=float), 6)) for c in triangle))
+
+    tv = np.asarray(templates["vertices-templates"], dtype=float)
+    expected = [key(np.asarray(anchors[i]) + tv[3 * (i % 2):3 * (i % 2) + 3]) for i in range(n)] + [key(plain)]
+    assert sorted(key(t) for t in tris) == sorted(expected)

@@ -82,11 +82,17 @@ def test_lod_errors_are_measured_and_levels_chosen_by_pixel_size():
     bumpy = build_levels(Mesh([grid_part(bump=2.0)]), max_error=10.0, max_levels=5)
     errors = [e for _, e in bumpy]
     assert errors[0] == 0 and all(b >= a for a, b in zip(errors, errors[1:])) and errors[-1] > 0.01
-    # independent check of the last level's error: densely sampled original surface vs level
-    orig, simple = bumpy[0][0][0], bumpy[-1][0][0]
-    target = trimesh.Trimesh(simple.vertices - 500000, simple.faces)
-    _, d, _ = trimesh.proximity.closest_point(target, orig.vertices - 500000)
-    assert errors[-1] == pytest.approx(d.max(), rel=0.05)
+    # independent check of every level's error: two-way Hausdorff distance between densely and
+    # evenly sampled surfaces (trimesh's sampling and closest-point queries, not ours)
+    origin = np.array([500000.0, 5800000.0, 0.0])
+    orig = trimesh.Trimesh(bumpy[0][0][0].vertices - origin, bumpy[0][0][0].faces)
+    for k, (parts, error) in enumerate(bumpy[1:], start=1):
+        level = trimesh.Trimesh(parts[0].vertices - origin, parts[0].faces)
+        there = trimesh.sample.sample_surface_even(orig, 20000, seed=k)[0]
+        back = trimesh.sample.sample_surface_even(level, 20000, seed=k)[0]
+        hausdorff = max(trimesh.proximity.closest_point(level, np.vstack([there, orig.vertices]))[1].max(),
+                        trimesh.proximity.closest_point(orig, np.vstack([back, level.vertices]))[1].max())
+        assert hausdorff * 0.97 <= error <= hausdorff * 1.10, (k, error, hausdorff)
     assert choose_level([0.0, 0.1, 0.3, 0.9], 0.25) == 1 and choose_level([0.0, 0.5], 0.1) == 0
 
 

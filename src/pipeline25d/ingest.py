@@ -34,8 +34,10 @@ def split_into_chunks(mesh: Mesh, chunk_size: float) -> dict[str, list[MeshPart]
         centroids = part.vertices[part.faces].mean(axis=1)
         cells = np.floor(centroids[:, :2] / chunk_size).astype(np.int64)
         keys, inverse = np.unique(cells, axis=0, return_inverse=True)
-        for k, (ix, iy) in enumerate(keys):
-            out.setdefault(chunk_id(int(ix), int(iy)), []).append(_subset(part, np.flatnonzero(inverse == k)))
+        order = np.argsort(inverse.ravel(), kind="stable")   # faces grouped by cell, in file order
+        ends = np.cumsum(np.bincount(inverse.ravel(), minlength=len(keys)))
+        for (ix, iy), faces in zip(keys, np.split(order, ends[:-1])):
+            out.setdefault(chunk_id(int(ix), int(iy)), []).append(_subset(part, faces))
     return out
 
 

@@ -2,8 +2,8 @@
 
 Level 0 is the chunk as ingested; level k keeps about 2^-k of the triangles. Open borders
 (chunk seams) are never collapsed, so adjacent chunks do not crack. The error of a level is
-the largest distance (metres) from a sample of level-0 vertices to the level's
-surface. Building stops at the first level whose error exceeds ``max_error`` (the
+the Hausdorff distance (metres) between level 0 and the level, both ways, on sample points
+(:func:`surface_error`). Building stops at the first level whose error exceeds ``max_error`` (the
 coarsest error any configured pixel size can use), so no level finer than needed and no
 level too coarse to use is kept. UVs and vertex colours ride through the collapses: each
 new vertex takes the mean of the original vertices merged into it.
@@ -56,15 +56,33 @@ def _carry(values: np.ndarray | None, mapping: np.ndarray, n_new: int, dtype) ->
 
 
 def surface_error(original: MeshPart, simplified: MeshPart, rng: np.random.Generator) -> float:
-    """Max distance (m) from sampled original vertices to the simplified surface (exact, see
-    :mod:`pipeline25d.proximity`; inf if nothing is left of it)."""
+    """Hausdorff distance (m) between the two surfaces, both ways, on sample points (exact
+    point-to-surface distances, see :mod:`pipeline25d.proximity`; inf if nothing is left).
+
+    Points are each surface's vertices, triangle centroids and edge midpoints (up to
+    :data:`ERROR_SAMPLE` a side): vertices alone miss where a collapse lifts the surface
+    between them, and the simplified surface can stray further from the original than the
+    original from it (on a bumpy grid, vertices one way gave 0.78-0.80 of the dense two-way
+    Hausdorff distance).
+    """
     if simplified is original:
         return 0.0
-    verts = original.vertices[np.unique(original.faces)]
-    if len(verts) > ERROR_SAMPLE:
-        verts = verts[rng.choice(len(verts), ERROR_SAMPLE, replace=False)]
-    origin = verts.mean(axis=0)
-    return float(surface_distances(verts - origin, simplified.vertices - origin, simplified.faces).max())
+    if not len(simplified.faces):
+        return float("inf")
+    origin = original.vertices[original.faces[0, 0]]
+    a, b = _surface_points(original, rng) - origin, _surface_points(simplified, rng) - origin
+    return float(max(surface_distances(a, simplified.vertices - origin, simplified.faces).max(),
+                     surface_distances(b, original.vertices - origin, original.faces).max()))
+
+
+def _surface_points(part: MeshPart, rng: np.random.Generator) -> np.ndarray:
+    """Up to :data:`ERROR_SAMPLE` of the part's vertices, triangle centroids and edge midpoints."""
+    tri = part.vertices[part.faces]
+    points = np.concatenate([part.vertices[np.unique(part.faces)], tri.mean(axis=1),
+                             (tri + np.roll(tri, -1, axis=1)).reshape(-1, 3) / 2])
+    if len(points) > ERROR_SAMPLE:
+        points = points[rng.choice(len(points), ERROR_SAMPLE, replace=False)]
+    return points
 
 
 def build_levels(mesh: Mesh, max_error: float, max_levels: int, seed: int = 0) -> list[tuple[list[MeshPart], float]]:

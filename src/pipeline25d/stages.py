@@ -218,19 +218,15 @@ def _ground_from_model(inputs: dict, scene_crs: str, ground_cfg: dict, dsm_path:
 
 
 def _own_terrain(inputs: dict, scene_crs: str) -> dict:
-    """The inputs' own terrain (CityJSON TINRelief / ground objects): the districts carrying one
-    and their meshes as (bounds, load) chunks for :func:`pipeline25d.terrain.render_height_map`."""
+    """The inputs' own terrain (e.g. CityJSON TINRelief / ground objects): the districts carrying
+    one and their meshes as (bounds, load) chunks for :func:`pipeline25d.terrain.render_height_map`."""
     from .chunks import chunk_origin
-    from .formats import detect_format
-    from .formats.cityjson import load_cityjson_terrain
+    from .formats import load_district_terrain
 
     districts, chunks = [], []
     for name, spec in sorted(inputs.items()):
-        fmt = spec.get("format", "auto")
-        if (detect_format(Path(spec["path"])) if fmt == "auto" else fmt) != "cityjson":
-            continue
-        mesh = load_cityjson_terrain(spec["path"], scene_crs, src_crs=spec.get("crs"))
-        if not mesh.n_triangles:
+        mesh = load_district_terrain(spec, scene_crs)
+        if mesh is None or not mesh.n_triangles:
             continue
         districts.append(name)
         b = mesh.bounds()

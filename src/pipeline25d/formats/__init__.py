@@ -1,22 +1,104 @@
-"""Readers for 3D model file formats (glTF, 3D Tiles, CityJSON, ContextCapture metadata)."""
+"""Readers for 3D model formats, all with one contract.
+
+Every format has a :class:`Reader` in :data:`READERS`. Its ``load(path, spec,
+max_geometric_error)`` returns :class:`~pipeline25d.formats.common.Loaded`: the model's
+parts, float64, and the CRS they are in (None when the file does not say). Offsets,
+ContextCapture metadata and the reprojection into the scene CRS are applied once, here
+(:func:`load_district`), for every format. A format that places itself (3D Tiles,
+CityJSON) refuses ``offset``/``metadata``; one that carries its own ground gives a
+``terrain`` loader, which ``terrain: auto`` uses.
+
+A new format plugs in with one entry in :data:`READERS` (and its suffixes in
+:data:`SUFFIXES`).
+"""
 
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
+
+import numpy as np
 
 from ..errors import ConfigError, InputFileError
 from ..mesh import Mesh
+from .common import Loaded, in_scene
 
-MESH_SUFFIXES = {".obj": "obj", ".ply": "ply", ".dae": "dae", ".glb": "glb", ".gltf": "gltf",
-                 ".b3dm": "b3dm", ".jsonl": "cityjson"}
+
+@dataclass(frozen=True)
+class Reader:
+    """How one format is read: its loader, whether it georeferences itself, its own terrain."""
+
+    load: Callable[[Path, dict, float | None], Loaded]
+    georeferenced: bool = False
+    terrain: Callable[[Path, dict], Loaded] | None = None
+
+
+def _mesh_file(path: Path, spec: dict, max_geometric_error: float | None = None) -> Loaded:
+    from .meshfile import load_mesh_file
+
+    return Loaded(load_mesh_file(path).parts, spec.get("crs"))
+
+
+def _ply(path: Path, spec: dict, max_geometric_error: float | None = None) -> Loaded:
+    from .ply import load_ply
+
+    return Loaded(load_ply(path).parts, spec.get("crs"))
+
+
+def _gltf(path: Path, spec: dict, max_geometric_error: float | None = None) -> Loaded:
+    from .gltf import load_gltf
+
+    return Loaded(load_gltf(path), spec.get("crs"))
+
+
+def _tileset(path: Path, spec: dict, max_geometric_error: float | None = None) -> Loaded:
+    from .tiles3d import read_tileset
+
+    return read_tileset(path, spec, max_geometric_error)
+
+
+def _b3dm(path: Path, spec: dict, max_geometric_error: float | None = None) -> Loaded:
+    from .tiles3d import read_b3dm
+
+    return read_b3dm(path, spec, max_geometric_error)
+
+
+def _cityjson(path: Path, spec: dict, max_geometric_error: float | None = None) -> Loaded:
+    from .cityjson import read_cityjson
+
+    return read_cityjson(path, spec, max_geometric_error)
+
+
+def _cityjson_terrain(path: Path, spec: dict) -> Loaded:
+    from .cityjson import read_cityjson_terrain
+
+    return read_cityjson_terrain(path, spec)
+
+
+#: format name -> reader. Modules are imported on first use (trimesh alone costs seconds).
+READERS: dict[str, Reader] = {
+    "obj": Reader(_mesh_file),
+    "dae": Reader(_mesh_file),
+    "ply": Reader(_ply),
+    "glb": Reader(_gltf),
+    "gltf": Reader(_gltf),
+    "b3dm": Reader(_b3dm, georeferenced=True),
+    "3dtiles": Reader(_tileset, georeferenced=True),
+    "cityjson": Reader(_cityjson, georeferenced=True, terrain=_cityjson_terrain),
+}
+
+#: file suffix -> format; .json is told apart by its content (:func:`detect_format`).
+SUFFIXES = {".obj": "obj", ".ply": "ply", ".dae": "dae", ".glb": "glb", ".gltf": "gltf",
+            ".b3dm": "b3dm", ".jsonl": "cityjson"}
 
 
 def detect_format(path: Path) -> str:
     """The input format from the file name, or for .json from its content."""
     suffix = path.suffix.lower()
-    if suffix in MESH_SUFFIXES:
-        return MESH_SUFFIXES[suffix]
+    if suffix in SUFFIXES:
+        return SUFFIXES[suffix]
     if suffix == ".json":
         try:
             doc = json.loads(path.read_bytes())
@@ -29,53 +111,41 @@ def detect_format(path: Path) -> str:
     raise InputFileError(path, "unknown model format (set the input's format key)")
 
 
+def reader_of(spec: dict, base_dir: Path = Path(".")) -> tuple[Path, str, Reader]:
+    """The input's path, format name and reader (``format: auto`` detects it)."""
+    path = base_dir / spec["path"]
+    fmt = spec.get("format", "auto")
+    fmt = detect_format(path) if fmt == "auto" else fmt
+    if fmt not in READERS:
+        raise ConfigError(f"{path}: unknown format {fmt!r} (known: {', '.join(sorted(READERS))})")
+    return path, fmt, READERS[fmt]
+
+
 def load_district(spec: dict, scene_crs: str, max_geometric_error: float | None = None,
                   base_dir: Path = Path(".")) -> Mesh:
     """Read one configured input (``inputs.<name>``) into the scene CRS, float64.
 
     ``spec`` keys: path, format, crs, offset, metadata, lod (see config/schema.yaml).
     """
-    import numpy as np
-
-    from .common import reproject_parts
-
-    path = base_dir / spec["path"]
-    fmt = spec.get("format", "auto")
-    fmt = detect_format(path) if fmt == "auto" else fmt
-    src_crs = spec.get("crs")
+    path, fmt, reader = reader_of(spec, base_dir)
     offset = np.asarray(spec.get("offset", [0.0, 0.0, 0.0]), dtype=np.float64)
+    spec = dict(spec)
     if spec.get("metadata"):
         from .contextcapture import read_metadata_xml
 
-        src_crs, origin = read_metadata_xml(base_dir / spec["metadata"])
+        spec["crs"], origin = read_metadata_xml(base_dir / spec["metadata"])
         offset = offset + origin
-    if fmt in ("3dtiles", "b3dm", "cityjson") and (offset.any() or spec.get("metadata")):
+    if reader.georeferenced and (offset.any() or spec.get("metadata")):
         # these formats carry their own georeferencing; a silently ignored offset would misplace the map
         raise ConfigError(f"{path}: offset/metadata apply to mesh files (obj, ply, glb, gltf, dae), not {fmt}")
-    if fmt in ("3dtiles", "b3dm"):
-        from . import tiles3d
+    loaded = reader.load(path, spec, max_geometric_error)
+    parts = [p.transformed(lambda v: v + offset) for p in loaded.parts] if offset.any() else loaded.parts
+    return in_scene(Loaded(parts, loaded.crs or scene_crs), scene_crs, path)
 
-        crs = src_crs or "EPSG:4978"
-        if fmt == "b3dm":
-            return tiles3d.load_b3dm(path, scene_crs, src_crs=crs)
-        return tiles3d.load_tileset(path, scene_crs, max_geometric_error=max_geometric_error, src_crs=crs)
-    if fmt == "cityjson":
-        from .cityjson import load_cityjson
 
-        return load_cityjson(path, scene_crs, lod=spec.get("lod"), src_crs=src_crs)
-    if fmt in ("glb", "gltf"):
-        from .gltf import load_gltf
-
-        mesh = Mesh(load_gltf(path), source=str(path))
-    elif fmt == "ply":
-        from .ply import load_ply
-
-        mesh = load_ply(path)
-    else:
-        from .meshfile import load_mesh_file
-
-        mesh = load_mesh_file(path)
-    src_crs = src_crs or scene_crs
-    if offset.any():
-        mesh = mesh.transformed(lambda v: v + offset)
-    return Mesh(reproject_parts(mesh.parts, src_crs, scene_crs, path), source=mesh.source)
+def load_district_terrain(spec: dict, scene_crs: str, base_dir: Path = Path(".")) -> Mesh | None:
+    """The input's own ground in the scene CRS, or None when its format carries none."""
+    path, _, reader = reader_of(spec, base_dir)
+    if reader.terrain is None:
+        return None
+    return in_scene(reader.terrain(path, dict(spec)), scene_crs, path)

@@ -15,14 +15,14 @@ from __future__ import annotations
 
 import json
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import CRSError, InputFileError
 from ..mesh import Mesh, MeshPart
-from .common import read_text, reproject_parts
+from .common import Loaded, in_scene, read_text
 
 #: RGBA per colour class.
 PALETTE: dict[str, tuple[int, int, int, int]] = {
@@ -66,22 +66,14 @@ _SURFACE_DEPTH = {"MultiSurface": 1, "CompositeSurface": 1, "Solid": 2, "MultiSo
 _ROOF_NZ = 0.2  # |normal z| above which a building surface counts as roof (up) or ground (down)
 
 
-def load_cityjson(path: str | Path, scene_crs: str, lod: str | None = None, src_crs: str | None = None,
-                  include_terrain: bool = True) -> Mesh:
-    """Triangulated, coloured CityJSON/CityJSONSeq in ``scene_crs``.
-
-    ``lod``: per object the geometry of that LOD, else its highest LOD below it, else
-    (so no object disappears) its lowest LOD; None takes each object's highest LOD.
-    ``src_crs`` overrides ``metadata.referenceSystem``. ``include_terrain=False`` drops
-    the objects :func:`load_cityjson_terrain` returns.
-    """
+def read_cityjson(path: Path, spec: dict, max_geometric_error: float | None = None) -> Loaded:
+    """Reader contract (:mod:`pipeline25d.formats`): triangulated, coloured CityJSON/CityJSONSeq
+    in its own CRS (``spec["crs"]``, else ``metadata.referenceSystem``), LOD ``spec["lod"]``."""
     model = _read_model(Path(path))
-    terrain = _terrain_types(model)
-    keep = (lambda t: True) if include_terrain else (lambda t: t not in terrain)
-    return _build_mesh(model, scene_crs, src_crs, lod, keep)
+    return _build_parts(model, spec.get("crs"), spec.get("lod"), lambda t: True)
 
 
-def load_cityjson_terrain(path: str | Path, scene_crs: str, src_crs: str | None = None) -> Mesh:
+def read_cityjson_terrain(path: Path, spec: dict) -> Loaded:
     """The terrain of a CityJSON file: its TINRelief objects.
 
     A file without TINRelief (3dfier output such as Delft models the ground as LandUse,
@@ -91,7 +83,27 @@ def load_cityjson_terrain(path: str | Path, scene_crs: str, src_crs: str | None 
     """
     model = _read_model(Path(path))
     terrain = _terrain_types(model)
-    return _build_mesh(model, scene_crs, src_crs, None, lambda t: t in terrain)
+    return _build_parts(model, spec.get("crs"), None, lambda t: t in terrain)
+
+
+def load_cityjson(path: str | Path, scene_crs: str, lod: str | None = None, src_crs: str | None = None,
+                  include_terrain: bool = True) -> Mesh:
+    """Triangulated, coloured CityJSON/CityJSONSeq in ``scene_crs``.
+
+    ``lod``: per object the geometry of that LOD, else its highest LOD below it, else
+    (so no object disappears) its lowest LOD; None takes each object's highest LOD.
+    ``src_crs`` overrides ``metadata.referenceSystem``. ``include_terrain=False`` drops
+    the objects :func:`read_cityjson_terrain` returns.
+    """
+    model = _read_model(Path(path))
+    terrain = _terrain_types(model)
+    keep = (lambda t: True) if include_terrain else (lambda t: t not in terrain)
+    return in_scene(_build_parts(model, src_crs, lod, keep), scene_crs, path)
+
+
+def load_cityjson_terrain(path: str | Path, scene_crs: str, src_crs: str | None = None) -> Mesh:
+    """:func:`read_cityjson_terrain` in ``scene_crs``."""
+    return in_scene(read_cityjson_terrain(Path(path), {"crs": src_crs}), scene_crs, path)
 
 
 # --------------------------------------------------------------------------- reading
@@ -102,13 +114,30 @@ class _Chunk:
     """CityObjects sharing one vertex list (the whole file, or one CityJSONSeq feature)."""
 
     objects: dict
-    vertices: np.ndarray
+    base: np.ndarray
+    placed: list[np.ndarray] = field(default_factory=list)   # GeometryInstance vertices, appended
+    n_vertices: int = -1
 
-    def add_vertices(self, v: np.ndarray) -> np.ndarray:
-        """Append vertices (a placed GeometryInstance template); return their indices."""
-        start = len(self.vertices)
-        self.vertices = np.concatenate([self.vertices, v])
-        return np.arange(start, start + len(v))
+    def __post_init__(self) -> None:
+        self.n_vertices = len(self.base)
+
+    def add_vertices(self, v: np.ndarray) -> int:
+        """Append vertices (a placed GeometryInstance template); return the index of the first.
+
+        Collected in a list and joined once (:attr:`vertices`): one concatenate per
+        instance made a file with many instances quadratic in its vertex count."""
+        start = self.n_vertices
+        self.placed.append(v)
+        self.n_vertices += len(v)
+        return start
+
+    @property
+    def vertices(self) -> np.ndarray:
+        """All vertices: the document's, then every placed instance's."""
+        if self.placed:
+            self.base = np.concatenate([self.base, *self.placed])
+            self.placed = []
+        return self.base
 
 
 @dataclass
@@ -195,8 +224,8 @@ def source_crs(header: dict, path: Path) -> str:
 # --------------------------------------------------------------------------- geometry
 
 
-def _build_mesh(model: _Model, scene_crs: str, src_crs: str | None, lod: str | None, keep) -> Mesh:
-    """Triangulate the kept objects, group by colour class, reproject to the scene CRS."""
+def _build_parts(model: _Model, src_crs: str | None, lod: str | None, keep) -> Loaded:
+    """Triangulate the kept objects and group them by colour class, in the source CRS."""
     src = src_crs or source_crs(model.header, model.path)
     by_class: dict[str, list[np.ndarray]] = {}
     for chunk in model.chunks:
@@ -213,7 +242,7 @@ def _build_mesh(model: _Model, scene_crs: str, src_crs: str | None, lod: str | N
             used, inv = np.unique(faces, return_inverse=True)
             by_class.setdefault(cls, []).append((verts[used], inv.reshape(-1, 3)))
     parts = [_class_part(cls, pieces) for cls, pieces in sorted(by_class.items())]
-    return Mesh(reproject_parts(parts, src, scene_crs, model.path), source=str(model.path))
+    return Loaded(parts, src)
 
 
 def _class_part(cls: str, pieces: list) -> MeshPart:
@@ -263,17 +292,21 @@ def _object_triangles(obj: dict, lod: str | None, chunk: _Chunk, model: _Model, 
     obj_class = _OBJECT_CLASS.get(str(obj.get("type", "")), "other")
     geoms = [g for g in obj.get("geometry") or [] if isinstance(g, dict)]
     for geom in _pick_geometries(geoms, lod, model):
-        if geom.get("type") == "GeometryInstance":
-            geom = _instantiate(geom, chunk, model)
-        if geom is not None:
-            _geometry_triangles(geom, obj_class, chunk, model.path, out)
+        if geom.get("type") != "GeometryInstance":
+            _geometry_triangles(geom, obj_class, chunk.base, model.path, out)
+            continue
+        placed = _instantiate(geom, chunk, model)
+        if placed is not None:
+            template, verts = placed
+            start = chunk.add_vertices(verts)
+            _geometry_triangles(template, obj_class, verts, model.path, out, offset=start)
 
 
-def _instantiate(inst: dict, chunk: _Chunk, model: _Model) -> dict | None:
-    """A GeometryInstance as a plain geometry on new vertices (template, matrix, anchor)."""
+def _instantiate(inst: dict, chunk: _Chunk, model: _Model) -> tuple[dict, np.ndarray] | None:
+    """A GeometryInstance as a plain geometry and its own placed vertices (template, matrix, anchor)."""
     try:
         template = dict(model.templates[int(inst["template"])])
-        anchor = chunk.vertices[int(inst["boundaries"][0])]
+        anchor = chunk.base[int(inst["boundaries"][0])]
         matrix = np.asarray(inst.get("transformationMatrix", np.eye(4).ravel()), dtype=np.float64).reshape(4, 4)
     except (KeyError, IndexError, TypeError, ValueError) as exc:
         warnings.warn(f"{model.path}: GeometryInstance skipped ({exc!r})", stacklevel=4)
@@ -284,9 +317,8 @@ def _instantiate(inst: dict, chunk: _Chunk, model: _Model) -> dict | None:
         return None
     local = model.template_vertices[used]
     placed = local @ matrix[:3, :3].T + matrix[:3, 3] + anchor
-    new_index = dict(zip(used, chunk.add_vertices(placed).tolist()))
-    template["boundaries"] = _remap(template["boundaries"], new_index)
-    return template
+    template["boundaries"] = _remap(template["boundaries"], {old: new for new, old in enumerate(used)})
+    return template, placed
 
 
 def _flatten(b):
@@ -301,8 +333,10 @@ def _remap(b, mapping: dict):
     return [_remap(x, mapping) for x in b] if isinstance(b, list) else mapping[int(b)]
 
 
-def _geometry_triangles(geom: dict, obj_class: str, chunk: _Chunk, path: Path, out: dict) -> None:
-    """Triangulate every surface of a (Multi/Composite)Surface/Solid geometry.
+def _geometry_triangles(geom: dict, obj_class: str, verts: np.ndarray, path: Path, out: dict,
+                        offset: int = 0) -> None:
+    """Triangulate every surface of a (Multi/Composite)Surface/Solid geometry on ``verts``;
+    the faces go to ``out`` shifted by ``offset`` (where ``verts`` start in the chunk).
 
     Surfaces that are already triangles (3dfier TINs: the common case) are handled
     together in numpy; other polygons go through :func:`triangulate_polygon`.
@@ -312,7 +346,6 @@ def _geometry_triangles(geom: dict, obj_class: str, chunk: _Chunk, path: Path, o
         return  # points, lines: nothing to draw
     semantics = geom.get("semantics") or {}
     sem_surfaces = semantics.get("surfaces") or []
-    verts = chunk.vertices
     tris, values = [], []
     try:
         for rings, value in _iter_surfaces(geom.get("boundaries") or [], semantics.get("values"), depth):
@@ -322,14 +355,14 @@ def _geometry_triangles(geom: dict, obj_class: str, chunk: _Chunk, path: Path, o
                 continue
             poly, normal = triangulate_polygon(rings, verts)
             if len(poly):
-                out.setdefault(_surface_classes(sem_surfaces, [value], obj_class, normal[None])[0], []).append(poly)
+                out.setdefault(_surface_classes(sem_surfaces, [value], obj_class, normal[None])[0], []).append(poly + offset)
         if tris:
             tris = np.asarray(tris, dtype=np.int64)
             p = verts[tris]
             normals = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
             classes = _surface_classes(sem_surfaces, values, obj_class, normals)
             for cls in set(classes):
-                out.setdefault(cls, []).append(tris[classes == cls])
+                out.setdefault(cls, []).append(tris[classes == cls] + offset)
     except (TypeError, ValueError, KeyError) as exc:
         raise InputFileError(path, f"malformed geometry boundaries: {exc!r}") from None
     except IndexError:

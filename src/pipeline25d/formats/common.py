@@ -1,16 +1,26 @@
-"""Helpers every reader shares: reading a text file with clear errors, and reprojection."""
+"""What every reader shares: its return type, reading a text file with clear errors, reprojection."""
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
 from ..crs import check_within_area_of_use, parse_crs, transform_points
 from ..errors import InputFileError
-from ..mesh import MeshPart
+from ..mesh import Mesh, MeshPart
 
 AREA_SAMPLE = 2000   # vertices checked against the scene CRS's area of use
+
+
+class Loaded(NamedTuple):
+    """What every reader returns (see :mod:`pipeline25d.formats`): the model's parts, float64,
+    in the CRS named by ``crs``; None when the file does not say (the input's ``crs`` key,
+    else the scene CRS, then applies)."""
+
+    parts: list[MeshPart]
+    crs: str | None
 
 
 def read_text(path: Path, what: str) -> str:
@@ -42,3 +52,9 @@ def reproject_parts(parts: list[MeshPart], src_crs: str, scene_crs: str, where: 
         out.append(MeshPart(moved[start:end], p.faces, p.colors, p.uv, p.texture, p.name))
         start = end
     return out
+
+
+def in_scene(loaded: Loaded, scene_crs: str, where: str | Path) -> Mesh:
+    """A reader's result as a Mesh in ``scene_crs`` (``loaded.crs`` None: already there)."""
+    parts = loaded.parts if loaded.crs is None else reproject_parts(loaded.parts, loaded.crs, scene_crs, where)
+    return Mesh(parts, source=str(where))

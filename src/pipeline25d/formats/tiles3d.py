@@ -31,20 +31,21 @@ import numpy as np
 
 from ..errors import InputFileError, UnsupportedFeatureError
 from ..mesh import Mesh, MeshPart
-from .common import read_text, reproject_parts
+from .common import Loaded, in_scene, read_text
 from .gltf import parse_gltf_bytes
 
 _B3DM_HEADER = 28
 _I3DM_HEADER = 32
+ECEF = "EPSG:4978"         # the CRS of 3D Tiles coordinates
 _LEGACY_LIMIT = 570425344  # CesiumJS: a "length" this large is really the start of a glTF header
 
 
 # --------------------------------------------------------------------------- public API
 
 
-def load_tileset(path: str | Path, scene_crs: str, max_geometric_error: float | None = None,
-                 src_crs: str = "EPSG:4978") -> Mesh:
-    """All content a renderer would draw for ``tileset.json`` at ``path``, in ``scene_crs``.
+def read_tileset(path: Path, spec: dict, max_geometric_error: float | None = None) -> Loaded:
+    """Reader contract (:mod:`pipeline25d.formats`): all content a renderer would draw for
+    ``tileset.json`` at ``path``, in the tileset's CRS (``spec["crs"]``, else ECEF).
 
     ``max_geometric_error=g`` refines each tile until its geometricError <= g or it is a
     leaf; REPLACE tiles that are refined are not drawn, ADD tiles are drawn as well as
@@ -62,14 +63,23 @@ def load_tileset(path: str | Path, scene_crs: str, max_geometric_error: float | 
         parts.extend(_place(read_content(content_path, y_up=(up_axis != "Z")), transform))
     if not parts:
         warnings.warn(f"{path}: the selected tiles hold no triangles", stacklevel=2)
-    return Mesh(reproject_parts(_merge_untextured(parts), src_crs, scene_crs, path), source=str(path))
+    return Loaded(_merge_untextured(parts), spec.get("crs") or ECEF)
 
 
-def load_b3dm(path: str | Path, scene_crs: str, src_crs: str = "EPSG:4978") -> Mesh:
-    """A single b3dm (or other tile content) file, without a tileset, in ``scene_crs``."""
-    path = Path(path)
-    parts = _merge_untextured(read_content(path))
-    return Mesh(reproject_parts(parts, src_crs, scene_crs, path), source=str(path))
+def read_b3dm(path: Path, spec: dict, max_geometric_error: float | None = None) -> Loaded:
+    """Reader contract: a single b3dm (or other tile content) file, without a tileset."""
+    return Loaded(_merge_untextured(read_content(Path(path))), spec.get("crs") or ECEF)
+
+
+def load_tileset(path: str | Path, scene_crs: str, max_geometric_error: float | None = None,
+                 src_crs: str = ECEF) -> Mesh:
+    """:func:`read_tileset` in ``scene_crs``."""
+    return in_scene(read_tileset(Path(path), {"crs": src_crs}, max_geometric_error), scene_crs, path)
+
+
+def load_b3dm(path: str | Path, scene_crs: str, src_crs: str = ECEF) -> Mesh:
+    """:func:`read_b3dm` in ``scene_crs``."""
+    return in_scene(read_b3dm(Path(path), {"crs": src_crs}), scene_crs, path)
 
 
 def read_content(path: Path, y_up: bool = True) -> list[MeshPart]:
