@@ -31,11 +31,11 @@ GROUND_MARGIN_M = 2.0   # widens a chunk's ground range (tile assignment in terr
 
 # -- ingest / lod --------------------------------------------------------------------------
 def ingest(spec: dict, district: str, scene_crs: str, chunk_size: float, max_geometric_error: float,
-           index_path: str | Path) -> dict:
+           index_path: str | Path, gsd: float | None = None) -> dict:
     """Read one district and write its chunks beside ``index_path``."""
     from .formats import load_district
 
-    mesh = load_district(spec, scene_crs, max_geometric_error=max_geometric_error)
+    mesh = load_district(spec, scene_crs, max_geometric_error=max_geometric_error, gsd=gsd)
     log.info("%s: %d triangles from %s", district, mesh.n_triangles, spec["path"])
     index_path = Path(index_path)
     return write_chunks(mesh, district, chunk_size, index_path.parent, index_path)

@@ -11,6 +11,7 @@ checkpoint ingest:
         crs=config["crs"],
         chunk_size=chunk_size(config),
         max_error=MAX_LOD_ERROR,
+        gsd=config["gsd"],
     log:
         f"{RESULTS}/logs/ingest/{{district}}.log",
     benchmark:

@@ -3,4 +3,5 @@ from pipeline25d.stages import ingest
 
 log_to(snakemake.log[0])
 ingest(dict(snakemake.params.spec), snakemake.wildcards.district, snakemake.params.crs,
-       snakemake.params.chunk_size, snakemake.params.max_error, snakemake.output.index)
+       snakemake.params.chunk_size, snakemake.params.max_error, snakemake.output.index,
+       gsd=snakemake.params.gsd)

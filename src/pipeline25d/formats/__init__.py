@@ -1,7 +1,8 @@
 """Readers for 3D model formats, all with one contract.
 
-Every format has a :class:`Reader` in :data:`READERS`. Its ``load(path, spec,
-max_geometric_error)`` returns :class:`~pipeline25d.formats.common.Loaded`: the model's
+Every format has a :class:`Reader` in :data:`READERS`. Its ``load(path, spec, detail)``
+(``detail``: :class:`~pipeline25d.formats.common.Detail`, what multi-resolution formats need
+to pick their level) returns :class:`~pipeline25d.formats.common.Loaded`: the model's
 parts, float64, and the CRS they are in (None when the file does not say). Offsets,
 ContextCapture metadata and the reprojection into the scene CRS are applied once, here
 (:func:`load_district`), for every format. A format that places itself (3D Tiles,
@@ -23,52 +24,52 @@ import numpy as np
 
 from ..errors import ConfigError, InputFileError
 from ..mesh import Mesh
-from .common import Loaded, in_scene
+from .common import Detail, Loaded, in_scene
 
 
 @dataclass(frozen=True)
 class Reader:
     """How one format is read: its loader, whether it georeferences itself, its own terrain."""
 
-    load: Callable[[Path, dict, float | None], Loaded]
+    load: Callable[[Path, dict, Detail], Loaded]
     georeferenced: bool = False
     terrain: Callable[[Path, dict], Loaded] | None = None
 
 
-def _mesh_file(path: Path, spec: dict, max_geometric_error: float | None = None) -> Loaded:
+def _mesh_file(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
     from .meshfile import load_mesh_file
 
     return Loaded(load_mesh_file(path).parts, spec.get("crs"))
 
 
-def _ply(path: Path, spec: dict, max_geometric_error: float | None = None) -> Loaded:
+def _ply(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
     from .ply import load_ply
 
     return Loaded(load_ply(path).parts, spec.get("crs"))
 
 
-def _gltf(path: Path, spec: dict, max_geometric_error: float | None = None) -> Loaded:
+def _gltf(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
     from .gltf import load_gltf
 
     return Loaded(load_gltf(path), spec.get("crs"))
 
 
-def _tileset(path: Path, spec: dict, max_geometric_error: float | None = None) -> Loaded:
+def _tileset(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
     from .tiles3d import read_tileset
 
-    return read_tileset(path, spec, max_geometric_error)
+    return read_tileset(path, spec, detail)
 
 
-def _b3dm(path: Path, spec: dict, max_geometric_error: float | None = None) -> Loaded:
+def _b3dm(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
     from .tiles3d import read_b3dm
 
-    return read_b3dm(path, spec, max_geometric_error)
+    return read_b3dm(path, spec, detail)
 
 
-def _cityjson(path: Path, spec: dict, max_geometric_error: float | None = None) -> Loaded:
+def _cityjson(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
     from .cityjson import read_cityjson
 
-    return read_cityjson(path, spec, max_geometric_error)
+    return read_cityjson(path, spec, detail)
 
 
 def _cityjson_terrain(path: Path, spec: dict) -> Loaded:
@@ -122,7 +123,7 @@ def reader_of(spec: dict, base_dir: Path = Path(".")) -> tuple[Path, str, Reader
 
 
 def load_district(spec: dict, scene_crs: str, max_geometric_error: float | None = None,
-                  base_dir: Path = Path(".")) -> Mesh:
+                  base_dir: Path = Path("."), gsd: float | None = None) -> Mesh:
     """Read one configured input (``inputs.<name>``) into the scene CRS, float64.
 
     ``spec`` keys: path, format, crs, offset, metadata, lod (see config/schema.yaml).
@@ -138,7 +139,7 @@ def load_district(spec: dict, scene_crs: str, max_geometric_error: float | None 
     if reader.georeferenced and (offset.any() or spec.get("metadata")):
         # these formats carry their own georeferencing; a silently ignored offset would misplace the map
         raise ConfigError(f"{path}: offset/metadata apply to mesh files (obj, ply, glb, gltf, dae), not {fmt}")
-    loaded = reader.load(path, spec, max_geometric_error)
+    loaded = reader.load(path, spec, Detail(max_geometric_error, gsd))
     parts = [p.transformed(lambda v: v + offset) for p in loaded.parts] if offset.any() else loaded.parts
     return in_scene(Loaded(parts, loaded.crs or scene_crs), scene_crs, path)
 

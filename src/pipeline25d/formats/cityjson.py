@@ -22,7 +22,7 @@ import numpy as np
 
 from ..errors import CRSError, InputFileError
 from ..mesh import Mesh, MeshPart
-from .common import Loaded, in_scene, read_text
+from .common import Detail, Loaded, in_scene, read_text
 
 #: RGBA per colour class.
 PALETTE: dict[str, tuple[int, int, int, int]] = {
@@ -66,7 +66,7 @@ _SURFACE_DEPTH = {"MultiSurface": 1, "CompositeSurface": 1, "Solid": 2, "MultiSo
 _ROOF_NZ = 0.2  # |normal z| above which a building surface counts as roof (up) or ground (down)
 
 
-def read_cityjson(path: Path, spec: dict, max_geometric_error: float | None = None) -> Loaded:
+def read_cityjson(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
     """Reader contract (:mod:`pipeline25d.formats`): triangulated, coloured CityJSON/CityJSONSeq
     in its own CRS (``spec["crs"]``, else ``metadata.referenceSystem``), LOD ``spec["lod"]``."""
     model = _read_model(Path(path))

@@ -14,6 +14,15 @@ from ..mesh import Mesh, MeshPart
 AREA_SAMPLE = 2000   # vertices checked against the scene CRS's area of use
 
 
+class Detail(NamedTuple):
+    """How much detail the maps need, for readers of multi-resolution formats (3D Tiles, OSGB):
+    ``max_error`` the largest geometric error (m) a drawn level may have, ``gsd`` the map's
+    metres per pixel; None = full detail / unknown."""
+
+    max_error: float | None = None
+    gsd: float | None = None
+
+
 class Loaded(NamedTuple):
     """What every reader returns (see :mod:`pipeline25d.formats`): the model's parts, float64,
     in the CRS named by ``crs``; None when the file does not say (the input's ``crs`` key,

@@ -31,7 +31,7 @@ import numpy as np
 
 from ..errors import InputFileError, UnsupportedFeatureError
 from ..mesh import Mesh, MeshPart
-from .common import Loaded, in_scene, read_text
+from .common import Detail, Loaded, in_scene, read_text
 from .gltf import parse_gltf_bytes
 
 _B3DM_HEADER = 28
@@ -43,11 +43,11 @@ _LEGACY_LIMIT = 570425344  # CesiumJS: a "length" this large is really the start
 # --------------------------------------------------------------------------- public API
 
 
-def read_tileset(path: Path, spec: dict, max_geometric_error: float | None = None) -> Loaded:
+def read_tileset(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
     """Reader contract (:mod:`pipeline25d.formats`): all content a renderer would draw for
     ``tileset.json`` at ``path``, in the tileset's CRS (``spec["crs"]``, else ECEF).
 
-    ``max_geometric_error=g`` refines each tile until its geometricError <= g or it is a
+    ``detail.max_error=g`` refines each tile until its geometricError <= g or it is a
     leaf; REPLACE tiles that are refined are not drawn, ADD tiles are drawn as well as
     their descendants. ``None`` is full detail (every leaf plus ADD ancestors).
     Content tileset JSONs (external tilesets) are always entered, as CesiumJS does.
@@ -57,7 +57,7 @@ def read_tileset(path: Path, spec: dict, max_geometric_error: float | None = Non
     up_axis = str(root_json.get("asset", {}).get("gltfUpAxis", "Y")).upper()
     root = _json_tile(_root_of(root_json, path), path, np.eye(4), "REPLACE")
     selected: list[tuple[Path, np.ndarray]] = []
-    _select(root, max_geometric_error, selected, chain=(path.resolve(),))
+    _select(root, detail.max_error, selected, chain=(path.resolve(),))
     parts: list[MeshPart] = []
     for content_path, transform in selected:
         parts.extend(_place(read_content(content_path, y_up=(up_axis != "Z")), transform))
@@ -66,7 +66,7 @@ def read_tileset(path: Path, spec: dict, max_geometric_error: float | None = Non
     return Loaded(_merge_untextured(parts), spec.get("crs") or ECEF)
 
 
-def read_b3dm(path: Path, spec: dict, max_geometric_error: float | None = None) -> Loaded:
+def read_b3dm(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
     """Reader contract: a single b3dm (or other tile content) file, without a tileset."""
     return Loaded(_merge_untextured(read_content(Path(path))), spec.get("crs") or ECEF)
 
@@ -74,7 +74,7 @@ def read_b3dm(path: Path, spec: dict, max_geometric_error: float | None = None) 
 def load_tileset(path: str | Path, scene_crs: str, max_geometric_error: float | None = None,
                  src_crs: str = ECEF) -> Mesh:
     """:func:`read_tileset` in ``scene_crs``."""
-    return in_scene(read_tileset(Path(path), {"crs": src_crs}, max_geometric_error), scene_crs, path)
+    return in_scene(read_tileset(Path(path), {"crs": src_crs}, Detail(max_geometric_error)), scene_crs, path)
 
 
 def load_b3dm(path: str | Path, scene_crs: str, src_crs: str = ECEF) -> Mesh:
