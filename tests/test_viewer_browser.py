@@ -277,6 +277,18 @@ def test_view_up_turns_the_view_direction_up_the_screen_and_heights_are_measured
         assert tiles_of(responses, pid) and set(tiles_of(responses, pid)) == {200}
     print({pid: tuple(round(v, 3) for v in r) for pid, r in results_m.items()})
     assert [r for r in responses if r[1] >= 400] == []
+    before = page.url
+    page.mouse.move(300, 600)
+    page.mouse.down()
+    page.mouse.move(200, 600, steps=5)           # drag the turned map 100 px to the left on screen
+    page.mouse.up()
+    page.wait_for_function(f"location.hash !== {json.dumps(before[before.index('#'):])}", timeout=5000)
+    settle(page)
+    (_, _, lat0, lng0), (_, _, lat1, lng1) = parse_view(before), parse_view(page.url)
+    moved = world_px(lng1, lat1, ZOOM) - world_px(lng0, lat0, ZOOM)        # north-up world pixels
+    b = math.radians(bearing)
+    expect = np.array([[math.cos(b), math.sin(b)], [-math.sin(b), math.cos(b)]]) @ [100, 0]   # screen right, unturned
+    assert page.url.endswith("/up") and np.abs(moved - expect).max() < 1.5, (moved, expect)
     turned_url = page.url
     page.keyboard.press("r")                             # back to north up
     settle(page)
