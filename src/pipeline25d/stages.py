@@ -195,7 +195,7 @@ def _ground_from_model(inputs: dict, scene_crs: str, ground_cfg: dict, dsm_path:
         blocks = ((b, dsm_src.read(*b.core), np.zeros(grid.window(*b.core).shape, bool))
                   for b in cell_blocks(grid.height, grid.width, 0))
     if own["districts"]:
-        sources.append("the inputs' own terrain (CityJSON TINRelief or ground objects) of "
+        sources.append("the inputs' own terrain (CityJSON/CityGML TINRelief or ground objects) of "
                        + ", ".join(own["districts"]))
     n_valid, n_ground, zmin, zmax = 0, 0, np.inf, -np.inf
     with float_geotiff_writer(out_ground, grid, wkt) as write:
@@ -218,7 +218,7 @@ def _ground_from_model(inputs: dict, scene_crs: str, ground_cfg: dict, dsm_path:
 
 
 def _own_terrain(inputs: dict, scene_crs: str) -> dict:
-    """The inputs' own terrain (e.g. CityJSON TINRelief / ground objects): the districts carrying
+    """The inputs' own terrain (e.g. CityJSON/CityGML TINRelief / ground objects): the districts carrying
     one and their meshes as (bounds, load) chunks for :func:`pipeline25d.terrain.render_height_map`."""
     from .chunks import chunk_origin
     from .formats import load_district_terrain

@@ -79,6 +79,18 @@ def _cityjson_terrain(path: Path, spec: dict) -> Loaded:
     return read_cityjson_terrain(path, spec)
 
 
+def _citygml(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
+    from .citygml import read_citygml
+
+    return read_citygml(path, spec, detail)
+
+
+def _citygml_terrain(path: Path, spec: dict) -> Loaded:
+    from .citygml import read_citygml_terrain
+
+    return read_citygml_terrain(path, spec)
+
+
 #: format name -> reader. Modules are imported on first use (trimesh alone costs seconds).
 READERS: dict[str, Reader] = {
     "obj": Reader(_mesh_file),
@@ -89,18 +101,29 @@ READERS: dict[str, Reader] = {
     "b3dm": Reader(_b3dm, georeferenced=True),
     "3dtiles": Reader(_tileset, georeferenced=True),
     "cityjson": Reader(_cityjson, georeferenced=True, terrain=_cityjson_terrain),
+    "citygml": Reader(_citygml, georeferenced=True, terrain=_citygml_terrain),
 }
 
-#: file suffix -> format; .json is told apart by its content (:func:`detect_format`).
+#: file suffix -> format; .json, .gml and .xml are told apart by their content (:func:`detect_format`).
 SUFFIXES = {".obj": "obj", ".ply": "ply", ".dae": "dae", ".glb": "glb", ".gltf": "gltf",
             ".b3dm": "b3dm", ".jsonl": "cityjson"}
 
 
 def detect_format(path: Path) -> str:
-    """The input format from the file name, or for .json from its content."""
+    """The input format from the file name, or for .json, .gml and .xml from its content."""
     suffix = path.suffix.lower()
     if suffix in SUFFIXES:
         return SUFFIXES[suffix]
+    if suffix in (".gml", ".xml"):
+        from .citygml import is_citygml
+
+        try:
+            with open(path, "rb") as f:
+                head = f.read(65536)
+        except OSError as exc:
+            raise InputFileError(path, f"cannot read: {exc}") from None
+        if is_citygml(head):
+            return "citygml"
     if suffix == ".json":
         try:
             doc = json.loads(path.read_bytes())

@@ -1,14 +1,9 @@
 """CityJSON 1.0 / 1.1 / 2.0 and CityJSONSeq (``.jsonl``) reader.
 
 Each CityObject contributes the geometry of one LOD (its highest by default). Surfaces
-are triangulated in float64: polygons with holes are projected onto the plane of their
-Newell normal and cut with earcut (``mapbox_earcut``); triangles pass straight through.
-Triangles keep the orientation of their polygon.
-
-Colours come from a small palette keyed by semantic surface type, or by CityObject type
-when a surface has no semantics. Buildings without semantics get roof / wall / ground
-colours from the surface normal (up-facing, vertical, down-facing), so LOD1 blocks still
-show roofs from above. One :class:`MeshPart` (RGBA vertex colours) per colour class.
+are triangulated in float64 (:func:`~pipeline25d.formats.surfaces.triangulate_polygon`);
+triangles pass straight through. Colours: :mod:`pipeline25d.formats.surfaces`. One
+:class:`MeshPart` (RGBA vertex colours) per colour class.
 """
 
 from __future__ import annotations
@@ -22,48 +17,13 @@ import numpy as np
 
 from ..errors import CRSError, InputFileError
 from ..mesh import Mesh, MeshPart
-from .common import Detail, Loaded, in_scene, read_text
-
-#: RGBA per colour class.
-PALETTE: dict[str, tuple[int, int, int, int]] = {
-    "roof": (168, 72, 52, 255),         # red-brown
-    "wall": (232, 222, 198, 255),       # light beige
-    "ground": (140, 140, 140, 255),     # grey
-    "water": (66, 122, 204, 255),       # blue
-    "vegetation": (76, 146, 60, 255),   # green
-    "road": (88, 88, 88, 255),          # dark grey
-    "landuse": (178, 214, 142, 255),    # light green
-    "terrain": (206, 182, 136, 255),    # tan
-    "other": (190, 190, 190, 255),      # light grey: bridges, tunnels, furniture, generic objects
-}
-
-_SEMANTIC_CLASS = {
-    "RoofSurface": "roof",
-    "GroundSurface": "ground",
-    **{t: "wall" for t in ("WallSurface", "OuterCeilingSurface", "OuterFloorSurface", "ClosureSurface",
-                           "Window", "Door", "InteriorWallSurface", "CeilingSurface", "FloorSurface")},
-    **{t: "water" for t in ("WaterSurface", "WaterGroundSurface", "WaterClosureSurface")},
-    **{t: "road" for t in ("TrafficArea", "AuxiliaryTrafficArea", "TransportationMarking", "TransportationHole")},
-}
-
-#: "building": colour from the surface normal when the surface has no semantics.
-_OBJECT_CLASS = {
-    **{t: "building" for t in ("Building", "BuildingPart", "BuildingInstallation", "BuildingConstructiveElement",
-                               "BuildingFurniture", "BuildingRoom", "BuildingStorey", "BuildingUnit")},
-    **{t: "road" for t in ("Road", "Railway", "TransportationSquare")},
-    **{t: "water" for t in ("WaterBody", "Waterway")},
-    **{t: "vegetation" for t in ("PlantCover", "SolitaryVegetationObject")},
-    "LandUse": "landuse",
-    "TINRelief": "terrain",
-}
-
-#: Ground-level object types used as terrain when a file has no TINRelief. 3dfier output
-#: (e.g. Delft) models its terrain this way. PlantCover (raised to canopy height by 3dfier:
-#: Delft's reaches 16.8 m), GenericCityObject (walls, fences) and Bridge are not ground.
-GROUND_TYPES = frozenset({"LandUse", "Road", "Railway", "TransportationSquare", "WaterBody"})
+from .common import Detail, Loaded, crs_name, in_scene, read_text
+from .surfaces import (  # noqa: F401  (PALETTE, triangulate_polygon: public here too)
+    GROUND_TYPES, OBJECT_CLASS, PALETTE, SEMANTIC_CLASS, class_part, lod_key, normal_classes, pick_lod,
+    triangulate_polygon,
+)
 
 _SURFACE_DEPTH = {"MultiSurface": 1, "CompositeSurface": 1, "Solid": 2, "MultiSolid": 3, "CompositeSolid": 3}
-_ROOF_NZ = 0.2  # |normal z| above which a building surface counts as roof (up) or ground (down)
 
 
 def read_cityjson(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
@@ -211,14 +171,7 @@ def source_crs(header: dict, path: Path) -> str:
         return f"EPSG:{int(meta['crs']['epsg'])}"
     if not ref:
         raise CRSError(f"{path}: no metadata.referenceSystem; pass src_crs")
-    ref = str(ref).strip()
-    if "/def/crs/" in ref:  # https://www.opengis.net/def/crs/EPSG/0/7415
-        bits = ref.rstrip("/").split("/")
-        return f"{bits[-3]}:{bits[-1]}"
-    if ref.lower().startswith("urn:ogc:def:crs:"):  # urn:ogc:def:crs:EPSG::7415
-        bits = ref.split(":")
-        return f"{bits[4]}:{bits[-1]}"
-    return ref
+    return crs_name(str(ref))
 
 
 # --------------------------------------------------------------------------- geometry
@@ -241,55 +194,30 @@ def _build_parts(model: _Model, src_crs: str | None, lod: str | None, keep) -> L
                 raise InputFileError(model.path, f"vertex index {bad} out of range ({len(verts)} vertices)")
             used, inv = np.unique(faces, return_inverse=True)
             by_class.setdefault(cls, []).append((verts[used], inv.reshape(-1, 3)))
-    parts = [_class_part(cls, pieces) for cls, pieces in sorted(by_class.items())]
+    parts = [class_part(cls, pieces) for cls, pieces in sorted(by_class.items())]
     return Loaded(parts, src)
-
-
-def _class_part(cls: str, pieces: list) -> MeshPart:
-    """One MeshPart of all triangles of colour class ``cls``."""
-    offsets = np.cumsum([0] + [len(v) for v, _ in pieces])
-    vertices = np.concatenate([v for v, _ in pieces])
-    faces = np.concatenate([f + o for (_, f), o in zip(pieces, offsets)])
-    colors = np.tile(np.array(PALETTE[cls], dtype=np.uint8), (len(vertices), 1))
-    return MeshPart(vertices, faces, colors=colors, name=cls)
-
-
-def _lod_key(lod) -> tuple[int, ...]:
-    """Sortable key of a LOD ("2.2" -> (2, 2); 1.0's numeric 2 -> (2,))."""
-    text = f"{lod:g}" if isinstance(lod, (int, float)) else str(lod)
-    try:
-        return tuple(int(p) for p in text.split("."))
-    except ValueError:
-        return (-1,)
 
 
 def _geometry_lod(geom: dict, model: _Model) -> tuple[int, ...]:
     """LOD key of a geometry; a GeometryInstance has the LOD of its template."""
     if geom.get("type") == "GeometryInstance":
         try:
-            return _lod_key(model.templates[int(geom["template"])].get("lod", -1))
+            return lod_key(model.templates[int(geom["template"])].get("lod", -1))
         except (KeyError, IndexError, TypeError, ValueError, AttributeError):
             return (-1,)
-    return _lod_key(geom.get("lod", -1))
+    return lod_key(geom.get("lod", -1))
 
 
 def _pick_geometries(geoms: list, lod: str | None, model: _Model) -> list:
-    """Geometries of the chosen LOD: requested, else highest below, else lowest."""
-    if not geoms:
-        return []
+    """Geometries of the chosen LOD (:func:`~pipeline25d.formats.surfaces.pick_lod`)."""
     keyed = [(_geometry_lod(g, model), g) for g in geoms]
-    keys = sorted({k for k, _ in keyed})
-    if lod is None:
-        chosen = keys[-1]
-    else:
-        below = [k for k in keys if k <= _lod_key(lod)]
-        chosen = below[-1] if below else keys[0]
+    chosen = pick_lod([k for k, _ in keyed], lod)
     return [g for k, g in keyed if k == chosen]
 
 
 def _object_triangles(obj: dict, lod: str | None, chunk: _Chunk, model: _Model, out: dict) -> None:
     """Append the triangles of one CityObject to ``out[colour class]``."""
-    obj_class = _OBJECT_CLASS.get(str(obj.get("type", "")), "other")
+    obj_class = OBJECT_CLASS.get(str(obj.get("type", "")), "other")
     geoms = [g for g in obj.get("geometry") or [] if isinstance(g, dict)]
     for geom in _pick_geometries(geoms, lod, model):
         if geom.get("type") != "GeometryInstance":
@@ -385,67 +313,12 @@ def _surface_classes(sem_surfaces: list, values: list, obj_class: str, normals: 
     for i, value in enumerate(values):
         cls = None
         if isinstance(value, int) and 0 <= value < len(sem_surfaces):
-            cls = _SEMANTIC_CLASS.get(sem_surfaces[value].get("type"))
+            cls = SEMANTIC_CLASS.get(sem_surfaces[value].get("type"))
         out[i] = cls or obj_class
     derive = out == "building"
     if derive.any():
-        n = normals[derive]
-        length = np.linalg.norm(n, axis=1)
-        nz = np.divide(n[:, 2], length, out=np.zeros(len(n)), where=length > 0)
-        out[derive] = np.where(nz > _ROOF_NZ, "roof", np.where(nz < -_ROOF_NZ, "ground", "wall"))
+        out[derive] = normal_classes(normals[derive])
     return out
-
-
-def triangulate_polygon(rings: list[list[int]], vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """((k, 3) int64 vertex indices, Newell normal) of a planar polygon with holes.
-
-    ``rings``: outer ring first, then holes, as indices into ``vertices``. Projects onto
-    the coordinate plane most parallel to the polygon (affine, so topology is kept),
-    triangulates with earcut, and orients every triangle like the polygon.
-    """
-    outer_ring = _clean_ring(rings[0]) if rings else []
-    if len(outer_ring) < 3:
-        return np.empty((0, 3), np.int64), np.zeros(3)
-    clean = [outer_ring] + [r for r in (_clean_ring(ring) for ring in rings[1:]) if len(r) >= 3]
-    outer = vertices[outer_ring]
-    normal = _newell(outer)
-    if len(clean) == 1 and len(clean[0]) == 3:
-        return np.asarray([clean[0]], dtype=np.int64), normal
-    if not normal.any():
-        return np.empty((0, 3), np.int64), normal
-    import mapbox_earcut
-
-    index = np.concatenate([np.asarray(r, dtype=np.int64) for r in clean])
-    pts = vertices[index]
-    drop = int(np.argmax(np.abs(normal)))
-    flat = np.delete(pts - outer.mean(axis=0), drop, axis=1)
-    ends = np.cumsum([len(r) for r in clean]).astype(np.uint32)
-    local = mapbox_earcut.triangulate_float64(np.ascontiguousarray(flat), ends).astype(np.int64).reshape(-1, 3)
-    if not len(local):
-        return np.empty((0, 3), np.int64), normal
-    tri = pts[local]
-    facing = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]) @ normal
-    local[facing < 0] = local[facing < 0][:, [0, 2, 1]]
-    return index[local], normal
-
-
-def _clean_ring(ring: list[int]) -> list[int]:
-    """Ring without consecutive repeats and without a closing repeat of the first vertex."""
-    out = [int(i) for k, i in enumerate(ring) if k == 0 or i != ring[k - 1]]
-    while len(out) > 1 and out[-1] == out[0]:
-        out.pop()
-    return out
-
-
-def _newell(points: np.ndarray) -> np.ndarray:
-    """Newell normal (area-weighted, unnormalised) of a closed 3D ring."""
-    p = points - points.mean(axis=0)
-    q = np.roll(p, -1, axis=0)
-    return np.array([
-        np.sum((p[:, 1] - q[:, 1]) * (p[:, 2] + q[:, 2])),
-        np.sum((p[:, 2] - q[:, 2]) * (p[:, 0] + q[:, 0])),
-        np.sum((p[:, 0] - q[:, 0]) * (p[:, 1] + q[:, 1])),
-    ])
 
 
 def _terrain_types(model: _Model) -> frozenset[str]:

@@ -46,6 +46,37 @@ def read_text(path: Path, what: str) -> str:
         raise InputFileError(path, f"cannot read {what}: {exc}") from None
 
 
+#: German AdV CRS names (urn:adv:crs:ETRS89_UTM32*DE_DHHN2016_NH, in most German CityGML):
+#: horizontal and height parts, EPSG codes
+_ADV = {"ETRS89_UTM31": 25831, "ETRS89_UTM32": 25832, "ETRS89_UTM33": 25833, "ETRS89_GK3": 4647,
+        "DE_DHHN2016_NH": 7837, "DE_DHHN92_NH": 5783, "DE_DHHN12_NH": 7699}
+
+
+def crs_name(ref: str) -> str:
+    """'AUTH:CODE' (compound: 'EPSG:h+v') of a CRS reference: an OGC URL
+    (``http://www.opengis.net/def/crs/EPSG/0/6697``), URN (``urn:ogc:def:crs:EPSG::25832``,
+    compound ``urn:ogc:def:crs,crs:EPSG::25832,crs:EPSG::5783``), an EPSG XML link
+    (``http://www.opengis.net/gml/srs/epsg.xml#25832``) or an AdV name; other text unchanged."""
+    ref = ref.strip()
+    low = ref.lower()
+    if "/def/crs/" in low:  # https://www.opengis.net/def/crs/EPSG/0/7415
+        bits = ref.rstrip("/").split("/")
+        return f"{bits[-3]}:{bits[-1]}"
+    if low.startswith("urn:ogc:def:crs,"):  # compound: one URN per part
+        codes = [crs_name("urn:ogc:def:" + part) for part in ref.split(",")[1:]]
+        return codes[0] + "".join("+" + c.split(":")[-1] for c in codes[1:])
+    if low.startswith("urn:ogc:def:crs:"):  # urn:ogc:def:crs:EPSG::7415
+        bits = ref.split(":")
+        return f"{bits[4]}:{bits[-1]}"
+    if "epsg.xml#" in low:
+        return "EPSG:" + ref.rsplit("#", 1)[1]
+    if low.startswith("urn:adv:crs:"):
+        codes = [_ADV.get(part) for part in ref[len("urn:adv:crs:"):].split("*")]
+        if all(codes):
+            return "EPSG:" + "+".join(str(c) for c in codes)
+    return ref
+
+
 def reproject_parts(parts: list[MeshPart], src_crs: str, scene_crs: str, where: str | Path) -> list[MeshPart]:
     """Parts moved from ``src_crs`` to ``scene_crs`` in one transform call.
 
