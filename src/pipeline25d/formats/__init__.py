@@ -66,6 +66,12 @@ def _b3dm(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
     return read_b3dm(path, spec, detail)
 
 
+def _osgb(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
+    from .osgb import read_osgb
+
+    return read_osgb(path, spec, detail)
+
+
 def _cityjson(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
     from .cityjson import read_cityjson
 
@@ -88,15 +94,20 @@ READERS: dict[str, Reader] = {
     "b3dm": Reader(_b3dm, georeferenced=True),
     "3dtiles": Reader(_tileset, georeferenced=True),
     "cityjson": Reader(_cityjson, georeferenced=True, terrain=_cityjson_terrain),
+    "osgb": Reader(_osgb),
 }
 
 #: file suffix -> format; .json is told apart by its content (:func:`detect_format`).
 SUFFIXES = {".obj": "obj", ".ply": "ply", ".dae": "dae", ".glb": "glb", ".gltf": "gltf",
-            ".b3dm": "b3dm", ".jsonl": "cityjson"}
+            ".b3dm": "b3dm", ".jsonl": "cityjson", ".osgb": "osgb"}
 
 
 def detect_format(path: Path) -> str:
-    """The input format from the file name, or for .json from its content."""
+    """The input format from the file name, for .json from its content; a folder is an OSGB dataset."""
+    if path.is_dir():
+        if (path / "Data").is_dir():
+            return "osgb"
+        raise InputFileError(path, "is a folder but not an OSGB dataset (no Data/ folder); name a model file")
     suffix = path.suffix.lower()
     if suffix in SUFFIXES:
         return SUFFIXES[suffix]
