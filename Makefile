@@ -7,7 +7,8 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 LEAFLET := build/node_modules/leaflet/dist/leaflet.js
 APT_PACKAGES := python3-venv python3-dev build-essential gdal-bin libgdal-dev libegl1 libegl-mesa0 \
-                libgl1-mesa-dri libgles2 openscenegraph slurmctld slurmd slurm-client munge cgi-mapserver mapserver-bin chromium
+                libgl1-mesa-dri libgles2 openscenegraph assimp-utils \
+                slurmctld slurmd slurm-client munge cgi-mapserver mapserver-bin chromium
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 PYTHON ?= python3
 

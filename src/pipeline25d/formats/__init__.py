@@ -72,6 +72,12 @@ def _osgb(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
     return read_osgb(path, spec, detail)
 
 
+def _3ds(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
+    from .threeds import read_3ds
+
+    return read_3ds(path, spec, detail)
+
+
 def _cityjson(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
     from .cityjson import read_cityjson
 
@@ -95,11 +101,13 @@ READERS: dict[str, Reader] = {
     "3dtiles": Reader(_tileset, georeferenced=True),
     "cityjson": Reader(_cityjson, georeferenced=True, terrain=_cityjson_terrain),
     "osgb": Reader(_osgb),
+    "3ds": Reader(_3ds),
 }
 
 #: file suffix -> format; .json is told apart by its content (:func:`detect_format`).
 SUFFIXES = {".obj": "obj", ".ply": "ply", ".dae": "dae", ".glb": "glb", ".gltf": "gltf",
-            ".b3dm": "b3dm", ".jsonl": "cityjson", ".osgb": "osgb"}
+            ".b3dm": "b3dm", ".jsonl": "cityjson", ".osgb": "osgb",
+            ".3ds": "3ds"}
 
 
 def detect_format(path: Path) -> str:

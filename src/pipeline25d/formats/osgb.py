@@ -30,8 +30,6 @@ import argparse
 import logging
 import os
 import re
-import shutil
-import subprocess
 import sys
 import tempfile
 from collections import Counter
@@ -43,12 +41,11 @@ import numpy as np
 
 from ..errors import InputFileError, UnsupportedFeatureError
 from ..mesh import MeshPart
-from .common import Detail, Loaded
+from .common import Detail, Loaded, run_converter
 
 log = logging.getLogger(__name__)
 
 OSGCONV = "osgconv"
-OSGCONV_TIMEOUT_S = 600
 WORKERS = max(1, min(4, os.cpu_count() or 1))   # tiles converted at once (each runs osgconv)
 # the scene graph exactly as stored (osgconv optimizes by default), no display, warnings only
 OSG_ENV = {"OSG_OPTIMIZER": "OFF", "OSG_NOTIFY_LEVEL": "WARN", "OSG_FILE_PATH": ""}
@@ -135,18 +132,8 @@ def describe_levels(levels: Counter) -> str:
 
 def osgconv(src: Path, dst: Path, options: list[str], cwd: Path, what: Path) -> None:
     """Run ``osgconv -O <option>... src dst`` in ``cwd`` headless; InputFileError naming ``what``."""
-    if shutil.which(OSGCONV) is None:
-        raise UnsupportedFeatureError(what, "reading OSGB needs OpenSceneGraph's osgconv (Debian: openscenegraph)")
     args = [OSGCONV] + [a for opt in options for a in ("-O", opt)] + [str(src), str(dst)]
-    env = {k: v for k, v in os.environ.items() if k != "DISPLAY"} | OSG_ENV
-    try:
-        proc = subprocess.run(args, cwd=cwd, env=env, capture_output=True, text=True, errors="replace",
-                              timeout=OSGCONV_TIMEOUT_S)
-    except subprocess.TimeoutExpired:
-        raise InputFileError(what, f"osgconv took longer than {OSGCONV_TIMEOUT_S} s") from None
-    if proc.returncode or not (cwd / dst).is_file():
-        tail = " ".join((proc.stdout + proc.stderr).split())[-300:]
-        raise InputFileError(what, f"osgconv cannot read it (corrupt or not an OpenSceneGraph file): {tail}")
+    run_converter(args, cwd, dst, what, "openscenegraph", OSG_ENV)
 
 
 # --------------------------------------------------------------------------- one tile
