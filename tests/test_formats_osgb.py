@@ -11,13 +11,18 @@ import io
 import json
 import logging
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
+from osgeo import gdal
 from PIL import Image
 from pyproj import Transformer
 
+from conftest import REPO
 from pipeline25d import osgb_sample as S
 from pipeline25d.errors import InputFileError
 from pipeline25d.formats import detect_format, load_district
@@ -218,3 +223,34 @@ def test_ingest_at_two_gsds_draws_the_level_of_each(dataset, tmp_path, caplog):
             assert f"{S.tile_name(tx, ty)} at gsd {gsd}: level {level} ({S.triangles(level)} triangles)" in lines
         saved = json.loads((tmp_path / f"{gsd}" / "index.json").read_text())
         assert saved["n_triangles"] == index["n_triangles"]
+
+
+def test_workflow_maps_the_level_of_its_gsd(dataset, tmp_path):
+    """The whole workflow on the sample at gsd 1 m, nadir: the map shows level 1's texture (green
+    checker) where the generator put it (pixel centres off checker lines and roof edges)."""
+    config = {"scene": "osgb", "crs": S.SRS, "inputs": {"sample": {"path": str(dataset)}}, "terrain": "flat",
+              "gsd": 1.0, "tile_size": 256, "perspectives": "nadir", "lod": {"max_error_px": 0.001},
+              "gcp": {"spacing": 30}, "tms": {"zoom": "16-17"}}
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(config))
+    cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"), "--directory", str(tmp_path),
+           "--configfile", str(tmp_path / "config.yaml"), "-j2", "results/osgb/maps/az000_el90.tif"]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    ds = gdal.Open(str(tmp_path / "results/osgb/maps/az000_el90.tif"))
+    x0, dx, _, y0, _, dy = ds.GetGeoTransform()
+    rgba = np.stack([ds.GetRasterBand(b + 1).ReadAsArray() for b in range(4)], axis=-1)
+    rows, cols = np.indices(rgba.shape[:2])
+    x = x0 + (cols + 0.5) * dx - S.ORIGIN[0]
+    y = y0 + (rows + 0.5) * dy - S.ORIGIN[1]
+    inside = (x > 1) & (x < len(S.TILES) * S.TILE - 1) & (y > 1) & (y < S.TILE - 1)
+    far = np.minimum(np.abs(x - np.round(x / S.CHECKER) * S.CHECKER), np.abs(y - np.round(y / S.CHECKER) * S.CHECKER))
+    for x0b, y0b, x1b, y1b, _ in S.BUILDINGS:
+        for edge_x in (x0b, x1b):
+            far = np.minimum(far, np.where((y > y0b - 2) & (y < y1b + 2), np.abs(x - edge_x), np.inf))
+        for edge_y in (y0b, y1b):
+            far = np.minimum(far, np.where((x > x0b - 2) & (x < x1b + 2), np.abs(y - edge_y), np.inf))
+    sample = inside & (far > 1.5)
+    assert sample.sum() > 0.3 * inside.sum()
+    assert (rgba[sample][:, 3] == 255).all()
+    # textured surfaces are drawn unlit (photogrammetry textures carry their own light)
+    np.testing.assert_allclose(rgba[sample][:, :3], S.colour(1, x[sample], y[sample]), atol=3)

@@ -34,7 +34,7 @@ import sys
 import tempfile
 from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -46,7 +46,7 @@ from .common import Detail, Loaded, run_converter
 log = logging.getLogger(__name__)
 
 OSGCONV = "osgconv"
-WORKERS = max(1, min(4, os.cpu_count() or 1))   # tiles converted at once (each runs osgconv)
+WORKERS = max(1, min(4, len(os.sched_getaffinity(0))))   # tiles converted at once (each runs osgconv)
 # the scene graph exactly as stored (osgconv optimizes by default), no display, warnings only
 OSG_ENV = {"OSG_OPTIMIZER": "OFF", "OSG_NOTIFY_LEVEL": "WARN", "OSG_FILE_PATH": ""}
 _LOD_CLASSES = ("osg::PagedLOD", "osg::LOD")
@@ -206,7 +206,7 @@ def _obj_parts(obj: Path, source: Path, matrix: np.ndarray) -> list[MeshPart]:
                                                   "(compressed pixel format?)")
     if "\nf " not in obj.read_text():
         return []
-    parts = load_mesh_file(obj).parts
+    parts = [replace(p, name=f"{source.name}:{p.name}") for p in load_mesh_file(obj).parts]
     if np.allclose(matrix, np.eye(4)):
         return parts
     return [p.transformed(lambda v: v @ matrix[:3, :3] + matrix[3, :3]) for p in parts]
