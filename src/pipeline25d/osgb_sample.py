@@ -185,7 +185,7 @@ def _geode(ids: Iterator[int], level: int, x0: float, y0: float, edge: float, te
             "     TextureAttributeList 1 {\n      Data 1 {\n"
             f"       osg::Texture2D {{\n        UniqueID {ids[3]}\n        Image TRUE {{\n"
             f'         ClassName osg::Image\n         UniqueID {ids[4]}\n         FileName "{png_name}"\n'
-            "         WriteHint 0 2\n        }\n       }\n       Value OFF\n      }\n     }\n    }\n   }\n"
+            "         WriteHint 2 2\n        }\n       }\n       Value OFF\n      }\n     }\n    }\n   }\n"
             f"   PrimitiveSetList 1 {{\n    osg::DrawElementsUInt {{\n     UniqueID {ids[5]}\n     Mode TRIANGLES\n"
             f"     vector {faces.size} {{\n{idx}\n     }}\n    }}\n   }}\n"
             f"   VertexArray TRUE {{\n    osg::Vec3Array {{\n     UniqueID {ids[6]}\n     Binding BIND_PER_VERTEX\n"

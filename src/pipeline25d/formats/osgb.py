@@ -131,8 +131,11 @@ def describe_levels(levels: Counter) -> str:
 
 
 def osgconv(src: Path, dst: Path, options: list[str], cwd: Path, what: Path) -> None:
-    """Run ``osgconv -O <option>... src dst`` in ``cwd`` headless; InputFileError naming ``what``."""
-    args = [OSGCONV] + [a for opt in options for a in ("-O", opt)] + [str(src), str(dst)]
+    """Run ``osgconv -O "<options>" src dst`` in ``cwd`` headless; InputFileError naming ``what``.
+
+    The options go in one ``-O`` (space separated): a second ``-O`` replaces the first.
+    """
+    args = [OSGCONV] + (["-O", " ".join(options)] if options else []) + [str(src), str(dst)]
     run_converter(args, cwd, dst, what, "openscenegraph", OSG_ENV)
 
 
