@@ -5,7 +5,11 @@ SHELL := /bin/bash
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
-LEAFLET := build/node_modules/leaflet/dist/leaflet.js
+# the viewer's JavaScript (copied beside the page, no CDN): Leaflet, its rotation plugin and the
+# PMTiles decoder, installed together (npm --no-save drops what a later install does not name)
+NPM_PACKAGES := leaflet@1.9.4 leaflet-rotate@0.2.8 pmtiles@4.5.0
+NPM_FILES := build/node_modules/leaflet/dist/leaflet.js build/node_modules/leaflet-rotate/dist/leaflet-rotate.js \
+             build/node_modules/pmtiles/dist/pmtiles.js
 APT_PACKAGES := python3-venv python3-dev build-essential gdal-bin libgdal-dev libegl1 libegl-mesa0 \
                 libgl1-mesa-dri libgles2 openscenegraph assimp-utils \
                 slurmctld slurmd slurm-client munge cgi-mapserver mapserver-bin chromium
@@ -76,7 +80,7 @@ sweep: deps
 slurm-bench: deps
 	$(PY) -m pipeline25d.slurm_cluster --scale 0.5 --name slurm
 
-deps: sysdeps $(STAMP) $(LEAFLET)
+deps: sysdeps $(STAMP) $(NPM_FILES)
 
 # System packages: installed only when a tool or library is missing.
 sysdeps:
@@ -98,8 +102,9 @@ $(STAMP): requirements.txt pyproject.toml
 	$(PY) -c "from osgeo import gdal_array; import moderngl, fast_simplification, trimesh"
 	touch $@
 
-$(LEAFLET):
-	mkdir -p build && npm install --no-save --no-audit --no-fund --prefix build leaflet@1.9.4
+$(NPM_FILES) &:
+	mkdir -p build && npm install --no-save --no-audit --no-fund --prefix build $(NPM_PACKAGES)
+	touch $(NPM_FILES)
 
 clean-results:
 	rm -rf results .snakemake

@@ -31,5 +31,6 @@ rule all:
         expand(f"{RESULTS}/tms/{{pid}}", pid=PERSPECTIVE_IDS),
         f"{RESULTS}/report/report.json",
         f"{RESULTS}/viewer/index.html",
+        PMTILES,
         rules.wms.output.mapfile,
     default_target: True

@@ -122,3 +122,11 @@ def test_corrupt_3ds_is_named(model, tmp_path):
     bad.write_bytes(model.read_bytes()[:200])
     with pytest.raises(InputFileError, match=r"broken\.3ds: assimp cannot read it"):
         load_district({"path": str(bad)}, "EPSG:28992")
+
+
+def test_missing_texture_is_an_error_unless_untextured_is_asked_for(model, tmp_path):
+    alone = Path(shutil.copy(model, tmp_path / "alone.3ds"))           # without ground.png beside it
+    with pytest.raises(InputFileError, match=r"alone\.3ds: .*ground\.png"):
+        load_district({"path": str(alone)}, "EPSG:28992")
+    mesh = load_district({"path": str(alone), "missing_textures": "untextured"}, "EPSG:28992")
+    assert mesh.n_triangles == 5 and all(p.texture is None for p in mesh.parts)

@@ -1,48 +1,69 @@
 """The web viewer in headless Chromium (Debian's ``chromium``, driven by Playwright) over the small demo
-run served by http.server: tiles load with no 404, the URL hash carries the view and opens it again,
-[ and ] switch perspective keeping place and zoom, and the height tool measures a demo building within
-1 px·gsd/cot φ of its truth. Screenshots go to the test's tmp_path and to /tmp/viewer-shots/."""
+run served by pipeline25d.serve: tiles load with no 404, the URL hash carries the view and opens it again,
+[ and ] switch perspective keeping place and zoom, the height tool measures a demo building within
+1 px·gsd/cot φ of its truth, also on the map turned so the view direction points up (r), and the same
+run with its pyramids as PMTiles archives loads its tiles by range requests. Screenshots go to the test's
+tmp_path and to $PIPELINE25D_SHOTS (default /tmp/viewer-shots/)."""
 
 from __future__ import annotations
 
-import functools
 import json
 import math
+import os
 import shutil
 import threading
-from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from conftest import roof_colour, vertical_edge
 from pipeline25d.crs import transform_points
+from pipeline25d.serve import make_server
+from pipeline25d.tile_archive import pyramid_tiles
 
 CHROMIUM = shutil.which("chromium")
-SHOTS = Path("/tmp/viewer-shots")
+SHOTS = Path(os.environ.get("PIPELINE25D_SHOTS", "/tmp/viewer-shots"))
 SIZE = {"width": 1200, "height": 800}
 ZOOM = 19                       # ~0.2 m per screen pixel here, finer than the maps' 0.5 m gsd
 
 
-class QuietHandler(SimpleHTTPRequestHandler):
-    def log_message(self, *args) -> None:
-        pass
+def serve(workdir: Path, results: Path):
+    """Serve ``results`` on 127.0.0.1 (with Range support) for the duration of a fixture."""
+    if CHROMIUM is None:
+        pytest.skip("no chromium on PATH: apt-get install chromium (make sysdeps does)")
+    pytest.importorskip("playwright.sync_api", reason="the playwright package is not installed (requirements.txt)")
+    server = make_server(results, port=0)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    yield f"http://127.0.0.1:{server.server_address[1]}", workdir, results
+    server.shutdown()
+    server.server_close()
+    thread.join()
 
 
 @pytest.fixture(scope="module")
 def served(small_run):
     """(base URL, workdir, results) with results/<scene>/ served on 127.0.0.1."""
-    if CHROMIUM is None:
-        pytest.skip("no chromium on PATH: apt-get install chromium (make sysdeps does)")
-    pytest.importorskip("playwright.sync_api", reason="the playwright package is not installed (requirements.txt)")
-    workdir, results = small_run
-    server = ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(QuietHandler, directory=str(results)))
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
-    yield f"http://127.0.0.1:{server.server_address[1]}", workdir, results
-    server.shutdown()
-    thread.join()
+    yield from serve(*small_run)
+
+
+@pytest.fixture(scope="module")
+def pmtiles_served(small_run, tmp_path_factory):
+    """The small run copied and run again with ``tms.pmtiles`` on, served: (base URL, workdir, results,
+    the jobs that second run ran)."""
+    from test_workflow import job_counts, snakemake
+
+    workdir = tmp_path_factory.mktemp("pmtiles") / "run"
+    shutil.copytree(small_run[0], workdir, symlinks=True)
+    config = yaml.safe_load((workdir / "config.yaml").read_text())
+    config["tms"]["pmtiles"] = True
+    (workdir / "config.yaml").write_text(yaml.safe_dump(config))
+    proc = snakemake(workdir)
+    jobs = job_counts(proc.stdout + proc.stderr)
+    for url, wd, results in serve(workdir, workdir / "results" / config["scene"]):
+        yield url, wd, results, jobs
 
 
 @pytest.fixture(scope="module")
@@ -67,14 +88,19 @@ def world_px(lon: float, lat: float, zoom: float) -> np.ndarray:
     return np.array([(lon + 180) / 360 * n, (1 - math.asinh(math.tan(lat_r)) / math.pi) / 2 * n])
 
 
-def screen_px(xy: np.ndarray, centre: tuple[float, float]) -> np.ndarray:
-    """Where a scene point shows in the viewport of a view centred on ``centre`` (lon, lat) at ZOOM (Leaflet
-    rounds its pixel origin: a shift under 0.5 px, the same for every point, so differences are exact)."""
-    return world_px(*lonlat(xy), ZOOM) - world_px(*centre, ZOOM) + np.array([SIZE["width"], SIZE["height"]]) / 2
+def screen_px(xy: np.ndarray, centre: tuple[float, float], bearing: float = 0.0) -> np.ndarray:
+    """Where a scene point shows in the viewport of a view centred on ``centre`` (lon, lat) at ZOOM, the map
+    turned clockwise on screen by ``bearing`` degrees about the viewport's centre (Leaflet rounds its pixel
+    origin: a shift under 0.5 px, the same for every point, so differences are exact)."""
+    b = math.radians(bearing)
+    turn = np.array([[math.cos(b), -math.sin(b)], [math.sin(b), math.cos(b)]])    # clockwise, y down
+    offset = world_px(*lonlat(xy), ZOOM) - world_px(*centre, ZOOM)
+    return turn @ offset + np.array([SIZE["width"], SIZE["height"]]) / 2
 
 
 def parse_view(url: str) -> tuple[str, float, float, float]:
-    pid, zoom, lat, lng = url.split("#", 1)[1].split("/")
+    """The view of a viewer URL's hash #<id>/<zoom>/<lat>/<lng>[/up], without the /up."""
+    pid, zoom, lat, lng = url.split("#", 1)[1].removesuffix("/up").split("/")
     return pid, float(zoom), float(lat), float(lng)
 
 
@@ -85,9 +111,12 @@ def settle(page) -> None:
                            "t.classList.contains('leaflet-tile-loaded') && getComputedStyle(t).opacity === '1')")
 
 
-def open_page(browser, url: str, responses: list):
+def open_page(browser, url: str, responses: list, failed: list | None = None):
+    """A new page at ``url``, settled; its responses (url, status) and failed requests (urls) are recorded."""
     page = browser.new_page(viewport=SIZE)
     page.on("response", lambda r: responses.append((r.url, r.status)))
+    if failed is not None:
+        page.on("requestfailed", lambda r: failed.append(r.url))
     page.goto(url)
     settle(page)
     return page
@@ -101,6 +130,64 @@ def shot(page, tmp_path: Path, name: str) -> None:
 
 def tiles_of(responses: list, pid: str) -> list[int]:
     return [status for url, status in responses if f"/tms/{pid}/" in url]
+
+
+def open_at_building(browser, base_url: str, workdir: Path, results: Path, pid: str, responses: list,
+                     failed: list | None = None) -> tuple:
+    """The viewer opened on ``pid`` at ZOOM centred on the demo's tallest flat-roofed building:
+    (page, report, the report's perspectives by id, the building, the centre as lon, lat)."""
+    report = json.loads((results / "report" / "report.json").read_text())
+    truth = json.loads((workdir / "resources" / "demo" / "truth.json").read_text())
+    building = max((b for b in truth["buildings"] if b["roof"] == "flat"), key=lambda b: b["eave_z"])
+    centre = lonlat(np.mean(building["footprint"], axis=0))
+    page = open_page(browser, f"{base_url}/viewer/index.html#{pid}/{ZOOM}/{centre[1]:.7f}/{centre[0]:.7f}",
+                     responses, failed)
+    return page, report, {p["id"]: p for p in report["perspectives"]}, building, centre
+
+
+def measure_edge(page, results: Path, building: dict, p: dict, gsd: float, centre: tuple[float, float],
+                 bearing: float = 0.0) -> tuple[float, float, float]:
+    """Check that the roof shows where it should and measure the building's camera-side vertical edge
+    with the page's height tool, clicking where the edge's base and top show on the (turned) map:
+    (measured, true height, tolerance 1 px · gsd / cot φ). The tool stays on, showing the measurement."""
+    base, top, height = vertical_edge(building, p["azimuth"], p["elevation"])
+    roof_centre = np.mean(building["footprint"], axis=0) + (top - base)
+    assert_shows_roof(page, results, building, screen_px(top, centre, bearing), screen_px(roof_centre, centre, bearing))
+    page.click("#measure-btn")
+    for xy in (base, top):
+        page.mouse.click(*screen_px(xy, centre, bearing))
+    measured = float(page.locator("#measure").get_attribute("data-height"))
+    return measured, height, gsd * math.tan(math.radians(p["elevation"]))
+
+
+def drag_left(page, px: int = 100) -> np.ndarray:
+    """Drag the map ``px`` screen pixels to the left and wait for the hash to follow: how far the view's centre
+    moved, in north-up world pixels at its zoom. Inertia is switched off first: its glide depends on the
+    timing of the mouse events, so on the machine's load (seconds long on a busy machine)."""
+    before = page.url
+    page.evaluate("map.options.inertia = false")
+    page.mouse.move(300, 600)
+    page.mouse.down()
+    page.mouse.move(300 - px, 600, steps=5)
+    page.mouse.up()
+    page.wait_for_function(f"location.hash !== {json.dumps(before[before.index('#'):])}", timeout=5000)
+    settle(page)
+    (_, zoom, lat0, lng0), (_, _, lat1, lng1) = parse_view(before), parse_view(page.url)
+    return world_px(lng1, lat1, zoom) - world_px(lng0, lat0, zoom)
+
+
+def bearing_of(page) -> tuple[float, float]:
+    """The map's bearing (degrees) as leaflet-rotate reports it, and the rotation of the pane that holds the
+    tiles as the browser computed its CSS transform, in [0, 360)."""
+    bearing = page.evaluate("map.getBearing()")
+    a, b = page.evaluate("(() => { const m = new DOMMatrix(getComputedStyle(map.getPane('rotatePane')).transform);"
+                         " return [m.a, m.b]; })()")
+    return bearing, math.degrees(math.atan2(b, a)) % 360
+
+
+def scale_bar(page) -> tuple[str, float]:
+    return page.evaluate("(() => { const s = document.querySelector('.leaflet-control-scale-line');"
+                         " return [s.textContent, s.getBoundingClientRect().width]; })()")
 
 
 def assert_shows_roof(page, results: Path, building: dict, corner: np.ndarray, inside: np.ndarray) -> None:
@@ -120,18 +207,12 @@ def test_overview_loads_its_tiles_and_the_hash_follows_the_view(browser, served,
     base_url, _, _ = served
     responses: list = []
     page = open_page(browser, f"{base_url}/viewer/index.html", responses)
-    pid, zoom, lat, lng = parse_view(page.url)
+    pid, zoom = parse_view(page.url)[:2]
     assert pid == "az045_el45"                     # the first oblique perspective by azimuth
     assert page.locator(".leaflet-control-scale").is_visible()
     shot(page, tmp_path, "overview.png")
-    page.mouse.move(300, 600)
-    page.mouse.down()
-    page.mouse.move(200, 600, steps=5)             # drag the map 100 px to the left: the view moves east
-    page.mouse.up()
-    page.wait_for_function(f"location.hash !== {json.dumps(page.url[page.url.index('#'):])}", timeout=5000)
-    settle(page)
-    pid2, zoom2, lat2, lng2 = parse_view(page.url)
-    assert (pid2, zoom2) == (pid, zoom) and lat2 == pytest.approx(lat, abs=5e-6) and lng2 > lng + 1e-4  # 1 px ~ 6e-6°
+    moved = drag_left(page)                        # the view moves 100 px east
+    assert parse_view(page.url)[:2] == (pid, zoom) and np.abs(moved - [100, 0]).max() < 1.5, moved
     assert [r for r in responses if r[1] >= 400] == []
     assert tiles_of(responses, pid) and set(tiles_of(responses, pid)) == {200}
     # the page asks only for tiles its pyramid holds (empty ones are not cut)
@@ -145,15 +226,9 @@ def test_overview_loads_its_tiles_and_the_hash_follows_the_view(browser, served,
 
 
 def test_switching_keeps_the_view_and_heights_are_measured_within_a_pixel(browser, served, tmp_path):
-    base_url, workdir, results = served
-    truth = json.loads((workdir / "resources" / "demo" / "truth.json").read_text())
-    report = json.loads((results / "report" / "report.json").read_text())
-    view = {p["id"]: p for p in report["perspectives"]}
-    building = max((b for b in truth["buildings"] if b["roof"] == "flat"), key=lambda b: b["eave_z"])
-    centre = lonlat(np.mean(building["footprint"], axis=0))
+    results = served[2]
     responses: list = []
-    page = open_page(browser, f"{base_url}/viewer/index.html#az200_el30/{ZOOM}/{centre[1]:.7f}/{centre[0]:.7f}",
-                     responses)
+    page, report, view, building, centre = open_at_building(browser, *served, "az200_el30", responses)
     assert page.locator('input[value="az200_el30"]').is_checked()
     results_m = {}
     for key, pid in (("", "az200_el30"), ("]", "az045_el45")):   # ] after the last azimuth wraps to the first
@@ -163,15 +238,7 @@ def test_switching_keeps_the_view_and_heights_are_measured_within_a_pixel(browse
         got_pid, zoom, lat, lng = parse_view(page.url)
         assert (got_pid, zoom) == (pid, ZOOM)
         assert (lat, lng) == pytest.approx((centre[1], centre[0]), abs=2e-7)   # same place, same zoom
-        p = view[pid]
-        base, top, height = vertical_edge(building, p["azimuth"], p["elevation"])
-        roof_centre = np.mean(building["footprint"], axis=0) + (top - base)
-        assert_shows_roof(page, results, building, screen_px(top, centre), screen_px(roof_centre, centre))
-        page.click("#measure-btn")
-        for xy in (base, top):
-            page.mouse.click(*screen_px(xy, centre))
-        measured = float(page.locator("#measure").get_attribute("data-height"))
-        tolerance = report["gsd"] * math.tan(math.radians(p["elevation"]))       # 1 px · gsd / cot φ
+        measured, height, tolerance = measure_edge(page, results, building, view[pid], report["gsd"], centre)
         results_m[pid] = (measured, height, tolerance)
         shot(page, tmp_path, f"measure-{pid}.png")
         page.click("#measure-btn")                                               # tool off
@@ -181,4 +248,100 @@ def test_switching_keeps_the_view_and_heights_are_measured_within_a_pixel(browse
     assert [r for r in responses if r[1] >= 400] == []
     page.keyboard.press("[")
     assert parse_view(page.url)[0] == "az200_el30"
+    page.close()
+
+
+def test_view_up_turns_the_view_direction_up_the_screen_and_heights_are_measured_on_the_turned_map(
+        browser, served, tmp_path):
+    """r turns the map by −θ (the tile pane's CSS rotation and leaflet-rotate's bearing agree), the hash keeps
+    it, the scale bar is unchanged, the roof shows where the turned map puts it, the building's vertical edge
+    runs straight up the screen and the height tool measures it within a pixel, for two azimuths."""
+    results = served[2]
+    responses: list = []
+    page, report, view, building, centre = open_at_building(browser, *served, "az200_el30", responses)
+    assert bearing_of(page) == (0, 0)
+    north_up_scale = scale_bar(page)
+    results_m = {}
+    for key, pid in (("r", "az200_el30"), ("]", "az045_el45")):      # turn; then the next azimuth, still turned
+        page.keyboard.press(key)
+        settle(page)
+        assert page.url.endswith("/up") and parse_view(page.url)[:2] == (pid, ZOOM)
+        assert parse_view(page.url)[2:] == pytest.approx((centre[1], centre[0]), abs=2e-7)   # turned about the centre
+        p = view[pid]
+        bearing, css = bearing_of(page)
+        base, top, _ = vertical_edge(building, p["azimuth"], p["elevation"])
+        lean = screen_px(top, centre) - screen_px(base, centre)                  # on the north-up map
+        along = math.degrees(math.atan2(lean[0], -lean[1]))     # its compass angle: θ plus the scene CRS's
+        assert 1 < abs((along - p["azimuth"] + 180) % 360 - 180) < 3   # meridian convergence (~2° here, UTM 32)
+        assert bearing == pytest.approx(-along % 360, abs=0.02) and css == pytest.approx(bearing, abs=1e-4)
+        assert page.locator("#rotate-btn.on").count() == 1
+        text, width = scale_bar(page)                    # a turn keeps lengths: the same bar
+        assert text == north_up_scale[0] and width == pytest.approx(north_up_scale[1], abs=1)
+        lean = screen_px(top, centre, bearing) - screen_px(base, centre, bearing)
+        assert abs(lean[0]) < 0.5 and lean[1] < -20      # buildings lean straight up the screen
+        measured, height, tolerance = measure_edge(page, results, building, p, report["gsd"], centre, bearing)
+        results_m[pid] = (measured, height, tolerance)
+        shot(page, tmp_path, f"up-{pid}.png")
+        page.click("#measure-btn")
+        assert abs(measured - height) <= tolerance, (pid, building["id"], measured, height, tolerance)
+        assert tiles_of(responses, pid) and set(tiles_of(responses, pid)) == {200}
+    print({pid: tuple(round(v, 3) for v in r) for pid, r in results_m.items()})
+    assert [r for r in responses if r[1] >= 400] == []
+    moved = drag_left(page)                      # on the turned map: the view moves along its screen x axis
+    b = math.radians(bearing)
+    expect = np.array([[math.cos(b), math.sin(b)], [-math.sin(b), math.cos(b)]]) @ [100, 0]   # screen right, unturned
+    assert page.url.endswith("/up") and np.abs(moved - expect).max() < 1.5, (moved, expect)
+    turned_url = page.url
+    page.keyboard.press("r")                             # back to north up
+    settle(page)
+    assert bearing_of(page) == (0, 0) and not page.url.endswith("/up")
+    assert scale_bar(page) == pytest.approx(north_up_scale)
+    page.close()
+    page = open_page(browser, turned_url, responses)     # a link to the turned view opens turned
+    assert bearing_of(page)[0] == pytest.approx(bearing, abs=1e-9) and page.url == turned_url
+    assert [r for r in responses if r[1] >= 400] == []
+    page.close()
+
+
+def test_pmtiles_archives_hold_the_pyramids_and_the_viewer_reads_them_by_range_requests(
+        browser, pmtiles_served, tmp_path):
+    """Switching tms.pmtiles on for a finished run adds the archives and a new viewer (nothing else re-runs);
+    every archive holds exactly its XYZ pyramid's tiles, byte for byte (read back with the pmtiles package's
+    reader), and the page fetches its tiles from the archive by range requests (206, no failure, no XYZ
+    tile asked), shows the roof where it is and measures the building, north up and turned."""
+    from pmtiles.reader import MmapSource, Reader, all_tiles
+
+    base_url, workdir, results, jobs = pmtiles_served
+    report = json.loads((results / "report" / "report.json").read_text())
+    view = {p["id"]: p for p in report["perspectives"]}
+    assert {k: v for k, v in jobs.items() if k not in ("report", "total")} == {"pmtiles": len(view), "viewer": 1,
+                                                                                "all": 1}
+    for pid in view:
+        files = pyramid_tiles(results / "tms" / pid)
+        with open(results / "pmtiles" / f"{pid}.pmtiles", "rb") as f:
+            get = MmapSource(f)
+            stored = {zxy: bytes(data) for zxy, data in all_tiles(get)}
+            assert stored.keys() == files.keys() and len(stored) >= 5
+            assert all(stored[zxy] == path.read_bytes() for zxy, path in files.items())
+            assert all(bytes(Reader(get).get(*zxy)) == stored[zxy] for zxy in list(files)[::7])   # by look-up too
+    responses: list = []
+    failed: list = []
+    page, _, _, building, centre = open_at_building(browser, base_url, workdir, results, "az045_el45", responses,
+                                                    failed)
+    assert "PMTiles" in page.locator("#status").text_content()
+    for turned in (False, True):
+        if turned:
+            page.keyboard.press("r")
+            settle(page)
+        bearing = bearing_of(page)[0]
+        measured, height, tolerance = measure_edge(page, results, building, view["az045_el45"], report["gsd"],
+                                                   centre, bearing)
+        shot(page, tmp_path, f"pmtiles-az045_el45{'-up' if turned else ''}.png")
+        page.click("#measure-btn")
+        assert abs(measured - height) <= tolerance, (turned, measured, height, tolerance)
+    archive = [status for url, status in responses if url.endswith("/pmtiles/az045_el45.pmtiles")]
+    print({"range requests": len(archive), "measured": round(measured, 3), "true": round(height, 3)})
+    assert len(archive) >= 2 and set(archive) == {206}           # the header, then tiles, each a range
+    assert tiles_of(responses, "az045_el45") == [] and failed == []
+    assert [r for r in responses if r[1] >= 400] == []
     page.close()

@@ -5,6 +5,7 @@ An interrupted job therefore never leaves a file that looks complete.
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import shutil
@@ -12,6 +13,10 @@ import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterator
+
+from .errors import OutputError
+
+FULL_BYTES = 1 << 20   # a device with less free space than this when a write fails is taken as full
 
 
 @contextmanager
@@ -31,12 +36,27 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
     try:
         yield tmp_path
         os.replace(tmp_path, path)
-    except BaseException:
+    except BaseException as exc:
+        full = isinstance(exc, (OSError, RuntimeError)) and device_full(path.parent, exc)
         if tmp_path.is_dir():
             shutil.rmtree(tmp_path, ignore_errors=True)
         elif tmp_path.exists():
             tmp_path.unlink()
+        if full and not isinstance(exc, OutputError):
+            raise OutputError(path, f"No space left on device ({exc})") from exc
         raise
+
+
+def device_full(folder: Path, exc: BaseException | None = None) -> bool:
+    """Whether a failed write into ``folder`` failed for want of space: ENOSPC, or (GDAL, which
+    does not say) less than :data:`FULL_BYTES` free there while the failed output still lies on it."""
+    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        return True
+    try:
+        stat = os.statvfs(folder)
+    except OSError:
+        return False
+    return stat.f_bavail * stat.f_frsize < FULL_BYTES
 
 
 def write_json(path: str | Path, data: Any, indent: int | None = 1) -> None:

@@ -28,6 +28,12 @@ def _demo_city(args) -> None:
     sys.exit(demo_main(argv))
 
 
+def _web_tiles(args) -> None:
+    from .web_tiles import tms
+
+    print(tms(args.map, args.zoom, args.out_dir, args.processes, args.format, args.quality, args.work))
+
+
 def _gl_info(args) -> None:
     from .render import create_context, renderer_info
 
@@ -89,6 +95,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("points", nargs="+", metavar="X,Y", help="map CRS coordinates (or pixel column,row with --pixel)")
     p.add_argument("--pixel", action="store_true", help="points are pixel (column,row) of the map, GDAL's convention")
     p.set_defaults(func=_measure)
+
+    p = sub.add_parser("web-tiles", help="cut (or update) the XYZ web-tile pyramid of a map, as the tms rule does")
+    p.add_argument("map", help="a perspective's map, results/<scene>/maps/<id>.tif")
+    p.add_argument("out_dir", help="the published pyramid")
+    p.add_argument("--work", help="where the pyramid is kept between runs (then only what changed is cut again)")
+    p.add_argument("--zoom", default="auto", help="auto or min-max")
+    p.add_argument("--format", choices=["webp", "png"], default="webp")
+    p.add_argument("--quality", type=int, default=85)
+    p.add_argument("--processes", type=int, default=1)
+    p.set_defaults(func=_web_tiles)
 
     p = sub.add_parser("gl-info", help="print the OpenGL renderer EGL gives us")
     p.set_defaults(func=_gl_info)

@@ -12,7 +12,7 @@ from typing import Any
 
 import yaml
 
-from .crs import check_scene_crs, parse_crs
+from .crs import check_scene_crs, parse_crs, transformer
 from .errors import ConfigError, CRSError, InputFileError
 from .perspectives import Perspective, expand
 
@@ -42,7 +42,8 @@ def validate_schema(config: dict[str, Any], schema_path: Path = SCHEMA_PATH) -> 
 
 
 def check_semantics(config: dict[str, Any], base_dir: Path = Path(".")) -> None:
-    """Checks beyond the schema: CRSs exist and the scene CRS is projected; input files exist."""
+    """Checks beyond the schema: CRSs exist, the scene CRS is projected and every input's CRS
+    transforms to it; input files exist and are files."""
     try:
         check_scene_crs(config["crs"])
     except CRSError as exc:
@@ -51,19 +52,25 @@ def check_semantics(config: dict[str, Any], base_dir: Path = Path(".")) -> None:
         if "crs" in spec:
             try:
                 parse_crs(spec["crs"])
+                transformer(spec["crs"], config["crs"])
             except CRSError as exc:
-                raise ConfigError(f"config key inputs.{name}.crs: {exc}") from None
+                raise ConfigError(f"config key inputs.{name}.crs ({spec['path']}): {exc}") from None
         for key in ("path", "metadata"):
             if key in spec:
-                _check_readable(base_dir / spec[key], f"inputs.{name}.{key}")
+                _check_readable(base_dir / spec[key], f"inputs.{name}.{key}", dataset_ok=key == "path")
     for key, value in (("terrain", config["terrain"]), ("gcp.source", config["gcp"]["source"])):
         if value not in ("auto", "flat"):
             _check_readable(base_dir / value, key)
 
 
-def _check_readable(path: Path, key: str) -> None:
+def _check_readable(path: Path, key: str, dataset_ok: bool = False) -> None:
+    """``path`` exists, is readable and not empty; a folder only where ``dataset_ok`` and it is an
+    OSGB dataset (holds Data/)."""
     if not path.exists():
         raise InputFileError(path, f"does not exist (config key {key})")
+    if path.is_dir() and not (dataset_ok and (path / "Data").is_dir()):
+        more = "; an OSGB dataset folder holds Data/" if dataset_ok else ""
+        raise InputFileError(path, f"is a directory, not a file (config key {key}){more}")
     if not os.access(path, os.R_OK):
         raise InputFileError(path, f"is not readable (config key {key})")
     if path.is_file() and path.stat().st_size == 0:

@@ -43,7 +43,8 @@ def horizontal_wkt(text: str) -> str:
 
 
 @lru_cache(maxsize=64)
-def _transformer(src: str, dst: str):
+def transformer(src: str, dst: str):
+    """The cached pyproj Transformer from ``src`` to ``dst`` (3D, x/y order); CRSError when there is none."""
     from pyproj import Transformer
 
     try:
@@ -61,7 +62,7 @@ def transform_points(points: np.ndarray, src: str, dst: str) -> np.ndarray:
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if parse_crs(src) == parse_crs(dst):
         return pts.copy()
-    x, y, z = _transformer(src, dst).transform(pts[:, 0], pts[:, 1], pts[:, 2])
+    x, y, z = transformer(src, dst).transform(pts[:, 0], pts[:, 1], pts[:, 2])
     out = np.column_stack([x, y, z])
     if not np.isfinite(out).all():
         raise CRSError(f"transforming {len(pts)} points from {src} to {dst} gave non-finite values")

@@ -15,8 +15,8 @@ class ConfigError(Pipeline25dError, ValueError):
     """The configuration is invalid (schema violation, unknown CRS, bad value)."""
 
 
-class InputFileError(Pipeline25dError, OSError):
-    """An input file is missing, unreadable, truncated or corrupt."""
+class FileProblem(Pipeline25dError, OSError):
+    """A problem with one file or folder; the message is "<path>: <problem>"."""
 
     def __init__(self, path: object, problem: str):
         self.path = str(path)
@@ -24,8 +24,21 @@ class InputFileError(Pipeline25dError, OSError):
         super().__init__(f"{self.path}: {problem}")
 
 
+class InputFileError(FileProblem):
+    """An input file is missing, unreadable, truncated or corrupt."""
+
+
 class UnsupportedFeatureError(InputFileError):
     """An input uses a feature pipeline25d cannot honour (e.g. a required glTF extension)."""
+
+
+class OutputError(FileProblem):
+    """An output cannot be written (no space left on the device, no permission); names the path."""
+
+
+class MissingTextureWarning(UserWarning):
+    """A model's texture is missing or not an image; its parts would be drawn untextured.
+    Ingest makes it an error unless the input says ``missing_textures: untextured``."""
 
 
 class CRSError(Pipeline25dError, ValueError):

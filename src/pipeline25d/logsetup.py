@@ -5,6 +5,10 @@ from __future__ import annotations
 import logging
 import signal
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+from .errors import Pipeline25dError
 
 
 def exit_on_sigterm() -> None:
@@ -19,3 +23,15 @@ def log_to(path: str) -> None:
     logging.basicConfig(filename=path, level=logging.INFO, force=True,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     exit_on_sigterm()
+
+
+@contextmanager
+def stop_on_error() -> Iterator[None]:
+    """A Pipeline25dError ends the job with its message, in its log and on stderr (which
+    Snakemake shows on the terminal), and exit status 1, without a traceback."""
+    try:
+        yield
+    except Pipeline25dError as exc:
+        logging.getLogger("pipeline25d").error("%s", exc)
+        print(f"pipeline25d: error: {exc}", file=sys.stderr)
+        sys.exit(1)

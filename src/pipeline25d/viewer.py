@@ -1,11 +1,13 @@
 """The web viewer: a Leaflet page over the gdal2tiles pyramids with a perspective switch.
 
-Leaflet is copied next to the page (from the npm package the Makefile installs into
+Leaflet, its rotation plugin (leaflet-rotate: the view direction turned up the screen) and the
+PMTiles decoder are copied next to the page (from the npm packages the Makefile installs into
 build/), and so are the viewer's own viewer.js and viewer.css, so the viewer works offline
 and from a plain static file server. The page is given, per perspective, its azimuth,
-elevation and gsd (for measuring heights) and the runs of tiles its pyramid holds (so the
-browser never asks for a tile that was not written: empty tiles are not cut), and, per
-scene, a quadratic from web-mercator metres to the scene CRS (measurements are made there).
+elevation and gsd (for measuring heights), the runs of tiles its pyramid holds (so the
+browser never asks for a tile that was not written: empty tiles are not cut) and, where the
+pyramid was also written as one PMTiles archive, that archive's path; per scene, a quadratic
+from web-mercator metres to the scene CRS (measurements are made there).
 """
 
 from __future__ import annotations
@@ -23,16 +25,21 @@ from .errors import Pipeline25dError
 TEMPLATE = Path(__file__).with_name("viewer") / "index.html.in"
 
 
-def leaflet_dist() -> Path:
-    """Leaflet's dist folder: $PIPELINE25D_LEAFLET, else build/node_modules/leaflet/dist."""
-    env = os.environ.get("PIPELINE25D_LEAFLET")
-    candidates = [Path(env)] if env else []
-    candidates.append(Path(__file__).resolve().parents[2] / "build" / "node_modules" / "leaflet" / "dist")
-    for path in candidates:
-        if (path / "leaflet.js").exists():
-            return path
-    raise Pipeline25dError("Leaflet not found: run `make deps` (npm install leaflet into build/) "
-                           "or set PIPELINE25D_LEAFLET to a leaflet/dist folder")
+# npm package -> the files of its dist folder the page loads (copied to viewer/<package>/)
+NODE_FILES = {"leaflet": ("leaflet.js", "leaflet.css", "images"), "leaflet-rotate": ("leaflet-rotate.js",),
+              "pmtiles": ("pmtiles.js",)}
+
+
+def node_dist(package: str) -> Path:
+    """An npm package's dist folder: under $PIPELINE25D_NODE_MODULES, else build/node_modules."""
+    env = os.environ.get("PIPELINE25D_NODE_MODULES")
+    roots = [Path(env)] if env else []
+    roots.append(Path(__file__).resolve().parents[2] / "build" / "node_modules")
+    for root in roots:
+        if all((root / package / "dist" / name).exists() for name in NODE_FILES[package]):
+            return root / package / "dist"
+    raise Pipeline25dError(f"{package} not found in {' or '.join(map(str, roots))}: run `make deps` (npm install "
+                           "into build/) or set PIPELINE25D_NODE_MODULES to a node_modules folder that has it")
 
 
 def tile_extension(tms_dir: Path) -> str:
@@ -88,9 +95,16 @@ def mercator_to_scene(crs: str, lonlat_bounds: list[float], n: int = 7) -> dict:
             "max_error_m": float(np.abs(terms @ coef - scene).max())}
 
 
-def write_viewer(report_json: str | Path, out_html: str | Path) -> None:
+def write_viewer(report_json: str | Path, out_html: str | Path, archives: list[str | Path] | None = None) -> None:
+    """Write the viewer page ``out_html`` with its scripts beside it. ``archives``: PMTiles archives
+    named ``<id>.pmtiles``, one per perspective; the page then reads those instead of the XYZ folders."""
     report = json.loads(Path(report_json).read_text())
     results = Path(report_json).resolve().parents[1]
+    out_html = Path(out_html)
+    archive = {Path(a).stem: Path(os.path.relpath(Path(a).resolve(), out_html.parent.resolve())).as_posix()
+               for a in archives or []}
+    if archive and set(archive) != {p["id"] for p in report["perspectives"]}:
+        raise Pipeline25dError(f"{report_json}: PMTiles archives {sorted(archive)} are not one per perspective")
     entries = []
     for p in report["perspectives"]:
         tms_dir = results / "tms" / p["id"]
@@ -100,16 +114,17 @@ def write_viewer(report_json: str | Path, out_html: str | Path) -> None:
         entries.append({"id": p["id"], "azimuth": p["azimuth"], "elevation": p["elevation"], "gsd": report["gsd"],
                         "rmsd_m": p["rmsd_m"], "rmsd_px": p["rmsd_px"], "warp": warp,
                         "lonlat_bounds": p["lonlat_bounds"], "min_zoom": zmin, "max_zoom": zmax,
-                        "ext": ext, "tiles": tile_runs(tms_dir, ext)})
+                        "ext": ext, "tiles": tile_runs(tms_dir, ext), "pmtiles": archive.get(p["id"])})
     bounds = np.array([p["lonlat_bounds"] for p in entries])
     to_scene = mercator_to_scene(report["crs"], [*bounds[:, :2].min(axis=0), *bounds[:, 2:].max(axis=0)])
-    out_html = Path(out_html)
-    dest = out_html.parent / "leaflet"
-    dest.mkdir(parents=True, exist_ok=True)
-    src = leaflet_dist()
-    for name in ("leaflet.js", "leaflet.css"):
-        shutil.copyfile(src / name, dest / name)
-    shutil.copytree(src / "images", dest / "images", dirs_exist_ok=True)
+    for package, names in NODE_FILES.items():
+        src, dest = node_dist(package), out_html.parent / package
+        dest.mkdir(parents=True, exist_ok=True)
+        for name in names:
+            if (src / name).is_dir():
+                shutil.copytree(src / name, dest / name, dirs_exist_ok=True)
+            else:
+                shutil.copyfile(src / name, dest / name)
     for name in ("viewer.js", "viewer.css"):
         shutil.copyfile(TEMPLATE.with_name(name), out_html.parent / name)
     html = (TEMPLATE.read_text().replace("@SCENE@", report["scene"]).replace("@PERSPECTIVES@", json.dumps(entries))

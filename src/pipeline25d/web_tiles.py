@@ -25,12 +25,15 @@ import os
 import shutil
 import signal
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from functools import partial
 from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_path, replace_dir
+from .atomic import atomic_path, device_full, replace_dir
+from .errors import OutputError
 from .journal import read_state, write_state
 from .map_parts import Window, box_outline, window_bounds
 from .raster import gdal
@@ -63,16 +66,31 @@ def tms(cog: str | Path, zoom: str, out_dir: str | Path, processes: int = 1, til
         else:
             stale.unlink()
     if work_dir is not None:
-        stats = update_pyramid(cog, zoom, Path(work_dir), processes, tile_format, quality)
+        with _space_checked(Path(work_dir)):
+            stats = update_pyramid(cog, zoom, Path(work_dir), processes, tile_format, quality)
         publish(Path(work_dir) / "tiles", out_dir)
         return stats
     tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
     try:
-        stats = update_pyramid(cog, zoom, tmp / "work", processes, tile_format, quality)
+        with _space_checked(tmp):
+            stats = update_pyramid(cog, zoom, tmp / "work", processes, tile_format, quality)
         publish(tmp / "work" / "tiles", out_dir)
         return stats
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+@contextmanager
+def _space_checked(work: Path) -> Iterator[None]:
+    """An error of the cut while the device of ``work`` is full becomes an OutputError naming
+    it (gdal2tiles writes its tiles in place and GDAL does not say why a write failed); the
+    state's journal has the next cut redo what this one left."""
+    try:
+        yield
+    except (OSError, RuntimeError) as exc:
+        if isinstance(exc, OutputError) or not device_full(work, exc):
+            raise
+        raise OutputError(work, f"No space left on device while cutting web tiles ({exc})") from exc
 
 
 def publish(tiles: Path, out_dir: Path) -> None:

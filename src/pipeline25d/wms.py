@@ -27,6 +27,7 @@ from .atomic import write_text
 from .errors import InputFileError, MapServiceError
 from .perspectives import ID_PATTERN, Perspective
 from .raster import gdal
+from .serve import serve_until_interrupted
 
 log = logging.getLogger(__name__)
 
@@ -264,12 +265,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     server = WMSServer(args.mapfile, args.host, args.port)
     log.info("WMS of %s at %s?SERVICE=WMS&REQUEST=GetCapabilities (Ctrl-C stops)", args.mapfile, server.url)
-    try:
-        server.serve_forever()
-    except KeyboardInterrupt:
-        pass
-    finally:
-        server.server_close()
+    serve_until_interrupted(server)
     return 0
 
 

@@ -21,6 +21,8 @@ RESULTS = f"results/{config['scene']}"
 PYTHON = shlex.quote(sys.executable)
 DISTRICTS = sorted(config["inputs"])
 PERSPECTIVE_IDS = [p.id for p in perspectives(config)]
+# the web-tile pyramids as PMTiles archives too (tms.pmtiles), read by the viewer
+PMTILES = [f"{RESULTS}/pmtiles/{pid}.pmtiles" for pid in PERSPECTIVE_IDS] if config["tms"]["pmtiles"] else []
 MAX_LOD_ERROR = config["gsd"] * config["lod"]["max_error_px"]
 TERRAIN_FILE = [] if config["terrain"] in ("auto", "flat") else [config["terrain"]]
 GCP_FILE = [] if config["gcp"]["source"] == "auto" else [config["gcp"]["source"]]

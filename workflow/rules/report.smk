@@ -25,6 +25,7 @@ rule viewer:
     input:
         report=rules.report.output.json,
         tms=expand(f"{RESULTS}/tms/{{pid}}", pid=PERSPECTIVE_IDS),
+        pmtiles=PMTILES,
     output:
         f"{RESULTS}/viewer/index.html",
     log:

@@ -21,3 +21,16 @@ rule tms:
         f"{RESULTS}/benchmarks/tms/{{pid}}.tsv"
     script:
         "../scripts/tms.py"
+
+
+# With tms.pmtiles: the pyramid also as one PMTiles archive per perspective (pipeline25d.tile_archive),
+# which the viewer then reads by HTTP range requests.
+rule pmtiles:
+    input:
+        tiles=rules.tms.output.tiles,
+    output:
+        f"{RESULTS}/pmtiles/{{pid}}.pmtiles",
+    log:
+        f"{RESULTS}/logs/pmtiles/{{pid}}.log",
+    script:
+        "../scripts/pmtiles.py"

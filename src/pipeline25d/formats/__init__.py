@@ -16,13 +16,14 @@ A new format plugs in with one entry in :data:`READERS` (and its suffixes in
 from __future__ import annotations
 
 import json
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import ConfigError, InputFileError
+from ..errors import ConfigError, InputFileError, MissingTextureWarning
 from ..mesh import Mesh
 from .common import Detail, Loaded, in_scene
 
@@ -134,6 +135,10 @@ def detect_format(path: Path) -> str:
 def reader_of(spec: dict, base_dir: Path = Path(".")) -> tuple[Path, str, Reader]:
     """The input's path, format name and reader (``format: auto`` detects it)."""
     path = base_dir / spec["path"]
+    if path.is_dir() and not (path / "Data").is_dir():
+        raise InputFileError(path, "is a directory, not a model file (nor an OSGB dataset folder with Data/)")
+    if path.is_file() and path.stat().st_size == 0:
+        raise InputFileError(path, "is empty (0 bytes)")
     fmt = spec.get("format", "auto")
     fmt = detect_format(path) if fmt == "auto" else fmt
     if fmt not in READERS:
@@ -145,7 +150,9 @@ def load_district(spec: dict, scene_crs: str, max_geometric_error: float | None 
                   base_dir: Path = Path("."), gsd: float | None = None) -> Mesh:
     """Read one configured input (``inputs.<name>``) into the scene CRS, float64.
 
-    ``spec`` keys: path, format, crs, offset, metadata, lod (see config/schema.yaml).
+    ``spec`` keys: path, format, crs, offset, metadata, lod, missing_textures (see
+    config/schema.yaml). A texture that is missing or not an image is an InputFileError
+    unless ``missing_textures`` is ``untextured`` (then its parts are drawn without it).
     """
     path, fmt, reader = reader_of(spec, base_dir)
     offset = np.asarray(spec.get("offset", [0.0, 0.0, 0.0]), dtype=np.float64)
@@ -158,9 +165,24 @@ def load_district(spec: dict, scene_crs: str, max_geometric_error: float | None 
     if reader.georeferenced and (offset.any() or spec.get("metadata")):
         # these formats carry their own georeferencing; a silently ignored offset would misplace the map
         raise ConfigError(f"{path}: offset/metadata apply to mesh files (obj, ply, glb, gltf, dae), not {fmt}")
-    loaded = reader.load(path, spec, Detail(max_geometric_error, gsd))
+    with warnings.catch_warnings():
+        if spec.get("missing_textures", "error") == "error":
+            warnings.simplefilter("error", MissingTextureWarning)
+        try:
+            loaded = reader.load(path, spec, Detail(max_geometric_error, gsd))
+        except MissingTextureWarning as exc:
+            raise InputFileError(path, f"{_texture_problem(str(exc), path)} (set the input's "
+                                       "missing_textures: untextured to draw such parts without it)") from None
     parts = [p.transformed(lambda v: v + offset) for p in loaded.parts] if offset.any() else loaded.parts
     return in_scene(Loaded(parts, loaded.crs or scene_crs), scene_crs, path)
+
+
+def _texture_problem(message: str, path: Path) -> str:
+    """A texture warning's problem: without the leading model path (the error names it) and
+    without what the warning would have done."""
+    prefix = f"{path}: "
+    message = message[len(prefix):] if message.startswith(prefix) else message
+    return message.split("; its parts are drawn untextured")[0]
 
 
 def load_district_terrain(spec: dict, scene_crs: str, base_dir: Path = Path(".")) -> Mesh | None:

@@ -5,16 +5,20 @@ from __future__ import annotations
 import os
 import shutil
 import subprocess
+import warnings
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
 from ..crs import check_within_area_of_use, parse_crs, transform_points
-from ..errors import InputFileError, UnsupportedFeatureError
+from ..errors import CRSError, InputFileError, UnsupportedFeatureError
 from ..mesh import Mesh, MeshPart
 
 AREA_SAMPLE = 2000   # vertices checked against the scene CRS's area of use
+MAX_COORDINATE = 1e8  # |x|, |y|, |z| beyond this is no place on Earth in any CRS (ECEF reaches 6.4e6 m)
+FLAT = 1e-10          # a triangle whose height is below FLAT x its longest edge has no area (float64)
+FACE_BATCH = 1 << 20  # triangles checked at a time (bounds the temporary arrays)
 CONVERTER_TIMEOUT_S = 600
 
 
@@ -70,16 +74,22 @@ def run_converter(args: list[str], cwd: Path, output: Path, what: Path, package:
 def reproject_parts(parts: list[MeshPart], src_crs: str, scene_crs: str, where: str | Path) -> list[MeshPart]:
     """Parts moved from ``src_crs`` to ``scene_crs`` in one transform call.
 
-    First checks that a sample of the vertices (converted to lon/lat) lies in the scene
-    CRS's area of use, so a model in the wrong place fails with a CRSError naming
-    ``where`` instead of yielding silently distorted coordinates.
+    First checks that a sample of the vertices (converted to lon/lat) lies in the areas of
+    use of ``src_crs`` and of the scene CRS, so a model in the wrong place or labelled with
+    the wrong CRS fails with a CRSError naming ``where`` instead of yielding silently
+    distorted coordinates; so does a transform that fails.
     """
     if not parts or parse_crs(src_crs) == parse_crs(scene_crs):
         return parts
     allv = np.concatenate([p.vertices for p in parts])
-    lonlat = transform_points(allv[:: max(1, len(allv) // AREA_SAMPLE)], src_crs, "EPSG:4979")
-    check_within_area_of_use(lonlat, scene_crs, where=str(where))
-    moved = transform_points(allv, src_crs, scene_crs)
+    try:
+        lonlat = transform_points(allv[:: max(1, len(allv) // AREA_SAMPLE)], src_crs, "EPSG:4979")
+        check_within_area_of_use(lonlat, src_crs, where=str(where))
+        check_within_area_of_use(lonlat, scene_crs, where=str(where))
+        moved = transform_points(allv, src_crs, scene_crs)
+    except CRSError as exc:
+        message = str(exc)
+        raise CRSError(message if message.startswith(f"{where}:") else f"{where}: {message}") from None
     out, start = [], 0
     for p in parts:
         end = start + len(p.vertices)
@@ -89,6 +99,64 @@ def reproject_parts(parts: list[MeshPart], src_crs: str, scene_crs: str, where: 
 
 
 def in_scene(loaded: Loaded, scene_crs: str, where: str | Path) -> Mesh:
-    """A reader's result as a Mesh in ``scene_crs`` (``loaded.crs`` None: already there)."""
-    parts = loaded.parts if loaded.crs is None else reproject_parts(loaded.parts, loaded.crs, scene_crs, where)
+    """A reader's result, checked (:func:`checked_parts`), as a Mesh in ``scene_crs``
+    (``loaded.crs`` None: already there)."""
+    parts = checked_parts(loaded.parts, where)
+    parts = parts if loaded.crs is None else reproject_parts(parts, loaded.crs, scene_crs, where)
     return Mesh(parts, source=str(where))
+
+
+def checked_parts(parts: list[MeshPart], where: str | Path) -> list[MeshPart]:
+    """The parts with their degenerate triangles (repeated vertex, zero area) dropped, with a
+    warning naming ``where`` and the count; every other triangle is kept as it is.
+
+    InputFileError naming ``where`` when a triangle has a NaN or infinite vertex (it must
+    not reach the GPU), when a coordinate is beyond :data:`MAX_COORDINATE`, or when every
+    triangle is degenerate. A model with no triangles at all passes (readers warn of it).
+    """
+    out, dropped, total = [], 0, 0
+    for part in parts:
+        keep = _valid_faces(part, where)
+        total += len(keep)
+        dropped += int((~keep).sum())
+        out.append(part if keep.all() else _with_faces(part, part.faces[keep]))
+    if dropped == total and total:
+        raise InputFileError(where, f"all {total} triangles are degenerate (zero area)")
+    if dropped:
+        warnings.warn(f"{where}: dropped {dropped} of {total} triangles that are degenerate (zero area)",
+                      stacklevel=3)
+    return out
+
+
+def _valid_faces(part: MeshPart, where: str | Path) -> np.ndarray:
+    """(m,) bool: the part's triangles that have an area; raises on unusable coordinates."""
+    faces, v = part.faces, part.vertices
+    if not len(faces):
+        return np.ones(0, dtype=bool)
+    if faces.min() < 0 or faces.max() >= len(v):
+        bad = faces.max() if faces.max() >= len(v) else faces.min()
+        raise InputFileError(where, f"vertex index {bad} out of range ({len(v)} vertices)")
+    used = np.zeros(len(v), dtype=bool)
+    used[faces.ravel()] = True
+    finite = np.isfinite(v).all(axis=1)
+    if not finite[used].all():
+        bad = np.flatnonzero(used & ~finite)
+        raise InputFileError(where, f"{len(bad)} vertices have NaN or infinite coordinates "
+                                    f"(first: vertex {bad[0]} of {part.name or 'the model'})")
+    reach = np.abs(v[used]).max()
+    if reach > MAX_COORDINATE:
+        raise InputFileError(where, f"coordinates reach {reach:.3g}, beyond any place on Earth "
+                                    f"(|x|, |y|, |z| <= {MAX_COORDINATE:.0e}; wrong units or CRS?)")
+    keep = np.empty(len(faces), dtype=bool)
+    for start in range(0, len(faces), FACE_BATCH):
+        f = faces[start:start + FACE_BATCH]
+        a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+        ab, ac, bc = b - a, c - a, c - b
+        twice_area = np.linalg.norm(np.cross(ab, ac), axis=1)
+        longest = np.sqrt(np.max([np.einsum("ij,ij->i", e, e) for e in (ab, ac, bc)], axis=0))
+        keep[start:start + FACE_BATCH] = twice_area > FLAT * longest * longest
+    return keep
+
+
+def _with_faces(part: MeshPart, faces: np.ndarray) -> MeshPart:
+    return MeshPart(part.vertices, faces, part.colors, part.uv, part.texture, part.name)

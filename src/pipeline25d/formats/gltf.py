@@ -30,7 +30,7 @@ from urllib.parse import unquote
 
 import numpy as np
 
-from ..errors import InputFileError, UnsupportedFeatureError
+from ..errors import InputFileError, MissingTextureWarning, UnsupportedFeatureError
 from ..mesh import MeshPart
 
 #: Extensions this reader honours (or may safely ignore) when a file lists them as required.
@@ -238,10 +238,10 @@ class _Document:
                 data = self._uri_bytes(img.get("uri", ""), f"image {index}")
                 if data is None:
                     warnings.warn(f"{self.path}: image {unquote(img.get('uri', ''))!r} is missing; "
-                                  "its parts are drawn untextured", stacklevel=4)
+                                  "its parts are drawn untextured", MissingTextureWarning, stacklevel=4)
             if data is not None and not (data[:8] == b"\x89PNG\r\n\x1a\n" or data[:3] == b"\xff\xd8\xff"):
-                warnings.warn(f"{self.path}: image {index} is neither PNG nor JPEG; its parts are drawn untextured",
-                              stacklevel=4)
+                warnings.warn(f"{self.path}: image {index} is neither PNG nor JPEG (not an image); "
+                              "its parts are drawn untextured", MissingTextureWarning, stacklevel=4)
                 data = None
             self._images[index] = data
         return self._images[index]

@@ -8,23 +8,31 @@ vertex. Coordinates are float64 as the file stores them.
 from __future__ import annotations
 
 import io
+import re
+import warnings
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
-from ..errors import InputFileError
+from ..errors import InputFileError, MissingTextureWarning
 from ..mesh import Mesh, MeshPart
 
 
 def load_mesh_file(path: str | Path) -> Mesh:
-    """Read ``path`` with trimesh; InputFileError naming the file on any failure."""
-    import trimesh
-
+    """Read ``path`` with trimesh; InputFileError naming the file on any failure, a
+    :class:`MissingTextureWarning` per material library or texture missing or not an image."""
     path = Path(path)
+    kind = path.suffix.lstrip(".").upper()
+    {"OBJ": _check_obj, "DAE": _check_dae}.get(kind, lambda p: None)(path)
+    files = _Files(str(path))
     try:
-        scene = trimesh.load(str(path), force="scene", process=False)
+        scene = trimesh.load(str(path), force="scene", process=False, resolver=files)
+    except IndexError as exc:
+        raise InputFileError(path, f"cannot read as a {kind} model: an index is out of range ({exc})") from None
     except Exception as exc:  # trimesh raises many exception types for bad files
-        raise InputFileError(path, f"cannot read as a {path.suffix.lstrip('.').upper()} model: {exc}") from None
+        raise InputFileError(path, f"cannot read as a {kind} model: {exc}") from None
+    files.check(path)
     parts: list[MeshPart] = []
     encoded: dict[int, bytes] = {}
     for node in scene.graph.nodes_geometry:
@@ -38,9 +46,41 @@ def load_mesh_file(path: str | Path) -> Mesh:
         parts.append(_part(geom, vertices, str(name), encoded))
     if not parts:
         raise InputFileError(path, "contains no triangles")
-    if any(not np.isfinite(p.vertices).all() for p in parts):
-        raise InputFileError(path, "has non-finite vertex coordinates")
     return Mesh(parts, source=str(path))
+
+
+#: OBJ statements and the fewest values each takes; a last line with fewer was cut short.
+OBJ_VALUES = {"v": 3, "vt": 2, "vn": 3, "f": 3}
+OBJ_HEAD = 4096        # bytes of an OBJ checked for binary data
+
+
+def _check_obj(path: Path) -> None:
+    """InputFileError when an OBJ holds binary data at its start (corrupt) or ends in the middle
+    of a statement (truncated): trimesh would read what it can and say nothing."""
+    with path.open("rb") as f:
+        head = f.read(OBJ_HEAD)
+        f.seek(max(0, path.stat().st_size - 256))
+        tail = f.read()
+    if b"\0" in head:
+        raise InputFileError(path, "is not a text OBJ file (binary data in its first bytes: corrupt)")
+    words = tail.rstrip(b"\r\n").rsplit(b"\n", 1)[-1].decode("latin-1").split()
+    if words and len(words) - 1 < OBJ_VALUES.get(words[0], 0):
+        raise InputFileError(path, f"ends in the middle of a statement ({' '.join(words)!r}): truncated")
+
+
+def _check_dae(path: Path) -> None:
+    """InputFileError for what trimesh's COLLADA reading (pycollada) hides: NaN/inf coordinates
+    (read as 0) and malformed geometry such as indices beyond their source (geometry dropped)."""
+    import collada
+
+    data = path.read_bytes()
+    if re.search(rb"<float_array[^>]*>[^<]*?(?<![\w.])[+-]?(nan|inf)", data, re.IGNORECASE):
+        raise InputFileError(path, "has NaN or infinite coordinates")
+    try:
+        collada.Collada(io.BytesIO(data), ignore=[collada.common.DaeUnsupportedError,
+                                                  collada.common.DaeBrokenRefError])
+    except collada.common.DaeError as exc:
+        raise InputFileError(path, f"cannot read as a DAE model: {exc}") from None
 
 
 def _part(geom, vertices: np.ndarray, name: str, encoded: dict[int, bytes]) -> MeshPart:
@@ -61,3 +101,37 @@ def _part(geom, vertices: np.ndarray, name: str, encoded: dict[int, bytes]) -> M
     if visual.kind in ("vertex", "face"):
         return MeshPart(vertices, faces, colors=np.asarray(visual.vertex_colors)[:, :4], name=name)
     return MeshPart(vertices, faces, name=name)
+
+
+class _Files(trimesh.resolvers.FilePathResolver):
+    """Files next to the model, each request recorded: trimesh only logs a material library
+    or texture it cannot find or decode, and draws the parts in a plain colour."""
+
+    def __init__(self, source: str):
+        super().__init__(source)
+        self.asked: dict[str, bytes | None] = {}
+
+    def get(self, name: str) -> bytes:
+        try:
+            data = super().get(name)
+        except Exception:
+            self.asked[name] = None
+            raise
+        self.asked[name] = data
+        return data
+
+    def check(self, model: Path) -> None:
+        """Warn of each material library or texture that was missing or is not an image."""
+        from PIL import Image, UnidentifiedImageError
+
+        for name, data in self.asked.items():
+            what = "material library" if name.lower().endswith(".mtl") else "texture"
+            if data is None:
+                warnings.warn(f"{model}: {what} {name!r} is missing; its parts are drawn untextured",
+                              MissingTextureWarning, stacklevel=3)
+            elif what == "texture":
+                try:
+                    Image.open(io.BytesIO(data)).verify()
+                except (UnidentifiedImageError, OSError, SyntaxError, ValueError):
+                    warnings.warn(f"{model}: texture {name!r} is not an image; its parts are drawn untextured",
+                                  MissingTextureWarning, stacklevel=3)

@@ -21,13 +21,16 @@ TEXTURED = {"s", "t", "u", "v", "texture_u", "texture_v", "texcoord"}
 
 def load_ply(path: str | Path) -> Mesh:
     """Read a PLY mesh; falls back to trimesh for textured or unusual files."""
-    from plyfile import PlyData, PlyParseError
+    from plyfile import PlyData, PlyElementParseError, PlyParseError
 
     path = Path(path)
     try:
         data = PlyData.read(str(path))
         vertex, face = data["vertex"], data["face"]
-    except (PlyParseError, KeyError, ValueError, OSError) as exc:
+    except PlyElementParseError as exc:              # the header was read: the data is cut short or corrupt
+        problem = "truncated" if "end-of-file" in str(exc) else "corrupt"
+        raise InputFileError(path, f"{problem}: {exc}") from None
+    except (PlyParseError, KeyError, ValueError, OSError):
         return _with_trimesh(path)
     names = set(vertex.data.dtype.names) | set(face.data.dtype.names)
     if names & TEXTURED or any(c.lower().startswith("texturefile") for c in data.comments):
@@ -40,8 +43,6 @@ def load_ply(path: str | Path) -> Mesh:
         colors = np.column_stack([vertex[k] for k in ("red", "green", "blue")] + [alpha]).astype(np.uint8)
     if not len(faces):
         raise InputFileError(path, "contains no triangles")
-    if not np.isfinite(vertices).all():
-        raise InputFileError(path, "has non-finite vertex coordinates")
     return Mesh([MeshPart(vertices, faces, colors=colors, name=path.stem)], source=str(path))
 
 
@@ -63,7 +64,8 @@ def _triangles(face, n_vertices: int, path: Path) -> np.ndarray:
     faces = np.concatenate(tris)[np.argsort(np.concatenate(order), kind="stable")] if tris \
         else np.zeros((0, 3), np.int64)
     if len(faces) and (faces.min() < 0 or faces.max() >= n_vertices):
-        raise InputFileError(path, f"has face indices outside its {n_vertices} vertices")
+        bad = faces.max() if faces.max() >= n_vertices else faces.min()
+        raise InputFileError(path, f"face index {bad} out of range ({n_vertices} vertices)")
     return faces
 
 

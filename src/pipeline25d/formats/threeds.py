@@ -5,7 +5,8 @@ by :mod:`pipeline25d.formats.gltf`.
 the 3DS z-up to glTF y-up rotation in the root node; the glTF reader's y-up to z-up rotation
 undoes it, so the parts come out in the 3DS file's own (x east, y north, z up) frame.
 Material diffuse colours become colours per vertex; texture maps keep the file names the 3DS
-stores, resolved beside the .3ds (a missing image is drawn untextured, with a warning).
+stores, resolved beside the .3ds (a missing image is an error unless the input says
+``missing_textures: untextured``, as for every format).
 """
 
 from __future__ import annotations

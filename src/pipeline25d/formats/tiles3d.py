@@ -123,7 +123,8 @@ def _select(tile: _Tile, g: float | None, out: list[tuple[Path, np.ndarray]], ch
     for ext in tile.externals:
         key = ext.resolve()
         if key in chain:
-            raise InputFileError(ext, "external tileset references itself (cycle)")
+            loop = " -> ".join(p.name for p in chain[chain.index(key):] + (key,))
+            raise InputFileError(ext, f"external tilesets form a cycle ({loop})")
         ext_json = _read_json(ext)
         root = _json_tile(_root_of(ext_json, ext), ext, tile.transform, tile.refine)
         _select(root, g, out, chain + (key,))

@@ -1,17 +1,22 @@
 // The 2.5D viewer: one tile layer per perspective (PERSPECTIVES, written into the page by
-// pipeline25d.viewer), a switch that keeps place and zoom, the view in the URL hash
-// (#<id>/<zoom>/<lat>/<lng>), [ and ] to rotate through the azimuths, and a height tool: on a
-// map seen at elevation φ from azimuth θ, a vertical edge of height h runs h·cot φ along
-// d = (sin θ, cos θ), so h = (top − base)·d / cot φ, measured in the scene CRS (TO_SCENE).
+// pipeline25d.viewer), from its XYZ folder or its PMTiles archive (read by HTTP range requests),
+// a switch that keeps place and zoom, the view in the URL hash (#<id>/<zoom>/<lat>/<lng>[/up]),
+// [ and ] to rotate through the azimuths, r to turn the view direction up the screen (the map
+// rotated by −θ with leaflet-rotate, so buildings lean up), and a height tool: on a map seen at
+// elevation φ from azimuth θ, a vertical edge of height h runs h·cot φ along d = (sin θ, cos θ),
+// so h = (top − base)·d / cot φ, measured in the scene CRS (TO_SCENE). Clicks are turned into
+// map coordinates by the map itself, so measuring works the same on the rotated map.
 'use strict';
 
 const EMPTY = 'data:image/gif;base64,R0lGODlhAQABAIAAAAAAAP///yH5BAEAAAAALAAAAAABAAEAAAIBRAA7';
-const map = L.map('map', {zoomSnap: 0.25});
+const map = L.map('map', {zoomSnap: 0.25, rotate: true, bearing: 0, rotateControl: false, touchRotate: false,
+                          shiftKeyRotate: false, compassBearing: false});
 const byId = Object.fromEntries(PERSPECTIVES.map(p => [p.id, p]));
 const ring = PERSPECTIVES.filter(p => p.elevation !== 90)
   .sort((a, b) => a.azimuth - b.azimuth || a.elevation - b.elevation);
 const layers = {};
 let current = null;
+let up = false;                 // the view direction turned up the screen
 
 // A pyramid holds only the tiles with data: ask for those alone (no 404s over empty ground).
 function hasTile(p, c) {
@@ -19,6 +24,31 @@ function hasTile(p, c) {
 }
 const Tiles = L.TileLayer.extend({
   getTileUrl(c) { return hasTile(this.options.p, c) ? L.TileLayer.prototype.getTileUrl.call(this, c) : EMPTY; },
+});
+// The same pyramid from one PMTiles archive: each tile a range request through the pmtiles decoder.
+const Archive = L.GridLayer.extend({
+  initialize(options) {
+    L.GridLayer.prototype.initialize.call(this, options);
+    this._archive = new pmtiles.PMTiles(options.p.pmtiles);
+  },
+  createTile(c, done) {
+    const img = document.createElement('img');
+    img.alt = '';
+    img.onload = () => { if (img.src.startsWith('blob:')) URL.revokeObjectURL(img.src); done(null, img); };
+    img.onerror = () => done(new Error(`tile ${c.z}/${c.x}/${c.y} of ${this.options.p.pmtiles} is no image`), img);
+    if (!hasTile(this.options.p, c)) {
+      img.src = EMPTY;
+      return img;
+    }
+    this._archive.getZxy(c.z, c.x, c.y).then(tile => {
+      if (!tile) throw new Error(`${this.options.p.pmtiles} has no tile ${c.z}/${c.x}/${c.y}`);
+      img.src = URL.createObjectURL(new Blob([tile.data], {type: `image/${this.options.p.ext}`}));
+    }).catch(err => {
+      document.getElementById('status').textContent = String(err);
+      done(err, img);
+    });
+    return img;
+  },
 });
 
 function label(p) {
@@ -30,7 +60,31 @@ function label(p) {
 function writeHash() {
   if (!current) return;
   const c = map.getCenter();
-  history.replaceState(null, '', `#${current}/${+map.getZoom().toFixed(2)}/${c.lat.toFixed(7)}/${c.lng.toFixed(7)}`);
+  history.replaceState(null, '', `#${current}/${+map.getZoom().toFixed(2)}/${c.lat.toFixed(7)}/${c.lng.toFixed(7)}` +
+                                 (up ? '/up' : ''));
+}
+
+// The compass angle on the web map of the view direction d = (sin θ, cos θ), which is given in the
+// scene CRS: d taken to web mercator through the inverse of TO_SCENE's Jacobian at its origin (the
+// scene's grid north is not true north: a UTM zone's meridian convergence reaches a few degrees).
+function viewAngle(p) {
+  const t = p.azimuth * Math.PI / 180, d = [Math.sin(t), Math.cos(t)];
+  const [a, b, c, e] = [TO_SCENE.x[1], TO_SCENE.x[2], TO_SCENE.y[1], TO_SCENE.y[2]];   // ∂(x, y)/∂(u, v)
+  const det = a * e - b * c, m = [(e * d[0] - b * d[1]) / det, (a * d[1] - c * d[0]) / det];
+  return Math.atan2(m[0], m[1]) * 180 / Math.PI;
+}
+
+// View direction up: the map turned by minus the view's angle (leaflet-rotate's bearing turns it
+// clockwise), so the camera looks up the screen; north up when off and on the nadir map.
+function applyBearing() {
+  const p = current && byId[current];
+  map.setBearing(up && p && p.elevation !== 90 ? -viewAngle(p) : 0);
+  document.getElementById('rotate-btn').classList.toggle('on', up);
+}
+function setUp(on) {
+  up = on;
+  applyBearing();
+  writeHash();
 }
 
 function show(id) {
@@ -39,8 +93,9 @@ function show(id) {
   current = id;
   layers[id].addTo(map);
   document.querySelector(`input[value="${id}"]`).checked = true;
-  document.getElementById('status').textContent = `showing ${id}`;
+  document.getElementById('status').textContent = `showing ${id}` + (byId[id].pmtiles ? ' (PMTiles archive)' : '');
   clearMeasure();
+  applyBearing();
   writeHash();
 }
 
@@ -50,16 +105,19 @@ function step(k) {
   show(ring[i < 0 ? (k > 0 ? 0 : ring.length - 1) : (i + k + ring.length) % ring.length].id);
 }
 
-// The view a hash names, or null: #<id>[/<zoom>/<lat>/<lng>].
+// The view a hash names, or null: #<id>[/<zoom>/<lat>/<lng>][/up].
 function parseHash() {
-  const m = location.hash.match(/^#(az\d{3}_el\d{2})(?:\/([\d.]+)\/(-?[\d.]+)\/(-?[\d.]+))?$/);
+  const m = location.hash.match(/^#(az\d{3}_el\d{2})(?:\/([\d.]+)\/(-?[\d.]+)\/(-?[\d.]+))?(\/up)?$/);
   if (!m || !byId[m[1]]) return null;
-  return {id: m[1], view: m[2] === undefined ? null : {zoom: +m[2], center: [+m[3], +m[4]]}};
+  return {id: m[1], view: m[2] === undefined ? null : {zoom: +m[2], center: [+m[3], +m[4]]}, up: !!m[5]};
 }
 function applyHash() {
   const h = parseHash();
-  if (h && h.view) map.setView(h.view.center, h.view.zoom);
-  if (h) show(h.id);
+  if (!h) return;
+  if (h.view) map.setView(h.view.center, h.view.zoom);
+  up = h.up;
+  show(h.id);
+  applyBearing();
 }
 
 // --- measuring heights -------------------------------------------------------------------
@@ -126,9 +184,9 @@ map.on('click', e => {
 const choices = document.getElementById('choices');
 for (const p of PERSPECTIVES) {
   const b = p.lonlat_bounds;
-  layers[p.id] = new Tiles(`../tms/${p.id}/{z}/{x}/{y}.${p.ext}`, {
-    p, minZoom: 0, maxZoom: p.max_zoom + 3, maxNativeZoom: p.max_zoom, minNativeZoom: p.min_zoom,
-    bounds: [[b[1], b[0]], [b[3], b[2]]], attribution: 'pipeline25d'});
+  const options = {p, minZoom: 0, maxZoom: p.max_zoom + 3, maxNativeZoom: p.max_zoom, minNativeZoom: p.min_zoom,
+                   bounds: [[b[1], b[0]], [b[3], b[2]]], attribution: 'pipeline25d'};
+  layers[p.id] = p.pmtiles ? new Archive(options) : new Tiles(`../tms/${p.id}/{z}/{x}/{y}.${p.ext}`, options);
   const row = document.createElement('label');
   row.innerHTML = `<input type="radio" name="persp" value="${p.id}"> ${label(p)}`;
   row.querySelector('input').addEventListener('change', () => show(p.id));
@@ -137,11 +195,13 @@ for (const p of PERSPECTIVES) {
 document.getElementById('prev').addEventListener('click', () => step(-1));
 document.getElementById('next').addEventListener('click', () => step(1));
 document.getElementById('measure-btn').addEventListener('click', () => setTool(!tool.on));
+document.getElementById('rotate-btn').addEventListener('click', () => setUp(!up));
 document.addEventListener('keydown', e => {
   if (e.ctrlKey || e.metaKey || e.altKey || e.target.tagName === 'INPUT' && e.target.type === 'text') return;
   if (e.key === '[') step(-1);
   else if (e.key === ']') step(1);
   else if (e.key === 'm') setTool(!tool.on);
+  else if (e.key === 'r') setUp(!up);
   else if (e.key === 'Escape') setTool(false);
 });
 L.control.scale({imperial: false}).addTo(map);
@@ -149,6 +209,7 @@ map.on('moveend', writeHash);
 window.addEventListener('hashchange', applyHash);
 
 const start = parseHash();
+up = !!(start && start.up);
 if (start && start.view) {
   map.setView(start.view.center, start.view.zoom);
 } else {

@@ -1,0 +1,247 @@
+"""The hostile-input corpus (tests/data/bad/, written by pipeline25d.badinputs): every case ends in
+a message naming the file and the problem and no output that looks complete; the workflow's
+ingest job and the web-tile cut fail with exit status 1 and say so on the terminal."""
+
+from __future__ import annotations
+
+import filecmp
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from conftest import REPO
+from pipeline25d.badinputs import (SCENE_CRS, SQUARE, SQUARE_FACES, cases, table, write_corpus, write_obj)
+from pipeline25d.errors import ConfigError, CRSError
+from pipeline25d.formats import load_district
+from test_workflow import snakemake
+
+CORPUS = REPO / "tests" / "data" / "bad"
+DOC = REPO / "docs" / "hostile-inputs.md"
+CASES = {case.name: case for case in cases()}
+ENGINEERING_CRS = ('ENGCRS["site grid",EDATUM["site"],CS[Cartesian,2],AXIS["x",east],AXIS["y",north],'
+                   'LENGTHUNIT["metre",1]]')
+
+
+def _stem(name: str) -> str:
+    """What a message must name: the case's file name without its suffixes (a tileset case's
+    error may name its content file, which shares the stem)."""
+    return Path(name).name.split(".")[0]
+
+
+def test_the_corpus_is_what_the_generator_writes(tmp_path):
+    write_corpus(tmp_path)
+    ours = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*") if p.is_file())
+    kept = sorted(p.relative_to(CORPUS) for p in CORPUS.rglob("*") if p.is_file())
+    assert ours == kept, "regenerate: python -m pipeline25d.badinputs tests/data/bad"
+    assert [p for p in ours if not filecmp.cmp(tmp_path / p, CORPUS / p, shallow=False)] == []
+
+
+@pytest.mark.parametrize("name", [n for n, c in CASES.items() if c.error is not None])
+def test_a_hostile_file_is_refused_naming_the_file_and_the_problem(name):
+    case = CASES[name]
+    with pytest.raises(case.error) as err:
+        load_district({"path": str(CORPUS / name)}, SCENE_CRS)
+    assert type(err.value) is case.error
+    assert case.problem in str(err.value) and _stem(name) in str(err.value), str(err.value)
+    assert "Traceback" not in str(err.value)
+
+
+@pytest.mark.parametrize("name", [n for n, c in CASES.items() if c.error is None])
+def test_degenerate_triangles_are_dropped_with_a_warning_and_nothing_else_is_lost(name):
+    with pytest.warns(UserWarning, match=CASES[name].problem) as seen:
+        mesh = load_district({"path": str(CORPUS / name)}, SCENE_CRS)
+    assert _stem(name) in str(seen[0].message)
+    assert mesh.n_triangles == 2                      # the square's two triangles, kept whole
+    area = sum(0.5 * np.linalg.norm(np.cross(p.vertices[p.faces[:, 1]] - p.vertices[p.faces[:, 0]],
+                                             p.vertices[p.faces[:, 2]] - p.vertices[p.faces[:, 0]]), axis=1).sum()
+               for p in mesh.parts)
+    assert area == pytest.approx(100.0, rel=2e-3)     # 10 m x 10 m (UTM scale for the ECEF ones)
+
+
+def test_a_missing_texture_may_be_drawn_untextured_when_the_input_says_so():
+    with pytest.warns(UserWarning, match="missing-texture.png"):
+        mesh = load_district({"path": str(CORPUS / "gltf" / "missing-texture.gltf"),
+                              "missing_textures": "untextured"}, SCENE_CRS)
+    assert mesh.n_triangles == 2 and all(p.texture is None for p in mesh.parts)
+
+
+def test_a_crs_that_cannot_be_transformed_names_the_file(tmp_path):
+    write_obj(tmp_path / "site.obj", SQUARE, SQUARE_FACES, None)
+    with pytest.raises(CRSError, match=r"site\.obj: cannot transform ENGCRS"):
+        load_district({"path": str(tmp_path / "site.obj"), "crs": ENGINEERING_CRS}, SCENE_CRS)
+
+
+def test_the_hostile_input_table_in_the_docs_is_the_one_the_corpus_gives():
+    text = DOC.read_text()
+    generated = table(CORPUS)
+    assert generated in text, "regenerate: python -m pipeline25d.badinputs --table tests/data/bad"
+    assert len(generated.splitlines()) == len(CASES) + 2
+
+
+# --------------------------------------------------------------------------- through the workflow
+
+
+def _config(workdir: Path, inputs: dict, **extra) -> None:
+    (workdir / "config.yaml").write_text(yaml.safe_dump({"scene": "bad", "crs": SCENE_CRS, "inputs": inputs,
+                                                          "perspectives": "nadir", **extra}, allow_unicode=True))
+
+
+def _outputs(workdir: Path) -> list[str]:
+    """What a run left under results/<scene>/, logs and benchmarks aside."""
+    results = workdir / "results" / "bad"
+    return sorted(str(p.relative_to(results)) for p in results.rglob("*")
+                  if p.is_file() and p.relative_to(results).parts[0] not in ("logs", "benchmarks"))
+
+
+#: one case per format, and the files the non-file cases stand on
+WORKFLOW_CASES = ["obj/truncated.obj", "ply/nan.ply", "dae/index-out-of-range.dae", "glb/texture-not-an-image.glb",
+                  "gltf/absurd-coordinates.gltf", "b3dm/corrupt-header.b3dm", "3dtiles/cycle/tileset.json",
+                  "cityjson/outside-area-of-use.city.json", "degenerate:obj/degenerate.obj"]
+
+
+def test_the_ingest_jobs_of_hostile_files_fail_with_their_message_on_the_terminal(tmp_path):
+    """Every format's case as one district of one run (--keep-going: each job runs): each failed
+    ingest job printed its file and problem and exited 1, the run exits 1, and no chunk index
+    (the ingest's output) exists for a failed district; the degenerate district is ingested."""
+    names = [n.split(":")[-1] for n in WORKFLOW_CASES]
+    inputs = {f"d{i}": {"path": str(CORPUS / n)} for i, n in enumerate(names)}
+    _config(tmp_path, inputs)
+    targets = [f"results/bad/chunks/{d}/index.json" for d in inputs]
+    proc = snakemake(tmp_path, "--keep-going", *targets, check=False)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 1
+    failed = [n for n in names if CASES[n].error is not None]
+    for name in failed:
+        line = next((ln for ln in out.splitlines() if ln.startswith("pipeline25d: error: ") and _stem(name) in ln), "")
+        assert CASES[name].problem in line, (name, out[-3000:])
+    assert len(re.findall(r"returned non-zero exit status 1\b", out)) == len(failed)
+    assert "dropped 2 of 4 triangles" in out
+    degenerate = tmp_path / "results" / "bad" / "chunks" / f"d{len(names) - 1}"
+    index = json.loads((degenerate / "index.json").read_text())
+    assert index["n_triangles"] == 2
+    assert _outputs(tmp_path) == sorted([f"chunks/{degenerate.name}/{f}" for f in ("index.json", "index.hashes.json")]
+                                        + [f"chunks/{degenerate.name}/{c}.npz" for c in index["chunks"]])
+
+
+@pytest.mark.parametrize("case, expected", [
+    ("input-directory", r"models: is a directory, not a file \(config key inputs\.d0\.path\)"),
+    ("dtm-directory", r"models: is a directory, not a file \(config key terrain\)"),
+    ("untransformable-crs", r"config key inputs\.d0\.crs \(.*site\.obj\): cannot transform ENGCRS"),
+])
+def test_a_bad_config_stops_the_run_before_any_job(tmp_path, case, expected):
+    (tmp_path / "models").mkdir()
+    write_obj(tmp_path / "models" / "site.obj", SQUARE, SQUARE_FACES, None)
+    inputs = {"d0": {"path": "models" if case == "input-directory" else "models/site.obj"}}
+    if case == "untransformable-crs":
+        inputs["d0"]["crs"] = ENGINEERING_CRS
+    _config(tmp_path, inputs, **({"terrain": "models"} if case == "dtm-directory" else {}))
+    proc = snakemake(tmp_path, "-n", check=False)
+    assert proc.returncode == 1 and re.search(expected, proc.stdout + proc.stderr), proc.stderr[-2000:]
+    assert not (tmp_path / "results").exists()
+
+
+def test_a_config_check_names_the_problem_in_process():
+    from pipeline25d.config import check_semantics
+
+    config = {"crs": SCENE_CRS, "inputs": {"d0": {"path": str(CORPUS / "obj")}}, "terrain": "auto",
+              "gcp": {"source": "auto"}}
+    with pytest.raises(Exception, match="is a directory"):
+        check_semantics(config)
+    config["inputs"]["d0"] = {"path": str(CORPUS / "obj" / "degenerate.obj"), "crs": ENGINEERING_CRS}
+    with pytest.raises(ConfigError, match="degenerate.obj.*cannot transform"):
+        check_semantics(config)
+
+
+def test_a_whole_run_works_from_a_folder_with_spaces_and_non_ascii_letters(tmp_path):
+    """The smallest scene (one 60 m district, one nadir view, flat terrain) run end to end in
+    'städte mit leerzeichen/', its model in 'modelle/häuser am fluß.obj'."""
+    from pipeline25d.demo import generate_demo_city
+
+    workdir = tmp_path / "städte mit leerzeichen"
+    generate_demo_city(workdir / "modelle", seed=3, n_buildings=6, scale=0.25)
+    model = workdir / "modelle" / "häuser am fluß.obj"
+    (workdir / "modelle" / "d0.obj").rename(model)
+    _config(workdir, {"d0": {"path": "modelle/häuser am fluß.obj"}}, terrain="flat", gsd=1.0, tile_size=256,
+            gcp={"spacing": 20}, tms={"zoom": "15-16"})
+    snakemake(workdir)
+    results = workdir / "results" / "bad"
+    assert (results / "maps" / "az000_el90.tif").stat().st_size > 0
+    assert any((results / "tms" / "az000_el90").rglob("*.webp"))
+    assert json.loads((results / "report" / "report.json").read_text())
+    assert (results / "viewer" / "index.html").exists()
+
+
+# --------------------------------------------------------------------------- a disk that fills up
+
+
+def _noise_map(path: Path) -> None:
+    from pipeline25d.crs import horizontal_wkt
+    from pipeline25d.raster import write_rgba_geotiff
+
+    rng = np.random.default_rng(2)
+    rgba = np.zeros((1500, 2000, 4), np.uint8)
+    rgba[..., :3] = rng.integers(0, 255, (1500, 2000, 3), dtype=np.uint8)
+    rgba[..., 3] = 255
+    write_rgba_geotiff(path, rgba, (691000.0, 0.5, 0.0, 5334000.0, 0.0, -0.5), horizontal_wkt("EPSG:25832"))
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A tmpfs of 2 MB at tmp_path/disk (root only), unmounted afterwards; yields (folder, resize)."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(disk)],
+                      capture_output=True).returncode != 0:
+        pytest.skip("cannot mount a tmpfs (needs root)")
+
+    def resize(size: str) -> None:
+        subprocess.run(["mount", "-o", f"remount,size={size}", str(disk)], check=True)
+
+    try:
+        yield disk, resize
+    finally:
+        subprocess.run(["umount", str(disk)], check=True)
+
+
+@pytest.mark.parametrize("stage", ["blocks", "tiles"])
+def test_a_disk_that_fills_up_during_the_web_tile_cut(tmp_path, small_disk, stage):
+    """The disk fills while the web-mercator blocks are warped (2 MB) or while gdal2tiles writes the
+    tiles (the blocks' size + 1 MB): the cut exits 1 naming the path and 'No space left on device',
+    publishes nothing, its state still journals the whole map as to be redone, and once there is
+    space the next cut finishes it, equal to a cut from scratch."""
+    from test_tms import _tile_files
+
+    disk, resize = small_disk
+    _noise_map(tmp_path / "map.tif")
+    cmd = [sys.executable, "-m", "pipeline25d", "web-tiles", str(tmp_path / "map.tif"), str(disk / "tms"),
+           "--work", str(disk / "work"), "--format", "png", "--zoom", "14-17"]
+    if stage == "tiles":
+        subprocess.run([*cmd[:5], str(tmp_path / "fresh"), "--work", str(tmp_path / "fresh-work"),
+                                *cmd[8:]], capture_output=True, check=True)
+        blocks = sum(p.stat().st_size for p in (tmp_path / "fresh-work" / "blocks").iterdir())
+        resize(f"{blocks // 1024 + 1024}k")
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    assert proc.returncode == 1, proc.stderr
+    message = proc.stderr.strip().splitlines()[-1]
+    assert message.startswith(f"pipeline25d: error: {disk / 'work'}") and "No space left on device" in message
+    assert ("blocks" in message) == (stage == "blocks")
+    assert not (disk / "tms").exists()                       # nothing published
+    state = json.loads((disk / "work" / "state.json").read_text())
+    assert state["cells"] == {} and state["dirty"]           # the journal does not claim the cut done
+    resize("200m")
+    subprocess.run(cmd, capture_output=True, check=True)
+    want = _tile_files(tmp_path / "fresh") if stage == "tiles" else None
+    if want is None:
+        from pipeline25d.web_tiles import tms
+
+        tms(tmp_path / "map.tif", "14-17", tmp_path / "fresh", tile_format="png")
+        want = _tile_files(tmp_path / "fresh")
+    got = _tile_files(disk / "tms")
+    assert sorted(got) == sorted(want) and len(want) > 20
+    assert [k for k in want if got[k].read_bytes() != want[k].read_bytes()] == []
