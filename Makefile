@@ -11,11 +11,12 @@ NPM_PACKAGES := leaflet@1.9.4 leaflet-rotate@0.2.8 pmtiles@4.5.0
 NPM_FILES := build/node_modules/leaflet/dist/leaflet.js build/node_modules/leaflet-rotate/dist/leaflet-rotate.js \
              build/node_modules/pmtiles/dist/pmtiles.js
 APT_PACKAGES := python3-venv python3-dev build-essential gdal-bin libgdal-dev libegl1 libegl-mesa0 \
-                libgl1-mesa-dri libgles2 slurmctld slurmd slurm-client munge cgi-mapserver mapserver-bin chromium
+                libgl1-mesa-dri libgles2 openscenegraph assimp-utils \
+                slurmctld slurmd slurm-client munge cgi-mapserver mapserver-bin chromium
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 PYTHON ?= python3
 
-.PHONY: run test bench bench-sparse bench-coarse bench-district killtest sweep slurm-bench deps sysdeps clean-results
+.PHONY: run test osgb-example bench bench-sparse bench-coarse bench-district killtest sweep slurm-bench deps sysdeps clean-results
 
 run: deps
 	$(PY) -m pipeline25d demo-city resources/demo
@@ -24,6 +25,12 @@ run: deps
 test: deps
 	$(PY) -m pytest -q; rc=$$?; \
 	  if [ $$rc -eq 5 ]; then echo "pytest collected no tests"; exit 1; fi; exit $$rc
+
+# A generated ContextCapture-like OSGB dataset (two tiles, three PagedLOD levels) through the
+# workflow: resources/osgb-sample, results/osgb/
+osgb-example: deps
+	$(PY) -m pipeline25d.osgb_sample resources/osgb-sample
+	$(VENV)/bin/snakemake -j2 --configfile config/examples/osgb.yaml
 
 # City-scale benchmark at the paper's Dataset 2 footprint (Delft LiDAR mesh tiled 12 x 10,
 # decimated to ~5.8 M triangles): writes bench/dataset2.json. BENCH_ARGS overrides, e.g.

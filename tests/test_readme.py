@@ -59,6 +59,22 @@ def test_make_targets_dry_run(command):
     assert proc.returncode == 0, proc.stderr
 
 
+#: README commands that generate an example's input under resources/: {folder: command}
+GENERATORS = {m.group(1): c for c in COMMANDS
+              if (m := re.fullmatch(r"\.venv/bin/python -m pipeline25d\.\w+ (resources/[\w.-]+)", c))}
+
+
+def _generate_inputs(configfile: Path) -> None:
+    """Run, as the README shows it, the generator of every resources/ input the config lacks."""
+    import yaml
+
+    for spec in (yaml.safe_load(configfile.read_text()).get("inputs") or {}).values():
+        path = str(spec.get("path", ""))
+        folder = "/".join(path.split("/")[:2])
+        if path.startswith("resources/") and not (REPO / path).exists() and folder in GENERATORS:
+            subprocess.run(shlex.split(GENERATORS[folder]), cwd=REPO, check=True, capture_output=True)
+
+
 @pytest.mark.parametrize("command", [c for c in COMMANDS if c.startswith(".venv/bin/snakemake")])
 def test_snakemake_commands_dry_run(command):
     args = shlex.split(command)
@@ -67,6 +83,7 @@ def test_snakemake_commands_dry_run(command):
     for k, arg in enumerate(args[:-1]):
         if arg == "--configfile":
             assert (REPO / args[k + 1]).exists(), f"{args[k + 1]} is not in the repository"
+            _generate_inputs(REPO / args[k + 1])
     proc = subprocess.run(args + ["-n", "--quiet"], cwd=REPO, capture_output=True, text=True)
     if proc.returncode and "shared/data" in proc.stdout + proc.stderr and not (REPO.parent / "shared").exists():
         pytest.skip("the shared data are not beside this checkout")

@@ -57,17 +57,20 @@ def check_semantics(config: dict[str, Any], base_dir: Path = Path(".")) -> None:
                 raise ConfigError(f"config key inputs.{name}.crs ({spec['path']}): {exc}") from None
         for key in ("path", "metadata"):
             if key in spec:
-                _check_readable(base_dir / spec[key], f"inputs.{name}.{key}")
+                _check_readable(base_dir / spec[key], f"inputs.{name}.{key}", dataset_ok=key == "path")
     for key, value in (("terrain", config["terrain"]), ("gcp.source", config["gcp"]["source"])):
         if value not in ("auto", "flat"):
             _check_readable(base_dir / value, key)
 
 
-def _check_readable(path: Path, key: str) -> None:
+def _check_readable(path: Path, key: str, dataset_ok: bool = False) -> None:
+    """``path`` exists, is readable and not empty; a folder only where ``dataset_ok`` and it is an
+    OSGB dataset (holds Data/)."""
     if not path.exists():
         raise InputFileError(path, f"does not exist (config key {key})")
-    if path.is_dir():
-        raise InputFileError(path, f"is a directory, not a file (config key {key})")
+    if path.is_dir() and not (dataset_ok and (path / "Data").is_dir()):
+        more = "; an OSGB dataset folder holds Data/" if dataset_ok else ""
+        raise InputFileError(path, f"is a directory, not a file (config key {key}){more}")
     if not os.access(path, os.R_OK):
         raise InputFileError(path, f"is not readable (config key {key})")
     if path.is_file() and path.stat().st_size == 0:

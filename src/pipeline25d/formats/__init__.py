@@ -67,6 +67,18 @@ def _b3dm(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
     return read_b3dm(path, spec, detail)
 
 
+def _osgb(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
+    from .osgb import read_osgb
+
+    return read_osgb(path, spec, detail)
+
+
+def _3ds(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
+    from .threeds import read_3ds
+
+    return read_3ds(path, spec, detail)
+
+
 def _cityjson(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
     from .cityjson import read_cityjson
 
@@ -102,15 +114,23 @@ READERS: dict[str, Reader] = {
     "3dtiles": Reader(_tileset, georeferenced=True),
     "cityjson": Reader(_cityjson, georeferenced=True, terrain=_cityjson_terrain),
     "citygml": Reader(_citygml, georeferenced=True, terrain=_citygml_terrain),
+    "osgb": Reader(_osgb),
+    "3ds": Reader(_3ds),
 }
 
 #: file suffix -> format; .json, .gml and .xml are told apart by their content (:func:`detect_format`).
 SUFFIXES = {".obj": "obj", ".ply": "ply", ".dae": "dae", ".glb": "glb", ".gltf": "gltf",
-            ".b3dm": "b3dm", ".jsonl": "cityjson"}
+            ".b3dm": "b3dm", ".jsonl": "cityjson", ".osgb": "osgb",
+            ".3ds": "3ds"}
 
 
 def detect_format(path: Path) -> str:
-    """The input format from the file name, or for .json, .gml and .xml from its content."""
+    """The input format from the file name, for .json, .gml and .xml from its content; a folder
+    is an OSGB dataset."""
+    if path.is_dir():
+        if (path / "Data").is_dir():
+            return "osgb"
+        raise InputFileError(path, "is a folder but not an OSGB dataset (no Data/ folder); name a model file")
     suffix = path.suffix.lower()
     if suffix in SUFFIXES:
         return SUFFIXES[suffix]
@@ -139,8 +159,8 @@ def detect_format(path: Path) -> str:
 def reader_of(spec: dict, base_dir: Path = Path(".")) -> tuple[Path, str, Reader]:
     """The input's path, format name and reader (``format: auto`` detects it)."""
     path = base_dir / spec["path"]
-    if path.is_dir():
-        raise InputFileError(path, "is a directory, not a model file")
+    if path.is_dir() and not (path / "Data").is_dir():
+        raise InputFileError(path, "is a directory, not a model file (nor an OSGB dataset folder with Data/)")
     if path.is_file() and path.stat().st_size == 0:
         raise InputFileError(path, "is empty (0 bytes)")
     fmt = spec.get("format", "auto")

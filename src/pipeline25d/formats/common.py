@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import shutil
+import subprocess
 import warnings
 from pathlib import Path
 from typing import NamedTuple
@@ -9,13 +12,14 @@ from typing import NamedTuple
 import numpy as np
 
 from ..crs import check_within_area_of_use, parse_crs, transform_points
-from ..errors import CRSError, InputFileError
+from ..errors import CRSError, InputFileError, UnsupportedFeatureError
 from ..mesh import Mesh, MeshPart
 
 AREA_SAMPLE = 2000   # vertices checked against the scene CRS's area of use
 MAX_COORDINATE = 1e8  # |x|, |y|, |z| beyond this is no place on Earth in any CRS (ECEF reaches 6.4e6 m)
 FLAT = 1e-10          # a triangle whose height is below FLAT x its longest edge has no area (float64)
 FACE_BATCH = 1 << 20  # triangles checked at a time (bounds the temporary arrays)
+CONVERTER_TIMEOUT_S = 600
 
 
 class Detail(NamedTuple):
@@ -75,6 +79,26 @@ def crs_name(ref: str) -> str:
         if all(codes):
             return "EPSG:" + "+".join(str(c) for c in codes)
     return ref
+
+def run_converter(args: list[str], cwd: Path, output: Path, what: Path, package: str,
+                  env: dict[str, str] | None = None) -> None:
+    """Run an external model converter (osgconv, assimp) in ``cwd`` without a display.
+
+    UnsupportedFeatureError naming ``what`` when the program is not installed (``package``
+    provides it), InputFileError naming ``what`` with the program's last words when it fails
+    or writes no ``output`` (relative to ``cwd``).
+    """
+    if shutil.which(args[0]) is None:
+        raise UnsupportedFeatureError(what, f"reading it needs {args[0]} (Debian package {package})")
+    run_env = {k: v for k, v in os.environ.items() if k != "DISPLAY"} | (env or {})
+    try:
+        proc = subprocess.run(args, cwd=cwd, env=run_env, capture_output=True, text=True, errors="replace",
+                              timeout=CONVERTER_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        raise InputFileError(what, f"{args[0]} took longer than {CONVERTER_TIMEOUT_S} s") from None
+    if proc.returncode or not (cwd / output).is_file():
+        tail = " ".join((proc.stdout + proc.stderr).split())[-300:]
+        raise InputFileError(what, f"{args[0]} cannot read it (corrupt, or not that format): {tail}")
 
 
 def reproject_parts(parts: list[MeshPart], src_crs: str, scene_crs: str, where: str | Path) -> list[MeshPart]:
