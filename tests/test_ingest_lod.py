@@ -210,3 +210,26 @@ def test_offset_on_a_self_georeferenced_format_is_an_error_not_ignored():
     spec = {"path": str(DATA / "tokyo-chiyoda-b3dm/cesium-rtc-extension.b3dm"), "offset": [10.0, 0.0, 0.0]}
     with pytest.raises(ConfigError, match="offset"):
         load_district(spec, "EPSG:6677")
+
+
+def test_texture_drift_on_a_flat_textured_grid_is_the_analytic_shift():
+    """A flat grid whose texture coordinates are a linear function of x, y: simplifying it costs
+    no geometry, but a merged vertex shows the mean of its originals' coordinates at its new
+    place. Where the original showed that coordinate is known in closed form, so the drift is too."""
+    from pipeline25d.lod import _simplify, texture_drift
+
+    part = grid_part(bump=0.0)
+    x0, y0, size = part.vertices[:, 0].min(), part.vertices[:, 1].min(), 80.0
+    uv = np.column_stack([(part.vertices[:, 0] - x0) / size, (part.vertices[:, 1] - y0) / size])
+    part = MeshPart(part.vertices, part.faces, uv=uv.astype(np.float32), texture=b"png")
+    simple, mapping = _simplify(part, 0.75)
+    shown_at = np.column_stack([x0 + simple.uv[:, 0].astype(np.float64) * size,
+                                y0 + simple.uv[:, 1].astype(np.float64) * size, np.full(len(simple.uv), 10.0)])
+    analytic = np.linalg.norm(simple.vertices - shown_at, axis=1)[np.unique(mapping)].max()
+    drift = texture_drift(part, simple, mapping, np.random.default_rng(0))
+    assert analytic > 0.01                                   # the collapses did move the texture
+    assert drift == pytest.approx(analytic, rel=1e-4, abs=1e-5)
+    untextured = build_levels(Mesh([grid_part(bump=0.0)]), max_error=0.01, max_levels=5)
+    textured = build_levels(Mesh([part]), max_error=0.01, max_levels=5)
+    assert len(untextured) >= 3 and len(textured) < len(untextured)   # the drift stops the pyramid
+    assert all(e <= 0.01 for _, e in textured)

@@ -3,7 +3,8 @@
 Level 0 is the chunk as ingested; level k keeps about 2^-k of the triangles. Open borders
 (chunk seams) are never collapsed, so adjacent chunks do not crack. The error of a level is
 the Hausdorff distance (metres) between level 0 and the level, both ways, on sample points
-(:func:`surface_error`). Building stops at the first level whose error exceeds ``max_error`` (the
+(:func:`surface_error`), and for textured parts at least how far the texture moves on the surface
+(:func:`texture_drift`). Building stops at the first level whose error exceeds ``max_error`` (the
 coarsest error any configured pixel size can use), so no level finer than needed and no
 level too coarse to use is kept. UVs and vertex colours ride through the collapses: each
 new vertex takes the mean of the original vertices merged into it.
@@ -27,10 +28,15 @@ MIN_GAIN = 0.85             # a level must have at most this share of the previo
 
 def simplify_part(part: MeshPart, reduction: float) -> MeshPart:
     """``part`` with about ``reduction`` of its triangles removed (attributes carried)."""
+    return _simplify(part, reduction)[0]
+
+
+def _simplify(part: MeshPart, reduction: float) -> tuple[MeshPart, np.ndarray | None]:
+    """:func:`simplify_part` and the new vertex of every original vertex (None: unchanged)."""
     import fast_simplification
 
     if part.n_triangles < MIN_TRIANGLES or reduction <= 0:
-        return part
+        return part, None
     # Simplify relative to the part's centre: quadrics of UTM-sized coordinates lose precision.
     centre = part.vertices.mean(axis=0)
     local = part.vertices - centre
@@ -40,7 +46,7 @@ def simplify_part(part: MeshPart, reduction: float) -> MeshPart:
     return MeshPart(vertices=points + centre, faces=faces,
                     colors=_carry(part.colors, mapping, len(points), np.uint8),
                     uv=_carry(part.uv, mapping, len(points), np.float32),
-                    texture=part.texture, name=part.name)
+                    texture=part.texture, name=part.name), mapping
 
 
 def _carry(values: np.ndarray | None, mapping: np.ndarray, n_new: int, dtype) -> np.ndarray | None:
@@ -85,6 +91,44 @@ def _surface_points(part: MeshPart, rng: np.random.Generator) -> np.ndarray:
     return points
 
 
+def texture_drift(original: MeshPart, simplified: MeshPart, mapping: np.ndarray | None,
+                  rng: np.random.Generator) -> float:
+    """How far (m) the texture moves on the surface: the largest distance, over sampled original
+    vertices, between where a merged vertex now shows its (averaged) texture coordinate and where
+    the original surface showed that coordinate. 0 for untextured or unchanged parts.
+
+    Geometry alone misses this: collapses on a flat textured facade cost no geometric error,
+    but each merged vertex carries the mean of its originals' texture coordinates to a new
+    place, which shifts and shears the image on it (a checker drawn metres off on a
+    photogrammetry tile). Where the original showed coordinate t is found through the affine
+    texture map of a triangle at the original vertex (the one of largest texture area).
+    """
+    if mapping is None or original.uv is None or simplified.uv is None or original.texture is None:
+        return 0.0
+    faces, p, t = original.faces, original.vertices, original.uv.astype(np.float64)
+    d1, d2 = t[faces[:, 1]] - t[faces[:, 0]], t[faces[:, 2]] - t[faces[:, 0]]
+    det = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]          # twice the signed texture area
+    best = np.zeros(len(p))
+    np.maximum.at(best, faces.ravel(), np.repeat(np.abs(det), 3))
+    tri = np.full(len(p), -1)
+    corners = np.flatnonzero(np.repeat(np.abs(det), 3) == best[faces.ravel()])
+    tri[faces.ravel()[corners]] = corners // 3
+    verts = np.flatnonzero((tri >= 0) & (best > 0))
+    if len(verts) > ERROR_SAMPLE:
+        verts = verts[rng.choice(len(verts), ERROR_SAMPLE, replace=False)]
+    if not len(verts):
+        return 0.0
+    f = faces[tri[verts]]
+    new = mapping[verts]
+    # solve t_new - t0 = a d1 + b d2 in the triangle's texture map, then place a, b on its edges
+    rhs = simplified.uv[new].astype(np.float64) - t[f[:, 0]]
+    k = tri[verts]
+    a = (rhs[:, 0] * d2[k, 1] - rhs[:, 1] * d2[k, 0]) / det[k]
+    b = (d1[k, 0] * rhs[:, 1] - d1[k, 1] * rhs[:, 0]) / det[k]
+    shown = p[f[:, 0]] + a[:, None] * (p[f[:, 1]] - p[f[:, 0]]) + b[:, None] * (p[f[:, 2]] - p[f[:, 0]])
+    return float(np.linalg.norm(simplified.vertices[new] - shown, axis=1).max())
+
+
 def build_levels(mesh: Mesh, max_error: float, max_levels: int, seed: int = 0) -> list[tuple[list[MeshPart], float]]:
     """[(parts, error_m), ...] from level 0 (error 0) to the coarsest usable level."""
     rng = np.random.default_rng(seed)
@@ -93,8 +137,8 @@ def build_levels(mesh: Mesh, max_error: float, max_levels: int, seed: int = 0) -
         reduction = 1.0 - 0.5 ** k
         parts, error = [], 0.0
         for part in mesh.parts:
-            simple = simplify_part(part, reduction)
-            error = max(error, surface_error(part, simple, rng))
+            simple, mapping = _simplify(part, reduction)
+            error = max(error, surface_error(part, simple, rng), texture_drift(part, simple, mapping, rng))
             parts.append(simple)
         n_prev = sum(p.n_triangles for p in levels[-1][0])
         n_new = sum(p.n_triangles for p in parts)
