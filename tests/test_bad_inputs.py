@@ -102,7 +102,8 @@ def _outputs(workdir: Path) -> list[str]:
 #: one case per format, and the files the non-file cases stand on
 WORKFLOW_CASES = ["obj/truncated.obj", "ply/nan.ply", "dae/index-out-of-range.dae", "glb/texture-not-an-image.glb",
                   "gltf/absurd-coordinates.gltf", "b3dm/corrupt-header.b3dm", "3dtiles/cycle/tileset.json",
-                  "cityjson/outside-area-of-use.city.json", "degenerate:obj/degenerate.obj"]
+                  "cityjson/outside-area-of-use.city.json", "citygml/missing-texture.gml",
+                  "degenerate:obj/degenerate.obj"]
 
 
 def test_the_ingest_jobs_of_hostile_files_fail_with_their_message_on_the_terminal(tmp_path):

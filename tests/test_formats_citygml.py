@@ -247,9 +247,9 @@ def test_bad_numbers_and_2d(tmp_path):
 def test_missing_texture_is_an_error_or_falls_back_to_colour(tmp_path):
     path, _ = _city(tmp_path)
     (tmp_path / "city_appearance" / "atlas.png").unlink()
-    with pytest.raises(InputFileError, match=r"atlas\.png cannot be read.*missing_textures: untextured"):
+    with pytest.raises(InputFileError, match=r"atlas\.png is missing.*missing_textures: untextured"):
         load_district({"path": str(path)}, "EPSG:25832")
-    with pytest.warns(MissingTextureWarning, match=r"atlas\.png cannot be read.*drawn untextured"):
+    with pytest.warns(MissingTextureWarning, match=r"atlas\.png is missing.*drawn untextured"):
         mesh = _load(path, missing_textures="untextured")
     parts = {p.name: p for p in mesh.parts}
     assert not any(p.texture is not None for p in mesh.parts)

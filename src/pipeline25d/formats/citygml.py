@@ -311,13 +311,20 @@ class _Reader:
             from PIL import Image, UnidentifiedImageError
             import io
 
+            problem = None
             try:
                 data = Path(image).read_bytes()
                 with Image.open(io.BytesIO(data)) as img:
                     img.verify()
                 self.images[image] = data
-            except (OSError, UnidentifiedImageError, SyntaxError) as exc:
-                warnings.warn(f"{self.path}: texture image {image} cannot be read ({exc}); "
+            except FileNotFoundError:
+                problem = "is missing"
+            except UnidentifiedImageError:
+                problem = "is not an image"
+            except (OSError, SyntaxError) as exc:
+                problem = f"cannot be read ({exc})"
+            if problem:
+                warnings.warn(f"{self.path}: texture image {image} {problem}; "
                               "its parts are drawn untextured", MissingTextureWarning, stacklevel=5)
                 self.images[image] = None
         return self.images[image]
