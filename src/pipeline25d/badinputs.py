@@ -252,6 +252,21 @@ def write_citygml(path: Path, v: np.ndarray, f: np.ndarray, texture: str | None)
         f'{appearance}\n</core:CityModel>\n')
 
 
+def write_3ds(path: Path, v: np.ndarray, f: np.ndarray, texture: str | None) -> None:
+    """An Autodesk .3ds: the model written as OBJ (+ MTL) and converted by assimp (Debian
+    assimp-utils), as the .3ds reader reads it back."""
+    import subprocess
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        obj = Path(tmp) / "model.obj"
+        write_obj(obj, v, f, texture)
+        proc = subprocess.run(["assimp", "export", obj.name, "model.3ds"], cwd=tmp, capture_output=True, text=True)
+        if proc.returncode or not (Path(tmp) / "model.3ds").is_file():
+            raise RuntimeError(f"assimp could not write {path.name}: {proc.stdout[-300:]} {proc.stderr[-300:]}")
+        path.write_bytes((Path(tmp) / "model.3ds").read_bytes())
+
+
 # --------------------------------------------------------------------------- cases
 
 
@@ -354,6 +369,9 @@ FORMATS: list[Format] = [
            phrases={"truncated": "not valid JSON", "corrupt-header": "not valid JSON"},
            extra=[Case("cityjson/outside-area-of-use.city.json", "outside the area of use", _outside_area,
                        CRSError)]),
+    Format("3ds", ".3ds", write_3ds, without=frozenset({"index-out-of-range"}),   # assimp will not write one
+           phrases={"truncated": "assimp cannot read it", "corrupt-header": "assimp cannot read it",
+                    "nan": "degenerate"}),                                        # assimp reads NaN as a point
     Format("citygml", ".gml", write_citygml, without=frozenset({"index-out-of-range"}),
            phrases={"truncated": "malformed XML", "corrupt-header": "malformed XML"}),
 ]

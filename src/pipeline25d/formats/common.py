@@ -97,7 +97,9 @@ def run_converter(args: list[str], cwd: Path, output: Path, what: Path, package:
     except subprocess.TimeoutExpired:
         raise InputFileError(what, f"{args[0]} took longer than {CONVERTER_TIMEOUT_S} s") from None
     if proc.returncode or not (cwd / output).is_file():
-        tail = " ".join((proc.stdout + proc.stderr).split())[-300:]
+        said = " ".join((proc.stdout + proc.stderr).split())
+        tail = said[said.rfind("ERROR:"):] if "ERROR:" in said else said   # assimp: its error, not its log
+        tail = tail[-300:]
         raise InputFileError(what, f"{args[0]} cannot read it (corrupt, or not that format): {tail}")
 
 
