@@ -367,3 +367,55 @@ def test_no_seams_one_big_tile_equals_its_four_quarter_tiles(gl_ctx, perspective
         lines = np.delete(steps_q.mean(axis=1 - axis), 127)
         assert border <= same_pairs + 0.05 and border <= np.percentile(lines, 95), (axis, border, same_pairs,
                                                                                    np.percentile(lines, [50, 95]))
+
+
+# -- the workflow ----------------------------------------------------------------------------------
+@pytest.mark.slow
+def test_the_workflow_casts_shadows_and_renders_again_when_they_change(tmp_path_factory):
+    """The small demo city with shadows (the sun from a date and time at the scene centre): plans
+    carry the sun and the casters, each render job takes its casters' LOD files as inputs, and a
+    changed shadow setting renders every tile again."""
+    import json
+
+    from osgeo import gdal
+
+    from pipeline25d.crs import transform_points
+    from pipeline25d.plan import plan_blocks
+    from test_workflow import demo_run, snakemake
+
+    views = [{"azimuth": 0, "elevation": 90}, {"azimuth": 45, "elevation": 45}]
+    shadows = {"enabled": True, "datetime": "2024-09-15T10:30:00+02:00"}
+    workdir, results = demo_run(tmp_path_factory, "shadowed", perspectives=views, shadows=shadows,
+                                render={"block": 1})     # a job a tile: casters come from other jobs' tiles
+    scene = json.loads((results / "scene.json").read_text())
+    lon, lat, _ = transform_points(np.mean(scene["bounds"], axis=0)[None], "EPSG:25832", "EPSG:4326")[0]
+    sun = sun_position(datetime.fromisoformat(shadows["datetime"]), round(lon, 2), round(lat, 2))
+    plans = {pid: json.loads((results / "plans" / f"{pid}.json").read_text()) for pid in ("az000_el90", "az045_el45")}
+    for plan in plans.values():
+        assert abs(plan["shadows"]["azimuth"] - sun.azimuth) < 1e-3 and abs(plan["shadows"]["elevation"] - sun.elevation) < 1e-3
+        assert any(t["shadow"]["casters"] for t in plan["tiles"])
+    summary = snakemake(workdir, "--detailed-summary").stdout.splitlines()
+    header = summary[0].split("\t")
+    rows = [dict(zip(header, line.split("\t"))) for line in summary[1:]]
+    rows = [r for r in rows if r.get("rule") == "render_block"]
+    assert len(rows) == sum(len(plan_blocks(p, 1)) for p in plans.values())
+    foreign = 0
+    for row in rows:
+        pid, block = row["output_file"].split("/")[-2], row["output_file"].split("block_")[1][:-len(".json")]
+        tiles = plan_blocks(plans[pid], 1)[block]
+        name = lambda c: f"{results.name}/lod/{c['district']}/{c['id']}.npz"
+        inputs = {i.split("results/")[-1] for i in row["input-file(s)"].split(",")}
+        casters = {name(c) for t in tiles for c in t["shadow"]["casters"]}
+        assert casters <= inputs, (row["output_file"], casters - inputs)
+        foreign += len(casters - {name(c) for t in tiles for c in t["chunks"]})
+    assert foreign > 0                      # casters that no tile of their job draws
+    before = gdal.Open(str(results / "maps" / "az000_el90.tif")).ReadAsArray()[:3].astype(int)
+    (workdir / "config.yaml").write_text((workdir / "config.yaml").read_text().replace("enabled: true",
+                                                                                        "ambient: 0.3\n  enabled: true"))
+    snakemake(workdir)
+    for manifest in (results / "tiles").glob("*/block_*.json"):
+        record = json.loads(manifest.read_text())
+        assert record["rendered"] == len(record["tiles"]) and record["kept"] == 0, record
+    after = gdal.Open(str(results / "maps" / "az000_el90.tif")).ReadAsArray()[:3].astype(int)
+    darker = (after.sum(axis=0) < before.sum(axis=0) - 30)
+    assert (after <= before + 1).all() and 0.05 < darker.mean() < 0.6      # the shadows, and only they, darken

@@ -58,7 +58,7 @@ out vec3 v_pos;
 out vec4 v_color;
 out vec2 v_uv;
 #ifdef SHADOWS
-uniform mat4 u_sun_mvp;      // chunk-local -> shadow-map texels (u, w) and metres along the light
+uniform mat4 u_sun_mvp;      // chunk-local -> shadow-map texels (u, w) and depth (-height, m)
 out vec3 v_sun;
 #endif
 void main() {
@@ -92,11 +92,11 @@ uniform sampler2D u_shadow_map;   // depth seen from the sun, window depth in [0
 uniform vec3 u_sun;               // unit vector toward the sun
 uniform vec3 u_sun_u;             // scene metres of one shadow-map texel along u
 uniform vec3 u_sun_w;             // ... and along w
-uniform float u_depth_span;       // metres of the shadow map's depth range
+uniform float u_depth_span;       // metres of the shadow map's depth range (heights)
 uniform float u_bias;             // metres
 uniform float u_radius;           // tent filter radius, texels
 uniform float u_shadow_ambient;   // brightness in shadow, as a share of full sun
-in vec3 v_sun;                    // texels from the shadow map's corner (u, w); metres from its near plane
+in vec3 v_sun;                    // texels from the shadow map's corner (u, w); depth from its near plane (m)
 
 // Share of the sun reaching a face of normal n here: depth comparisons at the texel centres
 // within u_radius, weighted by a tent filter (continuous in position: soft edges, and the same

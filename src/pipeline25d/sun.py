@@ -4,12 +4,14 @@ The sun is an azimuth (degrees clockwise from north, where the sun stands) and a
 (degrees above the horizon): given in the config, or computed from a date, time and place with
 astral (NOAA's algorithm, apparent elevation: refraction included).
 
-Sun space is one orthographic frame for the whole scene: a depth axis L along the light (away
-from the sun) and two axes across it, U horizontal and W = L × U. Shadow-map texels lie on one
-global grid in (U, W): texel (k, l) covers U·p in [k·t_u, (k+1)·t_u) and W·p in
-[l·t_w, (l+1)·t_w), so every tile's shadow map samples the same rays, and adjacent tiles compute
-the same shadow for the same point (no seams). t_w = t_u·sin(elevation): a texel then covers
-t_u × t_u metres of level ground. All float64; only the final matrices go to the GPU as float32.
+Sun space is one frame for the whole scene: each point is slid along its sun ray down to the
+plane z = 0, (x, y) − z·cot(elevation)·(sin azimuth, cos azimuth), and keeps its height as depth
+(the highest point of a ray is the one the sun reaches). This parallel projection along the
+light is what an orthographic camera looking from the sun sees, on a sheared frame whose texels
+are squares of level ground aligned with the map: a tile's shadow map covers little more than
+its own ground, and texel (k, l) covers [k·t, (k+1)·t) × [l·t, (l+1)·t) of that plane, one
+global grid, so every tile's shadow map samples the same rays and adjacent tiles compute the same
+shadow for the same point (no seams). All float64; only the final matrices go to the GPU as float32.
 """
 
 from __future__ import annotations
@@ -22,10 +24,12 @@ import numpy as np
 
 from .errors import ConfigError
 
-PCF_RADIUS = 1.5          # texels: radius of the tent filter over depth comparisons (soft edges)
-BIAS_TEXELS = 1.0         # depth bias in texels (t_u, metres): light may leak bias·cos(elevation) at a wall's foot
-WINDOW_PAD = 3            # texels around the receivers: the filter's taps stay inside the map
+PCF_RADIUS = 1.0          # texels: radius of the tent filter over depth comparisons (bilinear: 2 x 2 taps)
+BIAS_TEXELS = 0.5         # height bias in texels (metres of height per texel edge): light may leak
+                          # bias·cot(elevation) at a wall's foot, half a texel at 45°
+WINDOW_PAD = 2            # texels around the receivers: the filter's taps stay inside the map
 DEPTH_MARGIN_M = 1.0      # keeps casters and receivers off the shadow map's near and far planes
+CENTRE_STEP_DEG = 0.01    # the scene centre that places the sun, rounded (~1 km; the sun moves by hundredths of a degree)
 
 
 @dataclass(frozen=True)
@@ -118,16 +122,17 @@ def resolve_sun(cfg: dict, centre_lonlat: tuple[float, float] | None = None, whe
 
 def plan_shadows(cfg: dict, scene_bounds: np.ndarray, crs: str, gsd: float) -> dict:
     """The shadow settings a plan records (and its tiles' spec hashes cover): the sun resolved
-    (``datetime`` without ``place`` is seen from the scene centre), texel size, filter and bias."""
+    (``datetime`` without ``place`` is seen from the scene centre, rounded to CENTRE_STEP_DEG so
+    that a district update rarely moves the sun, and with it every tile), texel size, filter and bias."""
     from .crs import transform_points
 
     lo, hi = np.asarray(scene_bounds, dtype=np.float64)
-    centre = transform_points(((lo + hi) / 2)[None], crs, "EPSG:4326")[0]
-    sun = resolve_sun(cfg, (float(centre[0]), float(centre[1])))
+    centre = np.round(transform_points(((lo + hi) / 2)[None], crs, "EPSG:4326")[0] / CENTRE_STEP_DEG) * CENTRE_STEP_DEG
+    sun = resolve_sun(cfg, (round(float(centre[0]), 6), round(float(centre[1]), 6)))
     texel = float(cfg["texel_px"]) * gsd
     source = ("azimuth and elevation" if "datetime" not in cfg else
               f"{cfg['datetime']} at " + (f"lon {cfg['place']['lon']}, lat {cfg['place']['lat']}" if "place" in cfg
-                                          else f"the scene centre (lon {centre[0]:.5f}, lat {centre[1]:.5f})"))
+                                          else f"the scene centre (lon {centre[0]:.2f}, lat {centre[1]:.2f})"))
     return {"azimuth": round(sun.azimuth, 4), "elevation": round(sun.elevation, 4), "source": source,
             "texel": texel, "ambient": float(cfg["ambient"]), "radius": PCF_RADIUS, "bias": BIAS_TEXELS * texel}
 
@@ -135,39 +140,33 @@ def plan_shadows(cfg: dict, scene_bounds: np.ndarray, crs: str, gsd: float) -> d
 # -- sun space -------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class SunFrame:
-    """The scene's sun space: axes, texel sizes (metres) and the global texel grid (see the module)."""
+    """The scene's sun space (see the module): the sun and the texel edge ``texel`` (metres of level ground)."""
 
     sun: Sun
-    texel: float                   # t_u, metres; t_w = t_u·sin(elevation)
-
-    @property
-    def texel_w(self) -> float:
-        return self.texel * math.sin(math.radians(self.sun.elevation))
-
-    def axes(self) -> np.ndarray:
-        """3×3 float64, rows U, W, L (unit vectors in scene axes)."""
-        light = -self.sun.toward()
-        a = math.radians(self.sun.azimuth)
-        u = np.array([math.cos(a), -math.sin(a), 0.0])
-        return np.vstack([u, np.cross(light, u), light])
+    texel: float
 
     def to_texels(self) -> np.ndarray:
-        """3×3: scene metres -> (u texels, w texels, depth metres)."""
-        return np.diag([1.0 / self.texel, 1.0 / self.texel_w, 1.0]) @ self.axes()
+        """3×3: scene metres -> (u, w) texels of the plane z = 0 along the sun rays, and depth −z (m)."""
+        shift = -self.sun.away() * float(self.sun.reach(1.0))      # (x, y) moves by −z·cot(e)·(sin a, cos a)
+        t = 1.0 / self.texel
+        return np.array([[t, 0.0, -shift[0] * t], [0.0, t, -shift[1] * t], [0.0, 0.0, -1.0]])
 
     def project(self, points: np.ndarray) -> np.ndarray:
-        """(n, 3) scene points -> (n, 3) float64 [u, w] in global texels and depth (m) along the light."""
+        """(n, 3) scene points -> (n, 3) float64 [u, w] in global texels and depth (m, −height)."""
         return np.asarray(points, dtype=np.float64) @ self.to_texels().T
 
     def per_texel(self) -> tuple[np.ndarray, np.ndarray]:
-        """(U·t_u, W·t_w): the scene-metre step of one texel along u and along w."""
-        axes = self.axes()
-        return axes[0] * self.texel, axes[1] * self.texel_w
+        """Scene-metre steps of one texel along u and along w at constant depth, each divided by
+        −(sun · the step of one metre of depth): the depth a plane of normal n gains per texel is then
+        n·step / n·sun (the receiver-plane offset of the filter's comparisons)."""
+        steps = np.linalg.inv(self.to_texels())
+        scale = -1.0 / float(self.sun.toward() @ steps[:, 2])
+        return steps[:, 0] * scale, steps[:, 1] * scale
 
     def ground_margin(self) -> float:
-        """Horizontal metres within which the filter's taps around a point can meet geometry:
-        (radius + pad) texels along U and along W (t_w/sin(elevation) = t_u on level ground), diagonal."""
-        return (PCF_RADIUS + WINDOW_PAD) * self.texel * math.sqrt(2.0)
+        """Horizontal metres (along x and along y) within which the filter's taps around a point meet
+        other sun rays: (radius + pad) texels."""
+        return (PCF_RADIUS + WINDOW_PAD) * self.texel
 
     def window(self, boxes: list[np.ndarray]) -> tuple[int, int, int, int]:
         """Global texel range (k0, l0, k1, l1), end exclusive, holding (2, 3) boxes plus WINDOW_PAD texels."""
@@ -177,7 +176,7 @@ class SunFrame:
         return int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1])
 
     def depth_range(self, boxes: list[np.ndarray]) -> tuple[float, float]:
-        """Depth range (m along the light) of (2, 3) boxes, with DEPTH_MARGIN_M on both ends."""
+        """Depth range (m, −height) of (2, 3) boxes, with DEPTH_MARGIN_M on both ends."""
         d = self.project(np.vstack([_corners(b) for b in boxes]))[:, 2]
         return float(d.min()) - DEPTH_MARGIN_M, float(d.max()) + DEPTH_MARGIN_M
 
