@@ -153,7 +153,7 @@ def _add_shadows(tiles: dict, chunks: list[dict], entries: list[dict], p: Perspe
                  camera: str, shadows: dict) -> None:
     """Give each tile its ``shadow``: the other chunks that can cast a shadow onto what it draws
     (their shadow footprints meet its receivers, see :mod:`pipeline25d.sun`), its shadow map's
-    window on the global texel grid and its depth range along the light."""
+    window on the global texel grid and its depth range (heights)."""
     from .sun import Sun, SunFrame, casters_of, shadow_footprints
 
     frame = SunFrame(Sun(shadows["azimuth"], shadows["elevation"]), shadows["texel"])

@@ -189,7 +189,7 @@ class TileView:
 @dataclass(frozen=True)
 class ShadowView:
     """A tile's shadow map: the scene's sun space, the tile's window on its global texel grid
-    (k0, l0, k1, l1), its depth range along the light (m), the brightness in shadow (share of
+    (k0, l0, k1, l1), its depth range (m of -height), the brightness in shadow (share of
     full sun), the depth bias (m) and the filter radius (texels). All float64."""
 
     frame: SunFrame
