@@ -40,6 +40,14 @@ def test_three_keys_run_with_every_default_filled():
     ({"perspectives": [{"azimuth": 0, "elevation": 4}]}, "perspectives.0.elevation"),
     ({"perspectives": "sideways"}, "perspectives"),
     ({"warp": {"method": "magic"}}, "warp.method"),
+    ({"shadows": {"enabled": True, "azimuth": 360, "elevation": 30}}, "shadows.azimuth"),
+    ({"shadows": {"enabled": True, "azimuth": 100, "elevation": 0}}, "shadows.elevation"),
+    ({"shadows": {"enabled": True, "azimuth": 100, "elevation": 91}}, "shadows.elevation"),
+    ({"shadows": {"ambient": 1.5}}, "shadows.ambient"),
+    ({"shadows": {"texel_px": 0}}, "shadows.texel_px"),
+    ({"shadows": {"place": {"lon": 4.3, "lat": 95}}}, "shadows.place.lat"),
+    ({"shadows": {"place": {"lon": 4.3}}}, "shadows.place"),
+    ({"shadows": {"sun": "bright"}}, "shadows"),
 ])
 def test_schema_errors_name_the_key(changes, key):
     with pytest.raises(ConfigError) as err:
@@ -79,3 +87,31 @@ def test_chunk_size_auto_follows_the_gsd():
     assert chunk_size({**cfg, "chunk_size": 80}) == 80.0
     with pytest.raises(ConfigError, match="chunk_size"):
         validate_schema({**copy.deepcopy(BASE), "chunk_size": "big"})
+
+
+def test_shadows_are_off_by_default_and_the_sun_given_one_way():
+    cfg = validate_schema(copy.deepcopy(BASE))
+    assert cfg["shadows"] == {"enabled": False, "ambient": 0.5, "texel_px": 0.75}
+    from pipeline25d.sun import check_sun_config
+
+    check_sun_config({"enabled": False, "datetime": "not checked while off"})
+    check_sun_config({"enabled": True, "azimuth": 135, "elevation": 40})
+    check_sun_config({"enabled": True, "datetime": "2024-06-21T15:00:00+02:00"})       # place: the scene centre, later
+    check_sun_config({"enabled": True, "datetime": "2024-06-21T13:00:00Z", "place": {"lon": 4.36, "lat": 52.01}})
+
+
+@pytest.mark.parametrize("shadows, message", [
+    ({"enabled": True}, r"shadows: .*not given: add azimuth and elevation"),
+    ({"enabled": True, "azimuth": 100}, r"shadows: .*add elevation"),
+    ({"enabled": True, "azimuth": 100, "elevation": 30, "datetime": "2024-06-21T15:00:00+02:00"}, r"shadows: .*not both"),
+    ({"enabled": True, "azimuth": 100, "elevation": 30, "place": {"lon": 4.3, "lat": 52.0}}, r"shadows.place"),
+    ({"enabled": True, "datetime": "2024-06-21T15:00:00"}, r"shadows.datetime: .*no time zone"),
+    ({"enabled": True, "datetime": "midsummer afternoon"}, r"shadows.datetime: .*no ISO 8601"),
+    ({"enabled": True, "datetime": "2024-12-21T20:00:00+01:00", "place": {"lon": 4.36, "lat": 52.01}},
+     r"shadows.datetime: the sun is .* below the horizon"),
+])
+def test_bad_shadow_settings_name_the_key(tmp_path, shadows, message):
+    (tmp_path / "model.obj").write_text("v 0 0 0\n")
+    cfg = validate_schema(with_(shadows=shadows))
+    with pytest.raises(ConfigError, match=message):
+        check_semantics(cfg, tmp_path)

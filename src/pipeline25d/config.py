@@ -15,6 +15,7 @@ import yaml
 from .crs import check_scene_crs, parse_crs, transformer
 from .errors import ConfigError, CRSError, InputFileError
 from .perspectives import Perspective, expand
+from .sun import check_sun_config
 
 SCHEMA_PATH = Path(__file__).resolve().parents[2] / "config" / "schema.yaml"
 
@@ -61,6 +62,19 @@ def check_semantics(config: dict[str, Any], base_dir: Path = Path(".")) -> None:
     for key, value in (("terrain", config["terrain"]), ("gcp.source", config["gcp"]["source"])):
         if value not in ("auto", "flat"):
             _check_readable(base_dir / value, key)
+    check_sun_config(config.get("shadows", {}))
+
+
+def render_settings(config: dict[str, Any]) -> dict[str, Any]:
+    """What changes a tile's pixels (the render block size does not): the render and marker
+    settings, and the ``shadows`` block only when shadows are enabled, so a config without
+    shadows plans and renders exactly as before they existed."""
+    out = {**{k: v for k, v in config["render"].items() if k != "block"}, "marker_px": config["gcp"]["marker_px"],
+           "depth_bias": config["gcp"]["depth_bias"], "max_float_px": config["gcp"]["max_float_px"]}
+    shadows = config.get("shadows", {})
+    if shadows.get("enabled"):
+        out["shadows"] = {k: v for k, v in shadows.items() if k != "enabled"}
+    return out
 
 
 def _check_readable(path: Path, key: str, dataset_ok: bool = False) -> None:

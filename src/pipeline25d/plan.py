@@ -19,7 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import Extent, pixel_size, project, project_above_ground, projected_box
+from .camera import (Extent, horizontal_direction, pixel_size, project, project_above_ground, projected_box,
+                     relief_factor)
 from .gcps import CANDIDATE_FIELDS
 from .lod import choose_level
 from .perspectives import Perspective
@@ -75,7 +76,7 @@ def _index_range(lo: float, hi: float, span: float) -> range:
 
 def plan_perspective(p: Perspective, chunks: list[dict], candidates: list[dict], z0: float, gsd: float,
                      tile_size: int, max_error_px: float, crs: str, render: dict,
-                     terrain: dict | None = None) -> dict:
+                     terrain: dict | None = None, shadows: dict | None = None) -> dict:
     """The plan of perspective ``p`` as a JSON-able dict.
 
     ``chunks``: [{"id", "district", "bounds" (2,3), "errors": [m per level]}, plus "ground"
@@ -85,6 +86,9 @@ def plan_perspective(p: Perspective, chunks: list[dict], candidates: list[dict],
     ``terrain``: {"projection": "terrain" | "plane" | "paper", "dtm": path or None}. With
     "paper" the tiles lie on the paper camera's image plane (:func:`pipeline25d.camera.paper_affine`)
     with pixels of :func:`pipeline25d.camera.pixel_size`.
+    ``shadows``: the resolved sun-shadow settings (:func:`pipeline25d.sun.plan_shadows`) or None;
+    with them each tile also lists the chunks that can shadow what it draws (:func:`_add_shadows`).
+    Without them the plan is exactly what it was before shadows existed.
     """
     terrain = terrain or {"projection": "plane", "dtm": None}
     relative = terrain["projection"] == "terrain"
@@ -92,6 +96,7 @@ def plan_perspective(p: Perspective, chunks: list[dict], candidates: list[dict],
     pixel = pixel_size(gsd, p, camera)
     span = tile_span(pixel, tile_size)
     tiles: dict[tuple[int, int], dict] = {}
+    entries = []
     for chunk in chunks:
         box, depth = projected_box(np.array(chunk["bounds"]), p, z0, chunk["ground"][:2] if relative else None, camera)
         entry = {"id": chunk["id"], "district": chunk["district"],
@@ -101,6 +106,7 @@ def plan_perspective(p: Perspective, chunks: list[dict], candidates: list[dict],
             entry["hash"] = chunk["hash"]   # the chunk's LOD content: a changed chunk re-renders its tiles
         if relative:
             entry["ground"] = chunk["ground"][2]   # digest of the DTM under the chunk
+        entries.append(entry)
         for r in _index_range(box.ymin, box.ymax, span):
             for c in _index_range(box.xmin, box.xmax, span):
                 tile = tiles.setdefault((r, c), {"row": r, "col": c, "chunks": [], "depth_range": [math.inf, -math.inf],
@@ -118,15 +124,19 @@ def plan_perspective(p: Perspective, chunks: list[dict], candidates: list[dict],
     rows = [r for r, _ in tiles]
     cols = [c for _, c in tiles]
     total = (max(rows) - min(rows) + 1) * (max(cols) - min(cols) + 1)
+    for key, tile in tiles.items():
+        tile["content"] = _content_in_tile(tile["content"], key, span, pixel)
+    if shadows:
+        frame["shadows"] = shadows
+        _add_shadows(tiles, chunks, entries, p, z0, relative, camera, shadows)
     out_tiles = []
     for key in sorted(tiles, key=lambda k: (-k[0], k[1])):
         tile = tiles[key]
-        tile["content"] = _content_in_tile(tile["content"], key, span, pixel)
         tile["chunks"].sort(key=lambda t: (t["district"], t["id"]))
         tile["render"] = render
         tile["spec_hash"] = hashlib.sha256(json.dumps([frame, tile], sort_keys=True).encode()).hexdigest()[:16]
         out_tiles.append(tile)
-    return {
+    out = {
         "perspective": {"id": p.id, "azimuth": p.azimuth, "elevation": p.elevation},
         "crs": crs, "z0": z0, "gsd": gsd, "pixel_size": pixel, "tile_size": tile_size,
         "projection": terrain["projection"], "dtm": terrain["dtm"],
@@ -134,6 +144,51 @@ def plan_perspective(p: Perspective, chunks: list[dict], candidates: list[dict],
         "n_tiles_total": total,
         "n_tiles_skipped": total - len(out_tiles),
     }
+    if shadows:
+        out["shadows"] = shadows
+    return out
+
+
+def _add_shadows(tiles: dict, chunks: list[dict], entries: list[dict], p: Perspective, z0: float, relative: bool,
+                 camera: str, shadows: dict) -> None:
+    """Give each tile its ``shadow``: the other chunks that can cast a shadow onto what it draws
+    (their shadow footprints meet its receivers, see :mod:`pipeline25d.sun`), its shadow map's
+    window on the global texel grid and its depth range (heights)."""
+    from .sun import Sun, SunFrame, casters_of, shadow_footprints
+
+    frame = SunFrame(Sun(shadows["azimuth"], shadows["elevation"]), shadows["texel"])
+    bounds = np.array([c["bounds"] for c in chunks], dtype=np.float64)
+    margin = frame.ground_margin()
+    footprints = shadow_footprints(bounds, frame.sun, margin)
+    index = {(c["district"], c["id"]): i for i, c in enumerate(chunks)}
+    for tile in tiles.values():
+        own = [index[(e["district"], e["id"])] for e in tile["chunks"]]
+        receivers = [box for i in own
+                     if (box := _receiver_box(bounds[i], chunks[i], tile["content"], p, z0, relative, camera)) is not None]
+        receivers = receivers or [bounds[i] for i in own]
+        hit = casters_of(footprints, receivers, margin)
+        hit[own] = False
+        others = np.flatnonzero(hit)
+        tile["shadow"] = {
+            "casters": sorted((entries[i] for i in others), key=lambda t: (t["district"], t["id"])),
+            "window": list(frame.window(receivers)),
+            "depth": [round(v, 3) for v in frame.depth_range([bounds[i] for i in (*own, *others)])],
+        }
+
+
+def _receiver_box(bounds: np.ndarray, chunk: dict, content: list[float], p: Perspective, z0: float, relative: bool,
+                  camera: str) -> np.ndarray | None:
+    """(2, 3) box of the chunk's geometry that can land in a tile's ``content`` box (None: none can):
+    a map point m comes from the ground point m − k·d, k = (z − reference)·cot φ over the chunk's heights.
+    The paper camera's image is no map: the whole chunk box."""
+    lo, hi = np.asarray(bounds, dtype=np.float64)
+    if camera == "paper":
+        return np.array([lo, hi])
+    ref = chunk["ground"][:2] if relative else (z0, z0)
+    shifts = np.outer([(lo[2] - ref[1]), (hi[2] - ref[0])], horizontal_direction(p) * relief_factor(p))
+    box = np.array([[max(content[0] - shifts[:, 0].max(), lo[0]), max(content[1] - shifts[:, 1].max(), lo[1]), lo[2]],
+                    [min(content[2] - shifts[:, 0].min(), hi[0]), min(content[3] - shifts[:, 1].min(), hi[1]), hi[2]]])
+    return box if (box[0, :2] <= box[1, :2]).all() else None
 
 
 def _content_in_tile(box: list[float], key: tuple[int, int], span: float, pixel: float) -> list[float]:

@@ -11,6 +11,14 @@ Two passes share the tile's matrices (see :mod:`pipeline25d.camera`):
   whose depth disagrees with the model's surface under it floats and is rejected; a fully
   visible one's pixel centroid is its sub-pixel image position.
 * depth: the view depth of the nearest surface per pixel (the DSM pass, seen from nadir).
+* sun shadows (a renderer made with ``shadows=True``, a :class:`ShadowView` per tile): the
+  tile's chunks and its shadow casters are rendered first into a depth map seen from the sun
+  (:class:`pipeline25d.sun.SunFrame`, texels on the scene's global grid); the colour pass then
+  looks each fragment's true 3D position up in it (a tent filter over depth comparisons, with a
+  receiver-plane depth offset and a constant bias) and darkens what the sun does not reach to
+  the shadow ambient share; untextured surfaces are lit by the sun (Lambert) instead of the
+  fixed light. Without shadows the shaders compile exactly as before (the shadow code sits
+  behind ``#ifdef SHADOWS``), so maps stay byte for byte the same.
 
 Terrain-relative projection (DESIGN.md): each vertex carries its DTM height ``in_ground``
 and is displaced by its height above that ground instead of above z0; depth stays the
@@ -32,6 +40,7 @@ from .camera import Extent, clip_matrix
 from .errors import RenderError
 from .mesh import MeshPart
 from .perspectives import Perspective
+from .sun import SunFrame
 
 LIGHT_DIRECTION = np.array([0.45, 0.65, -0.62]) / np.linalg.norm([0.45, 0.65, -0.62])
 MARKER_SEGMENTS = 32
@@ -48,12 +57,19 @@ in vec2 in_uv;
 out vec3 v_pos;
 out vec4 v_color;
 out vec2 v_uv;
+#ifdef SHADOWS
+uniform mat4 u_sun_mvp;      // chunk-local -> shadow-map texels (u, w) and depth (-height, m)
+out vec3 v_sun;
+#endif
 void main() {
     gl_Position = u_mvp * vec4(in_pos, 1.0) - in_ground * u_shear;
     gl_Position.z -= u_zbias;
     v_pos = in_pos;
     v_color = in_color;
     v_uv = in_uv;
+#ifdef SHADOWS
+    v_sun = (u_sun_mvp * vec4(in_pos, 1.0)).xyz;   // the true 3D position, not the displaced one
+#endif
 }
 """
 
@@ -70,9 +86,55 @@ in vec3 v_pos;
 in vec4 v_color;
 in vec2 v_uv;
 out vec4 f_color;
+#ifdef SHADOWS
+uniform bool u_sunlit;            // this pass is lit by the sun (the colour pass)
+uniform sampler2D u_shadow_map;   // depth seen from the sun, window depth in [0, 1]
+uniform vec3 u_sun;               // unit vector toward the sun
+uniform vec3 u_sun_u;             // scene metres of one shadow-map texel along u
+uniform vec3 u_sun_w;             // ... and along w
+uniform float u_depth_span;       // metres of the shadow map's depth range (heights)
+uniform float u_bias;             // metres
+uniform float u_radius;           // tent filter radius, texels
+uniform float u_shadow_ambient;   // brightness in shadow, as a share of full sun
+in vec3 v_sun;                    // texels from the shadow map's corner (u, w); depth from its near plane (m)
+
+// Share of the sun reaching a face of normal n here: depth comparisons at the texel centres
+// within u_radius, weighted by a tent filter (continuous in position: soft edges, and the same
+// value wherever the same point is drawn). Each comparison is against this face's own plane
+// continued to that texel (receiver-plane depth), less a constant bias.
+float sunlight(vec3 n) {
+    float facing = dot(n, u_sun);
+    if (facing <= 0.0) return 0.0;                      // the face turns away from the sun
+    vec2 slope = vec2(dot(n, u_sun_u), dot(n, u_sun_w)) / max(facing, 0.02);   // metres of depth per texel
+    ivec2 last = textureSize(u_shadow_map, 0) - 1;
+    ivec2 lo = ivec2(ceil(v_sun.xy - 0.5 - u_radius));
+    ivec2 hi = ivec2(floor(v_sun.xy - 0.5 + u_radius));
+    float lit = 0.0;
+    float total = 0.0;
+    for (int j = lo.y; j <= hi.y; ++j) {
+        for (int i = lo.x; i <= hi.x; ++i) {
+            vec2 delta = vec2(i, j) + 0.5 - v_sun.xy;
+            float w = max(1.0 - abs(delta.x) / u_radius, 0.0) * max(1.0 - abs(delta.y) / u_radius, 0.0);
+            float stored = texelFetch(u_shadow_map, clamp(ivec2(i, j), ivec2(0), last), 0).r * u_depth_span;
+            lit += w * step(v_sun.z + dot(slope, delta) - u_bias, stored);
+            total += w;
+        }
+    }
+    return total > 0.0 ? lit / total : 1.0;
+}
+#endif
 void main() {
     vec4 base = u_mode == 0 ? v_color : (u_mode == 1 ? texture(u_tex, v_uv) : u_color);
     float shade = 1.0;
+#ifdef SHADOWS
+    if (u_sunlit) {
+        vec3 n = normalize(cross(dFdx(v_pos), dFdy(v_pos)));
+        if (dot(n, u_view) > 0.0) n = -n;   // the face the camera sees
+        float sun = sunlight(n);
+        if (u_shade) sun *= max(dot(n, u_sun), 0.0);   // untextured: Lambert by the sun
+        shade = u_shadow_ambient + (1.0 - u_shadow_ambient) * sun;
+    } else
+#endif
     if (u_shade) {
         vec3 n = normalize(cross(dFdx(v_pos), dFdy(v_pos)));
         if (dot(n, u_view) > 0.0) n = -n;   // the face the camera sees
@@ -122,6 +184,24 @@ class TileView:
         out = dmin + window_depth.astype(np.float64) * (dmax - dmin)
         out[window_depth >= 1.0] = np.nan
         return out
+
+
+@dataclass(frozen=True)
+class ShadowView:
+    """A tile's shadow map: the scene's sun space, the tile's window on its global texel grid
+    (k0, l0, k1, l1), its depth range (m of -height), the brightness in shadow (share of
+    full sun), the depth bias (m) and the filter radius (texels). All float64."""
+
+    frame: SunFrame
+    window: tuple[int, int, int, int]
+    depth_range: tuple[float, float]
+    ambient: float
+    bias: float
+    radius: float
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return self.window[2] - self.window[0], self.window[3] - self.window[1]
 
 
 class _GpuMesh:
@@ -179,11 +259,13 @@ def renderer_info(ctx) -> dict[str, str]:
 class TileRenderer:
     """Renders chunks into tiles; one instance per GL context (programs compiled once)."""
 
-    def __init__(self, ctx, ambient: float = 0.45, samples: int = 4):
+    def __init__(self, ctx, ambient: float = 0.45, samples: int = 4, shadows: bool = False):
         self.ctx = ctx
         self.ambient = ambient
         self.samples = min(samples, ctx.max_samples) if samples else 0
-        self.prog = ctx.program(vertex_shader=VERTEX_SHADER, fragment_shader=FRAGMENT_SHADER)
+        self.shadows = shadows
+        self.prog = ctx.program(vertex_shader=_variant(VERTEX_SHADER, shadows),
+                                fragment_shader=_variant(FRAGMENT_SHADER, shadows))
         self._textures: dict[bytes, object] = {}
 
     # -- resources -----------------------------------------------------------
@@ -217,11 +299,12 @@ class TileRenderer:
         vao = ctx.vertex_array(self.prog, content, index_buffer=ibo, index_element_size=4)
         return _GpuMesh(vao, [b for b, _, _ in content] + [ibo])
 
-    def upload(self, chunks: list[tuple[np.ndarray, list[MeshPart]]], view: TileView) -> "TileGeometry":
+    def upload(self, chunks: list[tuple[np.ndarray, list[MeshPart]]], view: TileView | None) -> "TileGeometry":
         """The chunks on the GPU, once for every pass of a tile (they share the view's ground).
 
         Vertices go to float32 relative to their chunk's origin; in terrain-relative mode
-        each also carries the DTM under it relative to the origin's height. Release the result (or use it in ``with``).
+        each also carries the DTM under it relative to the origin's height. ``view`` None: no
+        ground (shadow casters, drawn only from the sun). Release the result (or use it in ``with``).
         """
         out = []
         for origin, parts in chunks:
@@ -231,7 +314,7 @@ class TileRenderer:
                     continue
                 textured = part.texture is not None and part.uv is not None
                 mesh = self._vao(part.vertices - origin, part.faces, part.colors, part.uv if textured else None,
-                                 view.ground_offsets(part.vertices, origin))
+                                 None if view is None else view.ground_offsets(part.vertices, origin))
                 mesh.texture = part.texture if textured else None
                 mesh.coloured = part.colors is not None
                 gpu.append(mesh)
@@ -239,7 +322,7 @@ class TileRenderer:
         return TileGeometry(out)
 
     @contextmanager
-    def _geometry(self, chunks: "Chunks", view: TileView) -> Iterator["TileGeometry"]:
+    def _geometry(self, chunks: "Chunks", view: TileView | None) -> Iterator["TileGeometry"]:
         """``chunks`` on the GPU for one pass: uploaded (and released after) unless already uploaded."""
         if isinstance(chunks, TileGeometry):
             yield chunks
@@ -253,15 +336,18 @@ class TileRenderer:
                 self.prog[name].value = value
 
     # -- drawing ---------------------------------------------------------------
-    def _draw_chunks(self, geometry: "TileGeometry", view: TileView, black: bool = False) -> None:
+    def _draw_chunks(self, geometry: "TileGeometry", view: TileView, black: bool = False,
+                     shadow: ShadowView | None = None) -> None:
         from .camera import view_direction
 
         self._set(u_light=tuple(LIGHT_DIRECTION), u_view=tuple(view_direction(view.perspective)),
-                  u_ambient=self.ambient, u_zbias=0.0)
+                  u_ambient=self.ambient, u_zbias=0.0, u_sunlit=shadow is not None and not black)
         for origin, meshes in geometry.chunks:
             matrix = view.matrix(origin)
             self.prog["u_mvp"].write(matrix.T.astype("f4").tobytes())
             self._set(u_shear=view.shear(matrix))
+            if shadow is not None:
+                self._write("u_sun_mvp", shadow.frame.lookup_matrix(shadow.window, shadow.depth_range, origin))
             for mesh in meshes:
                 if black:
                     self._set(u_mode=2, u_color=(0.0, 0.0, 0.0, 1.0), u_shade=False)
@@ -274,25 +360,71 @@ class TileRenderer:
                     self._set(u_mode=2, u_color=(0.7, 0.7, 0.7, 1.0), u_shade=True)
                 mesh.vao.render()
 
-    def render_color(self, chunks: "Chunks", view: TileView) -> np.ndarray:
-        """(h, w, 4) uint8 RGBA, row 0 = north edge, alpha 0 where empty."""
+    def _write(self, name: str, matrix: np.ndarray) -> None:
+        """A 4×4 float64 matrix into a mat4 uniform (as float32), if the program uses it."""
+        if name in self.prog:
+            self.prog[name].write(matrix.T.astype("f4").tobytes())
+
+    def render_color(self, chunks: "Chunks", view: TileView, shadow: ShadowView | None = None,
+                     casters: "Chunks | None" = None) -> np.ndarray:
+        """(h, w, 4) uint8 RGBA, row 0 = north edge, alpha 0 where empty.
+
+        ``shadow``: sun shadows (a renderer made with ``shadows=True``), cast by ``chunks`` and
+        ``casters`` (further chunks that are drawn only into the shadow map)."""
         import moderngl
 
+        if shadow is not None and not self.shadows:
+            raise RenderError("sun shadows need a TileRenderer made with shadows=True")
         ctx, (w, h) = self.ctx, view.size
-        fbo_ms = ctx.framebuffer(color_attachments=[ctx.renderbuffer((w, h), 4, samples=self.samples)],
-                                 depth_attachment=ctx.depth_renderbuffer((w, h), samples=self.samples))
-        fbo = ctx.simple_framebuffer((w, h), components=4)
-        fbo_ms.use()
-        ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
-        ctx.enable(moderngl.DEPTH_TEST)
-        ctx.disable(moderngl.CULL_FACE)
         with self._geometry(chunks, view) as geometry:
-            self._draw_chunks(geometry, view)
+            shadow_map = None
+            if shadow is not None:
+                with self._geometry(casters or [], None) as cast:
+                    shadow_map = self._shadow_map([geometry, cast], shadow)
+                shadow_map.use(location=1)
+                self._set(u_shadow_map=1, **_shadow_uniforms(shadow))
+            fbo_ms = ctx.framebuffer(color_attachments=[ctx.renderbuffer((w, h), 4, samples=self.samples)],
+                                     depth_attachment=ctx.depth_renderbuffer((w, h), samples=self.samples))
+            fbo = ctx.simple_framebuffer((w, h), components=4)
+            fbo_ms.use()
+            ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+            ctx.enable(moderngl.DEPTH_TEST)
+            ctx.disable(moderngl.CULL_FACE)
+            self._draw_chunks(geometry, view, shadow=shadow)
         ctx.copy_framebuffer(fbo, fbo_ms)
         rgba = _read_rgba(fbo, w, h)
-        for obj in (fbo_ms, fbo):
-            obj.release()
+        for obj in (fbo_ms, fbo, shadow_map):
+            if obj is not None:
+                obj.release()
         return unpremultiply(rgba)
+
+    def _shadow_map(self, geometries: list["TileGeometry"], shadow: ShadowView):
+        """A depth texture of ``geometries`` seen from the sun over the shadow view's window
+        (one texel per pixel, true 3D positions: no terrain displacement)."""
+        import moderngl
+
+        ctx, (w, h) = self.ctx, shadow.size
+        limit = int(ctx.info["GL_MAX_TEXTURE_SIZE"])
+        if max(w, h) > limit:
+            raise RenderError(f"a tile's shadow map needs {w} x {h} texels, more than this GPU's {limit}: "
+                              "lower tile_size or raise shadows.texel_px")
+        depth = ctx.depth_texture((w, h))
+        fbo = ctx.framebuffer(depth_attachment=depth)
+        fbo.use()
+        ctx.clear(depth=1.0)
+        ctx.enable(moderngl.DEPTH_TEST)
+        ctx.disable(moderngl.CULL_FACE)
+        self._set(u_mode=2, u_color=(0.0, 0.0, 0.0, 1.0), u_shade=False, u_sunlit=False, u_zbias=0.0,
+                  u_shear=(0.0, 0.0, 0.0, 0.0))
+        for geometry in geometries:
+            for origin, meshes in geometry.chunks:
+                self._write("u_mvp", shadow.frame.clip_matrix(shadow.window, shadow.depth_range, origin))
+                for mesh in meshes:
+                    mesh.vao.render()
+        fbo.release()
+        depth.compare_func = ""                  # plain depth values for texelFetch
+        depth.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        return depth
 
     def render_depth(self, chunks: "Chunks", view: TileView) -> np.ndarray:
         """(h, w) float64 view depth (metres) of the nearest surface at each pixel centre; NaN where empty."""
@@ -342,7 +474,8 @@ class TileRenderer:
                 return
             matrix = view.matrix(origin)
             self.prog["u_mvp"].write(matrix.T.astype("f4").tobytes())
-            self._set(u_mode=0, u_shade=False, u_zbias=2.0 * bias_m / (dmax - dmin), u_shear=view.shear(matrix))
+            self._set(u_mode=0, u_shade=False, u_sunlit=False, u_zbias=2.0 * bias_m / (dmax - dmin),
+                      u_shear=view.shear(matrix))
             mesh = self._vao(verts, faces, colors, ground=ground)
             mesh.vao.render()
             mesh.release()
@@ -371,6 +504,22 @@ class TileRenderer:
         sums = _marker_stats(seen, n)
         sums[:, 3] = alone_stats[:, 3]
         return full, sums
+
+
+def _variant(source: str, shadows: bool) -> str:
+    """A shader's source with ``#define SHADOWS`` after its #version line when ``shadows``; else unchanged."""
+    if not shadows:
+        return source
+    head, rest = source.split("#version 330\n", 1)
+    return head + "#version 330\n#define SHADOWS\n" + rest
+
+
+def _shadow_uniforms(shadow: ShadowView) -> dict:
+    """The colour pass's shadow uniforms that do not depend on the chunk."""
+    along_u, along_w = shadow.frame.per_texel()
+    return {"u_sun": tuple(shadow.frame.sun.toward()), "u_sun_u": tuple(along_u), "u_sun_w": tuple(along_w),
+            "u_depth_span": shadow.depth_range[1] - shadow.depth_range[0], "u_bias": shadow.bias,
+            "u_radius": shadow.radius, "u_shadow_ambient": shadow.ambient}
 
 
 def _overlapping(points: np.ndarray, slopes: np.ndarray, radius_m: float, view: TileView) -> np.ndarray:

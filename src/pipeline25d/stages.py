@@ -451,20 +451,29 @@ def chunk_ground(bounds: np.ndarray, dtm) -> list:
 # -- plan ---------------------------------------------------------------------------------
 def plan(perspective_id: str, lod_indexes: list[str], scene_json: str | Path, candidates_csv: str | Path,
          gsd: float, tile_size: int, max_error_px: float, crs: str, render: dict, out_plan: str | Path) -> dict:
-    """Plan one perspective (see :mod:`pipeline25d.plan`); ``render`` holds render + marker settings."""
+    """Plan one perspective (see :mod:`pipeline25d.plan`); ``render`` holds render + marker settings,
+    and the ``shadows`` block when shadows are enabled (:func:`pipeline25d.config.render_settings`)."""
     from .raster import DTM
+    from .sun import plan_shadows
 
     scene = json.loads(Path(scene_json).read_text())
+    render = dict(render)
+    shadow_cfg = render.pop("shadows", None)
+    shadows = plan_shadows(shadow_cfg, np.array(scene["bounds"]), crs, gsd) if shadow_cfg else None
     relative = scene["projection"] == "terrain"
     dtm = DTM(scene["dtm"], crs, continuous=True) if relative else None
     chunks = [{**{k: c[k] for k in ("id", "district", "bounds", "errors", "hash")},
                "ground": chunk_ground(c["bounds"], dtm) if relative else None} for c in lod_chunks(lod_indexes)]
     terrain = {"projection": scene["projection"], "dtm": scene["dtm"] if relative else None}
     result = plan_perspective(Perspective.from_id(perspective_id), chunks, read_csv(candidates_csv),
-                              scene["z0"], gsd, tile_size, max_error_px, crs, render, terrain)
+                              scene["z0"], gsd, tile_size, max_error_px, crs, render, terrain, shadows)
     write_json(out_plan, result, indent=None)   # megabytes for a city: compact
     log.info("%s: %d tiles to render, %d empty tiles skipped", perspective_id, len(result["tiles"]),
              result["n_tiles_skipped"])
+    if shadows:
+        log.info("%s: sun at azimuth %.2f°, elevation %.2f° (%s); %d shadow casters from other tiles' chunks",
+                 perspective_id, shadows["azimuth"], shadows["elevation"], shadows["source"],
+                 sum(len(t["shadow"]["casters"]) for t in result["tiles"]))
     return result
 
 
@@ -500,9 +509,11 @@ def render_block(plan_path: str | Path, block_id: str, block: int, lod_dir: str 
         ground = _block_ground(pl, todo)
         ctx = create_context()
         try:
-            renderer = TileRenderer(ctx, ambient=todo[0]["render"]["ambient"], samples=todo[0]["render"]["samples"])
+            renderer = TileRenderer(ctx, ambient=todo[0]["render"]["ambient"], samples=todo[0]["render"]["samples"],
+                                    shadows="shadows" in pl)
             for k, tile in enumerate(todo, 1):
-                rgba, seen = _render_tile(renderer, pl, tile, chunks.take(tile), ground)
+                casters = chunks.take(_casters(tile)) if "shadows" in pl else None
+                rgba, seen = render_plan_tile(renderer, pl, tile, chunks.take(tile["chunks"]), ground, casters)
                 _write_tile(pl, tile, rgba, seen, tiles_dir)
                 log.info("%s tile %d_%d (%d of %d): coverage %.1f%%, GCPs seen %d of %d", pl["perspective"]["id"],
                          tile["row"], tile["col"], k, len(todo), 100 * float((rgba[..., 3] > 0).mean()),
@@ -525,16 +536,17 @@ class _ChunkCache:
         from collections import Counter
 
         self.lod_dir = Path(lod_dir)
-        self.uses = Counter(self._key(c) for t in tiles for c in t["chunks"])
+        self.uses = Counter(self._key(c) for t in tiles for c in (*t["chunks"], *_casters(t)))
         self.loaded: dict[tuple, tuple[np.ndarray, list]] = {}
 
     @staticmethod
     def _key(chunk: dict) -> tuple:
         return chunk["district"], chunk["id"], chunk["lod"]
 
-    def take(self, tile: dict) -> list[tuple[np.ndarray, list]]:
+    def take(self, entries: list[dict]) -> list[tuple[np.ndarray, list]]:
+        """The loaded chunks of plan ``entries`` (a tile's chunks or its shadow casters)."""
         out = []
-        for c in tile["chunks"]:
+        for c in entries:
             key = self._key(c)
             if key not in self.loaded:
                 self.loaded[key] = load_chunk_level(self.lod_dir / c["district"] / f"{c['id']}.npz", c["lod"])
@@ -543,6 +555,11 @@ class _ChunkCache:
             if not self.uses[key]:
                 del self.loaded[key]
         return out
+
+
+def _casters(tile: dict) -> list[dict]:
+    """The other tiles' chunks that can shadow what a tile draws (none without shadows)."""
+    return tile.get("shadow", {}).get("casters", [])
 
 
 def _block_ground(pl: dict, tiles: list[dict]):
@@ -558,9 +575,10 @@ def _block_ground(pl: dict, tiles: list[dict]):
     return DTM(pl["dtm"], pl["crs"], continuous=True, window=(*xy.min(axis=0), *xy.max(axis=0))).sample
 
 
-def _render_tile(renderer, pl: dict, tile: dict, chunks: list, ground) -> tuple[np.ndarray, list[dict]]:
+def render_plan_tile(renderer, pl: dict, tile: dict, chunks: list, ground,
+                     casters: list | None = None) -> tuple[np.ndarray, list[dict]]:
     """(RGBA image, GCP observations) of one plan tile from its loaded chunks; ``ground`` = DTM(x, y)
-    in terrain-relative mode, else None."""
+    in terrain-relative mode, else None; ``casters``: its loaded shadow casters (plans with shadows)."""
     from .render import TileView
 
     row, col = tile["row"], tile["col"]
@@ -571,7 +589,7 @@ def _render_tile(renderer, pl: dict, tile: dict, chunks: list, ground) -> tuple[
     content, size = tile_content(pl, tile)          # where its chunks can draw: the tile or less
     view = TileView(persp, pl["z0"], content, depth, size, ground, camera)
     with renderer.upload(chunks, view) as geometry:          # once for both passes
-        rgba = renderer.render_color(geometry, view)
+        rgba = renderer.render_color(geometry, view, shadow_view(pl, tile), casters)
         seen = []
         if tile["gcps"]:
             margin = int(np.ceil(cfg["marker_px"])) + 2
@@ -584,6 +602,19 @@ def _render_tile(renderer, pl: dict, tile: dict, chunks: list, ground) -> tuple[
                                                  marker_depth_tolerance(persp, gsd, cfg["max_float_px"]))
             seen = observations(tile["gcps"], full, sums, (extent.xmin, extent.ymax), pixel)
     return rgba, seen
+
+
+def shadow_view(pl: dict, tile: dict):
+    """The tile's :class:`~pipeline25d.render.ShadowView` from its plan, or None without shadows."""
+    from .render import ShadowView
+    from .sun import Sun, SunFrame
+
+    s = pl.get("shadows")
+    if not s:
+        return None
+    frame = SunFrame(Sun(s["azimuth"], s["elevation"]), s["texel"])
+    return ShadowView(frame, tuple(tile["shadow"]["window"]), tuple(tile["shadow"]["depth"]), s["ambient"],
+                      s["bias"], s["radius"])
 
 
 def _write_tile(pl: dict, tile: dict, rgba: np.ndarray, seen: list[dict], tiles_dir: str | Path) -> None:

@@ -5,7 +5,7 @@ import sys
 from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 
-from pipeline25d.config import check_semantics, chunk_size, perspectives
+from pipeline25d.config import check_semantics, chunk_size, perspectives, render_settings
 from pipeline25d.errors import Pipeline25dError
 from pipeline25d.perspectives import ID_PATTERN
 from pipeline25d.plan import block_spec_hash, plan_block, plan_blocks, read_plan
@@ -27,9 +27,8 @@ MAX_LOD_ERROR = config["gsd"] * config["lod"]["max_error_px"]
 TERRAIN_FILE = [] if config["terrain"] in ("auto", "flat") else [config["terrain"]]
 GCP_FILE = [] if config["gcp"]["source"] == "auto" else [config["gcp"]["source"]]
 RENDER_BLOCK = config["render"]["block"]
-# what changes a tile's pixels (the block size does not)
-RENDER_SETTINGS = {**{k: v for k, v in config["render"].items() if k != "block"}, "marker_px": config["gcp"]["marker_px"],
-                   "depth_bias": config["gcp"]["depth_bias"], "max_float_px": config["gcp"]["max_float_px"]}
+# what changes a tile's pixels (the block size does not; shadows only when enabled)
+RENDER_SETTINGS = render_settings(config)
 
 
 wildcard_constraints:
@@ -57,8 +56,10 @@ def block_tiles(wildcards):
 
 
 def block_lods(wildcards):
-    """The LOD files a block's tiles draw (side files of the lod jobs): a block depends on its own chunks only."""
-    chunks = {(c["district"], c["id"]) for t in block_tiles(wildcards) for c in t["chunks"]}
+    """The LOD files a block's tiles draw or take shadows from (side files of the lod jobs): a block
+    depends on its own chunks and their shadow casters only."""
+    chunks = {(c["district"], c["id"]) for t in block_tiles(wildcards)
+              for c in (*t["chunks"], *t.get("shadow", {}).get("casters", []))}
     return [f"{RESULTS}/lod/{d}/{c}.npz" for d, c in sorted(chunks)]
 
 
