@@ -103,7 +103,7 @@ def _outputs(workdir: Path) -> list[str]:
 WORKFLOW_CASES = ["obj/truncated.obj", "ply/nan.ply", "dae/index-out-of-range.dae", "glb/texture-not-an-image.glb",
                   "gltf/absurd-coordinates.gltf", "b3dm/corrupt-header.b3dm", "3dtiles/cycle/tileset.json",
                   "cityjson/outside-area-of-use.city.json", "citygml/missing-texture.gml",
-                  "3ds/all-degenerate.3ds",
+                  "3ds/all-degenerate.3ds", "osgb/texture-not-an-image.osgb",
                   "degenerate:obj/degenerate.obj"]
 
 

@@ -267,6 +267,36 @@ def write_3ds(path: Path, v: np.ndarray, f: np.ndarray, texture: str | None) -> 
         path.write_bytes((Path(tmp) / "model.3ds").read_bytes())
 
 
+def _png() -> bytes:
+    """A 2 x 2 grey PNG."""
+    import io
+
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.new("RGB", (2, 2), (128, 128, 128)).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def write_osgb(path: Path, v: np.ndarray, f: np.ndarray, texture: str | None) -> None:
+    """A single .osgb (OpenSceneGraph binary) of one Geode, written as osgt text and converted by
+    osgconv (Debian openscenegraph); a texture is referenced by file name, as ContextCapture's are."""
+    import itertools
+    import tempfile
+
+    from .formats.osgb import osgconv
+    from .osgb_sample import HEADER, geode_text
+
+    uv = v[:, :2] / 10.0
+    with tempfile.TemporaryDirectory() as tmp:
+        src = Path(tmp) / "model.osgt"
+        src.write_text(HEADER + geode_text(itertools.count(1), v, f, uv, texture))
+        if texture is not None:   # osgconv drops an image it cannot load; the .osgb only names it
+            Path(tmp, texture).write_bytes(_png())
+        osgconv(Path(src.name), Path("model.osgb"), ["WriteImageHint=UseExternal"], Path(tmp), path)
+        path.write_bytes((Path(tmp) / "model.osgb").read_bytes())
+
+
 # --------------------------------------------------------------------------- cases
 
 
@@ -369,6 +399,8 @@ FORMATS: list[Format] = [
            phrases={"truncated": "not valid JSON", "corrupt-header": "not valid JSON"},
            extra=[Case("cityjson/outside-area-of-use.city.json", "outside the area of use", _outside_area,
                        CRSError)]),
+    Format("osgb", ".osgb", write_osgb, without=frozenset({"nan", "inf"}),   # osgconv's text reader makes them numbers
+           phrases={"truncated": "osgconv cannot read it", "corrupt-header": "osgconv cannot read it"}),
     Format("3ds", ".3ds", write_3ds, without=frozenset({"index-out-of-range"}),   # assimp will not write one
            phrases={"truncated": "assimp cannot read it", "corrupt-header": "assimp cannot read it",
                     "nan": "degenerate"}),                                        # assimp reads NaN as a point

@@ -129,7 +129,7 @@ def generate_osgb_sample(out: str | Path) -> Path:
             for fname, (text, images) in files.items():
                 for img_name, png in images.items():
                     (work / img_name).write_bytes(png)
-                (work / "node.osgt").write_text(_HEADER + text)
+                (work / "node.osgt").write_text(HEADER + text)
                 osgconv(Path("node.osgt"), (tile_dir / fname).resolve(), ["WriteImageHint=IncludeFile"], work,
                         tile_dir / fname)
         replace_dir(build, out)
@@ -139,7 +139,7 @@ def generate_osgb_sample(out: str | Path) -> Path:
 
 # --------------------------------------------------------------------------- osgt text
 
-_HEADER = "#Ascii Scene\n#Version 161\n#Generator OpenSceneGraph 3.6.5\n\n"
+HEADER = "#Ascii Scene\n#Version 161\n#Generator OpenSceneGraph 3.6.5\n\n"
 Osgt = tuple[str, dict[str, bytes]]   # object text, images it names (file name -> PNG bytes)
 
 
@@ -175,25 +175,35 @@ def _geode(ids: Iterator[int], level: int, x0: float, y0: float, edge: float, te
     faces = np.concatenate([np.column_stack([corner, corner + 1, corner + n + 2]),
                             np.column_stack([corner, corner + n + 2, corner + n + 1])])
     png_name = f"{texture_name}.png"
+    text = geode_text(ids, xyz, faces, np.column_stack([u.ravel(), v.ravel()]), png_name)
+    return text, {png_name: _texture(level, x0, y0, edge)}
+
+
+def geode_text(ids: Iterator[int], xyz: np.ndarray, faces: np.ndarray, uv: np.ndarray | None,
+               image: str | None) -> str:
+    """osgt text of a Geode of one triangle Geometry (positions, indices, optional UVs and the
+    image file they map; the image is embedded or referenced as osgconv's WriteImageHint says)."""
     ids = [next(ids) for _ in range(8)]
     verts = "\n".join("     " + " ".join(repr(float(c)) for c in row) for row in xyz)
-    uvs = "\n".join(f"     {float(a)!r} {float(b)!r}" for a, b in zip(u.ravel(), v.ravel()))
-    idx = "\n".join(f"     {a} {b} {c}" for a, b, c in faces)
-    text = (f"osg::Geode {{\n UniqueID {ids[0]}\n Drawables 1 {{\n  osg::Geometry {{\n   UniqueID {ids[1]}\n"
-            f"   StateSet TRUE {{\n    osg::StateSet {{\n     UniqueID {ids[2]}\n"
-            "     TextureModeList 1 {\n      Data 1 {\n       GL_TEXTURE_2D ON\n      }\n     }\n"
-            "     TextureAttributeList 1 {\n      Data 1 {\n"
-            f"       osg::Texture2D {{\n        UniqueID {ids[3]}\n        Image TRUE {{\n"
-            f'         ClassName osg::Image\n         UniqueID {ids[4]}\n         FileName "{png_name}"\n'
-            "         WriteHint 2 2\n        }\n       }\n       Value OFF\n      }\n     }\n    }\n   }\n"
+    idx = "\n".join("     " + " ".join(str(int(i)) for i in tri) for tri in faces)
+    state = "" if image is None else (
+        f"   StateSet TRUE {{\n    osg::StateSet {{\n     UniqueID {ids[2]}\n"
+        "     TextureModeList 1 {\n      Data 1 {\n       GL_TEXTURE_2D ON\n      }\n     }\n"
+        "     TextureAttributeList 1 {\n      Data 1 {\n"
+        f"       osg::Texture2D {{\n        UniqueID {ids[3]}\n        Image TRUE {{\n"
+        f'         ClassName osg::Image\n         UniqueID {ids[4]}\n         FileName "{image}"\n'
+        "         WriteHint 2 2\n        }\n       }\n       Value OFF\n      }\n     }\n    }\n   }\n")
+    uvs = "" if uv is None or image is None else (
+        f"   TexCoordArrayList 1 {{\n    osg::Vec2Array {{\n     UniqueID {ids[7]}\n"
+        f"     Binding BIND_PER_VERTEX\n     vector {len(uv)} {{\n"
+        + "\n".join(f"     {float(a)!r} {float(b)!r}" for a, b in uv) + "\n     }\n    }\n   }\n")
+    return (f"osg::Geode {{\n UniqueID {ids[0]}\n Drawables 1 {{\n  osg::Geometry {{\n   UniqueID {ids[1]}\n"
+            + state +
             f"   PrimitiveSetList 1 {{\n    osg::DrawElementsUInt {{\n     UniqueID {ids[5]}\n     Mode TRIANGLES\n"
             f"     vector {faces.size} {{\n{idx}\n     }}\n    }}\n   }}\n"
             f"   VertexArray TRUE {{\n    osg::Vec3Array {{\n     UniqueID {ids[6]}\n     Binding BIND_PER_VERTEX\n"
             f"     vector {len(xyz)} {{\n{verts}\n     }}\n    }}\n   }}\n"
-            f"   TexCoordArrayList 1 {{\n    osg::Vec2Array {{\n     UniqueID {ids[7]}\n"
-            f"     Binding BIND_PER_VERTEX\n     vector {len(xyz)} {{\n{uvs}\n     }}\n    }}\n   }}\n"
-            "  }\n }\n}")
-    return text, {png_name: _texture(level, x0, y0, edge)}
+            + uvs + "  }\n }\n}")
 
 
 def _texture(level: int, x0: float, y0: float, edge: float) -> bytes:

@@ -81,8 +81,9 @@ def crs_name(ref: str) -> str:
     return ref
 
 def run_converter(args: list[str], cwd: Path, output: Path, what: Path, package: str,
-                  env: dict[str, str] | None = None) -> None:
-    """Run an external model converter (osgconv, assimp) in ``cwd`` without a display.
+                  env: dict[str, str] | None = None) -> str:
+    """Run an external model converter (osgconv, assimp) in ``cwd`` without a display; returns
+    what it printed (its warnings).
 
     UnsupportedFeatureError naming ``what`` when the program is not installed (``package``
     provides it), InputFileError naming ``what`` with the program's last words when it fails
@@ -101,6 +102,7 @@ def run_converter(args: list[str], cwd: Path, output: Path, what: Path, package:
         tail = said[said.rfind("ERROR:"):] if "ERROR:" in said else said   # assimp: its error, not its log
         tail = tail[-300:]
         raise InputFileError(what, f"{args[0]} cannot read it (corrupt, or not that format): {tail}")
+    return proc.stdout + proc.stderr
 
 
 def reproject_parts(parts: list[MeshPart], src_crs: str, scene_crs: str, where: str | Path) -> list[MeshPart]:

@@ -24,14 +24,15 @@ def load_mesh_file(path: str | Path) -> Mesh:
     :class:`MissingTextureWarning` per material library or texture missing or not an image."""
     path = Path(path)
     kind = path.suffix.lstrip(".").upper()
+    model = f"{'an' if kind[:1] in 'AEIOU' else 'a'} {kind} model"
     {"OBJ": _check_obj, "DAE": _check_dae}.get(kind, lambda p: None)(path)
     files = _Files(str(path))
     try:
         scene = trimesh.load(str(path), force="scene", process=False, resolver=files)
     except IndexError as exc:
-        raise InputFileError(path, f"cannot read as a {kind} model: an index is out of range ({exc})") from None
+        raise InputFileError(path, f"cannot read it as {model}: an index is out of range ({exc})") from None
     except Exception as exc:  # trimesh raises many exception types for bad files
-        raise InputFileError(path, f"cannot read as a {kind} model: {exc}") from None
+        raise InputFileError(path, f"cannot read it as {model}: {exc}") from None
     files.check(path)
     parts: list[MeshPart] = []
     encoded: dict[int, bytes] = {}
@@ -80,7 +81,7 @@ def _check_dae(path: Path) -> None:
         collada.Collada(io.BytesIO(data), ignore=[collada.common.DaeUnsupportedError,
                                                   collada.common.DaeBrokenRefError])
     except collada.common.DaeError as exc:
-        raise InputFileError(path, f"cannot read as a DAE model: {exc}") from None
+        raise InputFileError(path, f"cannot read it as a DAE model: {exc}") from None
 
 
 def _part(geom, vertices: np.ndarray, name: str, encoded: dict[int, bytes]) -> MeshPart:

@@ -32,6 +32,7 @@ import os
 import re
 import sys
 import tempfile
+import warnings
 from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -39,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputFileError, UnsupportedFeatureError
+from ..errors import InputFileError, MissingTextureWarning, UnsupportedFeatureError
 from ..mesh import MeshPart
 from .common import Detail, Loaded, run_converter
 
@@ -130,13 +131,21 @@ def describe_levels(levels: Counter) -> str:
     return f"levels {keys[0]}-{keys[-1]} (" + ", ".join(f"{k}: {levels[k]}" for k in keys) + " triangles)"
 
 
+#: what OpenSceneGraph prints for an image file it cannot load -> the problem, as other readers word it
+_IMAGE_PROBLEMS = {"file not found": "is missing", "file not handled": "is not an image"}
+
+
 def osgconv(src: Path, dst: Path, options: list[str], cwd: Path, what: Path) -> None:
     """Run ``osgconv -O "<options>" src dst`` in ``cwd`` headless; InputFileError naming ``what``.
 
-    The options go in one ``-O`` (space separated): a second ``-O`` replaces the first.
+    The options go in one ``-O`` (space separated): a second ``-O`` replaces the first. An image
+    OpenSceneGraph could not load (it drops it and goes on) is a MissingTextureWarning naming it.
     """
     args = [OSGCONV] + (["-O", " ".join(options)] if options else []) + [str(src), str(dst)]
-    run_converter(args, cwd, dst, what, "openscenegraph", OSG_ENV)
+    said = run_converter(args, cwd, dst, what, "openscenegraph", OSG_ENV)
+    for problem, image in re.findall(r"readImage\(\): (file not found|file not handled), filename: (.+)", said):
+        warnings.warn(f"{what}: texture '{image.strip()}' {_IMAGE_PROBLEMS[problem]}; its parts are drawn "
+                      "untextured", MissingTextureWarning, stacklevel=2)
 
 
 # --------------------------------------------------------------------------- one tile
@@ -209,7 +218,11 @@ def _obj_parts(obj: Path, source: Path, matrix: np.ndarray) -> list[MeshPart]:
                                                   "(compressed pixel format?)")
     if "\nf " not in obj.read_text():
         return []
-    parts = [replace(p, name=f"{source.name}:{p.name}") for p in load_mesh_file(obj).parts]
+    try:
+        read = load_mesh_file(obj)
+    except InputFileError as exc:   # the OBJ is ours: name the .osgb it came from
+        raise InputFileError(source, str(exc).replace(f"{obj}: ", "").replace("it as an OBJ model", "its geometry")) from None
+    parts = [replace(p, name=f"{source.name}:{p.name}") for p in read.parts]
     if np.allclose(matrix, np.eye(4)):
         return parts
     return [p.transformed(lambda v: v @ matrix[:3, :3] + matrix[3, :3]) for p in parts]
