@@ -59,6 +59,10 @@ def check_semantics(config: dict[str, Any], base_dir: Path = Path(".")) -> None:
     for key, value in (("terrain", config["terrain"]), ("gcp.source", config["gcp"]["source"])):
         if value not in ("auto", "flat"):
             _check_readable(base_dir / value, key)
+    heights = config.get("heights") or {}
+    for key in ("footprints", "reference"):
+        if heights.get(key, "auto") not in ("auto", "none"):
+            _check_readable(base_dir / heights[key], f"heights.{key}")
 
 
 def _check_readable(path: Path, key: str) -> None:
