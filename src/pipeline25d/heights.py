@@ -14,7 +14,8 @@ degenerate; what pins a roof is where its colour *ends*:
   ring: pixels 2..ring_px+1 px outside it whose nadir colour differs from the nearest roof
   pixel's, which must *not* show that roof colour on the oblique map ("the roof ends where the
   footprint ends": no sliding inside a larger roof or onto the roof's own near-side wall); a
-  ring pixel without data is no evidence that the roof ends and counts as a miss;
+  ring pixel without data says nothing (left out of that move's score: beyond a model's edge
+  a true roof borders no data, and beyond the map's a false one would);
 * coarse scan at every pixel step of u: g(u) = 1 − mean truncated-quadratic colour loss
   (tolerance ``tol``; a pixel without data counts as a miss);
 * peaks: a peak whose walls would hide ground that the oblique map shows unchanged from the
@@ -33,7 +34,9 @@ degenerate; what pins a roof is where its colour *ends*:
   the oblique map) without biasing u.
 
 Per building: an ambiguous view is settled by the other views when exactly one of its rivals
-agrees (``agree_m``) with their height; the accepted views are combined by their median and
+agrees (``agree_m``) with their height; with three or more accepted views, a view more than
+``outlier_m`` from the median of the others is rejected ("inconsistent": its roof was hidden
+and a like roof further along the view matched); the accepted views are combined by their median and
 ``n_agree`` counts those within ``agree_m`` of it. Heights are relative to the ground that the
 maps used (the DTM under the roof's outline).
 
@@ -52,7 +55,7 @@ import json
 import logging
 import math
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -87,6 +90,7 @@ class MatchSettings:
     max_unchanged: float = 0.8    # a peak whose walls would hide ground that is seen unchanged this often is dropped
     max_fine_px: int = 20000      # template pixels used for the sub-pixel fit (edge pixels always kept)
     agree_m: float = 0.5          # views within this of the combined height agree
+    outlier_m: float = 2.0        # with 3+ accepted views, one this far from the others' median is rejected
 
 
 @dataclass
@@ -369,11 +373,13 @@ class _Matcher:
             u = us[i:i + chunk, None]
             col, ok = _gather(obl_rgb, obl_alpha, base_t[0] + u * d_px[0], base_t[1] + u * d_px[1])
             loss = np.where(ok, np.minimum(np.sum((col - tcol) ** 2, axis=-1), tol2) / tol2, 1.0).sum(axis=1)
+            n = np.full(len(u), float(n_t))
             if n_r:
                 col, ok = _gather(obl_rgb, obl_alpha, base_r[0] + u * d_px[0], base_r[1] + u * d_px[1])
                 e2 = np.sum((col - rcol) ** 2, axis=-1)
-                loss += np.where(ok, 1.0 - np.minimum(e2, tol2) / tol2, 1.0).sum(axis=1)
-            g[i:i + chunk] = 1.0 - loss / (n_t + n_r)
+                loss += np.where(ok, 1.0 - np.minimum(e2, tol2) / tol2, 0.0).sum(axis=1)
+                n += ok.sum(axis=1)
+            g[i:i + chunk] = 1.0 - loss / n
 
         # peaks (the scan's ends count), best first, one per 2 steps
         in_range = (us >= -step_m) & (us <= u_max + 1e-9)
@@ -626,6 +632,7 @@ def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint
             h = r.u / cot[pid] if not reason else math.nan
             measurements[pid] = ViewMeasurement(h, r.u, r.match * (1.0 - r.second), r.match, r.second, reason,
                                                 pid in resolved)
+        _drop_inconsistent(measurements, s.outlier_m)
         rows_out.append(_combine(fp.id, measurements, s))
     return rows_out
 
@@ -657,6 +664,18 @@ def _resolve(results: dict[str, MatchResult], matchers: dict[str, "_Matcher"], c
             results[p] = r
             done.add(p)
     return done
+
+
+def _drop_inconsistent(views: dict[str, ViewMeasurement], outlier_m: float) -> None:
+    """With three or more accepted views, reject (in place, reason "inconsistent") each view whose
+    height lies more than ``outlier_m`` from the median of the other accepted views: a roof one
+    view alone puts elsewhere (its own roof hidden there, a like roof further along the view)."""
+    acc = {p: m.height for p, m in views.items() if not m.reason}
+    if len(acc) < 3:
+        return
+    for p, h in acc.items():
+        if abs(h - float(np.median([o for q, o in acc.items() if q != p]))) > outlier_m:
+            views[p] = replace(views[p], height=math.nan, reason="inconsistent")
 
 
 def _combine(fid: str, views: dict[str, ViewMeasurement], s: MatchSettings) -> HeightRow:

@@ -240,8 +240,14 @@ def heights_section(h: dict) -> list[str]:
               f" (per building in results/<scene>/heights.csv). Footprints: {src}, {fp['n_on_maps']} of"
               f" {fp['n_given']} within the maps; {h['n_measured']} measured in at least one view. Reference: "
               f"{ref['source']}; basis: {ref['basis']}. Errors are measured − reference over every measured"
-              " building with a reference; a view counts a building only where it accepted it (reasons per"
-              " view in heights.json).", ""]
+              " building with a reference; a view counts a building only where it accepted it, and a view more"
+              f" than {h['settings']['outlier_m']:g} m from the median of three or more other accepted views is"
+              " rejected as inconsistent.", "",
+              "| perspective | measured | not measured, why |", "|---|---:|---|"]
+    for v, reasons in h.get("reasons", {}).items():
+        why = ", ".join(f"{k} {n}" for k, n in sorted(reasons.items()) if k != "measured") or "–"
+        lines.append(f"| {v} | {reasons.get('measured', 0)} | {why} |")
+    lines.append("")
     if not h.get("groups"):
         return lines + ["No reference heights: the measured heights are not compared."]
     for g, group in h["groups"].items():
