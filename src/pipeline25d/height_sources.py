@@ -251,6 +251,11 @@ def group_stats(rows: list, reference: dict[str, float], views: list[str]) -> di
 
 # --------------------------------------------------------------------------- the stage
 
+#: what "the model's own ground" is, by the kind of reference
+OWN_GROUND = {"truth": "the generator's analytic terrain (demo.terrain_height) averaged under the outline",
+              "obj": "the model's terrain where the building's walls meet it (3dfier)",
+              "cityjson": "the building's own ground surfaces"}
+
 def _nadir_extent(path: str | Path) -> tuple[float, float, float, float]:
     from .raster import gdal
 
@@ -285,12 +290,13 @@ def load_buildings(p: dict, config: dict) -> tuple[list[Footprint], dict[str, Re
 
 
 def reference_heights(p: dict, config: dict, fps: list[Footprint], model: dict[str, RefBuilding], ground: Sampler,
-                      dsm_path: str | Path | None, gsd: float) -> tuple[dict[str, RefBuilding], str]:
-    """The buildings' model roofs (and own ground) for the comparison, and a sentence saying which."""
+                      dsm_path: str | Path | None, gsd: float) -> tuple[dict[str, RefBuilding], str, str]:
+    """The buildings' model roofs (and own ground) for the comparison, a sentence saying which, and
+    its kind (truth, cityjson, obj, csv, dsm or none)."""
     ref = p["reference"]
     ids = {f.id for f in fps}
     if ref["source"] == "none":
-        return {}, "none (heights.reference: none)"
+        return {}, "none (heights.reference: none)", "none"
     if ref["source"] == "csv":
         from .heights import read_reference
 
@@ -298,27 +304,28 @@ def reference_heights(p: dict, config: dict, fps: list[Footprint], model: dict[s
         given = read_reference(ref["path"])
         fp_by = {f.id: f for f in fps}
         return ({k: RefBuilding(None, h + dtm_under(fp_by[k], ground, gsd)) for k, h in given.items() if k in fp_by},
-                f"CSV {ref['path']} (heights taken as above the maps' DTM)")
+                f"CSV {ref['path']} (heights taken as above the maps' DTM)", "csv")
     if ref["source"] == "obj":
-        return obj_roofs(ref["path"]), f"OBJ {ref['path']} (roof material Building)"
+        return obj_roofs(ref["path"]), f"OBJ {ref['path']} (roof material Building)", "obj"
     # auto
     if model and any(np.isfinite(b.roof_z) for b in model.values()):
-        what = ("the demo's truth.json (exact)" if p["footprints"]["source"] == "truth"
-                else "the CityJSON buildings' RoofSurface (area-weighted mean z)")
-        return model, what
+        kind = p["footprints"]["source"]
+        what = ("the demo's truth.json (exact)" if kind == "truth"
+                else "the CityJSON buildings' roofs (RoofSurface or upward surfaces, mean z by area seen from above)")
+        return model, what, kind
     for name in _inputs_of(config, "obj", (".obj",)):
         spec = config["inputs"][name]
         roofs = obj_roofs(spec["path"], float((spec.get("offset") or [0, 0, 0])[2]))
         if ids & set(roofs):
-            return roofs, f"OBJ input {name} ({spec['path']}): roof material Building, per object"
+            return roofs, f"OBJ input {name} ({spec['path']}): roof material Building, per object", "obj"
     if dsm_path is None:
-        return {}, "none (no model heights for these footprints)"
+        return {}, "none (no model heights for these footprints)", "none"
     from .raster import DTM
 
     dsm = DTM(dsm_path, config["crs"])
     cell = abs(dsm.gt[1])
     return ({f.id: RefBuilding(None, dsm_roof(f, dsm.sample, cell)) for f in fps},
-            f"the model's DSM ({dsm_path}, {cell:g} m cells): median inside each footprint, one cell in")
+            f"the model's DSM ({dsm_path}, {cell:g} m cells): median inside each footprint, one cell in", "dsm")
 
 
 def run_stage(config: dict, maps: dict[str, str], scene_json: str | Path, dsm_path: str | Path | None,
@@ -345,7 +352,7 @@ def run_stage(config: dict, maps: dict[str, str], scene_json: str | Path, dsm_pa
     s = MatchSettings(max_height=float(h.get("max_height", MatchSettings.max_height)))
     rows = measure_heights(maps, fps, settings=s) if fps else []
     views = sorted({k for r in rows for k in r.heights})
-    refs, ref_source = reference_heights(p, config, fps, model, ground, dsm_path, gsd)
+    refs, ref_source, ref_kind = reference_heights(p, config, fps, model, ground, dsm_path, gsd)
 
     fp_by = {f.id: f for f in fps}
     base = {k: dtm_under(fp_by[k], ground, gsd) for k in refs if k in fp_by}
@@ -379,11 +386,12 @@ def run_stage(config: dict, maps: dict[str, str], scene_json: str | Path, dsm_pa
         "footprints": {**{k: v for k, v in p["footprints"].items()}, "n_given": len(fps_all), "n_on_maps": len(fps)},
         "n_measured": sum(1 for r in rows if np.isfinite(r.height)),
         "views": views, "reasons": reasons,
-        "reference": {"source": ref_source, "n": len(base), "main_group": main if main in groups else None,
+        "reference": {"source": ref_source, "kind": ref_kind, "n": len(base), "main_group": main if main in groups else None,
                       "basis": ("roof z minus the mean of the ground the maps used under the outline: "
                                 + (f"DTM {scene['dtm']}" if scene.get("dtm") else f"the plane z0 = {scene['z0']} m"))},
         "groups": groups,
         "own_ground": own_stats,
+        "own_ground_source": OWN_GROUND.get(ref_kind) if own_stats else None,
         "settings": dict(s.__dict__),
     }
     write_json(out_json, stats)

@@ -209,7 +209,7 @@ def render_markdown(rep: dict) -> str:
 
 
 HEIGHT_GROUPS = {"all": "All buildings", "flat": "Flat roofs",
-                 "gabled_eave": "Gabled roofs against their eave (a flat-roof matcher has no single height for them)",
+                 "gabled_eave": "Gabled roofs against their eave",
                  "gabled_ridge": "Gabled roofs against their ridge"}
 
 
@@ -252,11 +252,16 @@ def heights_section(h: dict) -> list[str]:
         return lines + ["No reference heights: the measured heights are not compared."]
     for g, group in h["groups"].items():
         n = group["combined"]["n_footprints"]
-        lines += [f"### {HEIGHT_GROUPS.get(g, g)} ({n})", "", *_height_table(group), ""]
+        lines += [f"### {HEIGHT_GROUPS.get(g, g)} ({n})", ""]
+        if g == "gabled_eave":
+            lines += ["The matcher assumes a flat roof: a gabled roof has no single height for it (its outline"
+                      " moves by the eave height, its gable ends by up to the ridge's), so gabled roofs are kept out"
+                      " of the flat-roof figures and compared with both their eave and their ridge.", ""]
+        lines += [*_height_table(group), ""]
     if h.get("own_ground"):
         lines += ["### Against the model's own ground",
-                  "", "The same buildings' roofs above the ground the model itself stands on (the demo's analytic"
-                  " terrain; the OBJ's terrain where its walls meet it) instead of the maps' DTM:", "",
+                  "", "The same buildings' roofs above the ground the model itself stands on"
+                  f" ({h.get('own_ground_source') or 'its own ground surfaces'}) instead of the maps' DTM:", "",
                   *_height_table(h["own_ground"]), ""]
     return lines[:-1] if lines[-1] == "" else lines
 
