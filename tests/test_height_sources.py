@@ -132,3 +132,29 @@ def test_cityjson_buildings_footprint_roof_and_ground(tmp_path):
     (ring,) = got["B"].footprint.rings
     assert area(ring) == pytest.approx(8.0, abs=1e-6)
     assert got["B"].roof_z == pytest.approx((6 * 12 + 2 * 16) / 8 + 0.5) and got["B"].own_ground_z == pytest.approx(2.5)
+
+
+def test_reference_auto_falls_back_to_the_dsm_and_puts_it_on_the_maps_ground(tmp_path):
+    """A model that knows no buildings (a PLY): the reference is the DSM's median inside each footprint
+    minus the maps' ground under it; a CSV reference is taken as heights above that ground."""
+    from pipeline25d.crs import horizontal_wkt
+    from pipeline25d.height_sources import reference_heights
+    from pipeline25d.terrain import Grid, write_float_geotiff
+
+    grid = Grid(1000.0, 2040.0, 0.5, 80, 80)                       # 40 m x 40 m, 0.5 m cells
+    xs, ys = grid.cell_centres()
+    roof = (xs > 1010) & (xs < 1020) & (ys > 2010) & (ys < 2016)
+    dsm = np.where(roof, 17.0, 2.0 + 0.01 * (xs - 1000))          # a flat roof at 17 m on a gentle slope
+    write_float_geotiff(tmp_path / "dsm.tif", dsm, grid, horizontal_wkt("EPSG:28992"))
+    fp = Footprint("b", (np.array([[1010.0, 2010.0], [1020.0, 2010.0], [1020.0, 2016.0], [1010.0, 2016.0]]),))
+    config = {"scene": "t", "crs": "EPSG:28992", "inputs": {"m": {"path": "m.ply"}}, "perspectives": "nadir"}
+    p = {"footprints": {"source": "layer"}, "reference": {"source": "auto"}}
+    ground = lambda x, y: 2.0 + 0.01 * (np.asarray(x) - 1000)       # noqa: E731  (the maps' DTM)
+    refs, what, kind = reference_heights(p, config, [fp], {}, ground, tmp_path / "dsm.tif", 0.5)
+    assert kind == "dsm" and "median inside each footprint" in what
+    assert refs["b"].roof_z == 17.0 and refs["b"].roof_z - dtm_under(fp, ground, 0.5) == pytest.approx(15.0 - 0.15)
+    (tmp_path / "ref.csv").write_text("id,height\nb,14.5\nother,3\n")
+    refs, _, kind = reference_heights({**p, "reference": {"source": "csv", "path": str(tmp_path / "ref.csv")}},
+                                      config, [fp], {}, ground, None, 0.5)
+    assert kind == "csv" and set(refs) == {"b"}
+    assert refs["b"].roof_z - dtm_under(fp, ground, 0.5) == pytest.approx(14.5, abs=1e-12)
