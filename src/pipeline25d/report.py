@@ -247,7 +247,10 @@ def heights_section(h: dict) -> list[str]:
     for v, reasons in h.get("reasons", {}).items():
         why = ", ".join(f"{k} {n}" for k, n in sorted(reasons.items()) if k != "measured") or "–"
         lines.append(f"| {v} | {reasons.get('measured', 0)} | {why} |")
-    lines.append("")
+    lines += ["", "Why not: hidden = under half the roof matches anywhere; flat = the match score does not drop"
+              " on both sides (the roof could slide along a row of like roofs); ambiguous = rival peaks the other"
+              " views did not settle; inconsistent = far from the other views; unstable = no sub-pixel fit;"
+              " too_small, nadir_nodata, no_peak, out_of_range as named.", ""]
     if not h.get("groups"):
         return lines + ["No reference heights: the measured heights are not compared."]
     for g, group in h["groups"].items():
