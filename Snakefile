@@ -21,6 +21,7 @@ include: "workflow/rules/gcps.smk"
 include: "workflow/rules/mosaic.smk"
 include: "workflow/rules/warp.smk"
 include: "workflow/rules/tms.smk"
+include: "workflow/rules/heights.smk"
 include: "workflow/rules/report.smk"
 include: "workflow/rules/wms.smk"
 

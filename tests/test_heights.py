@@ -397,3 +397,23 @@ def test_maps_in_other_crs_rejected(scene, tmp_path):
     fps = read_footprints(scene["gpkg"], id_field="ident")[:1]
     with pytest.raises(CRSError, match=r"az045_el45.tif and .*az000_el90.tif are in different CRSs"):
         measure_heights({"az000_el90": str(scene["maps"]["az000_el90"]), "az045_el45": str(other)}, fps)
+
+
+def test_a_view_far_from_the_others_is_rejected_as_inconsistent():
+    from pipeline25d.heights import ViewMeasurement, _drop_inconsistent
+
+    def views(*hs):
+        return {f"v{i}": ViewMeasurement(h, h, 1.0, 1.0, 0.0, "") for i, h in enumerate(hs)}
+
+    v = views(10.0, 10.2, 9.9, 25.0, 7.9)
+    _drop_inconsistent(v, 2.0)
+    # medians of the other views (all five decide together): 10.05, 9.95, 10.1, 9.95, 10.1 ->
+    # off by 0.05, 0.25, 0.2, 15.05, 2.2
+    assert [m.reason for m in v.values()] == ["", "", "", "inconsistent", "inconsistent"]
+    assert math.isnan(v["v3"].height) and v["v0"].height == 10.0
+    v = views(10.0, 10.2, 9.9, 25.0, 7.9)
+    _drop_inconsistent(v, 2.5)
+    assert [m.reason for m in v.values()] == ["", "", "", "inconsistent", ""]
+    v = views(10.0, 30.0)                                               # two views: no majority
+    _drop_inconsistent(v, 2.0)
+    assert all(m.reason == "" for m in v.values())

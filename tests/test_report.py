@@ -2,13 +2,28 @@
 
 from __future__ import annotations
 
-from pipeline25d.report import _ratio, fmt_measure
+from pipeline25d.report import _ratio, fmt_measure, heights_section
 
 
 def test_measurements_never_print_as_zero():
     assert fmt_measure(None, missing="n/a (2 check points)") == "n/a (2 check points)"
     assert fmt_measure(0.0) == "< 1e-06" and fmt_measure(4e-7) == "< 1e-06"
     assert fmt_measure(0.00042) == "0.00042" and fmt_measure(0.1234) == "0.123"
+
+
+def test_heights_never_print_zero_where_nothing_was_measured():
+    assert heights_section({"skipped": "no nadir perspective"})[-1] == "Not measured: no nadir perspective."
+    none = {"n_footprints": 3, "n_measured": 0, "n": 0, "bias": None, "rmsd": None, "median_abs": None, "p90_abs": None}
+    some = {"n_footprints": 3, "n_measured": 2, "n": 2, "bias": -0.05, "rmsd": 0.1, "median_abs": 0.08, "p90_abs": 0.12}
+    h = {"footprints": {"source": "layer", "paths": ["fp.gpkg"], "n_given": 5, "n_on_maps": 3}, "n_measured": 2,
+         "reference": {"source": "CSV ref.csv", "basis": "roof z minus the DTM"}, "settings": {"outlier_m": 2.0},
+         "reasons": {"az045_el45": {"measured": 2, "hidden": 1}, "az135_el45": {"flat": 2, "ambiguous": 1}},
+         "groups": {"all": {"combined": some, "az045_el45": some, "az135_el45": none}}}
+    md = "\n".join(heights_section(h))
+    assert "| az135_el45 | 0 / 3 | not measured | not measured | not measured | not measured |" in md
+    assert "| az045_el45 | 2 / 3 | 0.100 | -0.050 | 0.080 | 0.120 |" in md
+    assert "| az135_el45 | 0 | ambiguous 1, flat 2 |" in md and "| az045_el45 | 2 | hidden 1 |" in md
+    assert "0.000" not in md and "3 of 5 within the maps" in md
 
 
 def test_size_ratio_puts_the_larger_side_first():

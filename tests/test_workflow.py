@@ -57,8 +57,8 @@ def test_dry_run_of_the_default_config_counts_jobs_per_rule(tmp_path):
     make_scene(tmp_path, config)
     out = snakemake(tmp_path, "-n").stdout
     assert job_counts(out) == {"ingest": 4, "lod": 4, "terrain": 1, "scene": 1, "plan": 9, "gcps": 9, "mosaic": 9,
-                               "warp": 9, "tms": 9, "report": 1, "viewer": 1, "wms": 1, "all": 1,
-                               "total": 59}
+                               "warp": 9, "tms": 9, "heights": 1, "report": 1, "viewer": 1, "wms": 1, "all": 1,
+                               "total": 60}
     # Once the plans exist the tile jobs are known: one per non-empty tile, none for empty ones.
     pids = [f"az{a:03d}_el45" for a in range(0, 360, 45)] + ["az000_el90"]
     snakemake(tmp_path, *[f"results/demo/plans/{pid}.json" for pid in pids])
@@ -177,6 +177,44 @@ def test_terrain_from_the_model_puts_check_points_within_a_quarter_pixel_without
         # the paper's method on the same points is reported beside it (oblique views only)
         if p["elevation"] < 90:
             assert p["paper_method"]["n_check"] == p["n_check"]
+
+
+def test_heights_step_measures_every_demo_building_against_its_truth(small_run):
+    """The heights rule found the demo's truth.json by itself and measured every building on the
+    maps; its reference is the truth's roof above the DTM the maps used (here the DTM derived from
+    the model), which the generator's analytic terrain checks independently."""
+    import csv
+
+    from pipeline25d.demo import terrain_height
+
+    workdir, results = small_run
+    stats = json.loads((results / "heights.json").read_text())
+    truth = {b["id"]: b for b in json.loads((workdir / "resources" / "demo" / "truth.json").read_text())["buildings"]}
+    rows = {r["id"]: r for r in csv.DictReader((results / "heights.csv").open())}
+    assert stats["footprints"]["source"] == "truth" and set(rows) == set(truth)
+    assert "truth.json" in stats["reference"]["source"] and "dtm.tif" in stats["reference"]["basis"]
+    for bid, r in rows.items():
+        b = truth[bid]
+        assert r["roof"] == b["roof"]
+        ground = terrain_height(*np.mean(b["footprint"], axis=0))           # gentle relief: centroid ≈ mean
+        assert float(r["reference"]) == pytest.approx(b["eave_z"] - ground, abs=0.15), bid
+    flat = stats["groups"]["flat"]
+    n_flat = sum(b["roof"] == "flat" for b in truth.values())
+    assert flat["combined"]["n_footprints"] == n_flat and flat["combined"]["n_measured"] >= 0.8 * n_flat
+    # independent of the step's own statistics: measured flat roofs against eave − analytic terrain
+    err = [float(r["height"]) - (truth[i]["eave_z"] - terrain_height(*np.mean(truth[i]["footprint"], axis=0)))
+           for i, r in rows.items() if r["roof"] == "flat" and r["height"]]
+    assert len(err) == flat["combined"]["n"] and np.sqrt(np.mean(np.square(err))) < 0.3
+    assert set(stats["views"]) == {"az045_el45", "az200_el30"} and "gabled_ridge" in stats["groups"]
+    md = (results / "report" / "report.md").read_text()
+    assert "## Building heights from the maps" in md and "### Flat roofs" in md
+
+
+def test_without_a_nadir_map_the_report_says_heights_were_not_measured(plane_run):
+    _, results = plane_run
+    assert "no nadir perspective" in json.loads((results / "heights.json").read_text())["skipped"]
+    md = (results / "report" / "report.md").read_text()
+    assert "Not measured: no nadir perspective" in md
 
 
 def test_derived_dtm_matches_the_demo_terrain(small_run):

@@ -63,6 +63,10 @@ def check_semantics(config: dict[str, Any], base_dir: Path = Path(".")) -> None:
         if value not in ("auto", "flat"):
             _check_readable(base_dir / value, key)
     check_sun_config(config.get("shadows", {}))
+    heights = config.get("heights") or {}
+    for key in ("footprints", "reference"):
+        if heights.get(key, "auto") not in ("auto", "none"):
+            _check_readable(base_dir / heights[key], f"heights.{key}")
 
 
 def render_settings(config: dict[str, Any]) -> dict[str, Any]:

@@ -13,11 +13,14 @@ degenerate; what pins a roof is where its colour *ends*:
 * template: the nadir map's colours of the pixels whose centres lie inside the footprint;
   ring: pixels 2..ring_px+1 px outside it whose nadir colour differs from the nearest roof
   pixel's, which must *not* show that roof colour on the oblique map ("the roof ends where the
-  footprint ends": no sliding inside a larger roof or onto the roof's own near-side wall);
+  footprint ends": no sliding inside a larger roof or onto the roof's own near-side wall); a
+  ring pixel without data says nothing (left out of that move's score: beyond a model's edge
+  a true roof borders no data, and beyond the map's a false one would);
 * coarse scan at every pixel step of u: g(u) = 1 − mean truncated-quadratic colour loss
   (tolerance ``tol``; a pixel without data counts as a miss);
-* peaks: rival peaks (within ``max_second`` of the best, above the scan's median) are checked
-  against the ground they would hide: walls of a roof moved by u cover the area swept between
+* peaks: a peak whose walls would hide ground that the oblique map shows unchanged from the
+  nadir map in more than ``max_unchanged`` of the places tested is dropped; rival peaks (within
+  ``max_second`` of the best, above the scan's median) are checked against that ground too: walls of a roof moved by u cover the area swept between
   footprint and roof, so a rival that sees clearly more of that area unchanged from the nadir
   map (``unchanged_margin``; roof-coloured places say nothing) is dropped. The best peak must
   match ≥ ``min_match`` of the template (else "hidden"), have no rival left ("ambiguous") and
@@ -31,7 +34,9 @@ degenerate; what pins a roof is where its colour *ends*:
   the oblique map) without biasing u.
 
 Per building: an ambiguous view is settled by the other views when exactly one of its rivals
-agrees (``agree_m``) with their height; the accepted views are combined by their median and
+agrees (``agree_m``) with their height; with three or more accepted views, a view more than
+``outlier_m`` from the median of the others is rejected ("inconsistent": its roof was hidden
+and a like roof further along the view matched); the accepted views are combined by their median and
 ``n_agree`` counts those within ``agree_m`` of it. Heights are relative to the ground that the
 maps used (the DTM under the roof's outline).
 
@@ -50,7 +55,7 @@ import json
 import logging
 import math
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -82,8 +87,10 @@ class MatchSettings:
     max_second: float = 0.75      # second peak / first peak (both above the scan's median)
     min_drop: float = 0.25        # g must fall by this × the 2-px uncovered fraction on both sides
     unchanged_margin: float = 0.2  # a rival peak is dropped when it sees this much more hidden ground unchanged
+    max_unchanged: float = 0.8    # a peak whose walls would hide ground that is seen unchanged this often is dropped
     max_fine_px: int = 20000      # template pixels used for the sub-pixel fit (edge pixels always kept)
     agree_m: float = 0.5          # views within this of the combined height agree
+    outlier_m: float = 2.0        # with 3+ accepted views, one this far from the others' median is rejected
 
 
 @dataclass
@@ -366,11 +373,13 @@ class _Matcher:
             u = us[i:i + chunk, None]
             col, ok = _gather(obl_rgb, obl_alpha, base_t[0] + u * d_px[0], base_t[1] + u * d_px[1])
             loss = np.where(ok, np.minimum(np.sum((col - tcol) ** 2, axis=-1), tol2) / tol2, 1.0).sum(axis=1)
+            n = np.full(len(u), float(n_t))
             if n_r:
                 col, ok = _gather(obl_rgb, obl_alpha, base_r[0] + u * d_px[0], base_r[1] + u * d_px[1])
                 e2 = np.sum((col - rcol) ** 2, axis=-1)
                 loss += np.where(ok, 1.0 - np.minimum(e2, tol2) / tol2, 0.0).sum(axis=1)
-            g[i:i + chunk] = 1.0 - loss / (n_t + n_r)
+                n += ok.sum(axis=1)
+            g[i:i + chunk] = 1.0 - loss / n
 
         # peaks (the scan's ends count), best first, one per 2 steps
         in_range = (us >= -step_m) & (us <= u_max + 1e-9)
@@ -387,10 +396,15 @@ class _Matcher:
         # rivals (peaks nearly as good as the best): a peak at u says the walls hide what lies between
         # the footprint and the moved roof; a rival that sees clearly more of it unchanged than
         # another is contradicted and dropped
+        seen: dict[int, float] = {}
+        if sweep is not None:
+            # a peak whose walls would hide ground that the oblique map shows as the nadir map does is
+            # contradicted, whatever its rivals (e.g. a roof slid onto a like roof far along the view)
+            seen = {k: _unchanged(t, sweep, obl_rgb, obl_alpha, offset, d_px, float(us[k]), tol2) for k in cands[:8]}
+            cands = [k for k in cands if seen.get(k, 0.0) <= s.max_unchanged]
         rivals = [k for k in cands[:8] if self._rel(k, cands) > s.max_second]
         if len(rivals) > 1 and sweep is not None:
-            seen = {k: _unchanged(t, sweep, obl_rgb, obl_alpha, offset, d_px, float(us[k]), tol2) for k in rivals}
-            lowest = min(seen.values())
+            lowest = min(seen[k] for k in rivals)
             cands = [k for k in cands if seen.get(k, lowest) <= lowest + s.unchanged_margin]
         self.cands = cands
 
@@ -618,6 +632,7 @@ def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint
             h = r.u / cot[pid] if not reason else math.nan
             measurements[pid] = ViewMeasurement(h, r.u, r.match * (1.0 - r.second), r.match, r.second, reason,
                                                 pid in resolved)
+        _drop_inconsistent(measurements, s.outlier_m)
         rows_out.append(_combine(fp.id, measurements, s))
     return rows_out
 
@@ -651,6 +666,18 @@ def _resolve(results: dict[str, MatchResult], matchers: dict[str, "_Matcher"], c
     return done
 
 
+def _drop_inconsistent(views: dict[str, ViewMeasurement], outlier_m: float) -> None:
+    """With three or more accepted views, reject (in place, reason "inconsistent") each view whose
+    height lies more than ``outlier_m`` from the median of the other accepted views: a roof one
+    view alone puts elsewhere (its own roof hidden there, a like roof further along the view)."""
+    acc = {p: m.height for p, m in views.items() if not m.reason}
+    if len(acc) < 3:
+        return
+    for p, h in acc.items():
+        if abs(h - float(np.median([o for q, o in acc.items() if q != p]))) > outlier_m:
+            views[p] = replace(views[p], height=math.nan, reason="inconsistent")
+
+
 def _combine(fid: str, views: dict[str, ViewMeasurement], s: MatchSettings) -> HeightRow:
     accepted = [m for m in views.values() if not m.reason]
     if accepted:
@@ -668,13 +695,19 @@ def _combine(fid: str, views: dict[str, ViewMeasurement], s: MatchSettings) -> H
 
 def reference_heights_from_obj(path: str | Path, roof_material: str = "Building",
                                wall_material: str = "BuildingWall", ground: str = "terrain") -> dict[str, float]:
-    """Building heights from an OBJ with per-class materials (e.g. a 3dfier export), float64.
+    """Building heights from an OBJ with per-class materials (e.g. a 3dfier export), float64:
+    roof − ground of :func:`obj_roof_ground` per ``o`` object."""
+    return {k: roof - g for k, (roof, g) in obj_roof_ground(path, roof_material, wall_material, ground).items()}
 
-    Per ``o`` object: roof = area-weighted mean z of its ``roof_material`` faces; ground =
-    ``"terrain"``: mean z of its wall vertices that faces of other classes (terrain, roads)
-    share, i.e. where the walls meet the model's ground (the lowest wall z where none does),
-    or ``"lowest"``: the lowest z of its walls. Height = roof − ground; objects without
-    roof and walls are left out.
+
+def obj_roof_ground(path: str | Path, roof_material: str = "Building", wall_material: str = "BuildingWall",
+                    ground: str = "terrain") -> dict[str, tuple[float, float]]:
+    """(roof z, ground z) per ``o`` object of an OBJ with per-class materials (e.g. a 3dfier export).
+
+    Roof = area-weighted mean z of its ``roof_material`` faces; ground = ``"terrain"``: mean z
+    of its wall vertices that faces of other classes (terrain, roads) share, i.e. where the
+    walls meet the model's ground (the lowest wall z where none does), or ``"lowest"``: the
+    lowest z of its walls. Objects without roof and walls are left out.
     """
     if ground not in ("terrain", "lowest"):
         raise ValueError(f"ground must be 'terrain' or 'lowest', not {ground!r}")
@@ -714,13 +747,13 @@ def reference_heights_from_obj(path: str | Path, roof_material: str = "Building"
                 elif not mtl.startswith(roof_material):
                     others.update(idx)
     z = np.array([v[2] for v in verts], dtype=np.float64)
-    out = {}
+    out: dict[str, tuple[float, float]] = {}
     for o, acc in roof_sum.items():
         if acc[1] <= 0 or o not in walls:
             continue
         wall = np.fromiter(walls[o], dtype=np.int64)
         foot = np.fromiter(walls[o] & others, dtype=np.int64) if ground == "terrain" else np.zeros(0, np.int64)
-        out[o] = acc[0] / acc[1] - (float(z[foot].mean()) if len(foot) else float(z[wall].min()))
+        out[o] = (acc[0] / acc[1], float(z[foot].mean()) if len(foot) else float(z[wall].min()))
     return out
 
 
@@ -769,19 +802,22 @@ def compare(rows: list[HeightRow], reference: dict[str, float]) -> dict[str, Any
     return out
 
 
-def write_csv(path: str | Path, rows: list[HeightRow]) -> None:
-    """One line per building: id, height, n_views, n_agree, quality, then per view height, quality,
-    reason ('' = accepted) and resolved (1 = settled by the other views); unmeasured heights empty."""
+def write_csv(path: str | Path, rows: list[HeightRow], extra: dict[str, dict[str, str]] | None = None) -> None:
+    """One line per building: id, height, n_views, n_agree, quality, the ``extra`` columns
+    ({column: {id: text}}, e.g. a reference), then per view height, quality, reason ('' =
+    accepted) and resolved (1 = settled by the other views); unmeasured heights empty."""
     from .atomic import write_text
 
+    extra = extra or {}
     views = sorted({k for r in rows for k in r.heights})
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["id", "height", "n_views", "n_agree", "quality"]
+    w.writerow(["id", "height", "n_views", "n_agree", "quality", *extra]
                + [f"{p}_{v}" for v in views for p in ("height", "quality", "reason", "resolved")])
     fmt = lambda x: "" if not np.isfinite(x) else f"{x:.3f}"  # noqa: E731
     for r in rows:
-        w.writerow([r.id, fmt(r.height), r.n_views, r.n_agree, f"{r.quality:.3f}"]
+        w.writerow([r.id, fmt(r.height), r.n_views, r.n_agree, f"{r.quality:.3f}",
+                    *(c.get(r.id, "") for c in extra.values())]
                    + [x for v in views for x in (fmt(r.heights.get(v, math.nan)), f"{r.qualities.get(v, 0.0):.3f}",
                                                  r.reasons.get(v, "missing"), int(r.views[v].resolved) if v in r.views
                                                  else 0)])

@@ -110,6 +110,8 @@ def build_report(config: dict, results: str | Path) -> dict:
             "map_bytes": _size(cog), "tms_bytes": _size(results / "tms" / pid),
             "lonlat_bounds": lonlat_bounds(cog),
         })
+    heights_json = results / "heights.json"
+    heights = json.loads(heights_json.read_text()) if heights_json.exists() else {"skipped": "the heights step did not run"}
     model = input_size(config)
     maps = sum(p["map_bytes"] for p in persp)
     tms = sum(p["tms_bytes"] for p in persp)
@@ -118,6 +120,7 @@ def build_report(config: dict, results: str | Path) -> dict:
         "projection": scene.get("projection", "plane"), "terrain": terrain,
         "dtm_check_holdout_m": scene.get("dtm_check_holdout_m"),
         "perspectives": persp,
+        "heights": heights,
         "sizes": {"model_bytes": model, "maps_bytes": maps, "tms_bytes": tms,
                   "model_to_maps": model / maps if maps else None},
         "timings": stage_timings(results, current_jobs(set(config["inputs"]), blocks)),
@@ -180,6 +183,8 @@ def render_markdown(rep: dict) -> str:
             na = pm.get("check_note") or "n/a"
             lines.append(f"| {p['id']} | polynomial {pm['order']} | {fmt(pm['rmsd_m'], missing=na)} | "
                          f"{fmt(pm['rmsd_px'], 2, missing=na)} | {fmt(pm['max_m'], missing=na)} |")
+    if rep.get("heights"):
+        lines += heights_section(rep["heights"])
     s = rep["sizes"]
     lines += ["", "## Sizes", "",
               f"- model inputs: {s['model_bytes'] / 1e6:.2f} MB",
@@ -201,6 +206,67 @@ def render_markdown(rep: dict) -> str:
             lines.append(f"| {pid} | {u['tiles_redone']} | {u['tiles']} | {u['web_tiles_redone']} | {u['web_tiles']} | "
                          f"{u['web_cut']} |")
     return "\n".join(lines) + "\n"
+
+
+HEIGHT_GROUPS = {"all": "All buildings", "flat": "Flat roofs",
+                 "gabled_eave": "Gabled roofs against their eave",
+                 "gabled_ridge": "Gabled roofs against their ridge"}
+
+
+def _height_table(group: dict) -> list[str]:
+    """Rows per perspective (combined first): measured / footprints and the errors, or "not measured"."""
+    lines = ["| perspective | measured / footprints | RMSD m | bias m | median abs m | p90 abs m |",
+             "|---|---:|---:|---:|---:|---:|"]
+    for key, st in group.items():
+        name = "combined (median of the views)" if key == "combined" else key
+        if st.get("n"):
+            errs = (f"{fmt_measure(st['rmsd'])} | {fmt_measure(st['bias'])} | {fmt_measure(st['median_abs'])} | "
+                    f"{fmt_measure(st['p90_abs'])}")
+        else:
+            errs = " | ".join(["not measured"] * 4)
+        lines.append(f"| {name} | {st['n_measured']} / {st['n_footprints']} | {errs} |")
+    return lines
+
+
+def heights_section(h: dict) -> list[str]:
+    """The report's building-height section (see height_sources.run_stage)."""
+    lines = ["", "## Building heights from the maps", ""]
+    if h.get("skipped"):
+        return lines + [f"Not measured: {h['skipped']}."]
+    fp, ref = h["footprints"], h["reference"]
+    src = {"truth": "the demo's truth.json", "cityjson": "the CityJSON Building objects",
+           "layer": f"layer {', '.join(fp.get('paths') or [])}"}[fp["source"]]
+    lines += [f"Each footprint's roof displacement between the nadir map and every oblique map, as a height"
+              f" (per building in results/<scene>/heights.csv). Footprints: {src}, {fp['n_on_maps']} of"
+              f" {fp['n_given']} within the maps; {h['n_measured']} measured in at least one view. Reference: "
+              f"{ref['source']}; basis: {ref['basis']}. Errors are measured − reference over every measured"
+              " building with a reference; a view counts a building only where it accepted it, and a view more"
+              f" than {h['settings']['outlier_m']:g} m from the median of three or more other accepted views is"
+              " rejected as inconsistent.", "",
+              "| perspective | measured | not measured, why |", "|---|---:|---|"]
+    for v, reasons in h.get("reasons", {}).items():
+        why = ", ".join(f"{k} {n}" for k, n in sorted(reasons.items()) if k != "measured") or "–"
+        lines.append(f"| {v} | {reasons.get('measured', 0)} | {why} |")
+    lines += ["", "Why not: hidden = under half the roof matches anywhere; flat = the match score does not drop"
+              " on both sides (the roof could slide along a row of like roofs); ambiguous = rival peaks the other"
+              " views did not settle; inconsistent = far from the other views; unstable = no sub-pixel fit;"
+              " too_small, nadir_nodata, no_peak, out_of_range as named.", ""]
+    if not h.get("groups"):
+        return lines + ["No reference heights: the measured heights are not compared."]
+    for g, group in h["groups"].items():
+        n = group["combined"]["n_footprints"]
+        lines += [f"### {HEIGHT_GROUPS.get(g, g)} ({n})", ""]
+        if g == "gabled_eave":
+            lines += ["The matcher assumes a flat roof: a gabled roof has no single height for it (its outline"
+                      " moves by the eave height, its gable ends by up to the ridge's), so gabled roofs are kept out"
+                      " of the flat-roof figures and compared with both their eave and their ridge.", ""]
+        lines += [*_height_table(group), ""]
+    if h.get("own_ground"):
+        lines += ["### Against the model's own ground",
+                  "", "The same buildings' roofs above the ground the model itself stands on"
+                  f" ({h.get('own_ground_source') or 'its own ground surfaces'}) instead of the maps' DTM:", "",
+                  *_height_table(h["own_ground"]), ""]
+    return lines[:-1] if lines[-1] == "" else lines
 
 
 def write_report(config: dict, results: str | Path, out_json: str | Path, out_md: str | Path) -> dict:

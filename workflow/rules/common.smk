@@ -6,6 +6,7 @@ from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 
 from pipeline25d.config import check_semantics, chunk_size, perspectives, render_settings
+from pipeline25d.height_sources import plan as heights_plan
 from pipeline25d.errors import Pipeline25dError
 from pipeline25d.perspectives import ID_PATTERN
 from pipeline25d.plan import block_spec_hash, plan_block, plan_blocks, read_plan
@@ -27,6 +28,7 @@ MAX_LOD_ERROR = config["gsd"] * config["lod"]["max_error_px"]
 TERRAIN_FILE = [] if config["terrain"] in ("auto", "flat") else [config["terrain"]]
 GCP_FILE = [] if config["gcp"]["source"] == "auto" else [config["gcp"]["source"]]
 RENDER_BLOCK = config["render"]["block"]
+HEIGHTS_PLAN = heights_plan(config)
 # what changes a tile's pixels (the block size does not; shadows only when enabled)
 RENDER_SETTINGS = render_settings(config)
 

@@ -9,6 +9,7 @@ rule report:
         tms=expand(f"{RESULTS}/tms/{{pid}}", pid=PERSPECTIVE_IDS),
         tms_stats=expand(f"{RESULTS}/work/tms/{{pid}}.json", pid=PERSPECTIVE_IDS),
         scene=rules.scene.output.scene,
+        heights=rules.heights.output.json,
     output:
         json=f"{RESULTS}/report/report.json",
         md=f"{RESULTS}/report/report.md",

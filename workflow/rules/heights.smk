@@ -1,0 +1,22 @@
+# Building heights measured on the maps: each footprint's roof displacement between the nadir
+# map and every oblique map, compared with the model's own heights (see height_sources.py).
+
+
+rule heights:
+    input:
+        maps=expand(f"{RESULTS}/maps/{{pid}}.tif", pid=PERSPECTIVE_IDS),
+        scene=rules.scene.output.scene,
+        dsm=rules.terrain.output.dsm,
+        sources=HEIGHTS_PLAN["files"],
+    output:
+        csv=f"{RESULTS}/heights.csv",
+        json=f"{RESULTS}/heights.json",
+    params:
+        config=config,
+        pids=PERSPECTIVE_IDS,
+    log:
+        f"{RESULTS}/logs/heights.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/heights.tsv"
+    script:
+        "../scripts/heights.py"
