@@ -414,6 +414,9 @@ def test_a_view_far_from_the_others_is_rejected_as_inconsistent():
     v = views(10.0, 10.2, 9.9, 25.0, 7.9)
     _drop_inconsistent(v, 2.5)
     assert [m.reason for m in v.values()] == ["", "", "", "inconsistent", ""]
-    v = views(10.0, 30.0)                                               # two views: no majority
+    v = views(10.0, 30.0)                                               # two views: no majority,
+    _drop_inconsistent(v, 2.0)                                          # neither can be trusted
+    assert all(m.reason == "inconsistent" and math.isnan(m.height) for m in v.values())
+    v = views(10.0, 11.5)                                               # two that agree are kept
     _drop_inconsistent(v, 2.0)
     assert all(m.reason == "" for m in v.values())

@@ -36,7 +36,8 @@ degenerate; what pins a roof is where its colour *ends*:
 Per building: an ambiguous view is settled by the other views when exactly one of its rivals
 agrees (``agree_m``) with their height; with three or more accepted views, a view more than
 ``outlier_m`` from the median of the others is rejected ("inconsistent": its roof was hidden
-and a like roof further along the view matched); the accepted views are combined by their median and
+and a like roof further along the view matched), and two views that far apart are both
+rejected (no majority says which matched); the accepted views are combined by their median and
 ``n_agree`` counts those within ``agree_m`` of it. Heights are relative to the ground that the
 maps used (the DTM under the roof's outline).
 
@@ -669,8 +670,13 @@ def _resolve(results: dict[str, MatchResult], matchers: dict[str, "_Matcher"], c
 def _drop_inconsistent(views: dict[str, ViewMeasurement], outlier_m: float) -> None:
     """With three or more accepted views, reject (in place, reason "inconsistent") each view whose
     height lies more than ``outlier_m`` from the median of the other accepted views: a roof one
-    view alone puts elsewhere (its own roof hidden there, a like roof further along the view)."""
+    view alone puts elsewhere (its own roof hidden there, a like roof further along the view).
+    Two accepted views that differ by more than ``outlier_m`` are both rejected: with no third
+    view there is no telling which one matched a like roof."""
     acc = {p: m.height for p, m in views.items() if not m.reason}
+    if len(acc) == 2 and abs(np.subtract(*acc.values())) > outlier_m:
+        for p in acc:
+            views[p] = replace(views[p], height=math.nan, reason="inconsistent")
     if len(acc) < 3:
         return
     for p, h in acc.items():

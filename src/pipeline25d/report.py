@@ -241,8 +241,8 @@ def heights_section(h: dict) -> list[str]:
               f" {fp['n_given']} within the maps; {h['n_measured']} measured in at least one view. Reference: "
               f"{ref['source']}; basis: {ref['basis']}. Errors are measured − reference over every measured"
               " building with a reference; a view counts a building only where it accepted it, and a view more"
-              f" than {h['settings']['outlier_m']:g} m from the median of three or more other accepted views is"
-              " rejected as inconsistent.", "",
+              f" than {h['settings']['outlier_m']:g} m from the median of two or more other accepted views is"
+              " rejected as inconsistent (with only two views, both are).", "",
               "| perspective | measured | not measured, why |", "|---|---:|---|"]
     for v, reasons in h.get("reasons", {}).items():
         why = ", ".join(f"{k} {n}" for k, n in sorted(reasons.items()) if k != "measured") or "–"
