@@ -398,14 +398,19 @@ class _Matcher:
         # the footprint and the moved roof; a rival that sees clearly more of it unchanged than
         # another is contradicted and dropped
         seen: dict[int, float] = {}
+
+        def unchanged(k: int) -> float:
+            if k not in seen:
+                seen[k] = _unchanged(t, sweep, obl_rgb, obl_alpha, offset, d_px, float(us[k]), tol2)
+            return seen[k]
+
         if sweep is not None:
             # a peak whose walls would hide ground that the oblique map shows as the nadir map does is
             # contradicted, whatever its rivals (e.g. a roof slid onto a like roof far along the view)
-            seen = {k: _unchanged(t, sweep, obl_rgb, obl_alpha, offset, d_px, float(us[k]), tol2) for k in cands[:8]}
-            cands = [k for k in cands if seen.get(k, 0.0) <= s.max_unchanged]
+            cands = [k for i, k in enumerate(cands) if i >= 8 or unchanged(k) <= s.max_unchanged]
         rivals = [k for k in cands[:8] if self._rel(k, cands) > s.max_second]
         if len(rivals) > 1 and sweep is not None:
-            lowest = min(seen[k] for k in rivals)
+            lowest = min(unchanged(k) for k in rivals)   # a rival past the first 8 is measured now
             cands = [k for k in cands if seen.get(k, lowest) <= lowest + s.unchanged_margin]
         self.cands = cands
 

@@ -12,7 +12,8 @@ rule heights:
         csv=f"{RESULTS}/heights.csv",
         json=f"{RESULTS}/heights.json",
     params:
-        config=config,
+        # only what the step reads: a change elsewhere (web tiles, shadows ...) must not re-run it
+        config={k: config[k] for k in ("crs", "gsd", "inputs", "perspectives", "heights") if k in config},
         pids=PERSPECTIVE_IDS,
     log:
         f"{RESULTS}/logs/heights.log",
