@@ -174,28 +174,34 @@ class _Reader:
     def _stream(self, names: tuple[str, ...], handle) -> None:
         from lxml import etree
 
-        context = etree.iterparse(str(self.path), events=("end",), tag=[f"{{*}}{n}" for n in names],
-                                  huge_tree=True, resolve_entities=False, no_network=True, remove_comments=True)
         try:
-            for _, elem in context:
-                if self.version is None:
-                    self._check_root(elem.getroottree().getroot())
-                if _local(elem.tag) == "Envelope":
-                    self._envelope(elem)
-                    continue
-                handle(elem)
-                elem.clear()
-                parent = elem.getparent()
-                while parent is not None and elem.getprevious() is not None:
-                    del parent[0]
-            if self.version is None:
-                self._check_root(context.root)
+            # our own handle, closed on every exit: iterparse's own stays open until collected
+            with open(self.path, "rb") as source:
+                self._iterate(etree.iterparse(source, events=("end",), tag=[f"{{*}}{n}" for n in names],
+                                              huge_tree=True, resolve_entities=False, no_network=True,
+                                              remove_comments=True), handle)
         except etree.XMLSyntaxError as exc:
             raise InputFileError(self.path, f"malformed XML at line {exc.lineno}: {exc.msg}") from None
         except InputFileError:
             raise
         except OSError as exc:
             raise InputFileError(self.path, f"cannot read CityGML file: {exc}") from None
+
+    def _iterate(self, context, handle) -> None:
+        """Hand every streamed element to ``handle``, then free it and what came before it."""
+        for _, elem in context:
+            if self.version is None:
+                self._check_root(elem.getroottree().getroot())
+            if _local(elem.tag) == "Envelope":
+                self._envelope(elem)
+                continue
+            handle(elem)
+            elem.clear()
+            parent = elem.getparent()
+            while parent is not None and elem.getprevious() is not None:
+                del parent[0]
+        if self.version is None:
+            self._check_root(context.root)
 
     def _check_root(self, root) -> None:
         if root is None or _local(root.tag) != "CityModel":
