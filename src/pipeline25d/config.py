@@ -86,7 +86,9 @@ def _check_readable(path: Path, key: str, dataset_ok: bool = False) -> None:
     OSGB dataset (holds Data/)."""
     if not path.exists():
         raise InputFileError(path, f"does not exist (config key {key})")
-    if path.is_dir() and not (dataset_ok and (path / "Data").is_dir()):
+    from .formats import is_osgb_dataset
+
+    if path.is_dir() and not (dataset_ok and is_osgb_dataset(path)):
         more = "; an OSGB dataset folder holds Data/" if dataset_ok else ""
         raise InputFileError(path, f"is a directory, not a file (config key {key}){more}")
     if not os.access(path, os.R_OK):

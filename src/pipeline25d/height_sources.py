@@ -200,19 +200,22 @@ def _inside_points(fp: Footprint, step: float, margin: float = 0.0) -> np.ndarra
     return np.column_stack([gx[keep], gy[keep]])
 
 
+def _inside_values(fp: Footprint, sample: Sampler, step: float, margin: float = 0.0) -> np.ndarray:
+    """The finite values of ``sample(x, y)`` on :func:`_inside_points`."""
+    pts = _inside_points(fp, step, margin)
+    z = sample(pts[:, 0], pts[:, 1])
+    return z[np.isfinite(z)]
+
+
 def dtm_under(fp: Footprint, sample: Sampler, step: float) -> float:
     """Mean of the ground ``sample(x, y)`` over a ``step`` grid inside the footprint (NaN where none)."""
-    pts = _inside_points(fp, step)
-    z = sample(pts[:, 0], pts[:, 1])
-    z = z[np.isfinite(z)]
+    z = _inside_values(fp, sample, step)
     return float(z.mean()) if len(z) else math.nan
 
 
 def dsm_roof(fp: Footprint, sample: Sampler, cell: float) -> float:
     """Median of the model's DSM over its cells inside the footprint, one cell in from the outline."""
-    pts = _inside_points(fp, cell, margin=cell)
-    z = sample(pts[:, 0], pts[:, 1])
-    z = z[np.isfinite(z)]
+    z = _inside_values(fp, sample, cell, margin=cell)
     return float(np.median(z)) if len(z) else math.nan
 
 
@@ -257,11 +260,9 @@ OWN_GROUND = {"truth": "the generator's analytic terrain (demo.terrain_height) a
               "cityjson": "the building's own ground surfaces"}
 
 def _nadir_extent(path: str | Path) -> tuple[float, float, float, float]:
-    from .raster import gdal
+    from .raster import dataset_bounds, gdal
 
-    ds = gdal().Open(str(path))
-    gt = ds.GetGeoTransform()
-    return (gt[0], gt[3] + ds.RasterYSize * gt[5], gt[0] + ds.RasterXSize * gt[1], gt[3])
+    return dataset_bounds(gdal().Open(str(path)))
 
 
 def _within(b: tuple[float, float, float, float], ext: tuple[float, float, float, float]) -> bool:

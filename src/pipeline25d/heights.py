@@ -20,9 +20,10 @@ degenerate; what pins a roof is where its colour *ends*:
   (tolerance ``tol``; a pixel without data counts as a miss);
 * peaks: a peak whose walls would hide ground that the oblique map shows unchanged from the
   nadir map in more than ``max_unchanged`` of the places tested is dropped; rival peaks (within
-  ``max_second`` of the best, above the scan's median) are checked against that ground too: walls of a roof moved by u cover the area swept between
-  footprint and roof, so a rival that sees clearly more of that area unchanged from the nadir
-  map (``unchanged_margin``; roof-coloured places say nothing) is dropped. The best peak must
+  ``max_second`` of the best, above the scan's median) are checked against that ground too:
+  walls of a roof moved by u cover the area swept between footprint and roof, so a rival that
+  sees clearly more of that area unchanged from the nadir map (``unchanged_margin``;
+  roof-coloured places say nothing) is dropped. The best peak must
   match ≥ ``min_match`` of the template (else "hidden"), have no rival left ("ambiguous") and
   g must drop on both sides by ≥ ``min_drop`` × the share that a 2-px move uncovers ("flat":
   the roof could slide, e.g. along a row of same-coloured roofs);
@@ -67,7 +68,7 @@ from .errors import CRSError, InputFileError, Pipeline25dError
 from .evaluate import _open, _pair_grids, _same_crs
 from .footprints import Footprint, contains, rasterize, read_footprints
 from .perspectives import ID_PATTERN, Perspective
-from .raster import read_rgba_block
+from .raster import dataset_bounds, read_rgba_block
 
 log = logging.getLogger(__name__)
 
@@ -92,6 +93,7 @@ class MatchSettings:
     max_fine_px: int = 20000      # template pixels used for the sub-pixel fit (edge pixels always kept)
     agree_m: float = 0.5          # views within this of the combined height agree
     outlier_m: float = 2.0        # with 3+ accepted views, one this far from the others' median is rejected
+    checked_peaks: int = 8        # the best peaks checked against the ground their walls would hide
 
 
 @dataclass
@@ -407,10 +409,10 @@ class _Matcher:
         if sweep is not None:
             # a peak whose walls would hide ground that the oblique map shows as the nadir map does is
             # contradicted, whatever its rivals (e.g. a roof slid onto a like roof far along the view)
-            cands = [k for i, k in enumerate(cands) if i >= 8 or unchanged(k) <= s.max_unchanged]
-        rivals = [k for k in cands[:8] if self._rel(k, cands) > s.max_second]
+            cands = [k for i, k in enumerate(cands) if i >= s.checked_peaks or unchanged(k) <= s.max_unchanged]
+        rivals = [k for k in cands[:s.checked_peaks] if self._rel(k, cands) > s.max_second]
         if len(rivals) > 1 and sweep is not None:
-            lowest = min(unchanged(k) for k in rivals)   # a rival past the first 8 is measured now
+            lowest = min(unchanged(k) for k in rivals)   # a rival moved up into the first few is measured now
             cands = [k for k in cands if seen.get(k, lowest) <= lowest + s.unchanged_margin]
         self.cands = cands
 
@@ -679,14 +681,13 @@ def _drop_inconsistent(views: dict[str, ViewMeasurement], outlier_m: float) -> N
     Two accepted views that differ by more than ``outlier_m`` are both rejected: with no third
     view there is no telling which one matched a like roof."""
     acc = {p: m.height for p, m in views.items() if not m.reason}
+    far: list[str] = []
     if len(acc) == 2 and abs(np.subtract(*acc.values())) > outlier_m:
-        for p in acc:
-            views[p] = replace(views[p], height=math.nan, reason="inconsistent")
-    if len(acc) < 3:
-        return
-    for p, h in acc.items():
-        if abs(h - float(np.median([o for q, o in acc.items() if q != p]))) > outlier_m:
-            views[p] = replace(views[p], height=math.nan, reason="inconsistent")
+        far = list(acc)
+    elif len(acc) >= 3:
+        far = [p for p, h in acc.items() if abs(h - float(np.median([o for q, o in acc.items() if q != p]))) > outlier_m]
+    for p in far:
+        views[p] = replace(views[p], height=math.nan, reason="inconsistent")
 
 
 def _combine(fid: str, views: dict[str, ViewMeasurement], s: MatchSettings) -> HeightRow:
@@ -883,8 +884,7 @@ def run(maps_dir: str | Path, footprints: str | Path, out: str | Path, layer: st
     fps = read_footprints(footprints, layer, id_field, crs=nad.GetProjection() or None)
     if not fps:
         raise InputFileError(footprints, "no footprint polygons")
-    gt = nad.GetGeoTransform()
-    ext = (gt[0], gt[3] + nad.RasterYSize * gt[5], gt[0] + nad.RasterXSize * gt[1], gt[3])
+    ext = dataset_bounds(nad)
     if not any(b[0] < ext[2] and b[2] > ext[0] and b[1] < ext[3] and b[3] > ext[1] for b in (f.bounds for f in fps)):
         raise InputFileError(footprints, "no footprint overlaps the maps (extent "
                              f"{tuple(round(v, 1) for v in ext)}); is the layer in the maps' CRS?")

@@ -36,6 +36,12 @@ def tool_env() -> dict[str, str]:
     return {"GDAL_CACHEMAX": str(CACHE_MB), **os.environ}
 
 
+def dataset_bounds(ds) -> tuple[float, float, float, float]:
+    """(xmin, ymin, xmax, ymax) of a north-up GDAL dataset."""
+    gt = ds.GetGeoTransform()
+    return (gt[0], gt[3] + ds.RasterYSize * gt[5], gt[0] + ds.RasterXSize * gt[1], gt[3])
+
+
 def write_rgba_geotiff(path: str | Path, rgba: np.ndarray, geotransform: tuple, wkt: str) -> None:
     """Write an (h, w, 4) uint8 image as a tiled RGBA GeoTIFF, atomically (ZSTD level 1: lossless
     and ~3x faster to write than DEFLATE; these are the workflow's intermediate tiles)."""

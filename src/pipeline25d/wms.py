@@ -26,7 +26,7 @@ from urllib.parse import urlsplit
 from .atomic import write_text
 from .errors import InputFileError, MapServiceError
 from .perspectives import ID_PATTERN, Perspective
-from .raster import gdal
+from .raster import dataset_bounds, gdal
 from .serve import serve_until_interrupted
 
 log = logging.getLogger(__name__)
@@ -69,9 +69,7 @@ def read_layer(path: str | Path) -> MapLayer:
         raise InputFileError(path, "its CRS has no EPSG code, which WMS clients need to ask for it")
     if not _has_transparency(ds):
         raise InputFileError(path, "no alpha band and no per-dataset mask: the map would be served opaque")
-    x0, y0 = gt[0], gt[3]
-    x1, y1 = x0 + ds.RasterXSize * gt[1], y0 + ds.RasterYSize * gt[5]
-    return MapLayer(path.stem, path, f"EPSG:{code}", (x0, y1, x1, y0))
+    return MapLayer(path.stem, path, f"EPSG:{code}", dataset_bounds(ds))
 
 
 def _epsg_code(srs) -> str | None:

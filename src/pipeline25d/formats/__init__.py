@@ -55,52 +55,13 @@ def _gltf(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
     return Loaded(load_gltf(path), spec.get("crs"))
 
 
-def _tileset(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
-    from .tiles3d import read_tileset
+def _lazy(module: str, name: str) -> Callable:
+    """A reader function ``name`` of ``formats.<module>``, imported on its first call."""
+    def call(*args):
+        from importlib import import_module
 
-    return read_tileset(path, spec, detail)
-
-
-def _b3dm(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
-    from .tiles3d import read_b3dm
-
-    return read_b3dm(path, spec, detail)
-
-
-def _osgb(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
-    from .osgb import read_osgb
-
-    return read_osgb(path, spec, detail)
-
-
-def _3ds(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
-    from .threeds import read_3ds
-
-    return read_3ds(path, spec, detail)
-
-
-def _cityjson(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
-    from .cityjson import read_cityjson
-
-    return read_cityjson(path, spec, detail)
-
-
-def _cityjson_terrain(path: Path, spec: dict) -> Loaded:
-    from .cityjson import read_cityjson_terrain
-
-    return read_cityjson_terrain(path, spec)
-
-
-def _citygml(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
-    from .citygml import read_citygml
-
-    return read_citygml(path, spec, detail)
-
-
-def _citygml_terrain(path: Path, spec: dict) -> Loaded:
-    from .citygml import read_citygml_terrain
-
-    return read_citygml_terrain(path, spec)
+        return getattr(import_module(f"{__name__}.{module}"), name)(*args)
+    return call
 
 
 #: format name -> reader. Modules are imported on first use (trimesh alone costs seconds).
@@ -110,12 +71,14 @@ READERS: dict[str, Reader] = {
     "ply": Reader(_ply),
     "glb": Reader(_gltf),
     "gltf": Reader(_gltf),
-    "b3dm": Reader(_b3dm, georeferenced=True),
-    "3dtiles": Reader(_tileset, georeferenced=True),
-    "cityjson": Reader(_cityjson, georeferenced=True, terrain=_cityjson_terrain),
-    "citygml": Reader(_citygml, georeferenced=True, terrain=_citygml_terrain),
-    "osgb": Reader(_osgb),
-    "3ds": Reader(_3ds),
+    "b3dm": Reader(_lazy("tiles3d", "read_b3dm"), georeferenced=True),
+    "3dtiles": Reader(_lazy("tiles3d", "read_tileset"), georeferenced=True),
+    "cityjson": Reader(_lazy("cityjson", "read_cityjson"), georeferenced=True,
+                       terrain=_lazy("cityjson", "read_cityjson_terrain")),
+    "citygml": Reader(_lazy("citygml", "read_citygml"), georeferenced=True,
+                      terrain=_lazy("citygml", "read_citygml_terrain")),
+    "osgb": Reader(_lazy("osgb", "read_osgb")),
+    "3ds": Reader(_lazy("threeds", "read_3ds")),
 }
 
 #: file suffix -> format; .json, .gml and .xml are told apart by their content (:func:`detect_format`).
@@ -124,12 +87,17 @@ SUFFIXES = {".obj": "obj", ".ply": "ply", ".dae": "dae", ".glb": "glb", ".gltf":
             ".3ds": "3ds"}
 
 
+def is_osgb_dataset(path: Path) -> bool:
+    """Whether ``path`` is an OSGB dataset folder (ContextCapture: ``Data/Tile_*``, metadata.xml)."""
+    return path.is_dir() and (path / "Data").is_dir()
+
+
 def detect_format(path: Path) -> str:
     """The input format from the file name, for .json, .gml and .xml from its content; a folder
     is an OSGB dataset."""
+    if is_osgb_dataset(path):
+        return "osgb"
     if path.is_dir():
-        if (path / "Data").is_dir():
-            return "osgb"
         raise InputFileError(path, "is a folder but not an OSGB dataset (no Data/ folder); name a model file")
     suffix = path.suffix.lower()
     if suffix in SUFFIXES:
@@ -159,7 +127,7 @@ def detect_format(path: Path) -> str:
 def reader_of(spec: dict, base_dir: Path = Path(".")) -> tuple[Path, str, Reader]:
     """The input's path, format name and reader (``format: auto`` detects it)."""
     path = base_dir / spec["path"]
-    if path.is_dir() and not (path / "Data").is_dir():
+    if path.is_dir() and not is_osgb_dataset(path):
         raise InputFileError(path, "is a directory, not a model file (nor an OSGB dataset folder with Data/)")
     if path.is_file() and path.stat().st_size == 0:
         raise InputFileError(path, "is empty (0 bytes)")
@@ -188,7 +156,8 @@ def load_district(spec: dict, scene_crs: str, max_geometric_error: float | None 
         offset = offset + origin
     if reader.georeferenced and (offset.any() or spec.get("metadata")):
         # these formats carry their own georeferencing; a silently ignored offset would misplace the map
-        raise ConfigError(f"{path}: offset/metadata apply to mesh files (obj, ply, glb, gltf, dae), not {fmt}")
+        placed_by_offset = ", ".join(f for f, r in READERS.items() if not r.georeferenced)
+        raise ConfigError(f"{path}: offset/metadata apply to mesh files ({placed_by_offset}), not {fmt}")
     with warnings.catch_warnings():
         if spec.get("missing_textures", "error") == "error":
             warnings.simplefilter("error", MissingTextureWarning)

@@ -6,6 +6,7 @@ import os
 import shutil
 import subprocess
 import warnings
+from dataclasses import replace
 from pathlib import Path
 from typing import NamedTuple
 
@@ -80,6 +81,7 @@ def crs_name(ref: str) -> str:
             return "EPSG:" + "+".join(str(c) for c in codes)
     return ref
 
+
 def run_converter(args: list[str], cwd: Path, output: Path, what: Path, package: str,
                   env: dict[str, str] | None = None) -> str:
     """Run an external model converter (osgconv, assimp) in ``cwd`` without a display; returns
@@ -124,12 +126,8 @@ def reproject_parts(parts: list[MeshPart], src_crs: str, scene_crs: str, where: 
     except CRSError as exc:
         message = str(exc)
         raise CRSError(message if message.startswith(f"{where}:") else f"{where}: {message}") from None
-    out, start = [], 0
-    for p in parts:
-        end = start + len(p.vertices)
-        out.append(MeshPart(moved[start:end], p.faces, p.colors, p.uv, p.texture, p.name))
-        start = end
-    return out
+    ends = np.cumsum([len(p.vertices) for p in parts])
+    return [replace(p, vertices=v) for p, v in zip(parts, np.split(moved, ends[:-1]))]
 
 
 def in_scene(loaded: Loaded, scene_crs: str, where: str | Path) -> Mesh:
@@ -153,7 +151,7 @@ def checked_parts(parts: list[MeshPart], where: str | Path) -> list[MeshPart]:
         keep = _valid_faces(part, where)
         total += len(keep)
         dropped += int((~keep).sum())
-        out.append(part if keep.all() else _with_faces(part, part.faces[keep]))
+        out.append(part if keep.all() else replace(part, faces=part.faces[keep]))
     if dropped == total and total:
         raise InputFileError(where, f"all {total} triangles are degenerate (zero area)")
     if dropped:
@@ -191,6 +189,3 @@ def _valid_faces(part: MeshPart, where: str | Path) -> np.ndarray:
         keep[start:start + FACE_BATCH] = twice_area > FLAT * longest * longest
     return keep
 
-
-def _with_faces(part: MeshPart, faces: np.ndarray) -> MeshPart:
-    return MeshPart(part.vertices, faces, part.colors, part.uv, part.texture, part.name)
