@@ -16,55 +16,61 @@ APT_PACKAGES := python3-venv python3-dev build-essential gdal-bin libgdal-dev li
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 PYTHON ?= python3
 
-.PHONY: run test osgb-example bench bench-sparse bench-coarse bench-district killtest sweep slurm-bench deps sysdeps clean-results
+.PHONY: run test osgb-example shadow-bench bench bench-sparse bench-coarse bench-district killtest sweep slurm-bench deps sysdeps clean-results
 
 run: deps
-	$(PY) -m pipeline25d demo-city resources/demo
-	$(VENV)/bin/snakemake -j2
+	$(VENV)/bin/pipeline25d demo resources/demo
+	$(VENV)/bin/pipeline25d run config/config.yaml
 
 test: deps
+	$(VENV)/bin/lint-imports
 	$(PY) -m pytest -q; rc=$$?; \
 	  if [ $$rc -eq 5 ]; then echo "pytest collected no tests"; exit 1; fi; exit $$rc
 
 # A generated ContextCapture-like OSGB dataset (two tiles, three PagedLOD levels) through the
 # workflow: resources/osgb-sample, results/osgb/
 osgb-example: deps
-	$(PY) -m pipeline25d.osgb_sample resources/osgb-sample
-	$(VENV)/bin/snakemake -j2 --configfile config/examples/osgb.yaml
+	$(VENV)/bin/pipeline25d sample osgb resources/osgb-sample
+	$(VENV)/bin/pipeline25d run config/examples/osgb.yaml
+
+# What sun shadows cost: the demo-shadows example's az045_el45 tiles rendered with and without
+# shadows in one process (run the example first: .venv/bin/pipeline25d run config/examples/demo-shadows.yaml)
+shadow-bench: deps
+	$(PY) -m pipeline25d_lab.harness.shadow_bench results/demo-shadows/plans/az045_el45.json results/demo-shadows/lod --repeats 3
 
 # City-scale benchmark at the paper's Dataset 2 footprint (Delft LiDAR mesh tiled 12 x 10,
 # decimated to ~5.8 M triangles): writes bench/dataset2.json. BENCH_ARGS overrides, e.g.
 # make bench BENCH_ARGS="--grid 2x2 --name small"
 BENCH_ARGS ?= --grid 12x10 --decimate 0.1 --name dataset2
 bench: deps
-	$(PY) -m pipeline25d.bench $(BENCH_ARGS)
+	$(PY) -m pipeline25d_lab.harness.bench $(BENCH_ARGS)
 
 # A sparse scene against the same content packed: 3 x 3 Delft districts spread 11 district
 # sizes apart (about 6.1 x 5.3 km) and edge to edge; writes bench/sparse.json with the
 # sparse : packed wall-time ratio.
 bench-sparse: deps
-	$(PY) -m pipeline25d.bench --grid 3x3 --decimate 0.1 --spread 11 --name sparse
+	$(PY) -m pipeline25d_lab.harness.bench --grid 3x3 --decimate 0.1 --spread 11 --name sparse
 
 # A coarse map of a large area: 2 x 2 districts of the Delft mesh decimated to ~7k triangles
 # each (28k in all) and stretched 15 x in x and y (about 7.9 x 6.9 km), 9 maps at gsd 2 m;
 # writes bench/coarse.json
 bench-coarse: deps
-	$(PY) -m pipeline25d.bench --grid 2x2 --decimate 0.058 --stretch 15 --gsd 2 --name coarse
+	$(PY) -m pipeline25d_lab.harness.bench --grid 2x2 --decimate 0.058 --stretch 15 --gsd 2 --name coarse
 
 # District update: a 4 x 3 district city (the bench's Delft tiles, gsd 0.125) run from scratch, one district
 # replaced by a new model and the workflow run again; the update's wall time against the full run's
 # and the district's area share, the map and web tiles that changed, and the update against a
 # run from scratch of the updated city (byte for byte); writes bench/districts.json
 bench-district: deps
-	$(PY) -m pipeline25d.district_update --grid 4x3 --decimate 0.1 --gsd 0.125 --district d01-01 --name districts
+	$(PY) -m pipeline25d_lab.harness.district_update --grid 4x3 --decimate 0.1 --gsd 0.125 --district d01-01 --name districts
 
 # Kill-safe resume: runs of the demo city (scale 0.5) interrupted at random moments, 20 by
 # SIGKILL and 10 by SIGINT and SIGTERM in turn, resumed, and compared with an uninterrupted
 # run (sha256 of every map and web tile); writes bench/killtest-sigkill.json and
 # bench/killtest-stop.json
 killtest: deps
-	$(PY) -m pipeline25d.killtest --trials 20 --signals KILL --seed 2 --name killtest-sigkill
-	$(PY) -m pipeline25d.killtest --trials 10 --signals INT,TERM --seed 3 --name killtest-stop
+	$(PY) -m pipeline25d_lab.harness.killtest --trials 20 --signals KILL --seed 2 --name killtest-sigkill
+	$(PY) -m pipeline25d_lab.harness.killtest --trials 10 --signals INT,TERM --seed 3 --name killtest-stop
 
 # Run time against error: one factor at a time around the defaults (gsd, lod.max_error_px,
 # render.samples, tile_size, projection/warp), each variant a whole run of the Delft LiDAR mesh
@@ -72,13 +78,13 @@ killtest: deps
 # overrides, e.g. make sweep SWEEP_ARGS="--quick --name quick"
 SWEEP_ARGS ?= --name sweep
 sweep: deps
-	$(PY) -m pipeline25d.sweep $(SWEEP_ARGS)
+	$(PY) -m pipeline25d_lab.harness.sweep $(SWEEP_ARGS)
 
 # The SLURM profile (profiles/slurm) on a one-node SLURM cluster started on this machine (needs
 # root): the demo city (scale 0.5, nine perspectives) with -j2 and through SLURM; writes
 # bench/slurm.json (jobs, submissions, both wall times, byte-identical maps and tiles or not)
 slurm-bench: deps
-	$(PY) -m pipeline25d.slurm_cluster --scale 0.5 --name slurm
+	$(PY) -m pipeline25d_lab.harness.slurm_cluster --scale 0.5 --name slurm
 
 deps: sysdeps $(STAMP) $(NPM_FILES)
 
@@ -93,12 +99,12 @@ sysdeps:
 	fi
 
 # GDAL's bindings must match the system GDAL and need numpy at build time.
-$(STAMP): requirements.txt pyproject.toml
+# The project and its pinned dependencies come from pyproject.toml (editable, with the test extra).
+$(STAMP): pyproject.toml
 	[ -x $(PY) ] || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip setuptools wheel numpy==2.4.6
 	$(PY) -m pip install -q --no-build-isolation --no-cache-dir GDAL==$$(gdal-config --version)
-	$(PY) -m pip install -q -r requirements.txt
-	$(PY) -m pip install -q --no-deps -e .
+	$(PY) -m pip install -q -e '.[test]'
 	$(PY) -c "from osgeo import gdal_array; import moderngl, fast_simplification, trimesh"
 	touch $@
 

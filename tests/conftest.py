@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from pipeline25d.mesh import MeshPart
+from pipeline25d.core.mesh import MeshPart
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
@@ -16,8 +16,8 @@ DATA = REPO.parent / "shared" / "data"
 
 @pytest.fixture(scope="session")
 def gl_ctx():
-    from pipeline25d.errors import RenderError
-    from pipeline25d.render import create_context
+    from pipeline25d.core.errors import RenderError
+    from pipeline25d.stages.render import create_context
 
     try:
         ctx = create_context()
@@ -55,7 +55,7 @@ def vertical_edge(building: dict, azimuth: float, elevation: float) -> tuple[np.
 
     The nearest corner (smallest p·d) has both its facades facing the camera, so its edge is seen.
     """
-    from pipeline25d.demo import terrain_height
+    from pipeline25d_lab.scenes.demo import terrain_height
 
     t, f = np.radians(azimuth), np.radians(elevation)
     d = np.array([np.sin(t), np.cos(t)])

@@ -1,4 +1,4 @@
-"""The hostile-input corpus (tests/data/bad/, written by pipeline25d.badinputs): every case ends in
+"""The hostile-input corpus (tests/data/bad/, written by pipeline25d_lab.scenes.badinputs): every case ends in
 a message naming the file and the problem and no output that looks complete; the workflow's
 ingest job and the web-tile cut fail with exit status 1 and say so on the terminal."""
 
@@ -14,12 +14,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-
 from conftest import REPO
-from pipeline25d.badinputs import (SCENE_CRS, SQUARE, SQUARE_FACES, cases, table, write_corpus, write_obj)
-from pipeline25d.errors import ConfigError, CRSError
-from pipeline25d.formats import load_district
 from test_workflow import snakemake
+
+from pipeline25d.core.errors import ConfigError, CRSError
+from pipeline25d.formats import load_district
+from pipeline25d_lab.scenes.badinputs import SCENE_CRS, SQUARE, SQUARE_FACES, cases, table, write_corpus, write_obj
 
 CORPUS = REPO / "tests" / "data" / "bad"
 DOC = REPO / "docs" / "hostile-inputs.md"
@@ -38,7 +38,7 @@ def test_the_corpus_is_what_the_generator_writes(tmp_path):
     write_corpus(tmp_path)
     ours = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*") if p.is_file())
     kept = sorted(p.relative_to(CORPUS) for p in CORPUS.rglob("*") if p.is_file())
-    assert ours == kept, "regenerate: python -m pipeline25d.badinputs tests/data/bad"
+    assert ours == kept, "regenerate: python -m pipeline25d_lab.scenes.badinputs tests/data/bad"
     assert [p for p in ours if not filecmp.cmp(tmp_path / p, CORPUS / p, shallow=False)] == []
 
 
@@ -80,7 +80,7 @@ def test_a_crs_that_cannot_be_transformed_names_the_file(tmp_path):
 def test_the_hostile_input_table_in_the_docs_is_the_one_the_corpus_gives():
     text = DOC.read_text()
     generated = table(CORPUS)
-    assert generated in text, "regenerate: python -m pipeline25d.badinputs --table tests/data/bad"
+    assert generated in text, "regenerate: python -m pipeline25d_lab.scenes.badinputs --table tests/data/bad"
     assert len(generated.splitlines()) == len(CASES) + 2
 
 
@@ -163,7 +163,7 @@ def test_a_config_check_names_the_problem_in_process():
 def test_a_whole_run_works_from_a_folder_with_spaces_and_non_ascii_letters(tmp_path):
     """The smallest scene (one 60 m district, one nadir view, flat terrain) run end to end in
     'städte mit leerzeichen/', its model in 'modelle/häuser am fluß.obj'."""
-    from pipeline25d.demo import generate_demo_city
+    from pipeline25d_lab.scenes.demo import generate_demo_city
 
     workdir = tmp_path / "städte mit leerzeichen"
     generate_demo_city(workdir / "modelle", seed=3, n_buildings=6, scale=0.25)
@@ -183,8 +183,8 @@ def test_a_whole_run_works_from_a_folder_with_spaces_and_non_ascii_letters(tmp_p
 
 
 def _noise_map(path: Path) -> None:
-    from pipeline25d.crs import horizontal_wkt
-    from pipeline25d.raster import write_rgba_geotiff
+    from pipeline25d.core.crs import horizontal_wkt
+    from pipeline25d.core.raster import write_rgba_geotiff
 
     rng = np.random.default_rng(2)
     rgba = np.zeros((1500, 2000, 4), np.uint8)
@@ -240,7 +240,7 @@ def test_a_disk_that_fills_up_during_the_web_tile_cut(tmp_path, small_disk, stag
     subprocess.run(cmd, capture_output=True, check=True)
     want = _tile_files(tmp_path / "fresh") if stage == "tiles" else None
     if want is None:
-        from pipeline25d.web_tiles import tms
+        from pipeline25d.stages.tiles.web import tms
 
         tms(tmp_path / "map.tif", "14-17", tmp_path / "fresh", tile_format="png")
         want = _tile_files(tmp_path / "fresh")

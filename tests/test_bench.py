@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from pipeline25d.bench import bench_config, make_scene
+from pipeline25d_lab.harness.bench import bench_config, make_scene
 
 
 def test_mirrored_copies_meet_edge_to_edge_and_keep_facing_up(tmp_path):

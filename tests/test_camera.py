@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from pipeline25d.camera import Extent, PaperCamera, clip_matrix, project, relief_factor
-from pipeline25d.perspectives import Perspective
+from pipeline25d.geometry.camera import Extent, PaperCamera, clip_matrix, project, relief_factor
+from pipeline25d.geometry.perspectives import Perspective
 
 
 def test_paper_camera_reproduces_table_3():

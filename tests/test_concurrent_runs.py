@@ -8,9 +8,9 @@ import time
 import pytest
 import yaml
 
-from pipeline25d.atomic import write_text
-from pipeline25d.bench import results_of, run_workflow, workflow_command
-from pipeline25d.killtest import demo_config, output_digests
+from pipeline25d.core.atomic import write_text
+from pipeline25d_lab.harness.bench import results_of, run_workflow, workflow_command
+from pipeline25d_lab.harness.killtest import demo_config, output_digests
 
 ONE_VIEW = [{"azimuth": 45, "elevation": 45}]
 

@@ -7,8 +7,8 @@ import copy
 import pytest
 
 from pipeline25d.config import check_semantics, validate_schema
-from pipeline25d.errors import ConfigError, InputFileError
-from pipeline25d.perspectives import Perspective, expand
+from pipeline25d.core.errors import ConfigError, InputFileError
+from pipeline25d.geometry.perspectives import Perspective, expand
 
 BASE = {"scene": "t", "crs": "EPSG:25832", "inputs": {"a": {"path": "model.obj"}}}
 
@@ -92,7 +92,7 @@ def test_chunk_size_auto_follows_the_gsd():
 def test_shadows_are_off_by_default_and_the_sun_given_one_way():
     cfg = validate_schema(copy.deepcopy(BASE))
     assert cfg["shadows"] == {"enabled": False, "ambient": 0.5, "texel_px": 0.75}
-    from pipeline25d.sun import check_sun_config
+    from pipeline25d.geometry.sun import check_sun_config
 
     check_sun_config({"enabled": False, "datetime": "not checked while off"})
     check_sun_config({"enabled": True, "azimuth": 135, "elevation": 40})

@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline25d import demo
-from pipeline25d.demo import generate_demo_city, terrain_height
+from pipeline25d_lab.scenes import demo
+from pipeline25d_lab.scenes.demo import generate_demo_city, terrain_height
 
 SEED = 7
 N = 40
@@ -272,7 +272,7 @@ def test_missing_file_triggers_regeneration(tmp_path):
 
 
 def test_bad_parameters_raise_config_error(tmp_path):
-    from pipeline25d.errors import ConfigError
+    from pipeline25d.core.errors import ConfigError
 
     with pytest.raises(ConfigError):
         generate_demo_city(tmp_path, scale=0.0)

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from pipeline25d.errors import InputFileError
+from pipeline25d.core.errors import InputFileError
 from pipeline25d.formats import detect_format, load_district
 
 pytestmark = pytest.mark.skipif(shutil.which("assimp") is None,

@@ -1,4 +1,4 @@
-"""CityGML reader: generated cities with exact truth (pipeline25d.citygml_city) and a real
+"""CityGML reader: generated cities with exact truth (pipeline25d_lab.scenes.citygml_city) and a real
 textured LOD2 building from Project PLATEAU (tests/data/citygml/SOURCE.txt)."""
 
 from __future__ import annotations
@@ -12,11 +12,11 @@ import pytest
 from lxml import etree
 from PIL import Image
 
-from pipeline25d import citygml_city as cc
-from pipeline25d.errors import InputFileError, MissingTextureWarning
+from pipeline25d.core.errors import InputFileError, MissingTextureWarning
 from pipeline25d.formats import detect_format, load_district, load_district_terrain
 from pipeline25d.formats.citygml import read_citygml
 from pipeline25d.formats.surfaces import PALETTE
+from pipeline25d_lab.scenes import citygml_city as cc
 
 DATA = Path(__file__).parent / "data" / "citygml"
 PLATEAU2 = DATA / "53394517_bldg_6697_2_op_CityGML2.gml"

@@ -8,9 +8,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline25d.errors import CRSError, InputFileError
+from pipeline25d.core.errors import CRSError, InputFileError
 from pipeline25d.formats.cityjson import (
-    GROUND_TYPES, PALETTE, load_cityjson, load_cityjson_terrain, source_crs, triangulate_polygon,
+    GROUND_TYPES,
+    PALETTE,
+    load_cityjson,
+    load_cityjson_terrain,
+    source_crs,
+    triangulate_polygon,
 )
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"

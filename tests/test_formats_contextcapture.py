@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline25d.crs import check_scene_crs, transform_points
-from pipeline25d.errors import InputFileError, UnsupportedFeatureError
+from pipeline25d.core.crs import check_scene_crs, transform_points
+from pipeline25d.core.errors import InputFileError, UnsupportedFeatureError
 from pipeline25d.formats.contextcapture import read_metadata_xml
 
 

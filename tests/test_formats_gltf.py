@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline25d.errors import InputFileError, UnsupportedFeatureError
+from pipeline25d.core.errors import InputFileError, UnsupportedFeatureError
 from pipeline25d.formats.gltf import load_gltf, parse_gltf_bytes
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"

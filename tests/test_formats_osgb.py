@@ -1,4 +1,4 @@
-"""OSGB (ContextCapture PagedLOD) reader on the generated sample dataset (pipeline25d.osgb_sample).
+"""OSGB (ContextCapture PagedLOD) reader on the generated sample dataset (pipeline25d_lab.scenes.osgb_sample).
 
 Expected values come from the generator's own definition of the surface (height, colour,
 grid per level, texel size per level), never from the reader.
@@ -18,15 +18,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from conftest import REPO
 from osgeo import gdal
 from PIL import Image
 from pyproj import Transformer
 
-from conftest import REPO
-from pipeline25d import osgb_sample as S
-from pipeline25d.errors import InputFileError
+from pipeline25d.core.errors import InputFileError
 from pipeline25d.formats import detect_format, load_district
 from pipeline25d.formats.osgb import osgconv, read_tiles
+from pipeline25d_lab.scenes import osgb_sample as S
 
 pytestmark = pytest.mark.skipif(shutil.which("osgconv") is None,
                                 reason="OpenSceneGraph's osgconv is not installed (Debian: openscenegraph)")
@@ -208,7 +208,7 @@ def test_empty_trees_and_folders_are_errors(tmp_path):
 
 
 def test_ingest_at_two_gsds_draws_the_level_of_each(dataset, tmp_path, caplog):
-    from pipeline25d.stages import ingest
+    from pipeline25d.stages.ingest import ingest
 
     for gsd in (2.0, 0.5):
         level = S.level_for_gsd(gsd)

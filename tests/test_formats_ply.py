@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from conftest import DATA
-from pipeline25d.errors import InputFileError
+
+from pipeline25d.core.errors import InputFileError
 from pipeline25d.formats.meshfile import load_mesh_file
 from pipeline25d.formats.ply import load_ply
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline25d.errors import CRSError, InputFileError, UnsupportedFeatureError
+from pipeline25d.core.errors import CRSError, InputFileError, UnsupportedFeatureError
 from pipeline25d.formats.tiles3d import load_b3dm, load_tileset, read_content
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"

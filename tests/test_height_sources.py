@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline25d.footprints import Footprint
-from pipeline25d.heights import HeightRow
-from pipeline25d.height_sources import demo_truths, dsm_roof, dtm_under, group_stats, plan, truth_buildings
+from pipeline25d.analysis.height_sources import demo_truths, dsm_roof, dtm_under, group_stats, plan, truth_buildings
+from pipeline25d.analysis.heights import HeightRow
+from pipeline25d.formats.footprints import Footprint
 
 
 def _row(bid: str, combined: float, **views: float) -> HeightRow:
@@ -53,7 +53,7 @@ def test_ground_under_and_dsm_roof_on_analytic_surfaces():
 
 
 def _demo_dir(tmp_path: Path, offset=None) -> tuple[dict, Path]:
-    from pipeline25d.demo import generate_demo_city
+    from pipeline25d_lab.scenes.demo import generate_demo_city
 
     generate_demo_city(tmp_path / "demo", seed=3, n_buildings=12, scale=0.3)
     inputs = {f"d{i}": {"path": str(tmp_path / "demo" / f"d{i}.obj")} for i in range(3)}
@@ -78,7 +78,7 @@ def test_plan_finds_the_demo_truth_and_says_why_it_skips(tmp_path):
 
 
 def test_truth_buildings_follow_the_inputs_and_their_offset(tmp_path):
-    from pipeline25d.demo import terrain_height
+    from pipeline25d_lab.scenes.demo import terrain_height
 
     config, truth_path = _demo_dir(tmp_path, offset=[1000.0, -500.0, 2.0])
     truth = json.loads(truth_path.read_text())
@@ -137,9 +137,9 @@ def test_cityjson_buildings_footprint_roof_and_ground(tmp_path):
 def test_reference_auto_falls_back_to_the_dsm_and_puts_it_on_the_maps_ground(tmp_path):
     """A model that knows no buildings (a PLY): the reference is the DSM's median inside each footprint
     minus the maps' ground under it; a CSV reference is taken as heights above that ground."""
-    from pipeline25d.crs import horizontal_wkt
-    from pipeline25d.height_sources import reference_heights
-    from pipeline25d.terrain import Grid, write_float_geotiff
+    from pipeline25d.analysis.height_sources import reference_heights
+    from pipeline25d.core.crs import horizontal_wkt
+    from pipeline25d.core.grid import Grid, write_float_geotiff
 
     grid = Grid(1000.0, 2040.0, 0.5, 80, 80)                       # 40 m x 40 m, 0.5 m cells
     xs, ys = grid.cell_centres()

@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
-
 from conftest import DATA, box_part
+
+from pipeline25d.core.mesh import Mesh, MeshPart
 from pipeline25d.formats import load_district
-from pipeline25d.ingest import split_into_chunks, write_chunks
-from pipeline25d.lod import build_levels, choose_level
-from pipeline25d.mesh import Mesh, MeshPart
+from pipeline25d.stages.ingest import split_into_chunks, write_chunks
+from pipeline25d.stages.lod import build_levels, choose_level
 
 
 def grid_part(n: int = 40, step: float = 2.0, bump: float = 0.0) -> MeshPart:
@@ -45,8 +45,8 @@ def test_unchanged_chunks_keep_their_files(tmp_path):
 
 
 def test_district_lod_rebuilds_only_changed_chunks_and_removes_stale_ones(tmp_path):
-    from pipeline25d.chunks import content_hash, load_npz
-    from pipeline25d.stages import build_lod, lod_chunks
+    from pipeline25d.stages.chunks import content_hash, load_npz
+    from pipeline25d.stages.lod import build_lod, lod_chunks
 
     chunks, lod = tmp_path / "chunks", tmp_path / "lod"
 
@@ -137,8 +137,8 @@ def test_delft_lidar_mesh_bounds_and_triangles_match_source():
 def test_surface_distances_match_trimesh_closest_point_on_real_meshes(source):
     """Buildings with walls (OBJ) and a LiDAR surface, each simplified as a LOD level: the
     distance from original vertices (and from points off the surface) to it, point by point."""
-    from pipeline25d.lod import simplify_part
-    from pipeline25d.proximity import surface_distances
+    from pipeline25d.geometry.proximity import surface_distances
+    from pipeline25d.stages.lod import simplify_part
 
     mesh = load_district({"path": str(DATA / "delft" / source), "crs": "EPSG:28992"}, "EPSG:28992")
     if len(mesh.parts) == 1:                                   # the LiDAR mesh: one 100 m chunk of it
@@ -161,8 +161,8 @@ def test_surface_distances_match_trimesh_closest_point_on_real_meshes(source):
 
 @needs_data
 def test_dtm_samples_the_same_ground_from_another_crs():
-    from pipeline25d.crs import transform_points
-    from pipeline25d.raster import DTM
+    from pipeline25d.core.crs import transform_points
+    from pipeline25d.core.raster import DTM
 
     rd = DTM(DATA / "delft/delft_dtm.tif", "EPSG:28992")
     utm = DTM(DATA / "delft/delft_dtm.tif", "EPSG:25831")
@@ -175,9 +175,9 @@ def test_dtm_samples_the_same_ground_from_another_crs():
 
 @needs_data
 def test_dtm_read_through_a_window_samples_the_same_heights_with_a_fraction_of_the_cells(tmp_path):
-    from pipeline25d.crs import horizontal_wkt, transform_points
-    from pipeline25d.raster import DTM
-    from pipeline25d.terrain import Grid, write_float_geotiff
+    from pipeline25d.core.crs import horizontal_wkt, transform_points
+    from pipeline25d.core.grid import Grid, write_float_geotiff
+    from pipeline25d.core.raster import DTM
 
     # a hole-free DTM (as terrain: auto writes it): only the window's cells are read
     grid = Grid(84000.0, 448000.0, 0.5, 2000, 2000)
@@ -205,7 +205,7 @@ def test_dtm_read_through_a_window_samples_the_same_heights_with_a_fraction_of_t
 
 @needs_data
 def test_offset_on_a_self_georeferenced_format_is_an_error_not_ignored():
-    from pipeline25d.errors import ConfigError
+    from pipeline25d.core.errors import ConfigError
 
     spec = {"path": str(DATA / "tokyo-chiyoda-b3dm/cesium-rtc-extension.b3dm"), "offset": [10.0, 0.0, 0.0]}
     with pytest.raises(ConfigError, match="offset"):
@@ -216,7 +216,7 @@ def test_texture_drift_on_a_flat_textured_grid_is_the_analytic_shift():
     """A flat grid whose texture coordinates are a linear function of x, y: simplifying it costs
     no geometry, but a merged vertex shows the mean of its originals' coordinates at its new
     place. Where the original showed that coordinate is known in closed form, so the drift is too."""
-    from pipeline25d.lod import _simplify, texture_drift
+    from pipeline25d.stages.lod import _simplify, texture_drift
 
     part = grid_part(bump=0.0)
     x0, y0, size = part.vertices[:, 0].min(), part.vertices[:, 1].min(), 80.0

@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from pipeline25d.killtest import demo_config, differences, live_members, output_digests, run_trials
+from pipeline25d_lab.harness.killtest import demo_config, differences, live_members, output_digests, run_trials
 
 
 def test_digests_cover_maps_and_web_tiles_and_differences_name_each_path(tmp_path):

@@ -8,9 +8,9 @@ import os
 import numpy as np
 import pytest
 
-from pipeline25d.map_parts import COG_BLOCK, map_grid, overview_factors, tile_parts
-from pipeline25d.raster import gdal, write_rgba_geotiff
-from pipeline25d.warp import build_mosaic, warp_to_cog
+from pipeline25d.core.raster import gdal, write_rgba_geotiff
+from pipeline25d.stages.maps.parts import COG_BLOCK, map_grid, overview_factors, tile_parts
+from pipeline25d.stages.maps.warp import build_mosaic, warp_to_cog
 
 GSD, TILE = 0.5, 128
 CRS = "EPSG:25832"
@@ -30,7 +30,7 @@ def test_far_groups_are_parts_and_near_ones_merge():
 
 
 def test_parts_span_their_tiles_content_not_whole_tiles():
-    from pipeline25d.map_parts import part_bounds
+    from pipeline25d.stages.maps.parts import part_bounds
 
     span = TILE * GSD
     tiles = [{"row": 0, "col": 0, "content": [10.0, 20.0, span, span]},
@@ -76,7 +76,7 @@ def _tile_pixels(row: int, col: int) -> np.ndarray:
 @pytest.fixture(scope="module")
 def two_towns(tmp_path_factory):
     """Two groups of rendered tiles 17 tiles apart, mosaicked as the workflow does."""
-    from pipeline25d.crs import horizontal_wkt
+    from pipeline25d.core.crs import horizontal_wkt
 
     d = tmp_path_factory.mktemp("towns")
     cells = [(r, c) for r in range(3) for c in range(3)] + [(r, c) for r in range(20, 22) for c in range(18, 20)]
@@ -164,7 +164,7 @@ def test_web_tiles_of_a_sparse_map_are_gdal2tiles_cut_where_there_is_data(two_to
 
     from PIL import Image
 
-    from pipeline25d.web_tiles import tms
+    from pipeline25d.stages.tiles.web import tms
 
     d, plan, cells = two_towns
     warp_to_cog(d / "mosaic.vrt", [], {"method": "none", "order": 0}, plan, tmp_path / "map.tif",
@@ -194,7 +194,7 @@ def test_web_tiles_of_a_sparse_map_are_gdal2tiles_cut_where_there_is_data(two_to
 
 def test_gdal_block_cache_is_capped_in_process_and_for_the_tools(monkeypatch):
     """A job's memory must not grow with the map: GDAL's default cache (5 % of RAM) is capped."""
-    from pipeline25d.raster import CACHE_MB, gdal, tool_env
+    from pipeline25d.core.raster import CACHE_MB, gdal, tool_env
 
     if "GDAL_CACHEMAX" not in os.environ:
         assert gdal().GetCacheMax() <= CACHE_MB << 20

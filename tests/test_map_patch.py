@@ -7,11 +7,11 @@ import shutil
 
 import numpy as np
 
-from pipeline25d import map_patch
-from pipeline25d.crs import horizontal_wkt
-from pipeline25d.map_patch import block_window, patched_map
-from pipeline25d.raster import gdal, write_rgba_geotiff
-from pipeline25d.warp import build_mosaic, gdal_gcps, raster_geotransform, warp_to_cog
+from pipeline25d.core.crs import horizontal_wkt
+from pipeline25d.core.raster import gdal, write_rgba_geotiff
+from pipeline25d.stages.maps import patch as map_patch
+from pipeline25d.stages.maps.patch import block_window, patched_map
+from pipeline25d.stages.maps.warp import build_mosaic, gdal_gcps, raster_geotransform, warp_to_cog
 
 GSD, TILE, ROWS, COLS = 0.5, 128, 10, 12
 CRS = "EPSG:25832"

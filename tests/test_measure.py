@@ -1,4 +1,4 @@
-"""Measuring on a map (pipeline25d.measure): exact recovery from the camera's own projection, and the
+"""Measuring on a map (pipeline25d.analysis.measure): exact recovery from the camera's own projection, and the
 `measure` command on the small demo city against its truth."""
 
 from __future__ import annotations
@@ -11,12 +11,12 @@ import sys
 
 import numpy as np
 import pytest
-
 from conftest import roof_colour, vertical_edge
-from pipeline25d.camera import project
-from pipeline25d.errors import InputFileError, MeasureError
-from pipeline25d.measure import facade_area, ground_length, measure_height, open_map, pixel_to_map
-from pipeline25d.perspectives import Perspective
+
+from pipeline25d.analysis.measure import facade_area, ground_length, measure_height, open_map, pixel_to_map
+from pipeline25d.core.errors import InputFileError, MeasureError
+from pipeline25d.geometry.camera import project
+from pipeline25d.geometry.perspectives import Perspective
 
 VIEWS = [Perspective(0, 45), Perspective(45, 45), Perspective(200, 30), Perspective(300, 10), Perspective(90, 80)]
 BASE = np.array([691234.56, 5334567.89, 523.4])     # UTM-sized coordinates, as the demo's
@@ -147,7 +147,7 @@ def roof_on_map(results, building: dict, p: Perspective) -> np.ndarray | None:
 def test_measure_command_gives_a_demo_buildings_height(small_run):
     """Base: a flat-roofed building's footprint centre (ground lies at its orthographic place); top: its roof's
     centroid found on the map. Within 1 px·gsd/cot φ of the truth (eave − terrain under the centre)."""
-    from pipeline25d.demo import terrain_height
+    from pipeline25d_lab.scenes.demo import terrain_height
 
     workdir, results = small_run
     truth = json.loads((workdir / "resources" / "demo" / "truth.json").read_text())

@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from pipeline25d.camera import project, view_direction
-from pipeline25d.paper_camera import PaperCamera, _corners
-from pipeline25d.perspectives import Perspective
+from pipeline25d.geometry.camera import project, view_direction
+from pipeline25d.geometry.paper_camera import PaperCamera, _corners
+from pipeline25d.geometry.perspectives import Perspective
 
 BOX = ((-50.0, -50.0, -50.0), (50.0, 50.0, 50.0))  # the Table 3 model
 S2 = math.sqrt(0.5)

@@ -7,9 +7,17 @@ import math
 import numpy as np
 import pytest
 
-from pipeline25d.perspectives import Perspective
-from pipeline25d.plan import (TILE_OVERHEAD, TOP_LEVEL, block_node, block_spec_hash, plan_block, plan_blocks,
-                              plan_perspective, tile_cost)
+from pipeline25d.geometry.perspectives import Perspective
+from pipeline25d.stages.plan import (
+    TILE_OVERHEAD,
+    TOP_LEVEL,
+    block_node,
+    block_spec_hash,
+    plan_block,
+    plan_blocks,
+    plan_perspective,
+    tile_cost,
+)
 
 
 def _plan(hashes: dict | None = None, pitch: float = 100.0, size: float = 100.0, n=(5, 3)) -> dict:
@@ -79,7 +87,7 @@ def test_a_chunk_content_change_rehashes_only_the_tiles_and_blocks_that_draw_it(
 
 
 def test_a_tiles_content_box_holds_its_chunks_projected_boxes_and_no_more():
-    from pipeline25d.camera import projected_box
+    from pipeline25d.geometry.camera import projected_box
 
     chunks = [{"id": "a", "district": "d", "bounds": [[3.0, 4.0, 0.0], [21.0, 9.0, 12.0]], "errors": [0.0],
                "ground": None}]

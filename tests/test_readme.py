@@ -1,8 +1,9 @@
 """Every command the README shows works as written from the repository root, with no PATH set by hand.
 
 Each command is checked as far as it can be without its inputs: programs are the venv's or
-make, make targets dry-run (``make -n``), Snakemake commands dry-run (``-n``) on their
-configs, and Python modules answer ``--help`` with every option the README gives them.
+make, make targets dry-run (``make -n``), Snakemake and ``pipeline25d run`` commands dry-run
+on their configs, and every ``pipeline25d`` command answers ``--help`` with every option the
+README gives it.
 ``make run``/``make test`` themselves run in CI from a fresh clone (``.ci/run``).
 """
 
@@ -18,7 +19,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 README = (REPO / "README.md").read_text()
-PROGRAM = re.compile(r"(make|python3?|snakemake|pytest|pip)\b|\.venv/bin/")
+PROGRAM = re.compile(r"(make|python3?|snakemake|pytest|pip)\b|pipeline25d(?![.\w])|\.venv/bin/")
 
 
 def shown_commands() -> list[str]:
@@ -38,8 +39,13 @@ COMMANDS = shown_commands()
 
 def test_the_readme_shows_the_commands_a_new_user_needs():
     assert COMMANDS[:2] == ["make run", "make test"]            # the first two, as the guide asks
-    assert any(c.startswith(".venv/bin/snakemake") for c in COMMANDS)
-    assert any(c.startswith(".venv/bin/python -m") for c in COMMANDS)
+    assert any(c.startswith(".venv/bin/snakemake") for c in COMMANDS)   # the engine, still usable directly
+    assert any(c.startswith(".venv/bin/pipeline25d run ") for c in COMMANDS)
+
+
+def test_the_readme_has_one_front_door():
+    """No ``python -m pipeline25d…`` module commands: every tool is a ``pipeline25d`` command."""
+    assert not re.search(r"python3? -m pipeline25d", README)
 
 
 @pytest.mark.parametrize("command", COMMANDS)
@@ -61,7 +67,7 @@ def test_make_targets_dry_run(command):
 
 #: README commands that generate an example's input under resources/: {folder: command}
 GENERATORS = {m.group(1): c for c in COMMANDS
-              if (m := re.fullmatch(r"\.venv/bin/python -m pipeline25d\.\w+ (resources/[\w.-]+)", c))}
+              if (m := re.fullmatch(r"\.venv/bin/pipeline25d (?:demo|sample \w+) (resources/[\w.-]+)", c))}
 
 
 def _generate_inputs(configfile: Path) -> None:
@@ -75,27 +81,36 @@ def _generate_inputs(configfile: Path) -> None:
             subprocess.run(shlex.split(GENERATORS[folder]), cwd=REPO, check=True, capture_output=True)
 
 
-@pytest.mark.parametrize("command", [c for c in COMMANDS if c.startswith(".venv/bin/snakemake")])
-def test_snakemake_commands_dry_run(command):
+RUNS = [c for c in COMMANDS if c.startswith((".venv/bin/snakemake", ".venv/bin/pipeline25d run"))]
+
+
+@pytest.mark.parametrize("command", RUNS)
+def test_workflow_commands_dry_run(command):
     args = shlex.split(command)
     if "--unlock" in args:
         pytest.skip("--unlock only acts on a locked folder")
-    for k, arg in enumerate(args[:-1]):
-        if arg == "--configfile":
-            assert (REPO / args[k + 1]).exists(), f"{args[k + 1]} is not in the repository"
-            _generate_inputs(REPO / args[k + 1])
-    proc = subprocess.run(args + ["-n", "--quiet"], cwd=REPO, capture_output=True, text=True)
+    configs = [args[k + 1] for k, arg in enumerate(args[:-1]) if arg == "--configfile"]
+    if args[1] == "run":
+        configs += [a for a in args[2:3] if a.endswith(".yaml")]
+    for config in configs:
+        assert (REPO / config).exists(), f"{config} is not in the repository"
+        _generate_inputs(REPO / config)
+    dry = ["-n", "--quiet"] if args[0].endswith("snakemake") else ["--dry-run", "--quiet"]
+    proc = subprocess.run(args + dry, cwd=REPO, capture_output=True, text=True)
     if proc.returncode and "shared/data" in proc.stdout + proc.stderr and not (REPO.parent / "shared").exists():
         pytest.skip("the shared data are not beside this checkout")
     assert proc.returncode == 0, (proc.stdout + proc.stderr)[-2000:]
 
 
-@pytest.mark.parametrize("command", [c for c in COMMANDS if c.startswith(".venv/bin/python -m")])
-def test_python_modules_take_the_options_shown(command):
+@pytest.mark.parametrize("command", [c for c in COMMANDS if c.startswith(".venv/bin/pipeline25d ")])
+def test_cli_commands_take_the_options_shown(command):
     args = shlex.split(command)
-    module = args[2]
-    sub = [args[3]] if len(args) > 3 and re.fullmatch(r"[a-z][a-z-]*", args[3]) else []
-    proc = subprocess.run([args[0], "-m", module, *sub, "--help"], cwd=REPO, capture_output=True, text=True)
+    words = []                                  # the command and its sub-commands: bare words up to the first path
+    for arg in args[1:]:
+        if not re.fullmatch(r"[a-z][a-z-]*", arg):
+            break
+        words.append(arg)
+    proc = subprocess.run([args[0], *words, "--help"], cwd=REPO, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
     for option in (a.split("=")[0] for a in args if a.startswith("--")):
-        assert option in proc.stdout, f"{module} {' '.join(sub)} has no option {option}"
+        assert option in proc.stdout, f"pipeline25d {' '.join(words)} has no option {option}"

@@ -6,13 +6,13 @@ import io
 
 import numpy as np
 import pytest
-
 from conftest import box_part, ground_part
-from pipeline25d.camera import Extent, pixel_size, project
-from pipeline25d.gcps import observations
-from pipeline25d.mesh import MeshPart
-from pipeline25d.perspectives import Perspective
-from pipeline25d.render import TileRenderer, TileView
+
+from pipeline25d.core.mesh import MeshPart
+from pipeline25d.geometry.camera import Extent, pixel_size, project
+from pipeline25d.geometry.perspectives import Perspective
+from pipeline25d.stages.gcps import observations
+from pipeline25d.stages.render import TileRenderer, TileView
 
 E0, N0, Z0 = 691000.0, 5334000.0, 500.0   # UTM-sized origin: exercises float32 precision
 GSD, SIZE = 0.25, 256
@@ -165,7 +165,8 @@ def test_floating_and_buried_markers_are_rejected_tilted_ones_on_slopes_accepted
 
 def test_depth_pass_gives_exact_heights_at_cell_centres(gl_ctx):
     """The nadir depth pass (the DSM) against an analytic tilted plane at UTM coordinates."""
-    from pipeline25d.terrain import Grid, render_height_map
+    from pipeline25d.core.grid import Grid
+    from pipeline25d.stages.terrain.dsm import render_height_map
 
     def z_fn(x, y):
         return 300.0 + 0.3 * (x - E0) + 0.1 * (y - N0)

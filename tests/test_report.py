@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from pipeline25d.report import _ratio, fmt_measure, heights_section
+from pipeline25d.publish.report import _ratio, fmt_measure, heights_section
 
 
 def test_measurements_never_print_as_zero():
@@ -34,7 +34,7 @@ def test_size_ratio_puts_the_larger_side_first():
 def test_stage_timings_count_only_this_configurations_jobs(tmp_path):
     """Benchmark files an earlier configuration left behind (a removed district, a render block of
     another grouping) do not count in the report's timings."""
-    from pipeline25d.report import current_jobs, stage_timings
+    from pipeline25d.publish.report import current_jobs, stage_timings
 
     def tsv(rel: str, seconds: float) -> None:
         path = tmp_path / "benchmarks" / rel

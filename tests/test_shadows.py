@@ -8,17 +8,24 @@ from datetime import datetime
 
 import numpy as np
 import pytest
-
 from conftest import box_part, ground_part
-from pipeline25d.camera import Extent, project
-from pipeline25d.errors import ConfigError
-from pipeline25d.mesh import MeshPart
-from pipeline25d.perspectives import Perspective
-from pipeline25d.plan import plan_perspective, tile_content
-from pipeline25d.render import ShadowView, TileRenderer, TileView
-from pipeline25d.stages import render_plan_tile
-from pipeline25d.sun import (BIAS_TEXELS, PCF_RADIUS, Sun, SunFrame, resolve_sun, shadow_footprints,
-                             sun_position)
+
+from pipeline25d.core.errors import ConfigError
+from pipeline25d.core.mesh import MeshPart
+from pipeline25d.geometry.camera import Extent, project
+from pipeline25d.geometry.perspectives import Perspective
+from pipeline25d.geometry.sun import (
+    BIAS_TEXELS,
+    PCF_RADIUS,
+    Sun,
+    SunFrame,
+    resolve_sun,
+    shadow_footprints,
+    sun_position,
+)
+from pipeline25d.stages.plan import plan_perspective, tile_content
+from pipeline25d.stages.render import ShadowView, TileRenderer, TileView
+from pipeline25d.stages.render_block import render_plan_tile
 
 E0, N0, Z0 = 691008.0, 5334016.0, 500.0   # UTM-sized, on the 64 m tile grid used below
 GREY = 200
@@ -378,10 +385,10 @@ def test_the_workflow_casts_shadows_and_renders_again_when_they_change(tmp_path_
     import json
 
     from osgeo import gdal
-
-    from pipeline25d.crs import transform_points
-    from pipeline25d.plan import plan_blocks
     from test_workflow import demo_run, snakemake
+
+    from pipeline25d.core.crs import transform_points
+    from pipeline25d.stages.plan import plan_blocks
 
     views = [{"azimuth": 0, "elevation": 90}, {"azimuth": 45, "elevation": 45}]
     shadows = {"enabled": True, "datetime": "2024-09-15T10:30:00+02:00"}

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import pytest
 
-from pipeline25d import slurm_cluster
-from pipeline25d.errors import ClusterError
-from pipeline25d.killtest import demo_config
-from pipeline25d.slurm_cluster import local_against_slurm, local_cluster, logged_counts, missing
+from pipeline25d.core.errors import ClusterError
+from pipeline25d_lab.harness import slurm_cluster
+from pipeline25d_lab.harness.killtest import demo_config
+from pipeline25d_lab.harness.slurm_cluster import local_against_slurm, local_cluster, logged_counts, missing
 
 TWO_VIEWS = [{"azimuth": 45, "elevation": 45}, {"azimuth": 0, "elevation": 90}]
 

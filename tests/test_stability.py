@@ -15,11 +15,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline25d.chunks import chunk_origin
-from pipeline25d.mesh import MeshPart
-from pipeline25d.perspectives import Perspective
-from pipeline25d.plan import plan_perspective, tile_content, tile_extent, tile_span
-from pipeline25d.render import TileRenderer, TileView
+from pipeline25d.core.mesh import MeshPart
+from pipeline25d.geometry.perspectives import Perspective
+from pipeline25d.stages.chunks import chunk_origin
+from pipeline25d.stages.plan import plan_perspective, tile_content, tile_extent, tile_span
+from pipeline25d.stages.render import TileRenderer, TileView
 
 settings.register_profile("ci", derandomize=True, print_blob=True, deadline=None)
 settings.load_profile("ci")

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from pipeline25d.pareto import pareto_front
-from pipeline25d.sweep import QUICK, Variant, build_scene, merged, nested, run_sweep, schedule, variants
-from pipeline25d.sweep_report import DPI, FIGSIZE, OBJECTIVES, format_table, summarize, write_sweep
+from pipeline25d_lab.harness.pareto import pareto_front
+from pipeline25d_lab.harness.sweep import QUICK, Variant, build_scene, merged, nested, run_sweep, schedule, variants
+from pipeline25d_lab.harness.sweep_report import DPI, FIGSIZE, OBJECTIVES, format_table, summarize, write_sweep
 
 NAN = math.nan
 
@@ -115,9 +115,9 @@ def test_the_defaults_repeats_are_spread_through_the_sweep():
 
 
 def test_map_error_is_the_mean_colour_difference_over_covered_pixels(tmp_path):
-    from pipeline25d.crs import horizontal_wkt
-    from pipeline25d.raster import write_rgba_geotiff
-    from pipeline25d.sweep import map_error
+    from pipeline25d.core.crs import horizontal_wkt
+    from pipeline25d.core.raster import write_rgba_geotiff
+    from pipeline25d_lab.harness.sweep import map_error
 
     ref = np.zeros((40, 50, 4), np.uint8)
     ref[10:30, 10:40] = (100, 120, 140, 255)

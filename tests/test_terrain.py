@@ -5,10 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline25d.gcp_sites import SiteRules, select_sites
-from pipeline25d.perspectives import Perspective
-from pipeline25d.terrain import Grid, csf_ground, interpolate_dtm, trim_object_edges
-from pipeline25d.warp import MIN_CHECK_POINTS, choose, residuals
+from pipeline25d.core.grid import Grid
+from pipeline25d.geometry.perspectives import Perspective
+from pipeline25d.stages.gcp_sites import SiteRules, select_sites
+from pipeline25d.stages.maps.warp import MIN_CHECK_POINTS, choose, residuals
+from pipeline25d.stages.terrain.dtm import interpolate_dtm
+from pipeline25d.stages.terrain.ground import csf_ground, trim_object_edges
 
 E0, N0 = 600000.0, 5250000.0
 
@@ -113,7 +115,7 @@ def test_too_few_check_points_give_no_figure(n_check):
 def test_a_large_tps_that_is_not_chosen_is_not_fitted_on_every_gcp():
     """TPS is cubic in the GCP count: with more GCPs than cross-validation samples, a TPS that
     loses is recorded with its CV score but no full fit; the polynomials are still scored."""
-    from pipeline25d.warp import CV_MAX_GCPS
+    from pipeline25d.stages.maps.warp import CV_MAX_GCPS
 
     rng = np.random.default_rng(4)
     plan = {"perspective": {"id": "az045_el45", "elevation": 45}, "gsd": 0.5, "z0": 0.0, "projection": "plane"}

@@ -5,10 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline25d.gcp_sites import SiteRules, select_sites
-from pipeline25d.perspectives import Perspective
-from pipeline25d.terrain import (FloatRaster, Grid, csf_ground, dtm_blocks, float_geotiff_writer, ground_blocks,
-                                 interpolate_dtm, cell_blocks, trim_object_edges)
+from pipeline25d.core.grid import FloatRaster, Grid, cell_blocks, float_geotiff_writer
+from pipeline25d.geometry.perspectives import Perspective
+from pipeline25d.stages.gcp_sites import SiteRules, select_sites
+from pipeline25d.stages.terrain.dtm import dtm_blocks, interpolate_dtm
+from pipeline25d.stages.terrain.ground import csf_ground, ground_blocks, trim_object_edges
 
 E0, N0 = 600000.0, 5250000.0
 MAX_OBJECT_M = 40.0
@@ -139,7 +140,7 @@ def sparse_scene():
 def test_empty_land_is_not_filtered_and_the_districts_are_as_alone(monkeypatch):
     """A window without model costs no cloth simulation; the districts' ground is what the
     filter finds on each district alone (the empty land between them changes nothing)."""
-    import pipeline25d.terrain as terrain
+    import pipeline25d.stages.terrain.ground as terrain
 
     grid, dsm = sparse_scene()
     calls = []
@@ -188,7 +189,7 @@ def test_dtm_only_where_it_is_needed():
 def test_near_windows_take_each_cell_near_the_mask_once_with_all_it_can_see():
     from scipy import ndimage as ndi
 
-    from pipeline25d.terrain import near_windows
+    from pipeline25d.stages.terrain.dtm import near_windows
 
     rng = np.random.default_rng(5)
     mask = np.zeros((300, 410), bool)
@@ -214,7 +215,7 @@ def test_near_windows_take_each_cell_near_the_mask_once_with_all_it_can_see():
 def test_the_fill_of_a_sparse_window_equals_gdals_fill_of_all_of_it():
     """The fill runs only on the ground's box grown by the search; GDAL's FillNodata run over the
     whole window (its reference) gives the same values, NaN beyond the search included."""
-    from pipeline25d.terrain import _fill_nodata, _fill_window
+    from pipeline25d.stages.terrain.dtm import _fill_nodata, _fill_window
 
     rng = np.random.default_rng(3)
     seed = np.full((400, 500), np.nan)
@@ -228,7 +229,7 @@ def test_the_fill_of_a_sparse_window_equals_gdals_fill_of_all_of_it():
 
 
 def test_under_chunks_meets_exactly_the_blocks_under_a_footprint():
-    from pipeline25d.stages import _under_chunks
+    from pipeline25d.stages.scene import _under_chunks
 
     grid = Grid(E0, N0 + 1000, 0.5, 4000, 2000)            # 2 x 1 km
     bounds = np.array([[[E0 + 100, N0 + 900, 0], [E0 + 180, N0 + 980, 30]]])
@@ -241,7 +242,7 @@ def test_under_chunks_meets_exactly_the_blocks_under_a_footprint():
 
 def test_empty_blocks_are_not_stored(tmp_path):
     """An all-NaN block is not written: its GeoTIFF tiles have no data on disk and read as NaN."""
-    from pipeline25d.raster import gdal
+    from pipeline25d.core.raster import gdal
 
     grid = Grid(E0, N0 + 512, 1.0, 768, 512)
     values = np.full(grid.shape, np.nan, np.float32)
@@ -258,7 +259,7 @@ def test_empty_blocks_are_not_stored(tmp_path):
 
 
 def test_islands_are_the_groups_of_model_gap_cells_apart():
-    from pipeline25d.terrain import islands
+    from pipeline25d.stages.terrain.ground import islands
 
     valid = np.zeros((60, 80), bool)
     valid[2:10, 3:12] = True           # A

@@ -9,12 +9,12 @@ import urllib.error
 import urllib.request
 
 import pytest
-
-from pipeline25d.errors import InputFileError
-from pipeline25d.serve import byte_range, make_server
-from pipeline25d.tile_archive import pyramid_tiles, write_pmtiles
-from pipeline25d.web_tiles import tms
 from test_tms import _smooth_map
+
+from pipeline25d.core.errors import InputFileError
+from pipeline25d.publish.serve import byte_range, make_server
+from pipeline25d.stages.tiles.archive import pyramid_tiles, write_pmtiles
+from pipeline25d.stages.tiles.web import tms
 
 
 @pytest.mark.parametrize("tile_format", ["webp", "png"])

@@ -10,9 +10,9 @@ import sys
 import numpy as np
 from PIL import Image
 
-from pipeline25d.raster import write_rgba_geotiff
-from pipeline25d.crs import transform_points
-from pipeline25d.web_tiles import BLOCK_TILES, WEB_MERCATOR, tms
+from pipeline25d.core.crs import transform_points
+from pipeline25d.core.raster import write_rgba_geotiff
+from pipeline25d.stages.tiles.web import BLOCK_TILES, WEB_MERCATOR, tms
 
 
 def test_tiles_match_a_default_gdal2tiles_cut(tmp_path):
@@ -27,7 +27,7 @@ def test_tiles_match_a_default_gdal2tiles_cut(tmp_path):
     rgba[:200, :300] = 0        # a transparent corner, RGB 0 under it as the renderer writes it (gdalwarp
     #                             zeroes colour under alpha 0 anyway; gdal2tiles' own warp would average it into edges)
     cog = tmp_path / "map.tif"
-    from pipeline25d.crs import horizontal_wkt
+    from pipeline25d.core.crs import horizontal_wkt
 
     write_rgba_geotiff(cog, rgba, (691000.0, 0.5, 0.0, 5334000.0, 0.0, -0.5), horizontal_wkt("EPSG:25832"))
     ours, ref = tmp_path / "ours", tmp_path / "ref"
@@ -43,7 +43,7 @@ def test_tiles_match_a_default_gdal2tiles_cut(tmp_path):
 
 
 def _smooth_map(path):
-    from pipeline25d.crs import horizontal_wkt
+    from pipeline25d.core.crs import horizontal_wkt
 
     h, w = 600, 800
     yy, xx = np.mgrid[0:h, 0:w]
@@ -75,8 +75,8 @@ def test_webp_tiles_are_the_png_tiles_lossy_and_keep_transparency(tmp_path):
 def test_jpeg_maps_keep_their_transparency_as_a_mask_that_the_readers_use(tmp_path):
     from osgeo import gdal
 
-    from pipeline25d.evaluate import _read_window
-    from pipeline25d.warp import warp_to_cog
+    from pipeline25d.analysis.evaluate import _read_window
+    from pipeline25d.stages.maps.warp import warp_to_cog
 
     _smooth_map(tmp_path / "map.tif")
     plan = {"crs": "EPSG:25832", "gsd": 0.5}
@@ -108,7 +108,7 @@ def test_sigterm_removes_a_jobs_temporaries_like_ctrl_c(tmp_path):
     import signal
     import time
 
-    script = (f"import time; from pipeline25d.atomic import atomic_path; from pipeline25d.logsetup import log_to\n"
+    script = (f"import time; from pipeline25d.core.atomic import atomic_path; from pipeline25d.core.logsetup import log_to\n"
               f"log_to({str(tmp_path / 'job.log')!r})\n"
               f"with atomic_path({str(tmp_path / 'out.tif')!r}) as tmp:\n"
               f"    tmp.write_bytes(b'partial'); print('ready', flush=True); time.sleep(60)\n")
@@ -132,7 +132,7 @@ def test_an_update_recuts_only_the_web_tiles_a_changed_district_reaches_and_equa
     import hashlib
     import os
 
-    from pipeline25d.crs import horizontal_wkt
+    from pipeline25d.core.crs import horizontal_wkt
 
     wkt = horizontal_wkt("EPSG:25832")
     gt = (691000.0, 0.5, 0.0, 5334000.0, 0.0, -0.5)
@@ -193,7 +193,7 @@ def test_sigterm_stops_a_cut_at_once_and_the_next_cut_finishes_it(tmp_path):
     import signal
     import time
 
-    from pipeline25d.crs import horizontal_wkt
+    from pipeline25d.core.crs import horizontal_wkt
 
     rng = np.random.default_rng(2)
     h, w = 3000, 4000
@@ -203,7 +203,7 @@ def test_sigterm_stops_a_cut_at_once_and_the_next_cut_finishes_it(tmp_path):
     write_rgba_geotiff(tmp_path / "map.tif", rgba, (691000.0, 0.5, 0.0, 5334000.0, 0.0, -0.5),
                        horizontal_wkt("EPSG:25832"))
     work, out = tmp_path / "work", tmp_path / "out"
-    script = (f"from pipeline25d.logsetup import log_to; from pipeline25d.web_tiles import tms\n"
+    script = (f"from pipeline25d.core.logsetup import log_to; from pipeline25d.stages.tiles.web import tms\n"
               f"log_to({str(tmp_path / 'job.log')!r})\n"
               f"tms({str(tmp_path / 'map.tif')!r}, 'auto', {str(out)!r}, processes=2, work_dir={str(work)!r})\n")
     proc = subprocess.Popen([sys.executable, "-c", script], start_new_session=True)

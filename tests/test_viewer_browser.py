@@ -1,5 +1,5 @@
 """The web viewer in headless Chromium (Debian's ``chromium``, driven by Playwright) over the small demo
-run served by pipeline25d.serve: tiles load with no 404, the URL hash carries the view and opens it again,
+run served by pipeline25d.publish.serve: tiles load with no 404, the URL hash carries the view and opens it again,
 [ and ] switch perspective keeping place and zoom, the height tool measures a demo building within
 1 px·gsd/cot φ of its truth, also on the map turned so the view direction points up (r), and the same
 run with its pyramids as PMTiles archives loads its tiles by range requests. Screenshots go to the test's
@@ -17,11 +17,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-
 from conftest import roof_colour, vertical_edge
-from pipeline25d.crs import transform_points
-from pipeline25d.serve import make_server
-from pipeline25d.tile_archive import pyramid_tiles
+
+from pipeline25d.core.crs import transform_points
+from pipeline25d.publish.serve import make_server
+from pipeline25d.stages.tiles.archive import pyramid_tiles
 
 CHROMIUM = shutil.which("chromium")
 SHOTS = Path(os.environ.get("PIPELINE25D_SHOTS", "/tmp/viewer-shots"))

@@ -24,9 +24,9 @@ from urllib.parse import urlencode
 import numpy as np
 import pytest
 
-from pipeline25d.errors import InputFileError, MapServiceError
-from pipeline25d.raster import gdal
-from pipeline25d.wms import EXTRA_SRS, WMSServer, find_mapserv, write_mapfile
+from pipeline25d.core.errors import InputFileError, MapServiceError
+from pipeline25d.core.raster import gdal
+from pipeline25d.publish.wms import EXTRA_SRS, WMSServer, find_mapserv, write_mapfile
 
 WMS = "{http://www.opengis.net/wms}"
 EPSG = 25832
@@ -271,7 +271,7 @@ def test_the_serve_command_answers_on_its_port_and_stops_on_ctrl_c(synthetic, ma
     with socket.socket() as sock:                    # a free port
         sock.bind(("127.0.0.1", 0))
         port = sock.getsockname()[1]
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline25d.wms", "serve", str(synthetic / "wms" / "syn.map"),
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline25d.publish.wms", "serve", str(synthetic / "wms" / "syn.map"),
                              "--port", str(port)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         url = f"http://127.0.0.1:{port}/wms?SERVICE=WMS&VERSION=1.3.0&REQUEST=GetCapabilities"
@@ -322,8 +322,8 @@ def test_maps_that_cannot_be_served_are_named_with_the_problem(tmp_path):
 def test_the_workflow_maps_are_served_as_they_are(tmp_path, mapserv):
     """A small demo city through the workflow up to its wms rule; each whole map served in its
     own CRS equals the COG (rendered maps have antialiased, partly transparent edges)."""
-    from pipeline25d.bench import run_workflow
-    from pipeline25d.killtest import demo_config
+    from pipeline25d_lab.harness.bench import run_workflow
+    from pipeline25d_lab.harness.killtest import demo_config
 
     config = {**demo_config(tmp_path / "scene", 0.25, [{"azimuth": 45, "elevation": 45}, {"azimuth": 0, "elevation": 90}]),
               "scene": "wmsdemo"}

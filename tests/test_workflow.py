@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-
 from conftest import REPO
-from pipeline25d.demo import generate_demo_city
-from pipeline25d.plan import plan_blocks
+
+from pipeline25d.stages.plan import plan_blocks
+from pipeline25d_lab.scenes.demo import generate_demo_city
 
 SMALL_PERSPECTIVES = [{"azimuth": 0, "elevation": 90}, {"azimuth": 45, "elevation": 45},
                       {"azimuth": 200, "elevation": 30}]
@@ -185,7 +185,7 @@ def test_heights_step_measures_every_demo_building_against_its_truth(small_run):
     the model), which the generator's analytic terrain checks independently."""
     import csv
 
-    from pipeline25d.demo import terrain_height
+    from pipeline25d_lab.scenes.demo import terrain_height
 
     workdir, results = small_run
     stats = json.loads((results / "heights.json").read_text())
@@ -219,8 +219,8 @@ def test_without_a_nadir_map_the_report_says_heights_were_not_measured(plane_run
 
 def test_derived_dtm_matches_the_demo_terrain(small_run):
     """The DTM from the model against the generator's exact terrain function (independent truth)."""
-    from pipeline25d.demo import terrain_height
-    from pipeline25d.terrain import read_float_geotiff
+    from pipeline25d.core.grid import read_float_geotiff
+    from pipeline25d_lab.scenes.demo import terrain_height
 
     _, results = small_run
     dtm, grid = read_float_geotiff(results / "terrain" / "dtm.tif")
@@ -234,7 +234,7 @@ def test_warped_map_puts_check_points_on_the_ground(small_run):
     """Independent of the warp's own scoring: sample the final COG where check points should be."""
     from osgeo import gdal
 
-    from pipeline25d.gcps import read_csv
+    from pipeline25d.stages.gcps import read_csv
 
     _, results = small_run
     pid = "az045_el45"
@@ -348,7 +348,7 @@ def test_plain_loop_reference_draws_the_same_tiles(small_run):
     """The benchmark's plain moderngl loop covers what the render jobs covered, tile by tile."""
     from osgeo import gdal
 
-    from pipeline25d.render_reference import plain_loop_seconds
+    from pipeline25d_lab.harness.render_reference import plain_loop_seconds
 
     _, results = small_run
     plan = json.loads((results / "plans" / "az045_el45.json").read_text())

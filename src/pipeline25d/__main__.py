@@ -1,5 +1,5 @@
 import sys
 
-from .cli import main
+from pipeline25d.cli import main
 
 sys.exit(main())

@@ -12,10 +12,10 @@ from typing import Any
 
 import yaml
 
-from .crs import check_scene_crs, parse_crs, transformer
-from .errors import ConfigError, CRSError, InputFileError
-from .perspectives import Perspective, expand
-from .sun import check_sun_config
+from pipeline25d.core.crs import check_scene_crs, parse_crs, transformer
+from pipeline25d.core.errors import ConfigError, CRSError, InputFileError
+from pipeline25d.geometry.perspectives import Perspective, expand
+from pipeline25d.geometry.sun import check_sun_config
 
 SCHEMA_PATH = Path(__file__).resolve().parents[2] / "config" / "schema.yaml"
 
@@ -86,7 +86,7 @@ def _check_readable(path: Path, key: str, dataset_ok: bool = False) -> None:
     OSGB dataset (holds Data/)."""
     if not path.exists():
         raise InputFileError(path, f"does not exist (config key {key})")
-    from .formats import is_osgb_dataset
+    from pipeline25d.formats import is_osgb_dataset
 
     if path.is_dir() and not (dataset_ok and is_osgb_dataset(path)):
         more = "; an OSGB dataset folder holds Data/" if dataset_ok else ""

@@ -1,15 +1,13 @@
 # Config validation (before any job), constants, wildcard constraints and input functions.
-import shlex
-import sys
 
 from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 
 from pipeline25d.config import check_semantics, chunk_size, perspectives, render_settings
-from pipeline25d.height_sources import plan as heights_plan
-from pipeline25d.errors import Pipeline25dError
-from pipeline25d.perspectives import ID_PATTERN
-from pipeline25d.plan import block_spec_hash, plan_block, plan_blocks, read_plan
+from pipeline25d.analysis.height_sources import plan as heights_plan
+from pipeline25d.core.errors import Pipeline25dError
+from pipeline25d.geometry.perspectives import ID_PATTERN
+from pipeline25d.stages.plan import block_spec_hash, plan_block, plan_blocks, read_plan
 
 validate(config, "../../config/schema.yaml")
 try:
@@ -18,8 +16,6 @@ except Pipeline25dError as exc:
     raise WorkflowError(f"invalid configuration: {exc}") from None
 
 RESULTS = f"results/{config['scene']}"
-# Jobs run this workflow's own interpreter (the venv snakemake runs in), whatever PATH says.
-PYTHON = shlex.quote(sys.executable)
 DISTRICTS = sorted(config["inputs"])
 PERSPECTIVE_IDS = [p.id for p in perspectives(config)]
 # the web-tile pyramids as PMTiles archives too (tms.pmtiles), read by the viewer

@@ -13,4 +13,4 @@ rule gcps:
     benchmark:
         f"{RESULTS}/benchmarks/gcps/{{pid}}.tsv"
     script:
-        "../scripts/gcps.py"
+        "../scripts/job.py"

@@ -20,4 +20,4 @@ rule heights:
     benchmark:
         f"{RESULTS}/benchmarks/heights.tsv"
     script:
-        "../scripts/heights.py"
+        "../scripts/job.py"

@@ -17,4 +17,4 @@ checkpoint ingest:
     benchmark:
         f"{RESULTS}/benchmarks/ingest/{{district}}.tsv"
     script:
-        "../scripts/ingest.py"
+        "../scripts/job.py"

@@ -17,6 +17,5 @@ rule lod:
         f"{RESULTS}/logs/lod/{{district}}.log",
     benchmark:
         f"{RESULTS}/benchmarks/lod/{{district}}.tsv"
-    shell:
-        PYTHON + " -m pipeline25d lod {input} {output.index}"
-        " --max-error {params.max_error} --max-levels {params.max_levels} > {log} 2>&1"
+    script:
+        "../scripts/job.py"

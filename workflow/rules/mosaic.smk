@@ -13,4 +13,4 @@ rule mosaic:
     benchmark:
         f"{RESULTS}/benchmarks/mosaic/{{pid}}.tsv"
     script:
-        "../scripts/mosaic.py"
+        "../scripts/job.py"

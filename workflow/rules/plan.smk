@@ -26,7 +26,7 @@ rule scene:
     benchmark:
         f"{RESULTS}/benchmarks/scene.tsv"
     script:
-        "../scripts/scene.py"
+        "../scripts/job.py"
 
 
 checkpoint plan:
@@ -47,4 +47,4 @@ checkpoint plan:
     benchmark:
         f"{RESULTS}/benchmarks/plan/{{pid}}.tsv"
     script:
-        "../scripts/plan.py"
+        "../scripts/job.py"

@@ -20,7 +20,5 @@ rule render_block:
         f"{RESULTS}/logs/render/{{pid}}/block_{{block}}.log",
     benchmark:
         f"{RESULTS}/benchmarks/render/{{pid}}/block_{{block}}.tsv"
-    shell:
-        PYTHON + " -m pipeline25d render-block --plan {params.plan} --block-id {wildcards.block}"
-        " --block {params.block} --lod-dir {params.lod_dir}"
-        " --tiles-dir {params.tiles_dir} --out-manifest {output} --spec-hash {params.spec_hash} > {log} 2>&1"
+    script:
+        "../scripts/job.py"

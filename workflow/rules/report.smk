@@ -19,7 +19,7 @@ rule report:
     log:
         f"{RESULTS}/logs/report.log",
     script:
-        "../scripts/report.py"
+        "../scripts/job.py"
 
 
 rule viewer:
@@ -32,4 +32,4 @@ rule viewer:
     log:
         f"{RESULTS}/logs/viewer.log",
     script:
-        "../scripts/viewer.py"
+        "../scripts/job.py"

@@ -22,4 +22,4 @@ rule terrain:
     benchmark:
         f"{RESULTS}/benchmarks/terrain.tsv"
     script:
-        "../scripts/terrain.py"
+        "../scripts/job.py"

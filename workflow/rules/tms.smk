@@ -1,5 +1,5 @@
 # gdal2tiles XYZ pyramid per perspective, kept in work/tms/{pid} and updated where the map changed
-# (see pipeline25d.web_tiles); the published folder hard-links the kept tiles. The stats file says
+# (see pipeline25d.stages.tiles.web); the published folder hard-links the kept tiles. The stats file says
 # how many web tiles the run redid.
 
 
@@ -20,10 +20,10 @@ rule tms:
     benchmark:
         f"{RESULTS}/benchmarks/tms/{{pid}}.tsv"
     script:
-        "../scripts/tms.py"
+        "../scripts/job.py"
 
 
-# With tms.pmtiles: the pyramid also as one PMTiles archive per perspective (pipeline25d.tile_archive),
+# With tms.pmtiles: the pyramid also as one PMTiles archive per perspective (pipeline25d.stages.tiles.archive),
 # which the viewer then reads by HTTP range requests.
 rule pmtiles:
     input:
@@ -33,4 +33,4 @@ rule pmtiles:
     log:
         f"{RESULTS}/logs/pmtiles/{{pid}}.log",
     script:
-        "../scripts/pmtiles.py"
+        "../scripts/job.py"

@@ -18,4 +18,4 @@ rule warp:
     benchmark:
         f"{RESULTS}/benchmarks/warp/{{pid}}.tsv"
     script:
-        "../scripts/warp.py"
+        "../scripts/job.py"

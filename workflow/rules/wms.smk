@@ -1,5 +1,5 @@
 # Map services: a MapServer mapfile publishing every perspective's map as a WMS layer
-# (pipeline25d.wms); its paths are relative to it, so the results folder can move.
+# (pipeline25d.publish.wms); its paths are relative to it, so the results folder can move.
 
 
 rule wms:
@@ -12,4 +12,4 @@ rule wms:
     log:
         f"{RESULTS}/logs/wms.log",
     script:
-        "../scripts/wms.py"
+        "../scripts/job.py"

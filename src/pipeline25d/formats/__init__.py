@@ -23,9 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ConfigError, InputFileError, MissingTextureWarning
-from ..mesh import Mesh
-from .common import Detail, Loaded, in_scene
+from pipeline25d.core.errors import ConfigError, InputFileError, MissingTextureWarning
+from pipeline25d.core.mesh import Mesh
+from pipeline25d.formats.common import Detail, Loaded, in_scene
 
 
 @dataclass(frozen=True)
@@ -38,19 +38,19 @@ class Reader:
 
 
 def _mesh_file(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
-    from .meshfile import load_mesh_file
+    from pipeline25d.formats.meshfile import load_mesh_file
 
     return Loaded(load_mesh_file(path).parts, spec.get("crs"))
 
 
 def _ply(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
-    from .ply import load_ply
+    from pipeline25d.formats.ply import load_ply
 
     return Loaded(load_ply(path).parts, spec.get("crs"))
 
 
 def _gltf(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
-    from .gltf import load_gltf
+    from pipeline25d.formats.gltf import load_gltf
 
     return Loaded(load_gltf(path), spec.get("crs"))
 
@@ -103,7 +103,7 @@ def detect_format(path: Path) -> str:
     if suffix in SUFFIXES:
         return SUFFIXES[suffix]
     if suffix in (".gml", ".xml"):
-        from .citygml import is_citygml
+        from pipeline25d.formats.citygml import is_citygml
 
         try:
             with open(path, "rb") as f:
@@ -150,7 +150,7 @@ def load_district(spec: dict, scene_crs: str, max_geometric_error: float | None 
     offset = np.asarray(spec.get("offset", [0.0, 0.0, 0.0]), dtype=np.float64)
     spec = dict(spec)
     if spec.get("metadata"):
-        from .contextcapture import read_metadata_xml
+        from pipeline25d.formats.contextcapture import read_metadata_xml
 
         spec["crs"], origin = read_metadata_xml(base_dir / spec["metadata"])
         offset = offset + origin

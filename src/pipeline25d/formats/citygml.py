@@ -30,7 +30,7 @@ picks one (default: any, the first that targets a surface). Global appearances
 (``appearanceMember`` of the CityModel, before or after the objects) are collected by a
 first streaming pass that keeps only their targets, run only when the bytes
 ``appearanceMember`` occur in the file. A texture image that is missing or unreadable
-is a :class:`~pipeline25d.errors.MissingTextureWarning` (once per image), which
+is a :class:`~pipeline25d.core.errors.MissingTextureWarning` (once per image), which
 :func:`pipeline25d.formats.load_district` turns into an error unless the input says
 ``missing_textures: untextured``; then its polygons fall back to colour. The renderer repeats textures; texture coordinates outside [0, 1]
 under wrap modes other than ``wrap`` are clamped per vertex (an approximation).
@@ -47,12 +47,19 @@ from pathlib import Path
 
 import numpy as np
 
-from ..crs import parse_crs
-from ..errors import CRSError, InputFileError, MissingTextureWarning
-from ..mesh import MeshPart
-from .common import Detail, Loaded, crs_name
-from .surfaces import GROUND_TYPES, OBJECT_CLASS, PALETTE, SEMANTIC_CLASS, normal_classes, pick_lod, \
-    triangulate_polygon
+from pipeline25d.core.crs import parse_crs
+from pipeline25d.core.errors import CRSError, InputFileError, MissingTextureWarning
+from pipeline25d.core.mesh import MeshPart
+from pipeline25d.formats.common import Detail, Loaded, crs_name
+from pipeline25d.formats.surfaces import (
+    GROUND_TYPES,
+    OBJECT_CLASS,
+    PALETTE,
+    SEMANTIC_CLASS,
+    normal_classes,
+    pick_lod,
+    triangulate_polygon,
+)
 
 GML_ID = ("{http://www.opengis.net/gml}id", "{http://www.opengis.net/gml/3.2}id")
 XLINK_HREF = "{http://www.w3.org/1999/xlink}href"
@@ -314,8 +321,9 @@ class _Reader:
     def _image(self, image: str) -> bytes | None:
         """Encoded image bytes, or None (warned once) when missing or unreadable."""
         if image not in self.images:
-            from PIL import Image, UnidentifiedImageError
             import io
+
+            from PIL import Image, UnidentifiedImageError
 
             problem = None
             try:

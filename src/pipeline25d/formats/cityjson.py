@@ -15,11 +15,18 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import CRSError, InputFileError
-from ..mesh import Mesh, MeshPart
-from .common import Detail, Loaded, crs_name, in_scene, read_text
-from .surfaces import (  # noqa: F401  (PALETTE, triangulate_polygon: public here too)
-    GROUND_TYPES, OBJECT_CLASS, PALETTE, SEMANTIC_CLASS, class_part, lod_key, normal_classes, pick_lod,
+from pipeline25d.core.errors import CRSError, InputFileError
+from pipeline25d.core.mesh import Mesh
+from pipeline25d.formats.common import Detail, Loaded, crs_name, in_scene, read_text
+from pipeline25d.formats.surfaces import (  # noqa: F401  (PALETTE, triangulate_polygon: public here too)
+    GROUND_TYPES,
+    OBJECT_CLASS,
+    PALETTE,
+    SEMANTIC_CLASS,
+    class_part,
+    lod_key,
+    normal_classes,
+    pick_lod,
     triangulate_polygon,
 )
 

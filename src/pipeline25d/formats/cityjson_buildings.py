@@ -15,11 +15,16 @@ from pathlib import Path
 
 import numpy as np
 
-from ..footprints import Footprint
-from ..height_sources import RefBuilding
-from .cityjson import _SURFACE_DEPTH, _iter_surfaces, _pick_geometries, _read_model, source_crs, \
-    triangulate_polygon
-from .surfaces import ROOF_NZ
+from pipeline25d.formats.cityjson import (
+    _SURFACE_DEPTH,
+    _iter_surfaces,
+    _pick_geometries,
+    _read_model,
+    source_crs,
+    triangulate_polygon,
+)
+from pipeline25d.formats.footprints import Footprint, RefBuilding
+from pipeline25d.formats.surfaces import ROOF_NZ
 
 BUILDING_TYPES = ("Building", "BuildingPart")
 
@@ -62,7 +67,7 @@ def _union_rings(tris: list[np.ndarray]) -> list[np.ndarray]:
         multi.AddGeometry(poly)
     if multi.GetGeometryCount() == 0:
         return []
-    from ..footprints import _rings
+    from pipeline25d.formats.footprints import _rings
 
     return _rings(multi.UnionCascaded())
 
@@ -71,7 +76,7 @@ def cityjson_buildings(path: str | Path, scene_crs: str, src_crs: str | None = N
                        offset=None) -> dict[str, RefBuilding]:
     """{building id: RefBuilding} of a CityJSON/CityJSONSeq file in ``scene_crs`` (``offset``
     [x, y, z] added first, as for the map)."""
-    from ..crs import transform_points
+    from pipeline25d.core.crs import transform_points
 
     model = _read_model(Path(path))
     src = src_crs or source_crs(model.header, model.path)

@@ -12,9 +12,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ..crs import check_within_area_of_use, parse_crs, transform_points
-from ..errors import CRSError, InputFileError, UnsupportedFeatureError
-from ..mesh import Mesh, MeshPart
+from pipeline25d.core.crs import check_within_area_of_use, parse_crs, transform_points
+from pipeline25d.core.errors import CRSError, InputFileError, UnsupportedFeatureError
+from pipeline25d.core.mesh import Mesh, MeshPart
 
 AREA_SAMPLE = 2000   # vertices checked against the scene CRS's area of use
 MAX_COORDINATE = 1e8  # |x|, |y|, |z| beyond this is no place on Earth in any CRS (ECEF reaches 6.4e6 m)

@@ -12,7 +12,7 @@ named by ``SRS``::
 ellipsoid at (lat, lon, h = 0). PROJ's ``+proj=topocentric`` string works on geocentric
 input and cannot serve as a CRS for geographic transforms, so that frame is returned as
 WKT2 of a projected CRS with the EPSG method "Geographic/topocentric conversions"
-(9837), which :func:`pipeline25d.crs.transform_points` and ``check_scene_crs`` accept.
+(9837), which :func:`pipeline25d.core.crs.transform_points` and ``check_scene_crs`` accept.
 """
 
 from __future__ import annotations
@@ -23,14 +23,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ..crs import parse_crs
-from ..errors import CRSError, InputFileError, UnsupportedFeatureError
+from pipeline25d.core.crs import parse_crs
+from pipeline25d.core.errors import CRSError, InputFileError, UnsupportedFeatureError
 
 _ENU = re.compile(r"^\s*ENU\s*:\s*([-+0-9.eE]+)\s*,\s*([-+0-9.eE]+)\s*$", re.IGNORECASE)
 
 
 def read_metadata_xml(path: str | Path) -> tuple[str, np.ndarray]:
-    """(CRS text for :mod:`pipeline25d.crs`, float64 (3,) SRS origin) of a metadata.xml.
+    """(CRS text for :mod:`pipeline25d.core.crs`, float64 (3,) SRS origin) of a metadata.xml.
 
     A missing ``SRSOrigin`` means (0, 0, 0). Raises InputFileError for unreadable or
     malformed files, UnsupportedFeatureError for an SRS that cannot be interpreted.

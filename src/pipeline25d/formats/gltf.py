@@ -1,4 +1,4 @@
-"""glTF 2.0 / GLB reader producing :class:`~pipeline25d.mesh.MeshPart` lists.
+"""glTF 2.0 / GLB reader producing :class:`~pipeline25d.core.mesh.MeshPart` lists.
 
 A small direct reader (numpy views on buffer views) rather than trimesh, because the
 3D Tiles content this pipeline meets needs what trimesh ignores: the ``CESIUM_RTC``
@@ -30,8 +30,8 @@ from urllib.parse import unquote
 
 import numpy as np
 
-from ..errors import InputFileError, MissingTextureWarning, UnsupportedFeatureError
-from ..mesh import MeshPart
+from pipeline25d.core.errors import InputFileError, MissingTextureWarning, UnsupportedFeatureError
+from pipeline25d.core.mesh import MeshPart
 
 #: Extensions this reader honours (or may safely ignore) when a file lists them as required.
 SUPPORTED_EXTENSIONS = frozenset({

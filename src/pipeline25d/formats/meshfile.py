@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from ..errors import InputFileError, MissingTextureWarning
-from ..mesh import Mesh, MeshPart
+from pipeline25d.core.errors import InputFileError, MissingTextureWarning
+from pipeline25d.core.mesh import Mesh, MeshPart
 
 
 def load_mesh_file(path: str | Path) -> Mesh:

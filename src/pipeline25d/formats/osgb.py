@@ -40,9 +40,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputFileError, MissingTextureWarning, UnsupportedFeatureError
-from ..mesh import MeshPart
-from .common import Detail, Loaded, run_converter
+from pipeline25d.core.errors import InputFileError, MissingTextureWarning, UnsupportedFeatureError
+from pipeline25d.core.mesh import MeshPart
+from pipeline25d.formats.common import Detail, Loaded, run_converter
 
 log = logging.getLogger(__name__)
 
@@ -80,7 +80,7 @@ def read_osgb(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
     crs = spec.get("crs")
     origin = np.zeros(3)
     if path.is_dir() and not spec.get("metadata") and (path / "metadata.xml").is_file():
-        from .contextcapture import read_metadata_xml
+        from pipeline25d.formats.contextcapture import read_metadata_xml
 
         meta_crs, origin = read_metadata_xml(path / "metadata.xml")
         crs = crs or meta_crs
@@ -209,7 +209,7 @@ def _read_file(child: _Child, gsd: float | None, work: Path) -> _Walked:
 
 def _obj_parts(obj: Path, source: Path, matrix: np.ndarray) -> list[MeshPart]:
     """The OBJ osgconv wrote, as parts placed by ``matrix``; every texture it names must exist."""
-    from .meshfile import load_mesh_file
+    from pipeline25d.formats.meshfile import load_mesh_file
 
     mtl = obj.with_suffix(".mtl")
     for name in re.findall(r"^\s*map_Kd\s+(\S+)", mtl.read_text() if mtl.is_file() else "", re.M):
@@ -434,7 +434,7 @@ def select_ranges(ranges: list[list[float]], pixels: float) -> set[int]:
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m pipeline25d.formats.osgb DATASET --gsd G [--gsd G2 ...]``: the level read per tile."""
-    parser = argparse.ArgumentParser(prog="pipeline25d.formats.osgb",
+    parser = argparse.ArgumentParser(prog="pipeline25d osgb-levels",
                                      description="Print the PagedLOD level drawn per tile of an OSGB dataset.")
     parser.add_argument("path", type=Path, help="dataset folder (with Data/) or one .osgb file")
     parser.add_argument("--gsd", type=float, action="append", required=True,

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputFileError
-from ..mesh import Mesh, MeshPart
+from pipeline25d.core.errors import InputFileError
+from pipeline25d.core.mesh import Mesh, MeshPart
 
 TEXTURED = {"s", "t", "u", "v", "texture_u", "texture_v", "texcoord"}
 
@@ -71,6 +71,6 @@ def _triangles(face, n_vertices: int, path: Path) -> np.ndarray:
 
 def _with_trimesh(path: Path) -> Mesh:
     """trimesh's reading (and its error naming the file when it cannot read it either)."""
-    from .meshfile import load_mesh_file
+    from pipeline25d.formats.meshfile import load_mesh_file
 
     return load_mesh_file(path)

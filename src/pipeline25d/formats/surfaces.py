@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..mesh import MeshPart
+from pipeline25d.core.mesh import MeshPart
 
 #: RGBA per colour class.
 PALETTE: dict[str, tuple[int, int, int, int]] = {

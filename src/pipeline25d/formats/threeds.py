@@ -14,8 +14,8 @@ from __future__ import annotations
 import tempfile
 from pathlib import Path
 
-from .common import Detail, Loaded, run_converter
-from .gltf import parse_gltf_bytes
+from pipeline25d.formats.common import Detail, Loaded, run_converter
+from pipeline25d.formats.gltf import parse_gltf_bytes
 
 ASSIMP = "assimp"
 

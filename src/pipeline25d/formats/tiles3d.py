@@ -13,7 +13,7 @@ and geometry is never clipped to a bounding volume (real tilesets, e.g. pg2b3dm'
 Amsterdam sample, have boxes that are too small on one side).
 
 Vertices stay float64 from the decoded glTF to the scene CRS; ECEF (``src_crs``) is
-reprojected once per tileset with :func:`pipeline25d.crs.transform_points` after an
+reprojected once per tileset with :func:`pipeline25d.core.crs.transform_points` after an
 area-of-use check of the scene CRS.
 """
 
@@ -29,10 +29,10 @@ from urllib.parse import unquote, urlsplit
 
 import numpy as np
 
-from ..errors import InputFileError, UnsupportedFeatureError
-from ..mesh import Mesh, MeshPart
-from .common import Detail, Loaded, in_scene, read_text
-from .gltf import parse_gltf_bytes
+from pipeline25d.core.errors import InputFileError, UnsupportedFeatureError
+from pipeline25d.core.mesh import Mesh, MeshPart
+from pipeline25d.formats.common import Detail, Loaded, in_scene, read_text
+from pipeline25d.formats.gltf import parse_gltf_bytes
 
 _B3DM_HEADER = 28
 _I3DM_HEADER = 32

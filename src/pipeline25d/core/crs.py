@@ -1,0 +1,84 @@
+"""CRS parsing and coordinate transforms (pyproj), cached and always x/y ordered."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+
+from pipeline25d.core.errors import CRSError
+
+ECEF = "EPSG:4978"
+
+
+@lru_cache(maxsize=64)
+def parse_crs(text: str):
+    """pyproj.CRS for ``text`` (e.g. 'EPSG:28992'); raises CRSError when unknown."""
+    from pyproj import CRS
+    from pyproj.exceptions import CRSError as PyprojCRSError
+
+    try:
+        return CRS.from_user_input(text)
+    except PyprojCRSError as exc:
+        raise CRSError(f"unknown CRS {text!r}: {exc}") from None
+
+
+def check_scene_crs(text: str) -> None:
+    """Raise CRSError unless ``text`` is a projected CRS with metre axes."""
+    crs = parse_crs(text)
+    horizontal = crs.sub_crs_list[0] if crs.is_compound else crs
+    if not horizontal.is_projected:
+        raise CRSError(f"scene crs {text!r} is not a projected CRS (metres are needed)")
+    units = {ax.unit_name for ax in horizontal.axis_info[:2]}
+    if not units <= {"metre", "meter", "m"}:
+        raise CRSError(f"scene crs {text!r} has axis units {sorted(units)}, not metres")
+
+
+def horizontal_wkt(text: str) -> str:
+    """WKT of the horizontal part of ``text`` (what a GeoTIFF of the map carries)."""
+    crs = parse_crs(text)
+    if crs.is_compound:
+        crs = crs.sub_crs_list[0]
+    return crs.to_wkt()
+
+
+@lru_cache(maxsize=64)
+def transformer(src: str, dst: str):
+    """The cached pyproj Transformer from ``src`` to ``dst`` (3D, x/y order); CRSError when there is none."""
+    from pyproj import Transformer
+
+    try:
+        return Transformer.from_crs(parse_crs(src).to_3d(), parse_crs(dst).to_3d(), always_xy=True)
+    except Exception as exc:  # pyproj raises several types here
+        raise CRSError(f"cannot transform {src} to {dst}: {exc}") from None
+
+
+def transform_points(points: np.ndarray, src: str, dst: str) -> np.ndarray:
+    """(n, 3) float64 points from CRS ``src`` to ``dst``; z carried as height.
+
+    Raises CRSError when the transform fails or yields non-finite coordinates
+    (typically a model far outside the target CRS's area of use).
+    """
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if parse_crs(src) == parse_crs(dst):
+        return pts.copy()
+    x, y, z = transformer(src, dst).transform(pts[:, 0], pts[:, 1], pts[:, 2])
+    out = np.column_stack([x, y, z])
+    if not np.isfinite(out).all():
+        raise CRSError(f"transforming {len(pts)} points from {src} to {dst} gave non-finite values")
+    return out
+
+
+def check_within_area_of_use(points_lonlat: np.ndarray, dst: str, where: str) -> None:
+    """Raise CRSError when lon/lat points lie outside ``dst``'s area of use (with 1° slack)."""
+    area = parse_crs(dst).area_of_use
+    if area is None or len(points_lonlat) == 0:
+        return
+    lon, lat = points_lonlat[:, 0], points_lonlat[:, 1]
+    slack = 1.0
+    if (lon.min() < area.west - slack or lon.max() > area.east + slack
+            or lat.min() < area.south - slack or lat.max() > area.north + slack):
+        raise CRSError(
+            f"{where}: model at lon {lon.min():.4f}..{lon.max():.4f}, lat {lat.min():.4f}..{lat.max():.4f} "
+            f"lies outside the area of use of {dst} ({area.name})"
+        )

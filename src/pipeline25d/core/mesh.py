@@ -1,0 +1,79 @@
+"""The in-memory mesh that every reader returns and every stage consumes.
+
+A :class:`MeshPart` is one draw call: triangles with at most one texture. Positions
+are float64 in the scene CRS (metres) until they are written to a chunk, where they
+become float32 relative to the chunk's float64 origin (see :mod:`pipeline25d.stages.chunks`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+
+@dataclass
+class MeshPart:
+    """Triangles sharing one appearance.
+
+    vertices: (n, 3) float64, scene CRS metres (x east, y north, z up).
+    faces:    (m, 3) int64 indices into ``vertices``.
+    colors:   (n, 4) uint8 RGBA per vertex, or None (then ``texture`` or grey).
+    uv:       (n, 2) float32 texture coordinates (origin bottom-left, glTF/OBJ v flipped
+              to GL convention: v=0 is the bottom row of the image), or None.
+    texture:  encoded image bytes (PNG/JPEG) for ``uv``, or None.
+    name:     free text for messages (material or object name).
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    colors: np.ndarray | None = None
+    uv: np.ndarray | None = None
+    texture: bytes | None = None
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float64).reshape(-1, 3)
+        self.faces = np.ascontiguousarray(self.faces, dtype=np.int64).reshape(-1, 3)
+        if self.colors is not None:
+            self.colors = np.ascontiguousarray(self.colors, dtype=np.uint8).reshape(-1, 4)
+        if self.uv is not None:
+            self.uv = np.ascontiguousarray(self.uv, dtype=np.float32).reshape(-1, 2)
+        if self.texture is None:
+            self.uv = None
+
+    @property
+    def n_triangles(self) -> int:
+        return int(len(self.faces))
+
+    def bounds(self) -> np.ndarray:
+        """(2, 3) float64 min/max corner of the vertices that faces use."""
+        used = self.vertices[np.unique(self.faces)] if len(self.faces) else self.vertices
+        return np.array([used.min(axis=0), used.max(axis=0)])
+
+    def transformed(self, fn) -> "MeshPart":
+        """A copy whose vertices are ``fn(vertices)`` ((n, 3) float64 -> (n, 3) float64)."""
+        return replace(self, vertices=np.asarray(fn(self.vertices), dtype=np.float64))
+
+
+@dataclass
+class Mesh:
+    """A district or chunk: a list of parts plus provenance for messages."""
+
+    parts: list[MeshPart] = field(default_factory=list)
+    source: str = ""
+
+    @property
+    def n_triangles(self) -> int:
+        return sum(p.n_triangles for p in self.parts)
+
+    def bounds(self) -> np.ndarray:
+        """(2, 3) float64 bounds over all parts; raises ValueError when empty."""
+        boxes = [p.bounds() for p in self.parts if p.n_triangles]
+        if not boxes:
+            raise ValueError(f"{self.source or 'mesh'} has no triangles")
+        stacked = np.stack(boxes)
+        return np.array([stacked[:, 0].min(axis=0), stacked[:, 1].max(axis=0)])
+
+    def transformed(self, fn) -> "Mesh":
+        return Mesh([p.transformed(fn) for p in self.parts], self.source)

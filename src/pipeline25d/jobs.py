@@ -1,0 +1,147 @@
+"""The one seam between the Snakemake rules and the stages: one function per rule.
+
+Every rule runs ``workflow/scripts/job.py``, which hands Snakemake's job object to :func:`run`.
+``run`` logs the job to its rule's log file, makes it stop cleanly on SIGTERM and on a
+:class:`~pipeline25d.core.errors.Pipeline25dError` (its message, no traceback), and calls the
+rule's function here. Each function only unpacks the rule's named inputs, outputs and
+parameters and calls its stage; the work itself lives in the stage modules. A function
+imports its stage when it runs, so a job pays only for the modules it uses.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from pipeline25d.core.logsetup import log_to, stop_on_error
+
+#: Snakemake's job object as a script sees it (``snakemake``): input, output, params, wildcards,
+#: threads, log, rule, each with named and positional access.
+Job = Any
+
+
+def _first(files) -> str | None:
+    """The one file of an optional input or output (an empty list when the config has none)."""
+    return files[0] if files else None
+
+
+def ingest_job(job: Job) -> None:
+    from pipeline25d.stages import ingest
+
+    p = job.params
+    ingest.ingest(dict(p.spec), job.wildcards.district, p.crs, p.chunk_size, p.max_error, job.output.index,
+                  gsd=p.gsd)
+
+
+def lod_job(job: Job) -> None:
+    from pipeline25d.stages import lod
+
+    lod.build_lod(job.input[0], job.output.index, job.params.max_error, job.params.max_levels)
+
+
+def terrain_job(job: Job) -> None:
+    from pipeline25d.stages.terrain.build import build_terrain
+
+    p = job.params
+    build_terrain(list(job.input.lods), dict(p.inputs), p.crs, p.gsd, p.terrain, dict(p.ground), job.output.dsm,
+                  _first(job.output.ground), job.output.meta)
+
+
+def scene_job(job: Job) -> None:
+    from pipeline25d.stages import scene
+
+    p = job.params
+    scene.scene_setup(list(job.input.lods), job.input.dsm, p.terrain, _first(job.input.terrain), p.z0, p.projection,
+                      dict(p.gcp), p.crs, p.gsd, list(p.perspectives), job.output.scene, job.output.candidates,
+                      _first(job.output.dtm), p.ground["max_object_size"])
+
+
+def plan_job(job: Job) -> None:
+    from pipeline25d.stages import plan
+
+    p = job.params
+    plan.plan(job.wildcards.pid, list(job.input.lods), job.input.scene, job.input.candidates, p.gsd, p.tile_size,
+              p.max_error_px, p.crs, dict(p.render), job.output.plan)
+
+
+def render_block_job(job: Job) -> None:
+    from pipeline25d.stages import render_block
+
+    p = job.params
+    render_block.render_block(p.plan, job.wildcards.block, p.block, p.lod_dir, p.tiles_dir, job.output[0])
+
+
+def gcps_job(job: Job) -> None:
+    from pipeline25d.stages import gcps
+
+    gcps.gather_gcps(list(job.params.tiles), job.output[0])
+
+
+def mosaic_job(job: Job) -> None:
+    from pipeline25d.stages.maps import warp
+
+    warp.build_mosaic(sorted(job.params.tiles), job.output[0])
+
+
+def warp_job(job: Job) -> None:
+    from pipeline25d.stages.maps import warp
+
+    p = job.params
+    warp.warp(job.input.mosaic, job.input.gcps, job.input.plan, dict(p.warp), job.output.cog, job.output.meta,
+              dict(p.maps), work_dir=p.work)
+
+
+def tms_job(job: Job) -> None:
+    from pipeline25d.core.atomic import write_json
+    from pipeline25d.stages.tiles.web import tms
+
+    p = job.params
+    stats = tms(job.input.cog, p.zoom, job.output.tiles, processes=job.threads, tile_format=p.tile_format,
+                quality=p.quality, work_dir=p.work)
+    write_json(job.output.stats, stats)
+
+
+def pmtiles_job(job: Job) -> None:
+    from pipeline25d.stages.tiles.archive import write_pmtiles
+
+    write_pmtiles(job.input.tiles, job.output[0], name=job.wildcards.pid)
+
+
+def heights_job(job: Job) -> None:
+    from pipeline25d.analysis.height_sources import run_stage as measure_heights
+
+    measure_heights(dict(job.params.config), dict(zip(job.params.pids, job.input.maps)), job.input.scene,
+                    job.input.dsm, job.output.csv, job.output.json)
+
+
+def report_job(job: Job) -> None:
+    from pipeline25d.publish.report import write_report
+
+    write_report(dict(job.params.config), job.params.results, job.output.json, job.output.md)
+
+
+def viewer_job(job: Job) -> None:
+    from pipeline25d.publish.viewer import write_viewer
+
+    write_viewer(job.input.report, job.output[0], archives=job.input.pmtiles)
+
+
+def wms_job(job: Job) -> None:
+    from pipeline25d.publish.wms import write_mapfile
+
+    write_mapfile(job.params.scene, list(job.input.maps), job.output.mapfile)
+
+
+#: rule name -> its function, in the order data moves through the workflow
+RULES: dict[str, Callable[[Job], None]] = {
+    "ingest": ingest_job, "lod": lod_job, "terrain": terrain_job, "scene": scene_job, "plan": plan_job,
+    "render_block": render_block_job, "gcps": gcps_job, "mosaic": mosaic_job, "warp": warp_job, "tms": tms_job,
+    "pmtiles": pmtiles_job, "heights": heights_job, "report": report_job, "viewer": viewer_job, "wms": wms_job,
+}
+
+
+def run(job: Job) -> None:
+    """Run the rule's function of a Snakemake script job, logged to its log file."""
+    log_to(job.log[0])
+    with stop_on_error():
+        RULES[job.rule](job)

@@ -1,0 +1,76 @@
+"""Chunk storage: mesh parts as float32 positions relative to a float64 origin.
+
+One ``.npz`` per chunk (and per chunk's LOD pyramid). Keys, per part i and optional
+level prefix ``L{k}_``: ``p{i}_pos`` (n,3) float32 local metres, ``p{i}_faces`` (m,3)
+uint32, ``p{i}_colors`` (n,4) uint8, ``p{i}_uv`` (n,2) float32, ``p{i}_tex`` encoded
+image bytes as uint8, and ``origin`` (3,) float64 in the scene CRS.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+
+from pipeline25d.core.atomic import atomic_path
+from pipeline25d.core.mesh import MeshPart
+
+
+def chunk_origin(bounds: np.ndarray, step: float = 1.0) -> np.ndarray:
+    """A float64 origin near the chunk: its min corner rounded down to ``step`` metres."""
+    return np.floor(np.asarray(bounds, dtype=np.float64)[0] / step) * step
+
+
+def pack_parts(parts: list[MeshPart], origin: np.ndarray, prefix: str = "") -> dict[str, np.ndarray]:
+    """Arrays for ``np.savez`` of ``parts``, positions float32 relative to ``origin``."""
+    out: dict[str, np.ndarray] = {f"{prefix}n_parts": np.array(len(parts))}
+    for i, part in enumerate(parts):
+        key = f"{prefix}p{i}_"
+        out[key + "pos"] = (part.vertices - origin).astype(np.float32)
+        out[key + "faces"] = part.faces.astype(np.uint32)
+        if part.colors is not None:
+            out[key + "colors"] = part.colors
+        if part.texture is not None and part.uv is not None:
+            out[key + "uv"] = part.uv.astype(np.float32)
+            out[key + "tex"] = np.frombuffer(part.texture, dtype=np.uint8)
+    return out
+
+
+def unpack_parts(data, origin: np.ndarray, prefix: str = "") -> list[MeshPart]:
+    """Inverse of :func:`pack_parts`; vertices back in float64 scene coordinates."""
+    parts = []
+    for i in range(int(data[f"{prefix}n_parts"])):
+        key = f"{prefix}p{i}_"
+        names = set(data.files) if hasattr(data, "files") else set(data)
+        tex = data[key + "tex"].tobytes() if key + "tex" in names else None
+        parts.append(MeshPart(
+            vertices=data[key + "pos"].astype(np.float64) + origin,
+            faces=data[key + "faces"].astype(np.int64),
+            colors=data[key + "colors"] if key + "colors" in names else None,
+            uv=data[key + "uv"] if key + "uv" in names else None,
+            texture=tex,
+        ))
+    return parts
+
+
+def content_hash(arrays: dict[str, np.ndarray]) -> str:
+    """sha256 over the arrays' names, dtypes, shapes and bytes (order-independent)."""
+    h = hashlib.sha256()
+    for name in sorted(arrays):
+        a = np.ascontiguousarray(arrays[name])
+        h.update(f"{name}|{a.dtype.str}|{a.shape}|".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def save_npz(path: str | Path, arrays: dict[str, np.ndarray]) -> None:
+    """Write a compressed npz atomically."""
+    with atomic_path(path, suffix=".tmp") as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez_compressed(fh, **arrays)
+
+
+def load_npz(path: str | Path):
+    """Open an npz (lazy per key)."""
+    return np.load(path, allow_pickle=False)

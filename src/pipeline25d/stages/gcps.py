@@ -1,0 +1,94 @@
+"""Ground control points: candidate rows, check-point hold-out, image positions.
+
+Candidates sit on exposed ground (see :mod:`pipeline25d.stages.gcp_sites`) or come from a user
+table; a share is held out (deterministically, by seed) as check points that never enter
+the warp or its choice. In each tile render, markers are drawn with the model (see
+:mod:`pipeline25d.stages.render`); a marker seen whole and lying on the model's surface gives
+the GCP's sub-pixel image position in the perspective's grid.
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+
+from pipeline25d.core.atomic import atomic_path
+
+CANDIDATE_FIELDS = ["id", "x", "y", "z", "ground", "sx", "sy", "role"]   # ground: DTM height; s: dz/dx, dz/dy
+OBSERVATION_FIELDS = CANDIDATE_FIELDS + ["map_x", "map_y", "n_pixels"]
+
+
+def candidates_from_sites(sites: dict[str, np.ndarray], holdout: float, seed: int) -> list[dict]:
+    """Candidate rows from :func:`pipeline25d.stages.gcp_sites.select_sites`, with roles.
+
+    Ids name the candidate's spacing square (``g<col>_<row>``), so a candidate keeps its id,
+    and its role, when a district elsewhere changes; values are rounded to 1 mm (slopes to
+    1e-4), so float noise in the terrain does not re-render the tiles that hold them.
+    """
+    rows = []
+    for i in range(len(sites["x"])):
+        col, row = int(sites["square_col"][i]), int(sites["square_row"][i])
+        values = {k: round(float(sites[k][i]), 3) for k in ("x", "y", "z", "ground")}
+        values.update({k: round(float(sites[k][i]), 4) for k in ("sx", "sy")})
+        rows.append({"id": f"g{col}_{row}", **values})
+    return assign_roles(rows, holdout, seed)
+
+
+def assign_roles(points: list[dict], holdout: float, seed: int) -> list[dict]:
+    """Mark a ``holdout`` share of points as 'check', the rest 'gcp'.
+
+    The draw is a hash of (seed, id), so each point's role is stable: adding or removing
+    other points never turns a check point into a GCP or back.
+    """
+    import hashlib
+
+    def draw(pid: str) -> float:
+        digest = hashlib.sha256(f"{seed}:{pid}".encode()).digest()
+        return int.from_bytes(digest[:8], "big") / 2 ** 64
+
+    return [{**p, "role": "check" if draw(str(p["id"])) < holdout else "gcp"} for p in points]
+
+
+def write_csv(path: str | Path, rows: list[dict], fields: list[str]) -> None:
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", newline="") as fh:
+            writer = csv.DictWriter(fh, fieldnames=fields, extrasaction="ignore")
+            writer.writeheader()
+            writer.writerows(rows)
+
+
+def read_csv(path: str | Path) -> list[dict]:
+    """Rows with numeric columns as float (id and role stay text)."""
+    with open(path, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    for row in rows:
+        for key in row:
+            if key not in ("id", "role"):
+                row[key] = float(row[key]) if row[key] not in ("", None) else 0.0
+    return rows
+
+
+def observations(candidates: list[dict], full: np.ndarray, sums: np.ndarray,
+                 top_left: tuple[float, float], gsd: float) -> list[dict]:
+    """GCPs whose marker is seen whole and lies on the model's surface, with its centroid as map coordinates.
+
+    ``full``: pixels per marker alone; ``sums``: (count, Σcol, Σrow, agree) with the model drawn
+    (pixel centres at +0.5, row 0 at the top); ``top_left``: map (x, y) of the render's
+    top-left corner. Map coordinates, not pixels, so tiles and mosaics need not share an
+    origin.
+    """
+    out = []
+    for cand, n_full, (n, scol, srow, agree) in zip(candidates, full, sums):
+        if n_full > 0 and n == n_full and agree == n_full:
+            out.append({**cand, "map_x": top_left[0] + scol / n * gsd, "map_y": top_left[1] - srow / n * gsd,
+                        "n_pixels": int(n)})
+    return out
+
+
+def gather_gcps(tile_csvs: list[str], out_csv: str | Path) -> list[dict]:
+    rows = [r for p in tile_csvs for r in read_csv(p)]
+    rows.sort(key=lambda r: r["id"])
+    write_csv(out_csv, rows, OBSERVATION_FIELDS)
+    return rows

@@ -1,0 +1,211 @@
+"""A map kept between runs, with its overviews, and patched where its mosaic changed.
+
+The map is made in fixed *blocks* of :data:`BLOCK_PX` x :data:`BLOCK_PX` pixels of its grid,
+each on its own window, into a kept, tiled GeoTIFF: copied from the mosaic where no warp is
+needed, else warped by GDAL with the chosen GCP warp. Each block's overviews are built from the
+block alone; as a block holds whole pixels of every overview level, they are the map's. The
+COG is then copied from that file, keeping its overviews. A later run hashes the mosaic in
+squares of :data:`pipeline25d.core.raster.CELL_PX` pixels and redoes only the blocks that a
+changed square reaches (through the warp: its outline mapped by the same GCP transformer,
+grown by :data:`MARGIN_PX` for the bilinear kernel and gdalwarp's approximation). As every
+block is always made on its own window, a patched map equals, byte for byte, one made from
+scratch. A changed warp (method, order, GCPs), map grid or CRS redoes every block. The state
+file journals the blocks being redone before the kept file is touched, so a killed run is
+finished by the next one.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from pipeline25d.core.journal import read_state, write_state
+from pipeline25d.core.raster import gdal
+from pipeline25d.stages.maps.parts import Window, box_outline, window_bounds
+
+log = logging.getLogger(__name__)
+
+BLOCK_PX = 2048        # a multiple of the COG's largest overview factor (2 ** 11 > any map's overview count)
+MARGIN_PX = 2          # a changed mosaic square reaches this far (map px) beyond its warped outline
+EDGE_SAMPLES = 9       # points per square edge sent through the warp (a polynomial bends the edge)
+STATE_VERSION = 1
+KEPT = "map.tif"
+
+
+def warp_options(choice: dict, crs: str, gsd: float) -> dict:
+    """gdal.Warp keywords of the chosen GCP warp onto the map grid (as gdalwarp -tap at ``gsd``);
+    for no warp, a nearest-neighbour copy onto that grid."""
+    opts = {"dstSRS": crs, "xRes": gsd, "yRes": gsd, "targetAlignedPixels": True, "dstAlpha": True,
+            "resampleAlg": "near" if choice["method"] == "none" else "bilinear", "multithread": True,
+            "warpOptions": ["NUM_THREADS=ALL_CPUS"]}
+    if choice["method"] == "tps":
+        opts["tps"] = True
+    elif choice["method"] != "none":
+        opts["polynomialOrder"] = choice["order"]
+    return opts
+
+
+def window_warp_options(choice: dict, crs: str, gsd: float) -> dict:
+    """:func:`warp_options` for a window given by its own bounds (no -tap re-alignment)."""
+    return {k: v for k, v in warp_options(choice, crs, gsd).items() if k != "targetAlignedPixels"}
+
+
+def source_to_map(source: str | Path, choice: dict):
+    """(x, y) in mosaic pixels -> (x, y) on the map, through GDAL's GCP transformer of ``source``."""
+
+    g = gdal()
+    transformer = g.Transformer(g.Open(str(source)), None, transformer_options(choice["method"], choice["order"]))
+
+    def to_map(col: np.ndarray, row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        xy, _ = transformer.TransformPoints(0, np.column_stack([col, row, np.zeros(len(col))]).tolist())
+        xy = np.asarray(xy, dtype=np.float64)
+        return xy[:, 0], xy[:, 1]
+
+    return to_map
+
+
+def patched_map(mosaic: str | Path, source: str | Path, choice: dict, crs: str, gsd: float,
+                work: Path) -> tuple[Path, dict]:
+    """Bring the map kept in ``work`` up to the ``mosaic``: copied where ``choice`` is no warp,
+    else warped from ``source`` (a VRT of the mosaic with its GCPs). Returns the kept GeoTIFF,
+    with its overviews, and the run's figures (full or not, squares changed, blocks redone)."""
+    from pipeline25d.core.raster import map_cells
+    from pipeline25d.stages.maps.parts import overview_factors
+
+    g = gdal()
+    warped = choice["method"] != "none"
+    grid = g.Warp("", str(source), format="VRT", **warp_options(choice, crs, gsd)) if warped else g.Open(str(mosaic))
+    gt, width, height, bands = grid.GetGeoTransform(), grid.RasterXSize, grid.RasterYSize, grid.RasterCount
+    grid = None
+    factors = overview_factors(width, height)
+    size = max(BLOCK_PX, factors[-1] if factors else 1)      # a block holds whole pixels of every overview
+    key = {"version": STATE_VERSION, "method": choice["method"], "order": choice.get("order"), "crs": crs,
+           "gcps": _gcps_digest(source) if warped else None, "grid": [*gt, width, height], "block": size,
+           "overviews": factors}
+    mosaic_grid, cells = map_cells(mosaic)
+    key["mosaic"] = mosaic_grid
+    state = read_state(work)
+    full = state is None or state["key"] != key or not (work / KEPT).is_file()
+    nx, ny = -(-width // size), -(-height // size)
+    if full:
+        shutil.rmtree(work, ignore_errors=True)
+        work.mkdir(parents=True)
+        _create_kept(work / KEPT, gt, width, height, bands, crs, factors)
+        todo = {(bx, by) for bx in range(nx) for by in range(ny)}
+        changed: list[str] = []
+    else:
+        old = state["cells"]
+        changed = sorted(c for c in cells.keys() | old.keys() if cells.get(c) != old.get(c))
+        to_map = source_to_map(source, choice) if warped else _pixel_to_map(mosaic_grid)
+        todo = {tuple(b) for b in state["dirty"]} | blocks_reached(changed, mosaic_grid, to_map, gt, width, height,
+                                                                   size, MARGIN_PX if warped else 0)
+    todo = sorted(todo)
+    write_state(work, {"key": key, "cells": {} if full else state["cells"], "dirty": todo})    # journal first
+    kept = g.Open(str(work / KEPT), 1)
+    for bx, by in todo:
+        win = block_window(bx, by, width, height, size)
+        if warped:
+            opts = {k: v for k, v in window_warp_options(choice, crs, gsd).items() if k not in ("xRes", "yRes")}
+            block = g.Warp("", str(source), format="MEM", outputBounds=window_bounds(gt, win), width=win.width,
+                           height=win.height, **opts)
+        else:
+            block = g.Translate("", str(mosaic), format="MEM", srcWin=[win.col0, win.row0, win.width, win.height])
+        _write_block(kept, block, win, factors)
+    kept.FlushCache()
+    kept = None
+    write_state(work, {"key": key, "cells": cells, "dirty": []})
+    stats = {"full": full, "mosaic_cells_changed": len(changed), "blocks_redone": len(todo), "blocks": nx * ny}
+    log.info("map: %s; %d mosaic squares changed, %d of %d map blocks %s", "full" if full else "patch",
+             len(changed), len(todo), nx * ny, "warped" if warped else "copied")
+    return work / KEPT, stats
+
+
+def _write_block(kept, block, win: Window, factors: list[int]) -> None:
+    """A block's pixels and its own overviews (its footprint holds whole overview pixels, so they
+    are the map's) into the kept GeoTIFF. The overviews are built by the GeoTIFF driver, all bands
+    at once with the alpha as their mask, as for a sparse map's parts (the in-memory driver's
+    per-band path weights partly transparent pixels otherwise)."""
+    if factors:
+        path = f"/vsimem/map_patch_{id(block)}.tif"
+        block = gdal().GetDriverByName("GTiff").CreateCopy(path, block)
+        block.BuildOverviews("AVERAGE", factors)
+    try:
+        _copy_levels(kept, block, win, factors)
+    finally:
+        if factors:
+            block = None
+            gdal().Unlink(path)
+
+
+def _copy_levels(kept, block, win: Window, factors: list[int]) -> None:
+    for b in range(1, kept.RasterCount + 1):
+        src, dst = block.GetRasterBand(b), kept.GetRasterBand(b)
+        dst.WriteRaster(win.col0, win.row0, win.width, win.height, src.ReadRaster())
+        for level, f in enumerate(factors):
+            o = src.GetOverview(level)
+            dst.GetOverview(level).WriteRaster(win.col0 // f, win.row0 // f, o.XSize, o.YSize, o.ReadRaster())
+
+
+def _gcps_digest(source: str | Path) -> str:
+    src = gdal().Open(str(source))
+    gcps = [(p.GCPPixel, p.GCPLine, p.GCPX, p.GCPY, p.GCPZ) for p in src.GetGCPs()]
+    return hashlib.sha256(json.dumps(gcps).encode()).hexdigest()[:16]
+
+
+def _pixel_to_map(mosaic_grid: list):
+    gt = mosaic_grid[:6]
+    return lambda col, row: (gt[0] + col * gt[1], gt[3] + row * gt[5])
+
+
+def block_window(bx: int, by: int, width: int, height: int, size: int) -> Window:
+    """The pixel window of block (bx, by), ``size`` px square, of a map ``width`` x ``height``."""
+    return Window(bx * size, by * size, min((bx + 1) * size, width), min((by + 1) * size, height))
+
+
+def blocks_reached(cell_ids: list[str], mosaic_grid: list, to_map, gt: tuple[float, ...], width: int,
+                   height: int, size: int, margin: int) -> set[tuple[int, int]]:
+    """The map blocks (``size`` px) that mosaic squares ``cell_ids`` (of
+    :func:`pipeline25d.core.raster.map_cells`) reach through ``to_map`` (mosaic pixels -> map
+    x, y), grown by ``margin`` px."""
+    if not cell_ids:
+        return set()
+    cell, mw, mh = mosaic_grid[8], mosaic_grid[6], mosaic_grid[7]
+    ids = np.array([[int(v) for v in c.split("_")] for c in cell_ids])
+    c0, r0 = ids[:, 0] * cell, ids[:, 1] * cell
+    c1, r1 = np.minimum(c0 + cell, mw), np.minimum(r0 + cell, mh)
+    outlines = [box_outline(*b, n=EDGE_SAMPLES) for b in zip(c0, r0, c1, r1)]
+    x, y = to_map(np.concatenate([o[0] for o in outlines]), np.concatenate([o[1] for o in outlines]))
+    col = ((x - gt[0]) / gt[1]).reshape(len(cell_ids), -1)
+    row = ((y - gt[3]) / gt[5]).reshape(len(cell_ids), -1)
+    out = set()
+    for a0, a1, b0, b1 in zip(col.min(axis=1), col.max(axis=1), row.min(axis=1), row.max(axis=1)):
+        # the pixels [a0, a1) x [b0, b1) the square's outline spans (grown by the margin)
+        a0, b0 = max(int(np.floor(a0 + 1e-9)) - margin, 0), max(int(np.floor(b0 + 1e-9)) - margin, 0)
+        a1, b1 = min(int(np.ceil(a1 - 1e-9)) + margin, width), min(int(np.ceil(b1 - 1e-9)) + margin, height)
+        if a1 > a0 and b1 > b0:
+            out |= {(bx, by) for bx in range(a0 // size, (a1 - 1) // size + 1)
+                    for by in range(b0 // size, (b1 - 1) // size + 1)}
+    return out
+
+
+def _create_kept(path: Path, gt: tuple[float, ...], width: int, height: int, bands: int, crs: str,
+                 factors: list[int]) -> None:
+    g = gdal()
+    ds = g.GetDriverByName("GTiff").Create(str(path), width, height, bands, g.GDT_Byte,
+                                           ["TILED=YES", "BLOCKXSIZE=512", "BLOCKYSIZE=512", "COMPRESS=ZSTD",
+                                            "ZSTD_LEVEL=1", "SPARSE_OK=TRUE", "BIGTIFF=IF_SAFER", "INTERLEAVE=BAND",
+                                            *(["PHOTOMETRIC=RGB"] if bands >= 4 else []), "ALPHA=YES"])
+    ds.SetGeoTransform(gt)
+    ds.SetProjection(crs)
+    if factors:
+        ds.BuildOverviews("NONE", factors)          # empty levels, filled block by block
+    ds = None
+
+def transformer_options(method: str, order: int) -> list[str]:
+    """GDAL GCP transformer options of a warp method (tps, or polynomial of ``order``)."""
+    return ["METHOD=GCP_TPS"] if method == "tps" else ["METHOD=GCP_POLYNOMIAL", f"MAX_GCP_ORDER={order}"]

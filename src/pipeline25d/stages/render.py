@@ -1,0 +1,615 @@
+"""Headless OpenGL rendering of one map tile (moderngl on EGL).
+
+Two passes share the tile's matrices (see :mod:`pipeline25d.geometry.camera`):
+
+* colour: textured or vertex-coloured triangles, flat Lambert shading for untextured
+  surfaces, depth test, MSAA; the result is un-premultiplied RGBA, transparent where
+  nothing was drawn.
+* GCP markers (the paper's method): the model in black plus one small disk per GCP, lying
+  in the ground's local plane, in a unique colour, depth-tested with a small bias toward
+  the camera. A marker that is only partly visible is buried or hidden and rejected; one
+  whose depth disagrees with the model's surface under it floats and is rejected; a fully
+  visible one's pixel centroid is its sub-pixel image position.
+* depth: the view depth of the nearest surface per pixel (the DSM pass, seen from nadir).
+* sun shadows (a renderer made with ``shadows=True``, a :class:`ShadowView` per tile): the
+  tile's chunks and its shadow casters are rendered first into a depth map seen from the sun
+  (:class:`pipeline25d.geometry.sun.SunFrame`, texels on the scene's global grid); the colour pass then
+  looks each fragment's true 3D position up in it (a tent filter over depth comparisons, with a
+  receiver-plane depth offset and a constant bias) and darkens what the sun does not reach to
+  the shadow ambient share; untextured surfaces are lit by the sun (Lambert) instead of the
+  fixed light. Without shadows the shaders compile exactly as before (the shadow code sits
+  behind ``#ifdef SHADOWS``), so maps stay byte for byte the same.
+
+Terrain-relative projection (DESIGN.md): each vertex carries its DTM height ``in_ground``
+and is displaced by its height above that ground instead of above z0; depth stays the
+true 3D view depth, so hidden surfaces are resolved as in plane mode.
+
+moderngl is imported lazily so the rest of the package imports where EGL is absent.
+"""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline25d.core.errors import RenderError
+from pipeline25d.core.mesh import MeshPart
+from pipeline25d.geometry.camera import Extent, clip_matrix
+from pipeline25d.geometry.perspectives import Perspective
+from pipeline25d.geometry.sun import SunFrame
+
+LIGHT_DIRECTION = np.array([0.45, 0.65, -0.62]) / np.linalg.norm([0.45, 0.65, -0.62])
+MARKER_SEGMENTS = 32
+
+VERTEX_SHADER = """
+#version 330
+uniform mat4 u_mvp;
+uniform vec4 u_shear;        // clip-space shift per metre of ground height (terrain-relative mode)
+uniform float u_zbias;
+in vec3 in_pos;
+in float in_ground;          // DTM height under the vertex minus its chunk origin's height (0 in plane mode)
+in vec4 in_color;
+in vec2 in_uv;
+out vec3 v_pos;
+out vec4 v_color;
+out vec2 v_uv;
+#ifdef SHADOWS
+uniform mat4 u_sun_mvp;      // chunk-local -> shadow-map texels (u, w) and depth (-height, m)
+out vec3 v_sun;
+#endif
+void main() {
+    gl_Position = u_mvp * vec4(in_pos, 1.0) - in_ground * u_shear;
+    gl_Position.z -= u_zbias;
+    v_pos = in_pos;
+    v_color = in_color;
+    v_uv = in_uv;
+#ifdef SHADOWS
+    v_sun = (u_sun_mvp * vec4(in_pos, 1.0)).xyz;   // the true 3D position, not the displaced one
+#endif
+}
+"""
+
+FRAGMENT_SHADER = """
+#version 330
+uniform int u_mode;          // 0 vertex colour, 1 texture, 2 uniform colour
+uniform vec4 u_color;
+uniform sampler2D u_tex;
+uniform bool u_shade;
+uniform vec3 u_light;        // direction the light travels
+uniform vec3 u_view;         // direction the camera looks
+uniform float u_ambient;
+in vec3 v_pos;
+in vec4 v_color;
+in vec2 v_uv;
+out vec4 f_color;
+#ifdef SHADOWS
+uniform bool u_sunlit;            // this pass is lit by the sun (the colour pass)
+uniform sampler2D u_shadow_map;   // depth seen from the sun, window depth in [0, 1]
+uniform vec3 u_sun;               // unit vector toward the sun
+uniform vec3 u_sun_u;             // scene metres of one shadow-map texel along u
+uniform vec3 u_sun_w;             // ... and along w
+uniform float u_depth_span;       // metres of the shadow map's depth range (heights)
+uniform float u_bias;             // metres
+uniform float u_radius;           // tent filter radius, texels
+uniform float u_shadow_ambient;   // brightness in shadow, as a share of full sun
+in vec3 v_sun;                    // texels from the shadow map's corner (u, w); depth from its near plane (m)
+
+// Share of the sun reaching a face of normal n here: depth comparisons at the texel centres
+// within u_radius, weighted by a tent filter (continuous in position: soft edges, and the same
+// value wherever the same point is drawn). Each comparison is against this face's own plane
+// continued to that texel (receiver-plane depth), less a constant bias.
+float sunlight(vec3 n) {
+    float facing = dot(n, u_sun);
+    if (facing <= 0.0) return 0.0;                      // the face turns away from the sun
+    vec2 slope = vec2(dot(n, u_sun_u), dot(n, u_sun_w)) / max(facing, 0.02);   // metres of depth per texel
+    ivec2 last = textureSize(u_shadow_map, 0) - 1;
+    ivec2 lo = ivec2(ceil(v_sun.xy - 0.5 - u_radius));
+    ivec2 hi = ivec2(floor(v_sun.xy - 0.5 + u_radius));
+    float lit = 0.0;
+    float total = 0.0;
+    for (int j = lo.y; j <= hi.y; ++j) {
+        for (int i = lo.x; i <= hi.x; ++i) {
+            vec2 delta = vec2(i, j) + 0.5 - v_sun.xy;
+            float w = max(1.0 - abs(delta.x) / u_radius, 0.0) * max(1.0 - abs(delta.y) / u_radius, 0.0);
+            float stored = texelFetch(u_shadow_map, clamp(ivec2(i, j), ivec2(0), last), 0).r * u_depth_span;
+            lit += w * step(v_sun.z + dot(slope, delta) - u_bias, stored);
+            total += w;
+        }
+    }
+    return total > 0.0 ? lit / total : 1.0;
+}
+#endif
+void main() {
+    vec4 base = u_mode == 0 ? v_color : (u_mode == 1 ? texture(u_tex, v_uv) : u_color);
+    float shade = 1.0;
+#ifdef SHADOWS
+    if (u_sunlit) {
+        vec3 n = normalize(cross(dFdx(v_pos), dFdy(v_pos)));
+        if (dot(n, u_view) > 0.0) n = -n;   // the face the camera sees
+        float sun = sunlight(n);
+        if (u_shade) sun *= max(dot(n, u_sun), 0.0);   // untextured: Lambert by the sun
+        shade = u_shadow_ambient + (1.0 - u_shadow_ambient) * sun;
+    } else
+#endif
+    if (u_shade) {
+        vec3 n = normalize(cross(dFdx(v_pos), dFdy(v_pos)));
+        if (dot(n, u_view) > 0.0) n = -n;   // the face the camera sees
+        shade = u_ambient + (1.0 - u_ambient) * max(dot(n, -u_light), 0.0);
+    }
+    f_color = vec4(base.rgb * shade, 1.0);
+}
+"""
+
+
+@dataclass(frozen=True)
+class TileView:
+    """What one tile render needs to know about the camera: all float64."""
+
+    perspective: Perspective
+    z0: float
+    extent: Extent
+    depth_range: tuple[float, float]
+    size: tuple[int, int]          # (width, height) in pixels
+    ground: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None   # DTM(x, y); None = plane mode
+    camera: str = "map"            # "map" (map-aligned) or "paper" (the paper's image plane)
+
+    def matrix(self, origin: np.ndarray) -> np.ndarray:
+        """Clip matrix for vertices relative to ``origin``. In terrain-relative mode its reference
+        plane is the origin's height, matching :meth:`ground_offsets`: the result is the same
+        (every vertex subtracts its own ground), but both float32 terms stay small."""
+        z0 = self.z0 if self.ground is None else float(origin[2])
+        return clip_matrix(self.perspective, z0, self.extent, self.depth_range, origin, self.camera)
+
+    def shear(self, matrix: np.ndarray) -> tuple[float, float, float, float]:
+        """u_shear: the clip-space map shift per metre of ground height (zero in plane mode)."""
+        if self.ground is None:
+            return (0.0, 0.0, 0.0, 0.0)
+        return (float(matrix[0, 2]), float(matrix[1, 2]), 0.0, 0.0)
+
+    def ground_offsets(self, vertices: np.ndarray, origin: np.ndarray) -> np.ndarray | None:
+        """(n,) float32 DTM height under scene-CRS vertices minus ``origin``'s height (their chunk's),
+        or None in plane mode. Relative to z0 instead, a DTM thousands of metres from z0 cost
+        0.01 px and more at low elevations (float32 shear × height against the matrix offset)."""
+        if self.ground is None:
+            return None
+        return (self.ground(vertices[:, 0], vertices[:, 1]) - float(origin[2])).astype(np.float32)
+
+    def depth_metres(self, window_depth: np.ndarray) -> np.ndarray:
+        """View depth in metres from GL window depth in [0, 1] (1 = cleared: NaN)."""
+        dmin, dmax = self.depth_range
+        out = dmin + window_depth.astype(np.float64) * (dmax - dmin)
+        out[window_depth >= 1.0] = np.nan
+        return out
+
+
+@dataclass(frozen=True)
+class ShadowView:
+    """A tile's shadow map: the scene's sun space, the tile's window on its global texel grid
+    (k0, l0, k1, l1), its depth range (m of -height), the brightness in shadow (share of
+    full sun), the depth bias (m) and the filter radius (texels). All float64."""
+
+    frame: SunFrame
+    window: tuple[int, int, int, int]
+    depth_range: tuple[float, float]
+    ambient: float
+    bias: float
+    radius: float
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return self.window[2] - self.window[0], self.window[3] - self.window[1]
+
+
+class _GpuMesh:
+    """A vertex array and the buffers it reads (``vao.release()`` alone leaves them allocated)."""
+
+    def __init__(self, vao, buffers: list):
+        self.vao, self.buffers = vao, buffers
+        self.texture: bytes | None = None
+        self.coloured = False
+
+    def release(self) -> None:
+        self.vao.release()
+        for b in self.buffers:
+            b.release()
+
+
+class TileGeometry:
+    """Chunks uploaded once for all passes of a tile: [(origin, [_GpuMesh, ...]), ...]."""
+
+    def __init__(self, chunks: list[tuple[np.ndarray, list[_GpuMesh]]]):
+        self.chunks = chunks
+
+    def release(self) -> None:
+        for _, meshes in self.chunks:
+            for mesh in meshes:
+                mesh.release()
+        self.chunks = []
+
+    def __enter__(self) -> "TileGeometry":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+Chunks = "list[tuple[np.ndarray, list[MeshPart]]] | TileGeometry"
+
+
+def create_context():
+    """A standalone moderngl context on EGL; RenderError with a hint when unavailable."""
+    try:
+        import moderngl
+
+        return moderngl.create_standalone_context(backend="egl")
+    except Exception as exc:  # moderngl/glcontext raise plain Exception
+        raise RenderError(
+            f"cannot create a headless OpenGL context through EGL ({exc}); on Debian install "
+            "libegl1 libegl-mesa0 libgl1-mesa-dri (make deps does)") from None
+
+
+def renderer_info(ctx) -> dict[str, str]:
+    return {k: ctx.info[k] for k in ("GL_VENDOR", "GL_RENDERER", "GL_VERSION")}
+
+
+class TileRenderer:
+    """Renders chunks into tiles; one instance per GL context (programs compiled once)."""
+
+    def __init__(self, ctx, ambient: float = 0.45, samples: int = 4, shadows: bool = False):
+        self.ctx = ctx
+        self.ambient = ambient
+        self.samples = min(samples, ctx.max_samples) if samples else 0
+        self.shadows = shadows
+        self.prog = ctx.program(vertex_shader=_variant(VERTEX_SHADER, shadows),
+                                fragment_shader=_variant(FRAGMENT_SHADER, shadows))
+        self._textures: dict[bytes, object] = {}
+
+    # -- resources -----------------------------------------------------------
+    def _texture(self, data: bytes):
+        """A GL texture for encoded image bytes, uploaded once per distinct image."""
+        if data not in self._textures:
+            import moderngl
+            from PIL import Image
+
+            img = Image.open(io.BytesIO(data)).convert("RGBA").transpose(Image.Transpose.FLIP_TOP_BOTTOM)
+            tex = self.ctx.texture(img.size, 4, img.tobytes())
+            tex.build_mipmaps()
+            tex.repeat_x = tex.repeat_y = True
+            # Trilinear only: llvmpipe's anisotropic filter blurs even 1:1 texel-to-pixel mappings.
+            tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
+            self._textures[data] = tex
+        return self._textures[data]
+
+    def _vao(self, positions: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None,
+             uv: np.ndarray | None = None, ground: np.ndarray | None = None) -> "_GpuMesh":
+        """Upload one mesh (positions already relative to its origin) as a vertex array."""
+        ctx = self.ctx
+        content = [(ctx.buffer(np.ascontiguousarray(positions, dtype="f4")), "3f", "in_pos")]
+        if ground is not None:
+            content.append((ctx.buffer(np.ascontiguousarray(ground, dtype="f4")), "1f", "in_ground"))
+        if colors is not None:
+            content.append((ctx.buffer(np.ascontiguousarray(colors, dtype="u1")), "4f1", "in_color"))
+        if uv is not None:
+            content.append((ctx.buffer(np.ascontiguousarray(uv, dtype="f4")), "2f", "in_uv"))
+        ibo = ctx.buffer(np.ascontiguousarray(faces, dtype="u4"))
+        vao = ctx.vertex_array(self.prog, content, index_buffer=ibo, index_element_size=4)
+        return _GpuMesh(vao, [b for b, _, _ in content] + [ibo])
+
+    def upload(self, chunks: list[tuple[np.ndarray, list[MeshPart]]], view: TileView | None) -> "TileGeometry":
+        """The chunks on the GPU, once for every pass of a tile (they share the view's ground).
+
+        Vertices go to float32 relative to their chunk's origin; in terrain-relative mode
+        each also carries the DTM under it relative to the origin's height. ``view`` None: no
+        ground (shadow casters, drawn only from the sun). Release the result (or use it in ``with``).
+        """
+        out = []
+        for origin, parts in chunks:
+            gpu = []
+            for part in parts:
+                if not part.n_triangles:
+                    continue
+                textured = part.texture is not None and part.uv is not None
+                mesh = self._vao(part.vertices - origin, part.faces, part.colors, part.uv if textured else None,
+                                 None if view is None else view.ground_offsets(part.vertices, origin))
+                mesh.texture = part.texture if textured else None
+                mesh.coloured = part.colors is not None
+                gpu.append(mesh)
+            out.append((np.asarray(origin, dtype=np.float64), gpu))
+        return TileGeometry(out)
+
+    @contextmanager
+    def _geometry(self, chunks: "Chunks", view: TileView | None) -> Iterator["TileGeometry"]:
+        """``chunks`` on the GPU for one pass: uploaded (and released after) unless already uploaded."""
+        if isinstance(chunks, TileGeometry):
+            yield chunks
+            return
+        with self.upload(chunks, view) as geometry:
+            yield geometry
+
+    def _set(self, **uniforms) -> None:
+        for name, value in uniforms.items():
+            if name in self.prog:
+                self.prog[name].value = value
+
+    # -- drawing ---------------------------------------------------------------
+    def _draw_chunks(self, geometry: "TileGeometry", view: TileView, black: bool = False,
+                     shadow: ShadowView | None = None) -> None:
+        from pipeline25d.geometry.camera import view_direction
+
+        self._set(u_light=tuple(LIGHT_DIRECTION), u_view=tuple(view_direction(view.perspective)),
+                  u_ambient=self.ambient, u_zbias=0.0, u_sunlit=shadow is not None and not black)
+        for origin, meshes in geometry.chunks:
+            matrix = view.matrix(origin)
+            self.prog["u_mvp"].write(matrix.T.astype("f4").tobytes())
+            self._set(u_shear=view.shear(matrix))
+            if shadow is not None:
+                self._write("u_sun_mvp", shadow.frame.lookup_matrix(shadow.window, shadow.depth_range, origin))
+            for mesh in meshes:
+                if black:
+                    self._set(u_mode=2, u_color=(0.0, 0.0, 0.0, 1.0), u_shade=False)
+                elif mesh.texture is not None:
+                    self._texture(mesh.texture).use(0)
+                    self._set(u_mode=1, u_tex=0, u_shade=False)
+                elif mesh.coloured:
+                    self._set(u_mode=0, u_shade=True)
+                else:
+                    self._set(u_mode=2, u_color=(0.7, 0.7, 0.7, 1.0), u_shade=True)
+                mesh.vao.render()
+
+    def _write(self, name: str, matrix: np.ndarray) -> None:
+        """A 4×4 float64 matrix into a mat4 uniform (as float32), if the program uses it."""
+        if name in self.prog:
+            self.prog[name].write(matrix.T.astype("f4").tobytes())
+
+    def render_color(self, chunks: "Chunks", view: TileView, shadow: ShadowView | None = None,
+                     casters: "Chunks | None" = None) -> np.ndarray:
+        """(h, w, 4) uint8 RGBA, row 0 = north edge, alpha 0 where empty.
+
+        ``shadow``: sun shadows (a renderer made with ``shadows=True``), cast by ``chunks`` and
+        ``casters`` (further chunks that are drawn only into the shadow map)."""
+        import moderngl
+
+        if shadow is not None and not self.shadows:
+            raise RenderError("sun shadows need a TileRenderer made with shadows=True")
+        ctx, (w, h) = self.ctx, view.size
+        with self._geometry(chunks, view) as geometry:
+            shadow_map = None
+            if shadow is not None:
+                with self._geometry(casters or [], None) as cast:
+                    shadow_map = self._shadow_map([geometry, cast], shadow)
+                shadow_map.use(location=1)
+                self._set(u_shadow_map=1, **_shadow_uniforms(shadow))
+            fbo_ms = ctx.framebuffer(color_attachments=[ctx.renderbuffer((w, h), 4, samples=self.samples)],
+                                     depth_attachment=ctx.depth_renderbuffer((w, h), samples=self.samples))
+            fbo = ctx.simple_framebuffer((w, h), components=4)
+            fbo_ms.use()
+            ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+            ctx.enable(moderngl.DEPTH_TEST)
+            ctx.disable(moderngl.CULL_FACE)
+            self._draw_chunks(geometry, view, shadow=shadow)
+        ctx.copy_framebuffer(fbo, fbo_ms)
+        rgba = _read_rgba(fbo, w, h)
+        for obj in (fbo_ms, fbo, shadow_map):
+            if obj is not None:
+                obj.release()
+        return unpremultiply(rgba)
+
+    def _shadow_map(self, geometries: list["TileGeometry"], shadow: ShadowView):
+        """A depth texture of ``geometries`` seen from the sun over the shadow view's window
+        (one texel per pixel, true 3D positions: no terrain displacement)."""
+        import moderngl
+
+        ctx, (w, h) = self.ctx, shadow.size
+        limit = int(ctx.info["GL_MAX_TEXTURE_SIZE"])
+        if max(w, h) > limit:
+            raise RenderError(f"a tile's shadow map needs {w} x {h} texels, more than this GPU's {limit}: "
+                              "lower tile_size or raise shadows.texel_px")
+        depth = ctx.depth_texture((w, h))
+        fbo = ctx.framebuffer(depth_attachment=depth)
+        fbo.use()
+        ctx.clear(depth=1.0)
+        ctx.enable(moderngl.DEPTH_TEST)
+        ctx.disable(moderngl.CULL_FACE)
+        self._set(u_mode=2, u_color=(0.0, 0.0, 0.0, 1.0), u_shade=False, u_sunlit=False, u_zbias=0.0,
+                  u_shear=(0.0, 0.0, 0.0, 0.0))
+        for geometry in geometries:
+            for origin, meshes in geometry.chunks:
+                self._write("u_mvp", shadow.frame.clip_matrix(shadow.window, shadow.depth_range, origin))
+                for mesh in meshes:
+                    mesh.vao.render()
+        fbo.release()
+        depth.compare_func = ""                  # plain depth values for texelFetch
+        depth.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        return depth
+
+    def render_depth(self, chunks: "Chunks", view: TileView) -> np.ndarray:
+        """(h, w) float64 view depth (metres) of the nearest surface at each pixel centre; NaN where empty."""
+        import moderngl
+
+        ctx, (w, h) = self.ctx, view.size
+        depth = ctx.depth_texture((w, h))
+        fbo = ctx.framebuffer(color_attachments=[ctx.renderbuffer((w, h), 4)], depth_attachment=depth)
+        fbo.use()
+        ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+        ctx.enable(moderngl.DEPTH_TEST)
+        ctx.disable(moderngl.CULL_FACE)
+        with self._geometry(chunks, view) as geometry:
+            self._draw_chunks(geometry, view, black=True)
+        out = view.depth_metres(_read_depth(depth, w, h))
+        fbo.release()
+        depth.release()
+        return out
+
+    def render_markers(self, chunks: "Chunks", view: TileView,
+                       points: np.ndarray, slopes: np.ndarray, radius_m: float, depth_bias_m: float,
+                       depth_tolerance_m: float) -> tuple[np.ndarray, np.ndarray]:
+        """Marker pixel statistics for (n, 3) GCPs on ground of slope (n, 2) (dz/dx, dz/dy).
+
+        Returns (counts_full, sums): counts_full[i] = pixels of marker i drawn alone;
+        sums[i] = (count, Σcol, Σrow, agree) with the model drawn first (pixel centres at +0.5,
+        row 0 = north). ``agree`` counts marker pixels where the model's surface depth is
+        within ``depth_tolerance_m`` of the marker's own: fewer than counts_full means the
+        marker floats above the model (or over a hole) somewhere.
+        """
+        import moderngl
+
+        ctx, (w, h) = self.ctx, view.size
+        depth = ctx.depth_texture((w, h))
+        fbo = ctx.framebuffer(color_attachments=[ctx.renderbuffer((w, h), 4)], depth_attachment=depth)
+        fbo.use()
+        ctx.enable(moderngl.DEPTH_TEST)
+        ctx.disable(moderngl.CULL_FACE)
+        n = len(points)
+        origin = points.mean(axis=0) if n else np.zeros(3)
+        verts, faces, colors = marker_geometry(points - origin, slopes, radius_m)
+        ground = view.ground_offsets(verts + origin, origin)
+        dmin, dmax = view.depth_range
+
+        def draw_markers(bias_m: float):
+            if not n:
+                return
+            matrix = view.matrix(origin)
+            self.prog["u_mvp"].write(matrix.T.astype("f4").tobytes())
+            self._set(u_mode=0, u_shade=False, u_sunlit=False, u_zbias=2.0 * bias_m / (dmax - dmin),
+                      u_shear=view.shear(matrix))
+            mesh = self._vao(verts, faces, colors, ground=ground)
+            mesh.vao.render()
+            mesh.release()
+            self._set(u_zbias=0.0)
+
+        ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+        draw_markers(0.0)
+        alone = _marker_ids(fbo, w, h)
+        rows, cols = np.nonzero(alone)                # only marker pixels are compared below
+        marker_depth = _read_depth(depth, w, h)[rows, cols]
+        ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+        with self._geometry(chunks, view) as geometry:
+            self._draw_chunks(geometry, view, black=True)
+        model_depth = _read_depth(depth, w, h)[rows, cols]
+        draw_markers(depth_bias_m)
+        seen = _marker_ids(fbo, w, h)
+        fbo.release()
+        depth.release()
+        # window depth is linear in view depth (orthographic); a cleared model pixel (1.0) never agrees
+        agree = np.zeros((h, w), dtype=bool)
+        agree[rows, cols] = (np.abs(model_depth - marker_depth).astype(np.float64) * (dmax - dmin)
+                             <= depth_tolerance_m) & (model_depth < 1.0)
+        alone_stats = _marker_stats(alone, n, agree)
+        full = alone_stats[:, 0].copy()
+        full[_overlapping(points, slopes, radius_m, view)] = 0   # one marker hides another: no clean centroid
+        sums = _marker_stats(seen, n)
+        sums[:, 3] = alone_stats[:, 3]
+        return full, sums
+
+
+def _variant(source: str, shadows: bool) -> str:
+    """A shader's source with ``#define SHADOWS`` after its #version line when ``shadows``; else unchanged."""
+    if not shadows:
+        return source
+    head, rest = source.split("#version 330\n", 1)
+    return head + "#version 330\n#define SHADOWS\n" + rest
+
+
+def _shadow_uniforms(shadow: ShadowView) -> dict:
+    """The colour pass's shadow uniforms that do not depend on the chunk."""
+    along_u, along_w = shadow.frame.per_texel()
+    return {"u_sun": tuple(shadow.frame.sun.toward()), "u_sun_u": tuple(along_u), "u_sun_w": tuple(along_w),
+            "u_depth_span": shadow.depth_range[1] - shadow.depth_range[0], "u_bias": shadow.bias,
+            "u_radius": shadow.radius, "u_shadow_ambient": shadow.ambient}
+
+
+def _overlapping(points: np.ndarray, slopes: np.ndarray, radius_m: float, view: TileView) -> np.ndarray:
+    """(n,) bool: markers whose images could touch another marker's image in this view.
+
+    Each marker's image is an ellipse around its projected centre whose longest semi-axis
+    is radius·σ_max(J), J the 2×2 Jacobian of the map projection on the marker's plane.
+    """
+    from pipeline25d.geometry.camera import image_stretch, project, project_above_ground
+
+    n = len(points)
+    if n < 2:
+        return np.zeros(n, dtype=bool)
+    p = view.perspective
+    if view.ground is None:
+        centres = project(points, p, view.z0, view.camera)[:, :2]
+    else:
+        centres = project_above_ground(points, view.ground(points[:, 0], points[:, 1]), p)[:, :2]
+    reach = image_stretch(p, slopes, view.camera) * radius_m + 2 * (view.extent.width / view.size[0])   # + 2 px
+    out = np.zeros(n, dtype=bool)
+    for lo in range(0, n, 1024):   # pairwise in blocks: a tile holds hundreds of markers, not millions
+        d = np.hypot(*(centres[lo:lo + 1024, None, :] - centres[None, :, :]).transpose(2, 0, 1))
+        touch = d < reach[lo:lo + 1024, None] + reach[None, :]
+        touch[np.arange(touch.shape[0]), np.arange(lo, lo + touch.shape[0])] = False
+        out[lo:lo + 1024] |= touch.any(axis=1)
+    return out
+
+
+def marker_geometry(centres: np.ndarray, slopes: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Disks (triangle fans) in the ground plane around (n, 3) local centres, coloured by id + 1.
+
+    Each disk lies in the plane z = z_c + s_x·dx + s_y·dy of its (n, 2) slopes and has
+    horizontal radius ``radius``. Every projection here is affine over a disk, and an
+    affine map takes a disk's centroid to its image's centroid, so the pixel centroid
+    estimates the centre without bias in any view.
+    """
+    n, k = len(centres), MARKER_SEGMENTS
+    ang = np.linspace(0, 2 * np.pi, k, endpoint=False)
+    ring = np.column_stack([np.cos(ang), np.sin(ang)]) * radius
+    offsets = np.zeros((n, k + 1, 3))
+    offsets[:, 1:, :2] = ring[None]
+    slopes = np.asarray(slopes, dtype=np.float64).reshape(n, 2)
+    offsets[:, 1:, 2] = ring[None, :, 0] * slopes[:, :1] + ring[None, :, 1] * slopes[:, 1:]
+    verts = (centres[:, None, :] + offsets).reshape(-1, 3)
+    base = np.arange(n)[:, None] * (k + 1)
+    j = np.arange(k)
+    fan = np.column_stack([np.zeros(k, int), 1 + j, 1 + (j + 1) % k])
+    faces = (base[:, None, :] + fan[None]).reshape(-1, 3)
+    ids = np.arange(1, n + 1)
+    rgb = np.column_stack([ids & 255, (ids >> 8) & 255, (ids >> 16) & 255, np.full(n, 255)]).astype(np.uint8)
+    colors = np.repeat(rgb, k + 1, axis=0)
+    return verts, faces, colors
+
+
+def _read_depth(texture, w: int, h: int) -> np.ndarray:
+    """(h, w) float32 window depth in [0, 1] of a depth texture, row 0 at the top."""
+    return np.frombuffer(texture.read(alignment=1), dtype=np.float32).reshape(h, w)[::-1]
+
+
+def _read_rgba(fbo, w: int, h: int) -> np.ndarray:
+    """(h, w, 4) uint8 framebuffer contents with row 0 at the top (north); GL's row 0 is the bottom."""
+    return np.frombuffer(fbo.read(components=4), dtype=np.uint8).reshape(h, w, 4)[::-1]
+
+
+def _marker_ids(fbo, w: int, h: int) -> np.ndarray:
+    """(h, w) marker id + 1 per pixel (0 = none) from the colour buffer (id = R + 256 G + 65536 B),
+    row 0 at the top."""
+    rgba = np.frombuffer(fbo.read(components=4), dtype="<u4").reshape(h, w)[::-1]
+    return rgba & 0xFFFFFF
+
+
+def _marker_stats(ids: np.ndarray, n: int, flag: np.ndarray | None = None) -> np.ndarray:
+    """(n, 4) float64 per marker: pixel count, Σ(col + 0.5), Σ(row + 0.5) (row 0 = north), and
+    the count of its pixels where ``flag`` is true."""
+    rows, cols = np.nonzero(ids)
+    which = ids[rows, cols] - 1
+    stats = np.zeros((n, 4))
+    if n:
+        stats[:, 0] = np.bincount(which, minlength=n)[:n]
+        if flag is not None:
+            stats[:, 3] = np.bincount(which, weights=flag[rows, cols].astype(float), minlength=n)[:n]
+        stats[:, 1] = np.bincount(which, weights=cols + 0.5, minlength=n)[:n]
+        stats[:, 2] = np.bincount(which, weights=rows + 0.5, minlength=n)[:n]
+    return stats
+
+
+def unpremultiply(rgba: np.ndarray) -> np.ndarray:
+    """Undo the premultiplication MSAA resolve leaves at edges against the transparent background."""
+    alpha = rgba[..., 3:4].astype(np.float64)
+    out = rgba.copy()
+    partial = (alpha[..., 0] > 0) & (alpha[..., 0] < 255)
+    out[..., :3][partial] = np.clip(rgba[..., :3][partial] * 255.0 / alpha[partial], 0, 255).round().astype(np.uint8)
+    return out

@@ -1,0 +1,232 @@
+"""TODO docstring."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from pipeline25d.core.atomic import write_json
+from pipeline25d.core.errors import ConfigError
+from pipeline25d.geometry.perspectives import Perspective
+from pipeline25d.stages.gcps import CANDIDATE_FIELDS, assign_roles, read_csv, write_csv
+from pipeline25d.stages.lod import lod_chunks, scene_bounds
+
+log = logging.getLogger(__name__)
+
+
+GROUND_MARGIN_M = 2.0   # widens a chunk's ground range (tile assignment in terrain mode) against sampling gaps
+
+
+def scene_setup(lod_indexes: list[str], dsm_path: str | Path, terrain: str, terrain_path: str | Path | None,
+                z0_cfg, projection: str, gcp_cfg: dict, scene_crs: str, gsd: float, perspective_ids: list[str],
+                out_scene: str | Path, out_candidates: str | Path, out_dtm: str | Path | None = None,
+                max_object_size: float = 100.0) -> dict:
+    """Reference plane z0, projection mode, GCP candidates (with check-point roles) and, for
+    ``terrain: auto``, the DTM.
+
+    ``terrain_path``: the ground heights from :func:`build_terrain` (auto) or the user's DTM.
+    With auto, the ground around each check point (within :func:`holdout_radius`) is left
+    out of the DTM's interpolation, so a check point measures how well the DTM predicts
+    ground it has not seen, not the DSM against itself.
+
+    Memory: the DSM and the DTM are held whole as float32, 8 bytes a cell, which loses
+    nothing (the DSM is read from its float32 GeoTIFF, GDAL's fill computes in float32);
+    the DTM's interpolation and the site search run block by block.
+    """
+    from pipeline25d.core.crs import horizontal_wkt
+    from pipeline25d.core.grid import FloatRaster, write_float_geotiff
+    from pipeline25d.core.raster import DTM
+    from pipeline25d.stages.gcp_sites import SiteRules, select_sites
+    from pipeline25d.stages.gcps import candidates_from_sites
+
+    chunks = lod_chunks(lod_indexes)
+    bounds, lo, hi = scene_bounds(chunks)
+    dsm_src = FloatRaster(dsm_path)
+    grid = dsm_src.grid
+    dsm = dsm_src.read_all(np.float32)
+    seed_src, radius, height_fn = None, None, None
+    search = int(np.ceil(max_object_size / 2 / grid.res))
+    if terrain == "flat":
+        level = float(z0_cfg) if z0_cfg != "auto" else float(np.median(bounds[:, 0, 2]))
+        dtm = np.broadcast_to(level, grid.shape)
+    elif terrain == "auto":
+        seed_src = FloatRaster(terrain_path)
+        needed = _under_chunks(bounds, grid)
+        dtm = _interpolated_dtm(seed_src.read, grid, search, needed)
+    else:
+        height_fn = DTM(terrain_path, scene_crs, continuous=True).sample
+        dtm = _sampled_dtm(height_fn, grid)
+    covered = np.isfinite(dsm)
+    # auto: the median ground height, rounded to whole metres so a local terrain change does not move it
+    z0 = float(z0_cfg) if z0_cfg != "auto" else float(round(_median(dtm[covered]))) if covered.any() else float(lo[2])
+    if projection == "auto":
+        projection = "plane" if terrain == "flat" else "terrain"
+    if projection == "terrain" and terrain == "flat":
+        raise ConfigError("config key projection: terrain-relative projection needs a terrain (auto or a DTM path), "
+                          "not terrain: flat")
+    perspectives = [Perspective.from_id(pid) for pid in perspective_ids]
+    if gcp_cfg["source"] == "auto":
+        rules = SiteRules(spacing=gcp_cfg["spacing"], radius=gcp_cfg["marker_px"] * gsd,
+                          clearance=gcp_cfg["clearance"], max_height=gcp_cfg["max_height"],
+                          max_roughness=gcp_cfg["max_roughness"], max_slope=gcp_cfg["max_slope"])
+        cands = candidates_from_sites(select_sites(dsm, dtm, grid, rules, perspectives),
+                                      gcp_cfg["holdout"], gcp_cfg["seed"])
+        if seed_src is not None:
+            radius = holdout_radius(rules, grid.res)
+            del dtm
+            dtm = _interpolated_dtm(lambda rows, cols: _without_check_points(seed_src.read(rows, cols), grid, cands,
+                                                                              radius, (rows, cols)), grid, search,
+                                   needed)
+            xy = np.array([[c["x"], c["y"]] for c in cands]).reshape(-1, 2)
+            for c, g in zip(cands, _sample_continuous(dtm, grid, xy)):
+                c["ground"] = round(float(g), 3)
+            log.info("DTM interpolated without the ground within %.1f m of each check point", radius)
+    else:
+        rows = read_csv(gcp_cfg["source"])
+        xy = np.array([[r["x"], r["y"]] for r in rows]).reshape(-1, 2)
+        ground = (height_fn(xy[:, 0], xy[:, 1]) if height_fn else
+                  np.array([_cell_value(dtm, grid, x, y) for x, y in xy]))
+        cands = assign_roles([{"id": r["id"], "x": r["x"], "y": r["y"], "z": r["z"], "ground": float(g),
+                               "sx": 0.0, "sy": 0.0} for r, g in zip(rows, ground)],
+                             gcp_cfg["holdout"], gcp_cfg["seed"])
+    if terrain == "auto":
+        write_float_geotiff(out_dtm, dtm, grid, horizontal_wkt(scene_crs))
+    dtm_path = out_dtm if terrain == "auto" else terrain_path
+    scene = {"bounds": [lo.tolist(), hi.tolist()], "z0": z0, "terrain": terrain, "projection": projection,
+             "dtm": None if terrain == "flat" else str(dtm_path),
+             "n_candidates": len(cands), "n_check": sum(c["role"] == "check" for c in cands),
+             "dtm_check_holdout_m": radius,
+             "n_chunks": len(chunks)}
+    write_csv(out_candidates, cands, CANDIDATE_FIELDS)
+    write_json(out_scene, scene)
+    log.info("z0 %.2f m, projection %s, %d GCP candidates (%d check points)", z0, projection, len(cands),
+             scene["n_check"])
+    return scene
+
+
+def _interpolated_dtm(read, grid, search: int, needed=None) -> np.ndarray:
+    """The DTM (float32, exact: GDAL's fill computes in float32) from the ground heights ``read(rows, cols)``.
+
+    With ``needed`` (a sparse scene's blocks under the model), the DTM reaches 4 x ``search``
+    cells (twice the largest object) beyond the ground and is NaN elsewhere: empty land costs nothing.
+    """
+    from pipeline25d.stages.terrain.dtm import dtm_blocks
+
+    dtm = np.empty(grid.shape, np.float32)
+    reach = None if needed is None else 4 * search
+    for block, values in dtm_blocks(read, grid, search, needed=needed, reach_cells=reach):
+        dtm[block.core] = values
+    return dtm
+
+
+def _under_chunks(bounds: np.ndarray, grid, margin_cells: int = 2):
+    """``needed(core)``: whether a block's cells (widened by ``margin_cells``) meet a chunk's footprint.
+
+    The DTM is sampled only under the model's chunks, so blocks of empty land (a sparse
+    scene) need none.
+    """
+    xy = np.asarray(bounds, dtype=np.float64)[:, :, :2]      # (n, 2 [lo, hi], 2 [x, y])
+
+    def needed(core: tuple[slice, slice]) -> bool:
+        rows, cols = core
+        pad = margin_cells * grid.res
+        x0, x1 = grid.xmin + cols.start * grid.res - pad, grid.xmin + cols.stop * grid.res + pad
+        y1, y0 = grid.ymax - rows.start * grid.res + pad, grid.ymax - rows.stop * grid.res - pad
+        return bool(np.any((xy[:, 0, 0] <= x1) & (xy[:, 1, 0] >= x0) & (xy[:, 0, 1] <= y1) & (xy[:, 1, 1] >= y0)))
+
+    return needed
+
+
+def _sampled_dtm(height_fn, grid, rows_per_strip: int = 256) -> np.ndarray:
+    """A user DTM sampled at every cell centre, a strip of rows at a time."""
+    dtm = np.empty(grid.shape)
+    xs, ys = grid.column_x(), grid.row_y()
+    for r0 in range(0, grid.height, rows_per_strip):
+        gx, gy = np.meshgrid(xs, ys[r0:r0 + rows_per_strip])
+        dtm[r0:r0 + rows_per_strip] = height_fn(gx.ravel(), gy.ravel()).reshape(gx.shape)
+    return dtm
+
+
+def _median(values: np.ndarray) -> float:
+    """np.median of a (float32) vector in float64, partitioning ``values`` in place (no copy)."""
+    n = len(values)
+    values.partition([(n - 1) // 2, n // 2])
+    return (float(values[(n - 1) // 2]) + float(values[n // 2])) / 2
+
+
+def _sample_continuous(values: np.ndarray, grid, xy: np.ndarray) -> np.ndarray:
+    """Bilinear heights at (n, 2) points, as ``DTM.from_array(values, continuous=True)`` gives them,
+    each from the few cells around it (no float64 copy of the grid)."""
+    from pipeline25d.core.raster import DTM
+
+    out = np.empty(len(xy))
+    for i, (x, y) in enumerate(xy):
+        col = min(max(int((x - grid.xmin) / grid.res), 0), grid.width - 1)
+        row = min(max(int((grid.ymax - y) / grid.res), 0), grid.height - 1)
+        rows, cols = slice(max(row - 2, 0), min(row + 3, grid.height)), slice(max(col - 2, 0), min(col + 3, grid.width))
+        window = DTM.from_array(values[rows, cols], grid.window(rows, cols).geotransform, continuous=True)
+        out[i] = window.sample(np.array([x]), np.array([y]))[0]
+    return out
+
+
+def holdout_radius(rules, res: float) -> float:
+    """Metres of ground around a check point left out of the DTM: its marker, the marker's
+    clearance and two DTM cells, so the DTM must predict the whole marker from ground it saw
+    farther away. (Wider holes would degrade the DTM, and so the maps, wherever check points
+    are dense: on Delft's LiDAR mesh, 5 m holes round check points 4 m apart made the ground
+    of the oblique maps 2-3 times farther off, as image correlation measures it.)"""
+    return rules.radius + rules.clearance + 2 * res
+
+
+def _without_check_points(seed: np.ndarray, grid, cands: list[dict], radius: float,
+                          window: tuple[slice, slice] | None = None) -> np.ndarray:
+    """A copy of the ground heights with the cells within ``radius`` of each check point set to NaN.
+
+    ``window``: ``seed`` holds only these (rows, cols) of ``grid``.
+    """
+    out = seed.copy()
+    rows, cols = window or (slice(0, grid.height), slice(0, grid.width))
+    xs, ys = grid.column_x(), grid.row_y()
+    k = int(np.ceil(radius / grid.res)) + 1
+    for c in cands:
+        if c["role"] != "check":
+            continue
+        col, row = int((c["x"] - grid.xmin) / grid.res), int((grid.ymax - c["y"]) / grid.res)
+        r0, r1 = max(row - k, rows.start), min(row + k + 1, rows.stop)
+        c0, c1 = max(col - k, cols.start), min(col + k + 1, cols.stop)
+        if r0 >= r1 or c0 >= c1:
+            continue
+        near = np.hypot(xs[None, c0:c1] - c["x"], ys[r0:r1, None] - c["y"]) <= radius
+        out[r0 - rows.start:r1 - rows.start, c0 - cols.start:c1 - cols.start][near] = np.nan
+    return out
+
+
+def _cell_value(values: np.ndarray, grid, x: float, y: float) -> float:
+    """The value of the grid cell holding (x, y), clamped to the grid."""
+    col = min(max(int((x - grid.xmin) / grid.res), 0), grid.width - 1)
+    row = min(max(int((grid.ymax - y) / grid.res), 0), grid.height - 1)
+    return float(values[row, col])
+
+
+def chunk_ground(bounds: np.ndarray, dtm) -> list:
+    """[lowest, highest, digest] of the DTM under a chunk's footprint.
+
+    Heights are sampled every DTM cell (at most 129 × 129) and widened by GROUND_MARGIN_M;
+    the digest of the samples enters the tile spec, so a tile re-renders when, and only
+    when, the ground under one of its chunks changes.
+    """
+    import hashlib
+
+    lo, hi = np.asarray(bounds, dtype=np.float64)
+    step = abs(dtm.gt[1])
+    nx = int(min(max(np.ceil((hi[0] - lo[0]) / step) + 1, 2), 129))
+    ny = int(min(max(np.ceil((hi[1] - lo[1]) / step) + 1, 2), 129))
+    gx, gy = np.meshgrid(np.linspace(lo[0], hi[0], nx), np.linspace(lo[1], hi[1], ny))
+    g = dtm.sample(gx.ravel(), gy.ravel())
+    if not np.isfinite(g).all() or np.abs(g).max() > 1e5:
+        raise ValueError(f"{dtm.path}: DTM heights under the chunk at {lo[:2]}..{hi[:2]} are not finite "
+                         "or not plausible (|h| > 100 km)")
+    digest = hashlib.sha256(np.round(g, 2).tobytes()).hexdigest()[:12]   # cm: float noise does not count
+    return [float(np.min(g)) - GROUND_MARGIN_M, float(np.max(g)) + GROUND_MARGIN_M, digest]

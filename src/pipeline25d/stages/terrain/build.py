@@ -1,0 +1,112 @@
+"""TODO docstring."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from pipeline25d.core.atomic import write_json
+from pipeline25d.stages.lod import chunk_loaders, lod_chunks, scene_bounds
+
+log = logging.getLogger(__name__)
+
+
+def build_terrain(lod_indexes: list[str], inputs: dict, scene_crs: str, gsd: float, terrain: str, ground_cfg: dict,
+                  out_dsm: str | Path, out_ground: str | Path | None, out_json: str | Path) -> dict:
+    """Render the scene's DSM; with ``terrain: auto`` also find its ground cells (see :mod:`pipeline25d.stages.terrain`).
+
+    ``out_ground`` holds the ground heights (NaN elsewhere); the scene stage interpolates
+    the DTM from it once it knows the check points, which it holds out of the DTM. Both
+    rasters are written block by block: memory follows a block, not the scene.
+    """
+    from pipeline25d.core.crs import horizontal_wkt
+    from pipeline25d.core.grid import Grid, float_geotiff_writer
+    from pipeline25d.stages.terrain.dsm import auto_resolution, height_map_tiles
+
+    chunks = lod_chunks(lod_indexes)
+    _, lo, hi = scene_bounds(chunks)
+    bounds_xy = (lo[0], lo[1], hi[0], hi[1])
+    res = ground_cfg["resolution"]
+    res = auto_resolution(bounds_xy, gsd) if res == "auto" else float(res)
+    grid = Grid.covering(bounds_xy, res)
+    log.info("DSM: %d x %d cells of %.2f m from %d chunks", grid.width, grid.height, res, len(chunks))
+    wkt = horizontal_wkt(scene_crs)
+    dsm_cells = 0
+    with float_geotiff_writer(out_dsm, grid, wkt) as write:
+        for row, col, heights in height_map_tiles(chunk_loaders(chunks, res / 4), grid):
+            write(heights, row, col)
+            dsm_cells += int(np.isfinite(heights).sum())
+    record = {"dsm": str(out_dsm), "resolution": res, "dsm_cells": dsm_cells}
+    if terrain == "auto":
+        record.update(_ground_from_model(inputs, scene_crs, ground_cfg, out_dsm, out_ground, wkt))
+        log.info("ground from %s: %.1f%% of the model's cells, relief %.1f m", record["source"],
+                 100 * record["ground_share"], record["relief_m"])
+    elif terrain == "flat":
+        record.update({"source": "flat plane at z0"})
+    else:
+        record.update({"source": f"user DTM {terrain}", "dtm": terrain})
+    write_json(out_json, record)
+    return record
+
+
+def _ground_from_model(inputs: dict, scene_crs: str, ground_cfg: dict, dsm_path: str | Path,
+                       out_ground: str | Path, wkt: str) -> dict:
+    """Write the ground heights on the DSM's grid, block by block: the inputs' own terrain where
+    they carry one, the Cloth Simulation Filter's ground cells of the DSM elsewhere."""
+    from pipeline25d.core.grid import FloatRaster, cell_blocks, float_geotiff_writer
+    from pipeline25d.stages.terrain.dsm import render_height_map
+    from pipeline25d.stages.terrain.ground import ground_blocks
+
+    dsm_src = FloatRaster(dsm_path)
+    grid = dsm_src.grid
+    own = _own_terrain(inputs, scene_crs)
+    sources = []
+    if own["districts"] != sorted(inputs):
+        cloth = ground_cfg["cloth_resolution"]
+        cloth = 2 * grid.res if cloth == "auto" else float(cloth)
+        blocks = ground_blocks(dsm_src.read, grid, ground_cfg["max_object_size"], cloth, ground_cfg["rigidness"],
+                               ground_cfg["class_threshold"])
+        sources.append("model surface (nadir DSM, Cloth Simulation Filter)")
+    else:
+        blocks = ((b, dsm_src.read(*b.core), np.zeros(grid.window(*b.core).shape, bool))
+                  for b in cell_blocks(grid.height, grid.width, 0))
+    if own["districts"]:
+        sources.append("the inputs' own terrain (CityJSON/CityGML TINRelief or ground objects) of "
+                       + ", ".join(own["districts"]))
+    n_valid, n_ground, zmin, zmax = 0, 0, np.inf, -np.inf
+    with float_geotiff_writer(out_ground, grid, wkt) as write:
+        for block, dsm, ground in blocks:
+            seed = np.where(ground, dsm, np.nan)
+            if own["chunks"]:
+                heights = render_height_map(own["chunks"], grid.window(*block.core))
+                have = np.isfinite(heights)
+                seed[have] = heights[have]
+            write(seed, block.core[0].start, block.core[1].start)
+            has = np.isfinite(seed)
+            n_valid, n_ground = n_valid + int(np.isfinite(dsm).sum()), n_ground + int(has[np.isfinite(dsm)].sum())
+            if has.any():
+                zmin, zmax = min(zmin, float(seed[has].min())), max(zmax, float(seed[has].max()))
+        if zmax < zmin:
+            raise ValueError("terrain: auto found no ground in the model; give a DTM (terrain: <path>) "
+                             "or terrain: flat")
+    return {"source": " + ".join(sources), "ground": str(out_ground),
+            "ground_share": n_ground / n_valid if n_valid else 0.0, "relief_m": zmax - zmin}
+
+
+def _own_terrain(inputs: dict, scene_crs: str) -> dict:
+    """The inputs' own terrain (e.g. CityJSON/CityGML TINRelief / ground objects): the districts carrying
+    one and their meshes as (bounds, load) chunks for :func:`pipeline25d.stages.terrain.render_height_map`."""
+    from pipeline25d.formats import load_district_terrain
+    from pipeline25d.stages.chunks import chunk_origin
+
+    districts, chunks = [], []
+    for name, spec in sorted(inputs.items()):
+        mesh = load_district_terrain(spec, scene_crs)
+        if mesh is None or not mesh.n_triangles:
+            continue
+        districts.append(name)
+        b = mesh.bounds()
+        chunks.append((b, lambda b=b, parts=mesh.parts: (chunk_origin(b), parts)))
+    return {"districts": districts, "chunks": chunks}

@@ -1,0 +1,201 @@
+"""TODO docstring."""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable, Iterator
+
+import numpy as np
+
+from pipeline25d.core.grid import BLOCK_CELLS, Block, Grid, cell_blocks, widen
+from pipeline25d.core.raster import fill_nearest
+
+log = logging.getLogger(__name__)
+
+
+def lower_envelope(dsm: np.ndarray, res: float, max_object_m: float,
+                   keep: tuple[slice, slice] | None = None) -> np.ndarray:
+    """A smooth surface under the DSM: grey opening wider than any object, then a Gaussian.
+
+    Planes and gentle curvature pass through an opening unchanged; objects narrower than
+    ``max_object_m`` are removed. NaN cells are filled with the nearest value first.
+    ``keep``: only this part of ``dsm`` is wanted; the Gaussian then runs on it and the
+    :func:`envelope_reach` cells around it (equal to smoothing all, at less cost).
+    """
+    from scipy import ndimage as ndi
+
+    k, reach = envelope_reach(res, max_object_m)
+    opened = ndi.grey_opening(fill_nearest(dsm), size=(k, k))
+    if keep is None:
+        return ndi.gaussian_filter(opened, sigma=k / 6)
+    around = tuple(widen(s, reach, n) for s, n in zip(keep, dsm.shape))
+    return ndi.gaussian_filter(opened[around], sigma=k / 6)[Block(keep, around).inner]
+
+
+def envelope_reach(res: float, max_object_m: float) -> tuple[int, int]:
+    """(k, g): the opening's window (k x k cells, odd) and the Gaussian's reach in cells (scipy
+    truncates at 4 sigma). An envelope cell depends on the DSM within k - 1 + g cells."""
+    k = max(3, int(math.ceil(max_object_m / res)) | 1)
+    return k, int(4.0 * k / 6 + 0.5)
+
+
+def csf_ground(dsm: np.ndarray, grid: Grid, max_object_m: float, cloth_resolution: float,
+               rigidness: int, class_threshold: float) -> np.ndarray:
+    """Boolean mask of ground cells by the Cloth Simulation Filter on the detrended DSM."""
+    if not np.isfinite(dsm).any():
+        return np.zeros(dsm.shape, dtype=bool)
+    residual = dsm - lower_envelope(dsm, grid.res, max_object_m)
+    whole = (slice(0, grid.height), slice(0, grid.width))
+    return _cloth_ground(residual, grid, whole, cloth_resolution, rigidness, class_threshold,
+                         island_gap(max_object_m, grid.res))
+
+
+def island_gap(max_object_m: float, res: float) -> int:
+    """Cells of empty land that separate two islands of model: the largest object's size."""
+    return max(math.ceil(max_object_m / res), 1)
+
+
+def islands(valid: np.ndarray, gap: int) -> Iterator[tuple[tuple[slice, slice], np.ndarray]]:
+    """(bounding slices, mask within them) of each group of ``valid`` cells; groups lie at least
+    ``gap`` cells apart (cells within ``gap`` of each other always share one; one group: the
+    bounding box of all)."""
+    from scipy import ndimage as ndi
+
+    h, w = valid.shape
+    g = max(int(gap), 1)
+    coarse_shape = (-(-h // g), -(-w // g))
+    padded = np.zeros((coarse_shape[0] * g, coarse_shape[1] * g), bool)
+    padded[:h, :w] = valid
+    coarse = padded.reshape(coarse_shape[0], g, coarse_shape[1], g).any(axis=(1, 3))
+    del padded
+    labels, n = ndi.label(coarse, structure=np.ones((3, 3)))
+    for k, (rs, cs) in enumerate(ndi.find_objects(labels), start=1):
+        box = (slice(rs.start * g, min(rs.stop * g, h)), slice(cs.start * g, min(cs.stop * g, w)))
+        if n == 1:
+            yield box, valid[box]
+            return
+        own = np.repeat(np.repeat(labels[rs, cs] == k, g, axis=0), g, axis=1)
+        yield box, valid[box] & own[:box[0].stop - box[0].start, :box[1].stop - box[1].start]
+
+
+def _cloth_ground(residual: np.ndarray, grid: Grid, window: tuple[slice, slice], cloth_resolution: float,
+                  rigidness: int, class_threshold: float, gap: int) -> np.ndarray:
+    """CSF ground mask of the cells ``window`` of ``grid`` given their detrended heights (NaN: none).
+
+    Each island of model (:func:`islands`, ``gap`` cells apart) gets its own cloth, spanning
+    the island rather than the empty land around it, where a cloth would only fall for its
+    500 iterations. Points are placed relative to the grid's corner, so a window's points are
+    the whole grid's.
+    """
+    valid = np.isfinite(residual)
+    mask = np.zeros_like(valid)
+    rows, cols = window
+    xs, ys = grid.column_x()[cols] - grid.xmin, grid.row_y()[rows] - grid.ymax
+    for (r, c), cells in islands(valid, gap):
+        mask[r, c] = _cloth_of(residual[r, c], cells, xs[c], ys[r], cloth_resolution, rigidness, class_threshold)
+    return mask
+
+
+def _cloth_of(residual: np.ndarray, valid: np.ndarray, xs: np.ndarray, ys: np.ndarray, cloth_resolution: float,
+              rigidness: int, class_threshold: float) -> np.ndarray:
+    """CSF ground mask of one island: cells ``valid`` at (``xs``, ``ys``) with heights ``residual``."""
+    import CSF
+
+    pts = np.empty((int(valid.sum()), 3))
+    pts[:, 0] = np.broadcast_to(xs, valid.shape)[valid]
+    pts[:, 1] = np.broadcast_to(ys[:, None], valid.shape)[valid]
+    pts[:, 2] = residual[valid]
+    csf = CSF.CSF()
+    csf.params.bSloopSmooth = True
+    csf.params.cloth_resolution = cloth_resolution
+    csf.params.rigidness = rigidness
+    csf.params.class_threshold = class_threshold
+    csf.params.interations = 500
+    csf.params.time_step = 0.65
+    csf.setPointCloud(pts)
+    del pts                                          # the CSF holds its own copy
+    ground, off = CSF.VecInt(), CSF.VecInt()
+    csf.do_filtering(ground, off, exportCloth=False)
+    del off
+    flat = np.zeros(int(valid.sum()), dtype=bool)
+    flat[np.asarray(ground, dtype=np.int64)] = True
+    mask = np.zeros_like(valid)
+    mask[valid] = flat
+    return mask
+
+
+def ground_blocks(read: Callable[[slice, slice], np.ndarray], grid: Grid, max_object_m: float,
+                  cloth_resolution: float, rigidness: int, class_threshold: float,
+                  max_cells: int = BLOCK_CELLS) -> Iterator[tuple[Block, np.ndarray, np.ndarray]]:
+    """(block, DSM, ground mask) of each block's core: :func:`csf_ground` and :func:`trim_object_edges`
+    run on the block's window, the DSM read through ``read(rows, cols)`` (float64, NaN: no model).
+
+    The window reaches ``max_object_m`` beyond the core (an object cut by the core's edge lies
+    whole in it, with ground beyond it for the cloth to rest on); the DSM is read wider still,
+    by :func:`envelope_reach`, so the detrended heights equal the whole grid's on the window.
+    """
+    q = round(cloth_resolution / grid.res)
+    align = q if q >= 1 and math.isclose(q * grid.res, cloth_resolution) else 1
+    k, g = envelope_reach(grid.res, max_object_m)
+    margin = math.ceil(max_object_m / grid.res)
+    for block in cell_blocks(grid.height, grid.width, margin, max_cells, align=align):
+        wide = tuple(widen(s, k - 1 + g, n) for s, n in zip(block.window, grid.shape))
+        dsm = read(*wide)
+        keep = Block(block.window, wide).inner
+        if not np.isfinite(dsm[keep]).any():     # no model in the window: no ground, nothing to filter
+            core = dsm[keep][block.inner]
+            yield block, core, np.zeros(core.shape, bool)
+            continue
+        residual = dsm[keep] - lower_envelope(dsm, grid.res, max_object_m, keep)
+        dsm = dsm[keep]
+        ground = _cloth_ground(residual, grid, block.window, cloth_resolution, rigidness, class_threshold,
+                               island_gap(max_object_m, grid.res))
+        del residual
+        ground = trim_object_edges(ground, dsm)
+        yield block, dsm[block.inner], ground[block.inner]
+
+
+def trim_object_edges(ground: np.ndarray, dsm: np.ndarray | None = None, tol: float = 0.1,
+                      window: int = 7) -> np.ndarray:
+    """Drop the ground cells along objects that rise above the ground around them.
+
+    A ground cell touching a non-ground cell is a wall foot or eave on a surface mesh, or
+    true ground where a model's wall meets its terrain. With ``dsm`` it is kept when it
+    lies at most ``tol`` m above the plane fitted (least squares) to the inner ground cells
+    of a ``window``² neighbourhood, so the ground at a building's foot still shapes the DTM
+    under it. Without ``dsm`` (or with too few inner cells to fit) every edge cell is dropped.
+    """
+    from scipy import ndimage as ndi
+
+    edge = ground & ndi.binary_dilation(~ground, structure=np.ones((3, 3), bool))
+    inner = ground & ~edge
+    if dsm is None:
+        return inner
+    h, w = ground.shape
+    r0 = (np.arange(h, dtype=np.float64) - (h - 1) / 2)[:, None]     # centred: keeps the sums well conditioned
+    c0 = (np.arange(w, dtype=np.float64) - (w - 1) / 2)[None, :]
+    wgt = inner.astype(np.float64)
+    z = np.where(inner, dsm, 0.0)
+
+    def box(a):
+        return ndi.uniform_filter(a, size=window, mode="constant")
+
+    keep = inner.copy()
+    s0 = box(wgt)
+    idx = np.nonzero(edge & (s0 * window ** 2 >= 6))
+    if not len(idx[0]):
+        return keep
+    # local plane z = a + b·row + c·col by weighted least squares (3×3 normal equations), each
+    # sum kept at the edge cells only (whole-grid sums would be nine grids at once)
+    s0 = s0[idx]
+    sr, sc, srr, src, scc, tz, trz, tcz = (box(t)[idx] for t in (
+        wgt * r0, wgt * c0, wgt * r0 * r0, wgt * r0 * c0, wgt * c0 * c0, z, z * r0, z * c0))
+    m = np.stack([np.stack(row, -1) for row in ((s0, sr, sc), (sr, srr, src), (sc, src, scc))], -2)
+    v = np.stack([tz, trz, tcz], -1)
+    ok = np.abs(np.linalg.det(m)) > 1e-9 * np.maximum(s0, 1e-12) ** 3
+    coef = np.zeros((len(m), 3))
+    coef[ok] = np.linalg.solve(m[ok], v[ok][..., None])[..., 0]
+    plane = coef[:, 0] + coef[:, 1] * r0[idx[0], 0] + coef[:, 2] * c0[0, idx[1]]
+    keep[idx[0][ok], idx[1][ok]] = dsm[idx][ok] <= plane[ok] + tol
+    return keep

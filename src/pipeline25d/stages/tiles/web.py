@@ -1,0 +1,342 @@
+"""The XYZ web-tile pyramid of a map, cut block by block and kept up to date.
+
+The map is reprojected to EPSG:3857 in *blocks*: squares of :data:`BLOCK_TILES` x
+:data:`BLOCK_TILES` web tiles of the highest zoom, each warped by gdalwarp in C onto the
+whole map's web-mercator grid, with the nearest-neighbour resampling of gdal2tiles' own
+warped VRT (transform exact to 0.01 px). gdal2tiles then cuts a VRT of the blocks with its
+own tile functions: base tiles by ``create_base_tile``, overview tiles from their children
+by ``create_overview_tile``. It reads plain windows instead of re-warping for every tile,
+and only tiles that hold data are written, so a sparse map costs its districts, not its
+bounding box.
+
+A pyramid kept in a work folder is *updated*: the map is hashed in squares of
+:data:`CELL_PX` pixels, and only the web-mercator blocks within reach of a changed square are
+warped again; the base tiles whose read window meets that reach and every tile above them are
+deleted and cut again. As every block is always warped on its own window, an update gives
+the same tiles, byte for byte, as a cut from scratch. A state file journals the reach being
+redone, so a killed update is finished by the next one.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import signal
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+
+from pipeline25d.core.atomic import atomic_path, device_full, replace_dir
+from pipeline25d.core.errors import OutputError
+from pipeline25d.core.journal import read_state, write_state
+from pipeline25d.core.raster import gdal, map_cells
+from pipeline25d.stages.maps.parts import Window, box_outline, window_bounds
+
+log = logging.getLogger(__name__)
+
+WEB_MERCATOR = "EPSG:3857"
+GDAL2TILES_TILE = 256
+BLOCK_TILES = 4        # a web-mercator block is 4 x 4 tiles of the highest zoom (1024 x 1024 px)
+MARGIN_PX = 2          # a changed map cell reaches this far (web-mercator px) beyond its reprojected outline
+EDGE_SAMPLES = 5       # points per cell edge reprojected (a cell is small: the reprojection is near affine)
+STATE_VERSION = 1
+
+
+def tms(cog: str | Path, zoom: str, out_dir: str | Path, processes: int = 1, tile_format: str = "png",
+        quality: int = 85, work_dir: str | Path | None = None) -> dict:
+    """The gdal2tiles XYZ pyramid (web mercator) of a map at ``out_dir``, published atomically.
+
+    ``tile_format`` png or webp (lossy at ``quality``, with alpha). ``work_dir`` keeps the
+    pyramid, its blocks and its state between runs, so that the next call redoes only what
+    changed in the map; without it the pyramid is cut from scratch. Returns the cut's
+    figures: web tiles in all, web tiles redone, blocks warped, and whether it was a full cut.
+    """
+    out_dir = Path(out_dir)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    for stale in out_dir.parent.glob(f".{out_dir.name}.*"):        # what a killed cut left behind
+        if stale.is_dir():
+            shutil.rmtree(stale)
+        else:
+            stale.unlink()
+    if work_dir is not None:
+        with _space_checked(Path(work_dir)):
+            stats = update_pyramid(cog, zoom, Path(work_dir), processes, tile_format, quality)
+        publish(Path(work_dir) / "tiles", out_dir)
+        return stats
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
+    try:
+        with _space_checked(tmp):
+            stats = update_pyramid(cog, zoom, tmp / "work", processes, tile_format, quality)
+        publish(tmp / "work" / "tiles", out_dir)
+        return stats
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+@contextmanager
+def _space_checked(work: Path) -> Iterator[None]:
+    """An error of the cut while the device of ``work`` is full becomes an OutputError naming
+    it (gdal2tiles writes its tiles in place and GDAL does not say why a write failed); the
+    state's journal has the next cut redo what this one left."""
+    try:
+        yield
+    except (OSError, RuntimeError) as exc:
+        if isinstance(exc, OutputError) or not device_full(work, exc):
+            raise
+        raise OutputError(work, f"No space left on device while cutting web tiles ({exc})") from exc
+
+
+def publish(tiles: Path, out_dir: Path) -> None:
+    """Hard-link the kept pyramid's files into a new folder and move it onto ``out_dir``: no tile
+    is copied, and a later update, which replaces files rather than rewriting them, leaves the
+    published ones as they are."""
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
+    try:
+        for src in sorted(tiles.rglob("*")) if tiles.is_dir() else []:
+            dst = tmp / src.relative_to(tiles)
+            if src.is_dir():
+                dst.mkdir(exist_ok=True)
+            else:
+                os.link(src, dst)
+        replace_dir(tmp, out_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def update_pyramid(cog: str | Path, zoom: str, work: Path, processes: int = 1, tile_format: str = "png",
+                   quality: int = 85) -> dict:
+    """Bring the pyramid kept in ``work`` (``tiles/``, ``blocks/``, ``state.json``) up to the map ``cog``."""
+    g = gdal()
+    ds = g.Open(str(cog))
+    wkt = ds.GetProjection()
+    ds = None
+    gt, width, height = mercator_grid(cog)
+    zooms = zoom_range(gt, width, height) if zoom == "auto" else zoom
+    key = {"version": STATE_VERSION, "grid": [*gt, width, height], "zooms": zooms, "format": tile_format,
+           "quality": int(quality) if tile_format == "webp" else None, "block_tiles": BLOCK_TILES}
+    map_grid, cells = map_cells(cog)
+    key["map"] = map_grid
+    state = read_state(work)
+    full = state is None or state["key"] != key
+    if full:
+        shutil.rmtree(work, ignore_errors=True)
+        state = {"key": key, "cells": {}, "dirty": []}
+    (work / "blocks").mkdir(parents=True, exist_ok=True)
+    old = state["cells"]
+    changed = [cell_bounds(c, map_grid) for c in sorted(cells.keys() | old.keys()) if cells.get(c) != old.get(c)]
+    max_zoom = int(zooms.split("-")[-1])
+    # journal first: a killed update is redone by the next one, whatever the map is by then
+    reach = [(0, 0, width, height)] if full else \
+        [tuple(w) for w in state["dirty"]] + mercator_reach(changed, wkt, gt, width, height)
+    write_state(work, {**state, "dirty": reach})
+    todo = sorted({b for w in reach for b in blocks_meeting(w, gt, max_zoom)})
+    jobs = [(b, w) for b, w in ((b, block_window(b, gt, width, height, max_zoom)) for b in todo) if w is not None]
+    with Workers(processes) as workers:
+        workers.map(partial(_warp_block, str(cog), str(work / "blocks"), gt), jobs)
+        redone = cut(sorted((work / "blocks").glob("*.tif")), work / "tiles", gt, width, height, zooms, reach,
+                     workers, tile_format, quality)
+    write_state(work, {"key": key, "cells": cells, "dirty": []})
+    stats = {"full": full, "map_cells_changed": len(changed), "blocks_warped": len(jobs),
+             "web_tiles_redone": redone, "web_tiles": sum(1 for p in (work / "tiles").rglob("*") if p.is_file()),
+             "zooms": zooms}
+    log.info("web tiles: %s; %d of %d map cells changed, %d web-mercator blocks warped, %d of %d web tiles redone",
+             "full cut" if full else "update", len(changed), len(cells), len(jobs), redone, stats["web_tiles"])
+    return stats
+
+
+
+
+
+def cell_bounds(cell_id: str, grid: list) -> list[float]:
+    """[xmin, ymin, xmax, ymax] of a map cell of :func:`map_cells`, in the map's CRS."""
+    gt, width, height, cell = grid[:6], grid[6], grid[7], grid[8]
+    col, row = (int(v) for v in cell_id.split("_"))
+    c0, r0 = col * cell, row * cell
+    return list(window_bounds(gt, Window(c0, r0, min(c0 + cell, width), min(r0 + cell, height))))
+
+
+def _block_metres(max_zoom: int) -> tuple[float, float]:
+    from osgeo_utils.gdal2tiles import GlobalMercator
+
+    origin = GlobalMercator(GDAL2TILES_TILE).originShift          # the tile grid starts at (-origin, -origin)
+    return origin, BLOCK_TILES * 2 * origin / 2 ** max_zoom
+
+
+def mercator_reach(bounds: list[list[float]], crs_wkt: str, gt: tuple[float, ...], width: int,
+                   height: int) -> list[tuple[int, int, int, int]]:
+    """The pixel windows (col0, row0, col1, row1) of the web-mercator grid that map rectangles
+    ``bounds`` reach: each one's reprojected outline, grown by :data:`MARGIN_PX` and clipped
+    (nearest-neighbour: a pixel beyond it never reads the rectangle)."""
+    from pipeline25d.core.crs import transform_points
+
+    if not bounds:
+        return []
+    outlines = [box_outline(*b, n=EDGE_SAMPLES) for b in bounds]
+    xy = np.column_stack([np.concatenate([o[0] for o in outlines]), np.concatenate([o[1] for o in outlines])])
+    m = transform_points(np.column_stack([xy, np.zeros(len(xy))]), crs_wkt, WEB_MERCATOR)
+    m = m.reshape(len(bounds), -1, 3)
+    c0 = np.floor((m[..., 0].min(axis=1) - gt[0]) / gt[1]).astype(int) - MARGIN_PX
+    c1 = np.ceil((m[..., 0].max(axis=1) - gt[0]) / gt[1]).astype(int) + MARGIN_PX
+    r0 = np.floor((m[..., 1].max(axis=1) - gt[3]) / gt[5]).astype(int) - MARGIN_PX
+    r1 = np.ceil((m[..., 1].min(axis=1) - gt[3]) / gt[5]).astype(int) + MARGIN_PX
+    windows = zip(np.clip(c0, 0, width), np.clip(r0, 0, height), np.clip(c1, 0, width), np.clip(r1, 0, height))
+    return [tuple(int(v) for v in w) for w in windows if w[2] > w[0] and w[3] > w[1]]
+
+
+def blocks_meeting(window: tuple[int, int, int, int], gt: tuple[float, ...], max_zoom: int) -> set[tuple[int, int]]:
+    """The web-mercator blocks (bx, by; y up) that a pixel window of the grid meets."""
+    origin, size = _block_metres(max_zoom)
+    x0, y0, x1, y1 = window_bounds(gt, Window(*window))
+    bx0, bx1 = int(np.floor((x0 + origin) / size)), int(np.floor((x1 + origin) / size))
+    by0, by1 = int(np.floor((y0 + origin) / size)), int(np.floor((y1 + origin) / size))
+    return {(bx, by) for bx in range(bx0, bx1 + 1) for by in range(by0, by1 + 1)}
+
+
+def block_window(block: tuple[int, int], gt: tuple[float, ...], width: int, height: int,
+                 max_zoom: int) -> tuple[int, int, int, int] | None:
+    """A block's pixel window (col0, row0, col1, row1) on the map's web-mercator grid; blocks
+    share their edges, rounded to the grid's pixels. None where it misses the grid."""
+    origin, size = _block_metres(max_zoom)
+    x0, y0 = block[0] * size - origin, block[1] * size - origin
+    c0 = max(round((x0 - gt[0]) / gt[1]), 0)
+    c1 = min(round((x0 + size - gt[0]) / gt[1]), width)
+    r0 = max(round((gt[3] - (y0 + size)) / -gt[5]), 0)
+    r1 = min(round((gt[3] - y0) / -gt[5]), height)
+    return (c0, r0, c1, r1) if c1 > c0 and r1 > r0 else None
+
+
+def _warp_block(cog: str, blocks_dir: str, gt: tuple[float, ...], job: tuple[tuple[int, int], tuple[int, ...]]) -> None:
+    """Warp the map onto one block's window of its web-mercator grid (written atomically)."""
+    block, window = job
+    bounds = window_bounds(gt, Window(*window))
+    extra = ["-tr", repr(gt[1]), repr(-gt[5]), "-te", *map(repr, bounds)]
+    with atomic_path(Path(blocks_dir) / f"{block[0]}_{block[1]}.tif") as tmp:
+        gdal().Warp(str(tmp), cog, options=_mercator_args(1, extra))
+
+
+def cut(blocks: list[Path], tiles: Path, gt: tuple[float, ...], width: int, height: int, zooms: str,
+        windows: list[tuple[int, int, int, int]], workers: Workers, tile_format: str, quality: int) -> int:
+    """Cut again, with gdal2tiles' own tile functions, every web tile that ``windows`` (pixel
+    windows of the web-mercator grid whose blocks were warped again) reach: the base tiles
+    whose read window meets one, and all tiles above them. Their old files are deleted first,
+    so a tile that now holds nothing is gone. Returns how many tiles were written."""
+    from osgeo_utils import gdal2tiles as g2t
+
+    if not windows:
+        return 0
+    tiles.mkdir(parents=True, exist_ok=True)
+    vrt = tiles.parent / "blocks.vrt"
+    bounds = (gt[0], gt[3] + height * gt[5], gt[0] + width * gt[1], gt[3])
+    gdal().BuildVRT(str(vrt), [str(b) for b in blocks], outputBounds=bounds, xRes=gt[1], yRes=-gt[5])
+    _, _, options = g2t.process_args([*_gdal2tiles_args(zooms, workers.processes, tile_format, quality, True),
+                                      str(vrt), str(tiles)])
+    conf, details = g2t.worker_tile_details(str(vrt), str(tiles), options)
+    try:
+        reads = np.array([[d.rx, d.ry, d.rx + d.rxsize, d.ry + d.rysize] for d in details]).reshape(-1, 1, 4)
+        win = np.asarray(windows).reshape(1, -1, 4)
+        meets = ((reads[..., 0] < win[..., 2]) & (reads[..., 2] > win[..., 0]) & (reads[..., 1] < win[..., 3])
+                 & (reads[..., 3] > win[..., 1])).any(axis=1)
+        base = [d for d, m in zip(details, meets) if m]
+        reach = {conf.tmaxz: {(d.tx, d.ty) for d in base}}          # xyz positions, as on disk
+        for z in range(conf.tmaxz - 1, conf.tminz - 1, -1):
+            reach[z] = {(x >> 1, y >> 1) for x, y in reach[z + 1]}
+        for z, cells in reach.items():
+            for x, y in cells:
+                (tiles / str(z) / str(x) / f"{y}.{conf.tile_extension}").unlink(missing_ok=True)
+        workers.map(partial(g2t.create_base_tile, conf), base)
+        for base_z in range(conf.tmaxz, conf.tminz, -1):
+            groups = [grp for grp in g2t.group_overview_base_tiles(base_z, str(tiles), conf)
+                      if (grp[0][0] >> 1, g2t.GDAL2Tiles.getYTile(grp[0][1] >> 1, base_z - 1, options))
+                      in reach[base_z - 1]]
+            workers.map(partial(g2t.create_overview_tile, base_z, output_folder=str(tiles), tile_job_info=conf,
+                         options=options), groups)
+    finally:
+        shutil.rmtree(os.path.dirname(conf.src_file), ignore_errors=True)
+        vrt.unlink(missing_ok=True)
+    return sum((tiles / str(z) / str(x) / f"{y}.{conf.tile_extension}").is_file()
+               for z, cells in reach.items() for x, y in cells)
+
+
+class Workers:
+    """One pool of forked worker processes (as gdal2tiles' own) for every stage of a cut, started
+    at the first stage with more than one item; a stage of one item runs in this process.
+    A worker dies on SIGTERM (it would otherwise, with the job's SystemExit handler, fail one
+    tile and take the next), and leaving on an exception kills the workers at once.
+
+    concurrent.futures, not multiprocessing.Pool: the pool's exit terminates its workers,
+    which can leave one waiting for a queue lock a terminated sibling held (seen: a hung job).
+    """
+
+    def __init__(self, processes: int):
+        self.processes = processes
+        self.pool = None
+
+    def __enter__(self) -> "Workers":
+        return self
+
+    def __exit__(self, exc_type, *exc) -> None:
+        if self.pool is None:
+            return
+        if exc_type is None:
+            self.pool.shutdown()
+            return
+        # stopping (an error, or SIGTERM's SystemExit): the tiles in flight are not waited for;
+        # the state's journal has them cut again by the next run
+        for proc in list(self.pool._processes.values()):        # no public way before Python 3.14
+            proc.kill()
+        self.pool.shutdown(wait=False, cancel_futures=True)
+
+    def map(self, fn, items: list) -> None:
+        """``fn`` over ``items``; their results are not kept."""
+        if self.processes <= 1 or len(items) <= 1:
+            for item in items:
+                fn(item)
+            return
+        if self.pool is None:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            self.pool = ProcessPoolExecutor(self.processes, mp_context=multiprocessing.get_context("fork"),
+                                            initializer=signal.signal, initargs=(signal.SIGTERM, signal.SIG_DFL))
+        for _ in self.pool.map(fn, items, chunksize=max(1, min(64, len(items) // (4 * self.processes)))):
+            pass
+
+
+def _mercator_args(threads: int, extra: list[str] | None = None) -> list[str]:
+    return ["-q", "-overwrite", "-t_srs", WEB_MERCATOR, "-r", "near", "-et", "0.01", "-dstalpha", "-multi",
+            "-wo", f"NUM_THREADS={threads}", "-co", "TILED=YES", "-co", "COMPRESS=ZSTD", "-co", "ZSTD_LEVEL=1",
+            *(extra or [])]
+
+
+def _gdal2tiles_args(zoom: str, processes: int, tile_format: str, quality: int, exclude_empty: bool) -> list[str]:
+    args = ["-q", "--xyz", "-w", "none", "-r", "average", f"--processes={processes}",
+            *(["--exclude"] if exclude_empty else [])]
+    if tile_format == "webp":
+        args += ["--tiledriver=WEBP", f"--webp-quality={int(quality)}"]
+    if zoom != "auto":
+        args += ["-z", zoom]
+    return args
+
+
+def mercator_grid(cog: str | Path) -> tuple[tuple[float, ...], int, int]:
+    """Geotransform and size of the whole map reprojected to web mercator, as gdalwarp makes it."""
+    g = gdal()
+    vrt = g.Warp("", str(cog), format="VRT", dstSRS=WEB_MERCATOR, resampleAlg="near", errorThreshold=0.01,
+                 dstAlpha=True)
+    return vrt.GetGeoTransform(), vrt.RasterXSize, vrt.RasterYSize
+
+
+def zoom_range(gt: tuple[float, ...], width: int, height: int) -> str:
+    """gdal2tiles' automatic zoom levels for a web-mercator raster: "min-max"."""
+    from osgeo_utils.gdal2tiles import GlobalMercator
+
+    merc = GlobalMercator(GDAL2TILES_TILE)
+    zmin = merc.ZoomForPixelSize(gt[1] * max(width, height) / GDAL2TILES_TILE)
+    zmax = max(zmin, merc.ZoomForPixelSize(gt[1]))
+    return f"{zmin}-{zmax}"

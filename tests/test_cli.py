@@ -1,0 +1,75 @@
+"""The ``pipeline25d`` command: its commands, ``run``'s progress from Snakemake's log, a dry run."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import yaml
+from conftest import REPO
+
+from pipeline25d.runner import progress_events, progress_line
+
+CLI = str(Path(sys.executable).parent / "pipeline25d")
+
+#: an excerpt of a real Snakemake 9.27 log (the demo's run), as `pipeline25d run` reads it
+SNAKEMAKE_LOG = """\
+Execute 1 jobs...
+[Wed Nov 25 18:41:22 2026]
+localrule lod:
+    input: results/demo/chunks/d3/index.json
+    output: results/demo/lod/d3/index.json
+    jobid: 10
+    wildcards: district=d3
+[Wed Nov 25 18:41:22 2026]
+Finished jobid: 5 (Rule: ingest)
+4 of 60 steps (7%) done
+Updating checkpoint dependencies.
+[Wed Nov 25 18:41:24 2026]
+Finished jobid: 10 (Rule: lod)
+5 of 60 steps (8%) done
+localcheckpoint plan:
+    jobid: 21
+Finished job 21.
+6 of 69 steps (9%) done
+"""
+
+
+def test_progress_follows_snakemake_log():
+    events = list(progress_events(SNAKEMAKE_LOG.splitlines()))
+    assert events == [(4, 60, "ingest"), (5, 60, "lod"), (6, 69, "plan")]   # the total grows at checkpoints
+
+
+def test_progress_line_estimates_time_left_from_jobs_done():
+    assert progress_line(10, 40, "render_block", 60.0) == "[10/40  25%] render_block done · 1:00 elapsed · ~3:00 left"
+    assert progress_line(0, 7, None, 1.0) == "[0/7   0%] job done · 0:01 elapsed"
+    assert progress_line(1, 2, "tms", 4000.0).endswith("1:06:40 elapsed · ~1:06:40 left")
+
+
+def test_help_lists_the_user_commands_and_no_internal_job_commands():
+    out = subprocess.run([CLI, "--help"], capture_output=True, text=True, check=True).stdout
+    for command in ("run", "measure", "heights", "evaluate", "serve", "wms", "web-tiles", "gl-info", "demo", "sample"):
+        assert f"    {command} " in out, command
+    assert "render-block" not in out and "    lod " not in out
+    for command in ("heights", "evaluate", "serve", "wms", "demo", "sample", "osgb-levels"):
+        proc = subprocess.run([CLI, command, "--help"], capture_output=True, text=True)
+        assert proc.returncode == 0 and f"usage: pipeline25d {command}" in proc.stdout, (command, proc.stderr)
+
+
+def test_run_dry_run_lists_the_jobs_of_a_scene(tmp_path):
+    from pipeline25d_lab.scenes.demo import generate_demo_city
+
+    generate_demo_city(tmp_path / "resources" / "demo", seed=3, n_buildings=10, scale=0.3)
+    config = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump({**config, "scene": "cli"}))
+    proc = subprocess.run([CLI, "run", str(tmp_path / "config.yaml"), "--dry-run", "--directory", str(tmp_path)],
+                          capture_output=True, text=True, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "ingest" in proc.stdout and "plan" in proc.stdout
+    assert not (tmp_path / "results").exists()
+
+
+def test_run_names_a_missing_config(tmp_path):
+    proc = subprocess.run([CLI, "run", str(tmp_path / "nope.yaml")], capture_output=True, text=True)
+    assert proc.returncode == 1 and "nope.yaml: no such config file" in proc.stderr
