@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from pipeline25d.analysis.evaluate import (
+from pipeline25d.analysis.evaluate.cli import main
+from pipeline25d.analysis.evaluate.offsets import ground_offsets
+from pipeline25d.analysis.evaluate.visibility import (
     GroundModel,
     ground_mask_from_rasters,
-    ground_offsets,
     hidden_by_relief,
-    main,
     visible_ground,
 )
 from pipeline25d.core.errors import ConfigError
@@ -304,7 +304,7 @@ def test_partial_windows_recover_ground_shift_beside_buildings(tmp_path, dx, dy,
 def test_identical_mask_edges_do_not_pull_toward_zero(tmp_path):
     from skimage.registration import phase_cross_correlation
 
-    from pipeline25d.analysis.evaluate import _open, _read_window
+    from pipeline25d.analysis.evaluate.rasters import _open, _read_window
 
     nadir, obl, model, _ = city(tmp_path, 0.8, 0.0, az=90, same_buildings=True)
     res = ground_offsets(obl, nadir, model)
@@ -392,7 +392,7 @@ def test_visible_ground_of_a_large_grid_is_fast():
 def test_masked_integer_shift_agrees_with_skimage(tex):
     from skimage.registration import phase_cross_correlation
 
-    from pipeline25d.analysis.evaluate import masked_ncc_surface
+    from pipeline25d.analysis.evaluate.correlation import masked_ncc_surface
 
     rng = np.random.default_rng(2)
     big = tex[100:150, 200:250]

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from pipeline25d.analysis.height_sources import demo_truths, dsm_roof, dtm_under, group_stats, plan, truth_buildings
-from pipeline25d.analysis.heights import HeightRow
+from pipeline25d.analysis.heights.results import HeightRow
 from pipeline25d.formats.footprints import Footprint
 
 

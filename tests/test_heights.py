@@ -9,9 +9,12 @@ import math
 import numpy as np
 import pytest
 
-from pipeline25d.analysis.heights import main, measure_heights, rasterize, read_footprints, reference_heights_from_obj
+from pipeline25d.analysis.heights.cli import main
+from pipeline25d.analysis.heights.reference import reference_heights_from_obj
+from pipeline25d.analysis.heights.views import measure_heights
 from pipeline25d.core.errors import CRSError, InputFileError
 from pipeline25d.core.raster import write_rgba_geotiff
+from pipeline25d.formats.footprints import rasterize, read_footprints
 
 GSD = 0.25
 X0, Y0 = 85000.0, 447600.0            # RD New, top-left corner of the nadir map
@@ -399,7 +402,8 @@ def test_maps_in_other_crs_rejected(scene, tmp_path):
 
 
 def test_a_view_far_from_the_others_is_rejected_as_inconsistent():
-    from pipeline25d.analysis.heights import ViewMeasurement, _drop_inconsistent
+    from pipeline25d.analysis.heights.results import ViewMeasurement
+    from pipeline25d.analysis.heights.views import _drop_inconsistent
 
     def views(*hs):
         return {f"v{i}": ViewMeasurement(h, h, 1.0, 1.0, 0.0, "") for i, h in enumerate(hs)}

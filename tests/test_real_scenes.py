@@ -33,7 +33,8 @@ def lidar(tmp_path_factory):
 
 
 def test_delft_lidar_has_50_check_points_and_its_ground_sits_within_a_pixel_of_the_nadir_map(lidar):
-    from pipeline25d.analysis.evaluate import GroundModel, ground_offsets
+    from pipeline25d.analysis.evaluate.offsets import ground_offsets
+    from pipeline25d.analysis.evaluate.visibility import GroundModel
 
     report = json.loads((lidar / "report" / "report.json").read_text())
     assert "Cloth Simulation Filter" in report["terrain"]["source"]
@@ -62,7 +63,8 @@ def obj_maps(tmp_path_factory):
 def test_delft_obj_building_heights_read_off_the_maps_match_the_models_own(obj_maps, tmp_path):
     """Heights from roof displacement on three oblique maps against the OBJ's roof minus the
     ground where its walls meet its terrain: |bias| ≤ 0.1 m, RMSD ≤ 0.3 m."""
-    from pipeline25d.analysis.heights import main, reference_heights_from_obj
+    from pipeline25d.analysis.heights.cli import main
+    from pipeline25d.analysis.heights.reference import reference_heights_from_obj
 
     ref = tmp_path / "ref.csv"
     with open(ref, "w", newline="") as fh:

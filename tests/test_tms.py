@@ -75,7 +75,7 @@ def test_webp_tiles_are_the_png_tiles_lossy_and_keep_transparency(tmp_path):
 def test_jpeg_maps_keep_their_transparency_as_a_mask_that_the_readers_use(tmp_path):
     from osgeo import gdal
 
-    from pipeline25d.analysis.evaluate import _read_window
+    from pipeline25d.analysis.evaluate.rasters import _read_window
     from pipeline25d.stages.maps.warp import warp_to_cog
 
     _smooth_map(tmp_path / "map.tif")

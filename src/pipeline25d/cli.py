@@ -19,8 +19,8 @@ from pipeline25d.core.errors import Pipeline25dError
 
 #: commands whose module has its own parser: name -> (module, help)
 DELEGATED = {
-    "heights": ("pipeline25d.analysis.heights", "measure building heights on a scene's maps"),
-    "evaluate": ("pipeline25d.analysis.evaluate", "check a scene's maps against its nadir map (ground offsets)"),
+    "heights": ("pipeline25d.analysis.heights.cli", "measure building heights on a scene's maps"),
+    "evaluate": ("pipeline25d.analysis.evaluate.cli", "check a scene's maps against its nadir map (ground offsets)"),
     "serve": ("pipeline25d.publish.serve", "serve a results folder (viewer, PMTiles) on this machine"),
     "wms": ("pipeline25d.publish.wms", "serve a scene's WMS through MapServer on this machine"),
     "osgb-levels": ("pipeline25d.formats.osgb", "list the PagedLOD levels an OSGB dataset gives at each gsd"),

@@ -172,7 +172,7 @@ def truth_buildings(truth_path: str | Path, config: dict, scene_crs: str) -> dic
 
 def obj_roofs(path: str | Path, offset_z: float = 0.0) -> dict[str, RefBuilding]:
     """Roofs of a 3dfier-style OBJ (per ``o`` object, see :func:`heights.obj_roof_ground`), no footprint."""
-    from pipeline25d.analysis.heights import obj_roof_ground
+    from pipeline25d.analysis.heights.reference import obj_roof_ground
 
     return {k: RefBuilding(None, roof + offset_z, own_ground_z=ground + offset_z)
             for k, (roof, ground) in obj_roof_ground(path).items()}
@@ -215,7 +215,7 @@ def group_stats(rows: list, reference: dict[str, float], views: list[str]) -> di
     """Per view and combined: n measured / n footprints of the group, and the error statistics
     (:func:`heights.error_stats`) over the buildings measured in it. ``reference``: {id: height}
     of the group's buildings (NaN: no reference; they count as footprints, not in the errors)."""
-    from pipeline25d.analysis.heights import error_stats
+    from pipeline25d.analysis.heights.reference import error_stats
 
     by_id = {r.id: r for r in rows}
     ids = [i for i in reference if i in by_id]
@@ -279,7 +279,7 @@ def reference_heights(p: dict, config: dict, fps: list[Footprint], model: dict[s
     if ref["source"] == "none":
         return {}, "none (heights.reference: none)", "none"
     if ref["source"] == "csv":
-        from pipeline25d.analysis.heights import read_reference
+        from pipeline25d.analysis.heights.reference import read_reference
 
         # given as heights on the maps' basis: roof z = height + the DTM under the outline
         given = read_reference(ref["path"])
@@ -313,7 +313,8 @@ def run_stage(config: dict, maps: dict[str, str], scene_json: str | Path, dsm_pa
               out_csv: str | Path, out_json: str | Path) -> dict[str, Any]:
     """The workflow's heights step: measure every footprint on the maps, compare with the model's
     heights (on the maps' basis, see the module docstring), write the CSV and the statistics JSON."""
-    from pipeline25d.analysis.heights import NADIR_ID, MatchSettings, measure_heights, write_csv
+    from pipeline25d.analysis.heights.results import NADIR_ID, MatchSettings, write_csv
+    from pipeline25d.analysis.heights.views import measure_heights
     from pipeline25d.core.atomic import write_json, write_text
 
     p = plan(config)

@@ -71,7 +71,7 @@ class Height(NamedTuple):
 def open_map(path: str | Path) -> MapInfo:
     """The perspective (from the file name ``<id>.tif``, else the ``perspective`` of the
     ``<stem>.json`` beside it) and the geotransform of a map COG."""
-    from pipeline25d.analysis.evaluate import _open
+    from pipeline25d.analysis.evaluate.rasters import _open
 
     path = Path(path)
     gt = tuple(float(v) for v in _open(path).GetGeoTransform())

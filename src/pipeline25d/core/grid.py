@@ -1,4 +1,4 @@
-"""TODO docstring."""
+"""A north-up grid of square cells, blocks of its cells, and its float32 GeoTIFFs (read, written block by block)."""
 
 from __future__ import annotations
 

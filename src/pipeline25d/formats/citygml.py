@@ -34,6 +34,9 @@ is a :class:`~pipeline25d.core.errors.MissingTextureWarning` (once per image), w
 :func:`pipeline25d.formats.load_district` turns into an error unless the input says
 ``missing_textures: untextured``; then its polygons fall back to colour. The renderer repeats textures; texture coordinates outside [0, 1]
 under wrap modes other than ``wrap`` are clamped per vertex (an approximation).
+
+Over 400 lines for one job: one format's streaming reader (three CityGML versions, geometry,
+appearances and terrain share its element walk).
 """
 
 from __future__ import annotations

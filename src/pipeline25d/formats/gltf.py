@@ -15,6 +15,9 @@ One :class:`MeshPart` per primitive instance, its vertices compacted to the ones
 triangles use. UVs are flipped to the GL convention (v = 0 is the bottom image row).
 Colours are the 8-bit values of the glTF factors as written (no linear->sRGB step),
 which is how generators such as pg2b3dm author them.
+
+Over 400 lines for one job: one format's reader (accessors, node hierarchy, materials and
+textures of glTF 2.0).
 """
 
 from __future__ import annotations

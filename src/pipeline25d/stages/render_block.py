@@ -1,4 +1,9 @@
-"""TODO docstring."""
+"""The render job: one block of a perspective's tiles in one process and GL context.
+
+A tile's files (GeoTIFF, GCPs seen, spec hash) are written atomically, spec hash last: a tile
+whose ``.spec`` matches its plan entry is complete and kept, so a changed district re-renders
+only its own tiles.
+"""
 
 from __future__ import annotations
 

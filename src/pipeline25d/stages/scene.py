@@ -1,4 +1,8 @@
-"""TODO docstring."""
+"""The scene stage: reference plane z0, projection mode, GCP candidates with check-point roles, and the DTM.
+
+With ``terrain: auto`` the DTM is interpolated from the terrain stage's ground cells with the
+ground around each check point held out, so check points measure ground the DTM has not seen.
+"""
 
 from __future__ import annotations
 

@@ -10,6 +10,8 @@ RSS of reading files of growing size (:func:`memory_benchmark`).
 
 The atlas's top half (v in [0.5, 1]) is roof tiles (reds), its bottom half facades (light
 walls, dark blue windows): a wrongly flipped v shows at once.
+
+Over 400 lines for one job: one generated CityGML scene (houses, blocks, TIN, appearances).
 """
 
 from __future__ import annotations

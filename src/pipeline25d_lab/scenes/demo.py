@@ -19,6 +19,9 @@ Every file is written atomically (temporary name in the same folder, then
 ``os.replace``) and ``manifest.json`` is written last: its presence means the scene
 is complete. A second call with the same parameters returns the manifest without
 touching any file, so workflow engines that compare mtimes do not re-run jobs.
+
+Over 400 lines for one job: one generated scene (layout, buildings, roads, terrain and its
+files, with their exact truth).
 """
 
 from __future__ import annotations

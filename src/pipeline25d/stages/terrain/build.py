@@ -1,4 +1,4 @@
-"""TODO docstring."""
+"""The terrain stage's job: the scene's DSM and, with ``terrain: auto``, its ground cells (the inputs' own terrain, else CSF)."""
 
 from __future__ import annotations
 
@@ -97,7 +97,7 @@ def _ground_from_model(inputs: dict, scene_crs: str, ground_cfg: dict, dsm_path:
 
 def _own_terrain(inputs: dict, scene_crs: str) -> dict:
     """The inputs' own terrain (e.g. CityJSON/CityGML TINRelief / ground objects): the districts carrying
-    one and their meshes as (bounds, load) chunks for :func:`pipeline25d.stages.terrain.render_height_map`."""
+    one and their meshes as (bounds, load) chunks for :func:`pipeline25d.stages.terrain.dsm.render_height_map`."""
     from pipeline25d.formats import load_district_terrain
     from pipeline25d.stages.chunks import chunk_origin
 

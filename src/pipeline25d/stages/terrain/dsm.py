@@ -1,4 +1,4 @@
-"""TODO docstring."""
+"""The scene's nadir height map (DSM), rendered tile by tile through the tile renderer's depth pass."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""TODO docstring."""
+"""The DTM between ground cells: GDAL's inverse-distance fill, block by block, only where it is needed."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""TODO docstring."""
+"""Ground cells of a DSM: a smooth lower envelope, then the Cloth Simulation Filter on the residual, block by block."""
 
 from __future__ import annotations
 

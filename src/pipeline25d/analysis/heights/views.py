@@ -1,0 +1,153 @@
+"""Every footprint on every oblique view, then each building's views settled, checked and combined."""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from pipeline25d.analysis.evaluate.rasters import _open
+from pipeline25d.analysis.heights.matcher import MatchResult, _Matcher
+from pipeline25d.analysis.heights.results import NADIR_ID, HeightRow, MatchSettings, ViewMeasurement
+from pipeline25d.analysis.heights.template import _PAD, Template, _prepare_view, build_template
+from pipeline25d.core.errors import InputFileError
+from pipeline25d.core.raster import read_rgba_block
+from pipeline25d.formats.footprints import Footprint
+from pipeline25d.geometry.perspectives import Perspective
+
+log = logging.getLogger(__name__)
+
+
+def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint], nadir_id: str = NADIR_ID,
+                    settings: MatchSettings | None = None) -> list[HeightRow]:
+    """Height of every footprint in every oblique map of ``map_paths`` ({perspective id: GeoTIFF}).
+
+    The maps must share the nadir map's CRS (CRSError naming them otherwise); footprints are
+    in that CRS. A view left ambiguous (rival peaks) is settled by the others when exactly one
+    of its rivals lies within ``agree_m`` of the height they give (the accepted views' median,
+    or else the one height that rivals of two or more views share); such a view is marked
+    ``resolved``. Returns one row per footprint, in input order.
+    """
+    s = settings or MatchSettings()
+    if nadir_id not in map_paths:
+        raise InputFileError(nadir_id, f"no nadir map {nadir_id!r} among {sorted(map_paths)}")
+    nad_path = map_paths[nadir_id]
+    nad = _open(nad_path)
+    gt = nad.GetGeoTransform()
+    if abs(gt[1] + gt[5]) > 1e-9 * gt[1]:
+        raise InputFileError(nad_path, f"pixels must be square, geotransform {gt}")
+    views = [_prepare_view(pid, path, nad, nad_path) for pid, path in sorted(map_paths.items())
+             if pid != nadir_id and Perspective.from_id(pid).elevation != 90]
+    step_m = gt[1]
+    pad = s.ring_px + 4
+    rows_out: list[HeightRow] = []
+    for fp in footprints:
+        xmin, ymin, xmax, ymax = fp.bounds
+        c0 = int(math.floor((xmin - gt[0]) / gt[1])) - pad
+        c1 = int(math.ceil((xmax - gt[0]) / gt[1])) + pad
+        r0 = int(math.floor((ymax - gt[3]) / gt[5])) - pad
+        r1 = int(math.ceil((ymin - gt[3]) / gt[5])) + pad
+        if c1 <= 0 or r1 <= 0 or c0 >= nad.RasterXSize or r0 >= nad.RasterYSize:
+            tmpl: Template | str = "outside_nadir"
+        else:
+            nad_rgb, nad_alpha = read_rgba_block(nad, c0, r0, c1 - c0, r1 - r0)
+            tmpl = build_template(fp, gt, c0, r0, nad_rgb, nad_alpha, s)
+        results: dict[str, MatchResult] = {}
+        matchers: dict[str, _Matcher] = {}
+        for v in views:
+            if isinstance(tmpl, str):
+                results[v.pid] = MatchResult(math.nan, 0.0, 1.0, tmpl)
+                continue
+            u_max = s.max_height * v.cot
+            # oblique window covering the nadir window moved by -3 .. u_max + 3 steps, clipped to the raster
+            corners = np.array([[r0, c0], [r0, c1], [r1, c0], [r1, c1]], dtype=np.float64)
+            pts = np.concatenate([corners + v.offset + u * v.d_px for u in (-3 * step_m, u_max + 3 * step_m)])
+            o_r0 = max(int(math.floor(pts[:, 0].min())) - _PAD, -_PAD)
+            o_c0 = max(int(math.floor(pts[:, 1].min())) - _PAD, -_PAD)
+            o_r1 = min(int(math.ceil(pts[:, 0].max())) + _PAD, v.src.RasterYSize + _PAD)
+            o_c1 = min(int(math.ceil(pts[:, 1].max())) + _PAD, v.src.RasterXSize + _PAD)
+            if o_r1 <= o_r0 or o_c1 <= o_c0:
+                results[v.pid] = MatchResult(math.nan, 0.0, 1.0, "outside_map")
+                continue
+            obl_rgb, obl_alpha = read_rgba_block(v.src, o_c0, o_r0, o_c1 - o_c0, o_r1 - o_r0)
+            off = v.offset + np.array([r0 - o_r0, c0 - o_c0], dtype=np.float64)
+            # the nadir map over the same area (for the hidden-ground check)
+            n_r0, n_c0 = o_r0 - int(round(v.offset[0])), o_c0 - int(round(v.offset[1]))
+            sw_rgb, sw_alpha = read_rgba_block(nad, n_c0, n_r0, o_c1 - o_c0, o_r1 - o_r0)
+            sweep = (sw_rgb, sw_alpha, np.array([r0 - n_r0, c0 - n_c0], dtype=np.float64))
+            matchers[v.pid] = _Matcher(tmpl, obl_rgb, obl_alpha, off, v.d_px, u_max, step_m, s, sweep)
+            results[v.pid] = matchers[v.pid].result()
+        cot = {v.pid: v.cot for v in views}
+        resolved = _resolve(results, matchers, cot, s.agree_m + step_m / max(min(cot.values(), default=1.0), 1e-9))
+        measurements = {}
+        for pid, r in results.items():
+            reason = r.reason
+            if not reason and not (-step_m <= r.u <= s.max_height * cot[pid] + step_m):
+                reason = "out_of_range"
+            h = r.u / cot[pid] if not reason else math.nan
+            measurements[pid] = ViewMeasurement(h, r.u, r.match * (1.0 - r.second), r.match, r.second, reason,
+                                                pid in resolved)
+        _drop_inconsistent(measurements, s.outlier_m)
+        rows_out.append(_combine(fp.id, measurements, s))
+    return rows_out
+
+
+def _resolve(results: dict[str, MatchResult], matchers: dict[str, "_Matcher"], cot: dict[str, float],
+             tol_h: float) -> set[str]:
+    """Settle ambiguous views by the height the others give (in place); returns the settled views."""
+    amb = [p for p, r in results.items() if r.reason == "ambiguous" and p in matchers]
+    if not amb:
+        return set()
+    accepted = [r.u / cot[p] for p, r in results.items() if not r.reason]
+    rivals = {p: [u / cot[p] for u in results[p].rivals] for p in amb}
+    if accepted:
+        target = float(np.median(accepted))
+    else:
+        # heights that rivals of two or more views share; usable only if they are all one height
+        shared = [(h1 + h2) / 2 for i, p in enumerate(amb) for q in amb[i + 1:]
+                  for h1 in rivals[p] for h2 in rivals[q] if abs(h1 - h2) <= tol_h]
+        if not shared or max(shared) - min(shared) > tol_h:
+            return set()
+        target = float(np.mean(shared))
+    done = set()
+    for p in amb:
+        near = [h for h in rivals[p] if abs(h - target) <= tol_h]
+        if len(near) != 1:
+            continue
+        r = matchers[p].result(window=((target - tol_h) * cot[p], (target + tol_h) * cot[p]))
+        if not r.reason and abs(r.u / cot[p] - target) <= tol_h:
+            results[p] = r
+            done.add(p)
+    return done
+
+
+def _drop_inconsistent(views: dict[str, ViewMeasurement], outlier_m: float) -> None:
+    """With three or more accepted views, reject (in place, reason "inconsistent") each view whose
+    height lies more than ``outlier_m`` from the median of the other accepted views: a roof one
+    view alone puts elsewhere (its own roof hidden there, a like roof further along the view).
+    Two accepted views that differ by more than ``outlier_m`` are both rejected: with no third
+    view there is no telling which one matched a like roof."""
+    acc = {p: m.height for p, m in views.items() if not m.reason}
+    far: list[str] = []
+    if len(acc) == 2 and abs(np.subtract(*acc.values())) > outlier_m:
+        far = list(acc)
+    elif len(acc) >= 3:
+        far = [p for p, h in acc.items() if abs(h - float(np.median([o for q, o in acc.items() if q != p]))) > outlier_m]
+    for p in far:
+        views[p] = replace(views[p], height=math.nan, reason="inconsistent")
+
+
+def _combine(fid: str, views: dict[str, ViewMeasurement], s: MatchSettings) -> HeightRow:
+    accepted = [m for m in views.values() if not m.reason]
+    if accepted:
+        hs = np.array([m.height for m in accepted])
+        height = float(np.median(hs))
+        n_agree = int(np.count_nonzero(np.abs(hs - height) <= s.agree_m))
+        quality = float(np.median([m.quality for m in accepted])) * n_agree / len(accepted)
+    else:
+        height, n_agree, quality = math.nan, 0, 0.0
+    return HeightRow(fid, {k: m.height for k, m in views.items()}, {k: m.quality for k, m in views.items()},
+                     {k: m.reason for k, m in views.items()}, len(accepted), n_agree, height, quality, views)
