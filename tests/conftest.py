@@ -73,3 +73,15 @@ def roof_colour(results: Path, building: dict) -> np.ndarray:
     gt = nadir.GetGeoTransform()
     x, y = np.mean(building["footprint"], axis=0)
     return nadir.ReadAsArray(int((x - gt[0]) / gt[1]), int((y - gt[3]) / gt[5]), 1, 1)[:3, 0, 0].astype(float)
+
+
+def grid_plan(cells, gsd: float, tile_size: int, crs: str = "EPSG:25832", contents: dict | None = None):
+    """A nadir plan (pipeline25d.stages.records.Plan) of tiles at (row, col) ``cells``, each drawing
+    nothing, its content box the whole tile unless ``contents`` gives one."""
+    from pipeline25d.geometry.perspectives import Perspective
+    from pipeline25d.stages.records import Plan, Tile, tile_extent
+
+    contents = contents or {}
+    tiles = tuple(Tile(r, c, (), (0.0, 1.0), tuple(contents.get((r, c), tile_extent(gsd, tile_size, r, c))), (), {},
+                       f"{r}_{c}") for r, c in cells)
+    return Plan(Perspective(0, 90), crs, 0.0, gsd, gsd, tile_size, "plane", None, tiles, len(tiles), 0)

@@ -59,10 +59,10 @@ def test_district_lod_rebuilds_only_changed_chunks_and_removes_stale_ones(tmp_pa
 
     first = run(grid_part(bump=2.0))
     entries = lod_chunks([lod / "index.json"])
-    assert len(first) == len(entries) == 16 and {e["district"] for e in entries} == {"a"}
+    assert len(first) == len(entries) == 16 and {e.district for e in entries} == {"a"}
     for e in entries:
-        data = load_npz(e["npz"])
-        assert e["hash"] == content_hash({k: data[k] for k in data.files}) and len(e["errors"]) == int(data["n_levels"])
+        data = load_npz(e.npz)
+        assert e.hash == content_hash({k: data[k] for k in data.files}) and len(e.errors) == int(data["n_levels"])
 
     part = grid_part(bump=2.0)
     part.vertices[0, 2] += 1.0                                           # one vertex of one chunk changes
@@ -70,7 +70,7 @@ def test_district_lod_rebuilds_only_changed_chunks_and_removes_stale_ones(tmp_pa
     cut = MeshPart(part.vertices, part.faces[x < 75], colors=part.colors)  # and the last column of chunks goes
     second = run(cut)
     assert len(second) == 12 and sum(second[k] != first[k] for k in second) == 1
-    before, after = ({e["id"]: e for e in es} for es in (entries, lod_chunks([lod / "index.json"])))
+    before, after = ({e.id: e for e in es} for es in (entries, lod_chunks([lod / "index.json"])))
     assert all(after[k[:-4]] == before[k[:-4]] for k in second if second[k] == first[k])   # same entries kept
     third = run(cut, max_error=0.4)                                       # new LOD settings: every chunk again
     assert all(third[k] != second[k] for k in third)

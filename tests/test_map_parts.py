@@ -7,10 +7,12 @@ import os
 
 import numpy as np
 import pytest
+from conftest import grid_plan
 
 from pipeline25d.core.raster import gdal, write_rgba_geotiff
 from pipeline25d.stages.maps.parts import COG_BLOCK, map_grid, overview_factors, tile_parts
 from pipeline25d.stages.maps.warp import build_mosaic, warp_to_cog
+from pipeline25d.stages.records import Observation
 
 GSD, TILE = 0.5, 128
 CRS = "EPSG:25832"
@@ -33,10 +35,8 @@ def test_parts_span_their_tiles_content_not_whole_tiles():
     from pipeline25d.stages.maps.parts import part_bounds
 
     span = TILE * GSD
-    tiles = [{"row": 0, "col": 0, "content": [10.0, 20.0, span, span]},
-             {"row": 0, "col": 1, "content": [span, 5.0, span + 30.0, 40.0]},
-             {"row": 9, "col": 9}]                                     # an old plan's tile: whole
-    plan = {"gsd": GSD, "tile_size": TILE, "tiles": tiles}
+    plan = grid_plan([(0, 0), (0, 1), (9, 9)], GSD, TILE,
+                     contents={(0, 0): (10.0, 20.0, span, span), (0, 1): (span, 5.0, span + 30.0, 40.0)})
     got = part_bounds(plan, [(0, 0, 0, 1), (9, 9, 9, 9)], lambda x, y: (x, y))
     assert got == [(10.0, 5.0, span + 30.0, span), (9 * span, 9 * span, 10 * span, 10 * span)]
     shifted = part_bounds(plan, [(0, 0, 0, 1)], lambda x, y: (x + 100.0, 0.5 * y))
@@ -87,7 +87,7 @@ def two_towns(tmp_path_factory):
         write_rgba_geotiff(path, _tile_pixels(r, c), (c * span, GSD, 0.0, (r + 1) * span, 0.0, -GSD), horizontal_wkt(CRS))
         paths.append(str(path))
     build_mosaic(paths, d / "mosaic.vrt")
-    plan = {"crs": CRS, "gsd": GSD, "tile_size": TILE, "tiles": [{"row": r, "col": c} for r, c in cells]}
+    plan = grid_plan(cells, GSD, TILE, CRS)
     return d, plan, cells
 
 
@@ -105,8 +105,7 @@ def _gcps(transform):
     rows = []
     for k, (mx, my) in enumerate(rng.uniform([0, 0], [20 * TILE * GSD, 22 * TILE * GSD], (60, 2))):
         x, y = transform(mx, my)
-        rows.append({"id": k, "map_x": mx, "map_y": my, "x": x, "y": y, "z": 0.0,
-                     "role": "gcp" if k % 6 else "check"})
+        rows.append(Observation(str(k), x, y, 0.0, 0.0, 0.0, 0.0, "gcp" if k % 6 else "check", mx, my, 1))
     return rows
 
 

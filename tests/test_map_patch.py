@@ -6,12 +6,14 @@ from __future__ import annotations
 import shutil
 
 import numpy as np
+from conftest import grid_plan
 
 from pipeline25d.core.crs import horizontal_wkt
 from pipeline25d.core.raster import gdal, write_rgba_geotiff
 from pipeline25d.stages.maps import patch as map_patch
 from pipeline25d.stages.maps.patch import block_window, patched_map
 from pipeline25d.stages.maps.warp import build_mosaic, gdal_gcps, raster_geotransform, warp_to_cog
+from pipeline25d.stages.records import Observation
 
 GSD, TILE, ROWS, COLS = 0.5, 128, 10, 12
 CRS = "EPSG:25832"
@@ -34,13 +36,13 @@ def _write_tile(d, row, col, seed=0) -> str:
     return str(path)
 
 
-def _observations(shift: float = 0.0) -> list[dict]:
+def _observations(shift: float = 0.0) -> list[Observation]:
     """GCPs of a smooth warp: a rotation by ~0.6° and a shift (metres)."""
     rng = np.random.default_rng(7)
     rows = []
     for k, (mx, my) in enumerate(rng.uniform([0, 0], [COLS * TILE * GSD, ROWS * TILE * GSD], (40, 2))):
-        rows.append({"id": k, "map_x": mx, "map_y": my, "x": mx + 0.01 * my + 0.7 + shift,
-                     "y": my - 0.01 * mx - 0.4, "z": 0.0, "role": "gcp"})
+        rows.append(Observation(str(k), mx + 0.01 * my + 0.7 + shift, my - 0.01 * mx - 0.4, 0.0, 0.0, 0.0, 0.0, "gcp",
+                                mx, my, 1))
     return rows
 
 
@@ -152,7 +154,7 @@ def test_the_cog_of_a_patched_warp_equals_a_fresh_one_byte_for_byte(tmp_path, mo
     cells = [(r, c) for r in range(4) for c in range(5)]
     for r, c in cells:
         _write_tile(d, r, c)
-    plan = {"crs": CRS, "gsd": GSD, "tile_size": TILE, "tiles": [{"row": r, "col": c} for r, c in cells]}
+    plan = grid_plan(cells, GSD, TILE, CRS)
     choice, obs = {"method": "polynomial", "order": 1}, _observations()
     build_mosaic([str(p) for p in sorted(d.glob("*_*.tif"))], d / "mosaic.vrt")
     warp_to_cog(d / "mosaic.vrt", obs, choice, plan, tmp_path / "a.tif", work_dir=tmp_path / "kept")

@@ -12,6 +12,7 @@ from pipeline25d.core.mesh import MeshPart
 from pipeline25d.geometry.camera import Extent, pixel_size, project
 from pipeline25d.geometry.perspectives import Perspective
 from pipeline25d.stages.gcps import observations
+from pipeline25d.stages.records import GcpCandidate
 from pipeline25d.stages.render import TileRenderer, TileView
 
 E0, N0, Z0 = 691000.0, 5334000.0, 500.0   # UTM-sized origin: exercises float32 precision
@@ -75,12 +76,12 @@ def test_gcp_markers_centroid_and_occlusion(gl_ctx):
     v = view(p, margin)
     full, sums = TileRenderer(gl_ctx).render_markers([(origin, [ground, box])], v, pts, np.zeros((len(pts), 2)),
                                                      6 * GSD, 0.3, 0.1)
-    cands = [{"id": f"g{i}", "x": x, "y": y, "z": z, "role": "gcp"} for i, (x, y, z) in enumerate(pts)]
+    cands = [GcpCandidate(f"g{i}", x, y, z, 0.0, 0.0, 0.0, "gcp") for i, (x, y, z) in enumerate(pts)]
     seen = observations(cands, full, sums, (v.extent.xmin, v.extent.ymax), GSD)
-    seen_ids = {s["id"] for s in seen}
+    seen_ids = {s.id for s in seen}
     assert seen_ids == {f"g{i}" for i in range(len(free))}
     truth = project(pts[: len(free)], p, Z0)
-    err = np.hypot([s["map_x"] for s in seen] - truth[:, 0], [s["map_y"] for s in seen] - truth[:, 1]) / GSD
+    err = np.hypot([s.map_x for s in seen] - truth[:, 0], [s.map_y for s in seen] - truth[:, 1]) / GSD
     # A rasterised disk of radius 6 px: centroid quantisation stays well under a pixel.
     assert err.max() < 0.15, err
 
@@ -154,11 +155,11 @@ def test_floating_and_buried_markers_are_rejected_tilted_ones_on_slopes_accepted
     tol = 0.25 * GSD / np.cos(np.radians(p.elevation))
     full, sums = TileRenderer(gl_ctx).render_markers([(np.array([E0, N0, Z0]), [terrain])], v, pts,
                                                      np.tile(slope, (len(pts), 1)), 6 * GSD, 0.05, tol)
-    cands = [{"id": f"g{i}", "x": x, "y": y, "z": z, "role": "gcp"} for i, (x, y, z) in enumerate(pts)]
+    cands = [GcpCandidate(f"g{i}", x, y, z, 0.0, 0.0, 0.0, "gcp") for i, (x, y, z) in enumerate(pts)]
     seen = observations(cands, full, sums, (ext.xmin, ext.ymax), pixel)
-    assert {s["id"] for s in seen} == {f"g{i}" for i in range(10)}
+    assert {s.id for s in seen} == {f"g{i}" for i in range(10)}
     truth = project(pts[:10], p, Z0, camera)
-    err = np.hypot([s["map_x"] for s in seen] - truth[:, 0], [s["map_y"] for s in seen] - truth[:, 1]) / pixel
+    err = np.hypot([s.map_x for s in seen] - truth[:, 0], [s.map_y for s in seen] - truth[:, 1]) / pixel
     # rasterised tilted disks of ~6 px radius: centroid quantisation only
     assert np.sqrt(np.mean(err ** 2)) < 0.12 and err.max() < 0.25, err
 

@@ -23,7 +23,7 @@ from pipeline25d.geometry.sun import (
     shadow_footprints,
     sun_position,
 )
-from pipeline25d.stages.plan import plan_perspective, tile_content
+from pipeline25d.stages.plan import plan_perspective
 from pipeline25d.stages.render import ShadowView, TileRenderer, TileView
 from pipeline25d.stages.render_block import render_plan_tile
 
@@ -187,20 +187,20 @@ def test_a_tile_plans_every_chunk_whose_shadow_can_reach_it_and_not_the_far_ones
     span = gsd * size
     margin = SunFrame(sun, 0.75 * gsd).ground_margin()
     with_tower, reached = set(), set()
-    for t in plan["tiles"]:
-        ids = {c["id"] for c in (*t["chunks"], *t["shadow"]["casters"])}
-        assert not {c["id"] for c in t["chunks"]} & {c["id"] for c in t["shadow"]["casters"]}
-        xs, ys = np.meshgrid(np.linspace(t["col"] * span, (t["col"] + 1) * span, 33),
-                             np.linspace(t["row"] * span, (t["row"] + 1) * span, 33))
+    for t in plan.tiles:
+        ids = {c.id for c in (*t.chunks, *t.casters)}
+        assert not {c.id for c in t.chunks} & {c.id for c in t.casters}
+        xs, ys = np.meshgrid(np.linspace(t.col * span, (t.col + 1) * span, 33),
+                             np.linspace(t.row * span, (t.row + 1) * span, 33))
         if _inside_hull(np.column_stack([xs.ravel(), ys.ravel()]), hull).any():
-            reached.add((t["row"], t["col"]))
+            reached.add((t.row, t.col))
         if "tower" in ids:
-            with_tower.add((t["row"], t["col"]))
+            with_tower.add((t.row, t.col))
             # never beyond the shadow's bounding box grown by the filter's margin
-            assert (t["col"] * span < hull[:, 0].max() + margin and (t["col"] + 1) * span > hull[:, 0].min() - margin
-                    and t["row"] * span < hull[:, 1].max() + margin and (t["row"] + 1) * span > hull[:, 1].min() - margin)
+            assert (t.col * span < hull[:, 0].max() + margin and (t.col + 1) * span > hull[:, 0].min() - margin
+                    and t.row * span < hull[:, 1].max() + margin and (t.row + 1) * span > hull[:, 1].min() - margin)
     assert reached <= with_tower and len(reached) >= 9
-    assert len(with_tower) <= len(reached) + 8 < len(plan["tiles"])
+    assert len(with_tower) <= len(reached) + 8 < len(plan.tiles)
 
 
 def test_a_shadow_footprint_reaches_down_to_the_lowest_ground_it_can_fall_on():
@@ -220,13 +220,13 @@ def test_changed_sun_rehashes_every_tile_and_no_shadows_plans_as_before():
     chunks = [_chunk(f"g{i}", (E0 + 40 * i, N0, Z0), (E0 + 40 * i + 40, N0 + 40, Z0 + 10)) for i in range(4)]
     args = (Perspective(45, 45), chunks, [], Z0, 0.5, 64, 1.0, "EPSG:25832", {"samples": 4})
     plain = plan_perspective(*args)
-    assert plan_perspective(*args, None, None) == plain and "shadows" not in plain
-    assert all("shadow" not in t for t in plain["tiles"])
+    assert plan_perspective(*args, None, None) == plain and plain.shadows is None
+    assert all(t.shadow is None for t in plain.tiles)
     a = plan_perspective(*args, None, _shadows(Sun(200, 40), 0.375))
     b = plan_perspective(*args, None, _shadows(Sun(201, 40), 0.375))
     c = plan_perspective(*args, None, _shadows(Sun(200, 40), 0.375, ambient=0.6))
-    hashes = lambda plan: [t["spec_hash"] for t in plan["tiles"]]
-    assert len(plain["tiles"]) == len(a["tiles"])
+    hashes = lambda plan: [t.spec_hash for t in plan.tiles]
+    assert len(plain.tiles) == len(a.tiles)
     for other in (plain, b, c):
         assert all(x != y for x, y in zip(hashes(a), hashes(other)))
 
@@ -246,27 +246,27 @@ def test_render_settings_carry_shadows_only_when_enabled():
 
 
 # -- rendering plans: shadows across tile borders, no seams -----------------------------------------
-def _render_plan(gl_ctx, plan: dict, loaded: dict, ground=None, casters: bool = True) -> dict:
-    renderer = TileRenderer(gl_ctx, shadows="shadows" in plan)
+def _render_plan(gl_ctx, plan, loaded: dict, ground=None, casters: bool = True) -> dict:
+    renderer = TileRenderer(gl_ctx, shadows=plan.shadows is not None)
     out = {}
-    for t in plan["tiles"]:
-        own = [loaded[c["id"]] for c in t["chunks"]]
-        cast = [loaded[c["id"]] for c in t["shadow"]["casters"]] if casters and "shadow" in t else []
-        out[(t["row"], t["col"])] = render_plan_tile(renderer, plan, t, own, ground, cast)[0]
+    for t in plan.tiles:
+        own = [loaded[c.id] for c in t.chunks]
+        cast = [loaded[c.id] for c in t.casters] if casters else []
+        out[(t.row, t.col)] = render_plan_tile(renderer, plan, t, own, ground, cast)[0]
     return out
 
 
-def _mosaic(plan: dict, rendered: dict, extent: Extent) -> np.ndarray:
+def _mosaic(plan, rendered: dict, extent: Extent) -> np.ndarray:
     """The rendered tiles pasted on ``extent``'s pixel grid (the plan's gsd): (h, w, 4) uint8."""
-    gsd = plan["gsd"]
+    gsd = plan.gsd
     out = np.zeros((round(extent.height / gsd), round(extent.width / gsd), 4), np.uint8)
-    for t in plan["tiles"]:
-        e, (w, h) = tile_content(plan, t)
+    for t in plan.tiles:
+        e, (w, h) = plan.content(t)
         c0, r0 = round((e.xmin - extent.xmin) / gsd), round((extent.ymax - e.ymax) / gsd)
         rc0, rr0 = max(c0, 0), max(r0, 0)
         rc1, rr1 = min(c0 + w, out.shape[1]), min(r0 + h, out.shape[0])
         if rc0 < rc1 and rr0 < rr1:
-            out[rr0:rr1, rc0:rc1] = rendered[(t["row"], t["col"])][rr0 - r0:rr1 - r0, rc0 - c0:rc1 - c0]
+            out[rr0:rr1, rc0:rc1] = rendered[(t.row, t.col)][rr0 - r0:rr1 - r0, rc0 - c0:rc1 - c0]
     return out
 
 
@@ -286,11 +286,11 @@ def test_a_tall_buildings_shadow_falls_into_the_neighbouring_tiles(gl_ctx):
                             _shadows(sun, 0.75 * gsd))
     row0, col0 = int(N0 // 32), int(E0 // 32)
     a, b, c = (row0, col0), (row0, col0 + 1), (row0, col0 + 2)
-    tiles = {(t["row"], t["col"]): t for t in plan["tiles"]}
-    assert "tower" in {e["id"] for e in tiles[a]["chunks"]}
+    tiles = {(t.row, t.col): t for t in plan.tiles}
+    assert "tower" in {e.id for e in tiles[a].chunks}
     for key in (b, c):
-        assert "tower" in {e["id"] for e in tiles[key]["shadow"]["casters"]}
-    assert "tower" not in {e["id"] for e in tiles[(row0, col0 + 3)]["shadow"]["casters"]}   # beyond its reach
+        assert "tower" in {e.id for e in tiles[key].casters}
+    assert "tower" not in {e.id for e in tiles[(row0, col0 + 3)].casters}   # beyond its reach
     with_casters, without = _render_plan(gl_ctx, plan, loaded), _render_plan(gl_ctx, plan, loaded, casters=False)
     end = 30 + 40 / math.tan(math.radians(35)) - 64       # the shadow ends 23.1 m into tile C
     row = round(16 / gsd)                                 # through the tower's middle (y = N0 + 16)
@@ -388,7 +388,7 @@ def test_the_workflow_casts_shadows_and_renders_again_when_they_change(tmp_path_
     from test_workflow import demo_run, snakemake
 
     from pipeline25d.core.crs import transform_points
-    from pipeline25d.stages.plan import plan_blocks
+    from pipeline25d.stages.plan import plan_blocks, read_plan
 
     views = [{"azimuth": 0, "elevation": 90}, {"azimuth": 45, "elevation": 45}]
     shadows = {"enabled": True, "datetime": "2024-09-15T10:30:00+02:00"}
@@ -397,10 +397,10 @@ def test_the_workflow_casts_shadows_and_renders_again_when_they_change(tmp_path_
     scene = json.loads((results / "scene.json").read_text())
     lon, lat, _ = transform_points(np.mean(scene["bounds"], axis=0)[None], "EPSG:25832", "EPSG:4326")[0]
     sun = sun_position(datetime.fromisoformat(shadows["datetime"]), round(lon, 2), round(lat, 2))
-    plans = {pid: json.loads((results / "plans" / f"{pid}.json").read_text()) for pid in ("az000_el90", "az045_el45")}
+    plans = {pid: read_plan(results / "plans" / f"{pid}.json") for pid in ("az000_el90", "az045_el45")}
     for plan in plans.values():
-        assert abs(plan["shadows"]["azimuth"] - sun.azimuth) < 1e-3 and abs(plan["shadows"]["elevation"] - sun.elevation) < 1e-3
-        assert any(t["shadow"]["casters"] for t in plan["tiles"])
+        assert abs(plan.shadows["azimuth"] - sun.azimuth) < 1e-3 and abs(plan.shadows["elevation"] - sun.elevation) < 1e-3
+        assert any(t.casters for t in plan.tiles)
     summary = snakemake(workdir, "--detailed-summary").stdout.splitlines()
     header = summary[0].split("\t")
     rows = [dict(zip(header, line.split("\t"))) for line in summary[1:]]
@@ -410,11 +410,11 @@ def test_the_workflow_casts_shadows_and_renders_again_when_they_change(tmp_path_
     for row in rows:
         pid, block = row["output_file"].split("/")[-2], row["output_file"].split("block_")[1][:-len(".json")]
         tiles = plan_blocks(plans[pid], 1)[block]
-        name = lambda c: f"{results.name}/lod/{c['district']}/{c['id']}.npz"
+        name = lambda c: f"{results.name}/lod/{c.district}/{c.id}.npz"
         inputs = {i.split("results/")[-1] for i in row["input-file(s)"].split(",")}
-        casters = {name(c) for t in tiles for c in t["shadow"]["casters"]}
+        casters = {name(c) for t in tiles for c in t.casters}
         assert casters <= inputs, (row["output_file"], casters - inputs)
-        foreign += len(casters - {name(c) for t in tiles for c in t["chunks"]})
+        foreign += len(casters - {name(c) for t in tiles for c in t.chunks})
     assert foreign > 0                      # casters that no tile of their job draws
     before = gdal.Open(str(results / "maps" / "az000_el90.tif")).ReadAsArray()[:3].astype(int)
     (workdir / "config.yaml").write_text((workdir / "config.yaml").read_text().replace("enabled: true",

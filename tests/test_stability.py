@@ -18,7 +18,8 @@ from hypothesis import strategies as st
 from pipeline25d.core.mesh import MeshPart
 from pipeline25d.geometry.perspectives import Perspective
 from pipeline25d.stages.chunks import chunk_origin
-from pipeline25d.stages.plan import plan_perspective, tile_content, tile_extent, tile_span
+from pipeline25d.stages.plan import plan_perspective, tile_span
+from pipeline25d.stages.records import tile_extent
 from pipeline25d.stages.render import TileRenderer, TileView
 
 settings.register_profile("ci", derandomize=True, print_blob=True, deadline=None)
@@ -85,10 +86,9 @@ def chunk_scenes(draw) -> dict:
 
 def tile_view_of(scene: dict, point_map: np.ndarray) -> TileView:
     """The plan-grid tile holding ``point_map``, as the tile job's TileView (whole tile, plane or terrain)."""
-    plan = {"gsd": scene["gsd"], "tile_size": scene["tile_size"]}
     span = tile_span(scene["gsd"], scene["tile_size"])
     row, col = math.floor(point_map[1] / span), math.floor(point_map[0] / span)
-    extent = tile_extent(plan, row, col)
+    extent = tile_extent(scene["gsd"], scene["tile_size"], row, col)
     ground = (lambda x, y: np.full(np.shape(x), scene["ground"])) if scene["terrain"] else None
     p = scene["p"]
     depth = np.array([math.sin(math.radians(p.azimuth)), math.cos(math.radians(p.azimuth)), 0.0]) \
@@ -120,13 +120,12 @@ def test_adjacent_tiles_share_edges_and_one_pixel_grid(gsd: float, size: int, x:
                                                        dr: int, dc: int) -> None:
     """Tile (r, c)'s right/top edge is (r, c+1)'s left / (r+1, c)'s bottom edge exactly, and a map
     point's pixel coordinates in any two tiles differ by whole tiles (one pixel grid)."""
-    plan = {"gsd": gsd, "tile_size": size}
     span = tile_span(gsd, size)
     r, c = math.floor(y / span), math.floor(x / span)
-    a, right, up = tile_extent(plan, r, c), tile_extent(plan, r, c + 1), tile_extent(plan, r + 1, c)
+    a, right, up = tile_extent(gsd, size, r, c), tile_extent(gsd, size, r, c + 1), tile_extent(gsd, size, r + 1, c)
     assert a.xmax == right.xmin and a.ymax == up.ymin
     assert (a.ymin, a.ymax) == (right.ymin, right.ymax) and (a.xmin, a.xmax) == (up.xmin, up.xmax)
-    other = tile_extent(plan, r + dr, c + dc)
+    other = tile_extent(gsd, size, r + dr, c + dc)
     for lo_a, w_a, lo_o, w_o, v, d in ((a.xmin, a.width, other.xmin, other.width, x, dc),
                                        (a.ymin, a.height, other.ymin, other.height, y, dr)):
         assert abs((v - lo_a) / (w_a / size) - (v - lo_o) / (w_o / size) - d * size) <= 1e-6
@@ -147,14 +146,14 @@ def test_plan_content_boxes_tile_the_map_without_gaps_or_overlaps(gsd: float, si
     plan = plan_perspective(Perspective(azimuth, elevation), chunks, [], z, gsd, size, 1.0, "EPSG:32632", {})
     tol = 1e-4 * gsd                                   # metres: 1e-4 px
     boxes = {}
-    for tile in plan["tiles"]:
-        e, (w, h) = tile_content(plan, tile)
-        t = tile_extent(plan, tile["row"], tile["col"])
+    for tile in plan.tiles:
+        e, (w, h) = plan.content(tile)
+        t = plan.tile_extent(tile.row, tile.col)
         assert t.xmin - tol <= e.xmin and e.xmax <= t.xmax + tol and t.ymin - tol <= e.ymin and e.ymax <= t.ymax + tol
         for v in (e.xmin - t.xmin, e.ymin - t.ymin):   # whole pixels from the tile's corner
             assert abs(v / gsd - round(v / gsd)) <= 1e-4
         assert abs(e.width - w * gsd) <= tol and abs(e.height - h * gsd) <= tol
-        boxes[tile["row"], tile["col"]] = (e, t)
+        boxes[tile.row, tile.col] = (e, t)
     for (r, c), (e, t) in boxes.items():   # a box reaching the shared edge of two planned tiles
         if (r, c + 1) in boxes and e.xmax >= t.xmax - tol:
             assert e.xmax == boxes[r, c + 1][0].xmin
@@ -192,9 +191,8 @@ def test_rendered_marker_centroid_matches_projection(renderer: TileRenderer, nor
     p = Perspective(azimuth, elevation)
     base = z - 0.25 if terrain else 0.0
     want = reference_map(centre[None], azimuth, elevation, base)[0]
-    plan = {"gsd": gsd, "tile_size": size}
     span = tile_span(gsd, size)
-    extent = tile_extent(plan, math.floor(want[1] / span), math.floor(want[0] / span), margin_px=size // 2)
+    extent = tile_extent(gsd, size, math.floor(want[1] / span), math.floor(want[0] / span), margin_px=size // 2)
     depth = float(np.dot(centre, [math.sin(math.radians(azimuth)) * math.cos(math.radians(elevation)),
                                   math.cos(math.radians(azimuth)) * math.cos(math.radians(elevation)),
                                   -math.sin(math.radians(elevation))]))

@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
+from conftest import grid_plan
 
 from pipeline25d.core.grid import Grid
 from pipeline25d.geometry.perspectives import Perspective
 from pipeline25d.stages.gcp_sites import SiteRules, select_sites
 from pipeline25d.stages.maps.warp import MIN_CHECK_POINTS, choose, residuals
+from pipeline25d.stages.records import Observation
 from pipeline25d.stages.terrain.dtm import interpolate_dtm
 from pipeline25d.stages.terrain.ground import csf_ground, trim_object_edges
 
@@ -76,31 +80,33 @@ def test_sites_are_exposed_clear_of_objects_and_of_their_lines_of_sight():
     np.testing.assert_allclose(sites["z"], 10.0)
 
 
-def _obs(n_gcp: int, n_check: int, offset: float, rng) -> list[dict]:
+def _obs(n_gcp: int, n_check: int, offset: float, rng, z: float = 0.0) -> list[Observation]:
     rows = []
     for i in range(n_gcp + n_check):
         x, y = rng.uniform(0, 500, 2)
         noise = rng.normal(0, 0.02, 2)
-        rows.append({"id": f"g{i}", "x": x, "y": y, "z": 0.0, "ground": 0.0, "role": "gcp" if i < n_gcp else "check",
-                     "map_x": x + offset + noise[0], "map_y": y + noise[1]})
+        rows.append(Observation(f"g{i}", x, y, z, 0.0, 0.0, 0.0, "gcp" if i < n_gcp else "check",
+                                x + offset + noise[0], y + noise[1], 1))
     return rows
+
+
+
+def _plan_45():
+    """A plane-projection plan of az045_el45 at 0.5 m (what choose() reads of a plan)."""
+    return replace(grid_plan([(0, 0)], 0.5, 256), perspective=Perspective(45, 45))
 
 
 def test_auto_warp_keeps_none_unless_a_warp_clearly_wins_and_never_looks_at_check_points():
     rng = np.random.default_rng(2)
-    plan = {"perspective": {"id": "az045_el45", "elevation": 45}, "gsd": 0.5, "z0": 0.0, "projection": "plane"}
+    plan = _plan_45()
     gt = (0.0, 0.5, 0.0, 500.0, 0.0, -0.5)
-    obs = _obs(60, 20, 0.0, rng)
-    for r in obs:
-        r["z"] = 3.0                                                      # relief 3 m: the warp is considered
+    obs = _obs(60, 20, 0.0, rng, z=3.0)                                  # relief 3 m: the warp is considered
     assert choose(obs, plan, gt, "auto", 3)["method"] == "none"           # nothing to correct
-    shifted = _obs(60, 20, 2.0, rng)
-    for r in shifted:
-        r["z"] = 3.0
+    shifted = _obs(60, 20, 2.0, rng, z=3.0)
     best = choose(shifted, plan, gt, "auto", 3)
     assert best["method"] == "polynomial" and best["rmsd_px"] < 0.2      # a 4 px shift is corrected
     # corrupting the check points' observations changes their score, not the choice
-    broken = [{**r, "map_x": r["map_x"] + 50} if r["role"] == "check" else r for r in shifted]
+    broken = [replace(r, map_x=r.map_x + 50) if r.role == "check" else r for r in shifted]
     again = choose(broken, plan, gt, "auto", 3)
     assert (again["method"], again["order"]) == (best["method"], best["order"]) and again["rmsd_m"] > 40
 
@@ -118,10 +124,8 @@ def test_a_large_tps_that_is_not_chosen_is_not_fitted_on_every_gcp():
     from pipeline25d.stages.maps.warp import CV_MAX_GCPS
 
     rng = np.random.default_rng(4)
-    plan = {"perspective": {"id": "az045_el45", "elevation": 45}, "gsd": 0.5, "z0": 0.0, "projection": "plane"}
-    obs = _obs(CV_MAX_GCPS + 100, 30, 2.0, rng)
-    for r in obs:
-        r["z"] = 3.0
+    plan = _plan_45()
+    obs = _obs(CV_MAX_GCPS + 100, 30, 2.0, rng, z=3.0)
     choice = choose(obs, plan, (0.0, 0.5, 0.0, 500.0, 0.0, -0.5), "auto", 3)
     assert choice["method"] == "polynomial"                              # a shift: order 1 fits it
     tps = next(c for c in choice["candidates"] if c["method"] == "tps")

@@ -8,6 +8,7 @@ import subprocess
 import sys
 
 import numpy as np
+from conftest import grid_plan
 from PIL import Image
 
 from pipeline25d.core.crs import transform_points
@@ -79,7 +80,7 @@ def test_jpeg_maps_keep_their_transparency_as_a_mask_that_the_readers_use(tmp_pa
     from pipeline25d.stages.maps.warp import warp_to_cog
 
     _smooth_map(tmp_path / "map.tif")
-    plan = {"crs": "EPSG:25832", "gsd": 0.5}
+    plan = grid_plan([(0, 0)], 0.5, 256, "EPSG:25832")
     sizes = {}
     for codec in ("deflate", "jpeg", "webp"):
         out = tmp_path / f"{codec}.tif"

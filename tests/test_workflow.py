@@ -15,7 +15,7 @@ import pytest
 import yaml
 from conftest import REPO
 
-from pipeline25d.stages.plan import plan_blocks
+from pipeline25d.stages.plan import plan_blocks, read_plan
 from pipeline25d_lab.scenes.demo import generate_demo_city
 
 SMALL_PERSPECTIVES = [{"azimuth": 0, "elevation": 90}, {"azimuth": 45, "elevation": 45},
@@ -63,10 +63,10 @@ def test_dry_run_of_the_default_config_counts_jobs_per_rule(tmp_path):
     pids = [f"az{a:03d}_el45" for a in range(0, 360, 45)] + ["az000_el90"]
     snakemake(tmp_path, *[f"results/demo/plans/{pid}.json" for pid in pids])
     counts = job_counts(snakemake(tmp_path, "-n").stdout)
-    plans = [json.loads(p.read_text()) for p in (tmp_path / "results" / "demo" / "plans").glob("*.json")]
+    plans = [read_plan(p) for p in (tmp_path / "results" / "demo" / "plans").glob("*.json")]
     assert len(plans) == 9
     assert counts["render_block"] == sum(len(plan_blocks(p, 4)) for p in plans)
-    assert sum(p["n_tiles_skipped"] for p in plans) > 0      # the demo's empty blocks
+    assert sum(p.n_tiles_skipped for p in plans) > 0      # the demo's empty blocks
 
 
 def test_bad_config_stops_before_any_job(tmp_path):
@@ -351,16 +351,18 @@ def test_plain_loop_reference_draws_the_same_tiles(small_run):
     from pipeline25d_lab.harness.render_reference import plain_loop_seconds
 
     _, results = small_run
-    plan = json.loads((results / "plans" / "az045_el45.json").read_text())
-    tiles = plan["tiles"][:4]
+    from pipeline25d.stages.plan import read_plan
+
+    plan = read_plan(results / "plans" / "az045_el45.json")
+    tiles = plan.tiles[:4]
     plain = plain_loop_seconds(results / "plans" / "az045_el45.json", results / "lod", 4, tiles)
     assert plain["tiles"] == len(tiles) and plain["per_tile_s"] > 0
     for t, cov in zip(tiles, plain["coverage"]):
-        ds = gdal.Open(str(results / "tiles" / "az045_el45" / f"{t['row']}_{t['col']}.tif"))
+        ds = gdal.Open(str(results / "tiles" / "az045_el45" / f"{t.key}.tif"))
         alpha = ds.GetRasterBand(4).ReadAsArray()
         # both render the tile's content window; shares of the whole tile (the loop draws plane-projected)
-        full = plan["tile_size"] ** 2
-        assert abs(float((alpha > 0).sum()) - cov * alpha.size) / full < 0.05, (t["row"], t["col"], cov)
+        full = plan.tile_size ** 2
+        assert abs(float((alpha > 0).sum()) - cov * alpha.size) / full < 0.05, (t.row, t.col, cov)
 
 
 @pytest.fixture(scope="module")

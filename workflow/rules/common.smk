@@ -7,7 +7,7 @@ from pipeline25d.config import check_semantics, chunk_size, perspectives, render
 from pipeline25d.analysis.height_sources import plan as heights_plan
 from pipeline25d.core.errors import Pipeline25dError
 from pipeline25d.geometry.perspectives import ID_PATTERN
-from pipeline25d.stages.plan import block_spec_hash, plan_block, plan_blocks, read_plan
+from pipeline25d.stages.plan import block_spec_hash, plan_block, read_plan, read_plan_blocks
 
 validate(config, "../../config/schema.yaml")
 try:
@@ -45,19 +45,20 @@ def all_lod_meta(wildcards):
     return expand(rules.lod.output.index, district=DISTRICTS)
 
 
-def plan_of(pid):
-    return read_plan(checkpoints.plan.get(pid=pid).output.plan)
+def plan_path(pid):
+    """The perspective's plan file (the plan checkpoint's output: the DAG waits for it)."""
+    return checkpoints.plan.get(pid=pid).output.plan
 
 
 def block_tiles(wildcards):
-    return plan_block(plan_of(wildcards.pid), wildcards.block, RENDER_BLOCK)
+    """The tiles (pipeline25d.stages.records.Tile) of a render block."""
+    return plan_block(read_plan_blocks(plan_path(wildcards.pid), RENDER_BLOCK), wildcards.block, wildcards.pid)
 
 
 def block_lods(wildcards):
     """The LOD files a block's tiles draw or take shadows from (side files of the lod jobs): a block
     depends on its own chunks and their shadow casters only."""
-    chunks = {(c["district"], c["id"]) for t in block_tiles(wildcards)
-              for c in (*t["chunks"], *t.get("shadow", {}).get("casters", []))}
+    chunks = {(c.district, c.id) for t in block_tiles(wildcards) for c in (*t.chunks, *t.casters)}
     return [f"{RESULTS}/lod/{d}/{c}.npz" for d, c in sorted(chunks)]
 
 
@@ -67,10 +68,10 @@ def block_hash(wildcards):
 
 def perspective_blocks(wildcards):
     """The render-block manifests of a perspective."""
-    blocks = plan_blocks(plan_of(wildcards.pid), RENDER_BLOCK)
+    blocks = read_plan_blocks(plan_path(wildcards.pid), RENDER_BLOCK)
     return [f"{RESULTS}/tiles/{wildcards.pid}/block_{b}.json" for b in sorted(blocks)]
 
 
 def perspective_tiles(wildcards, suffix):
-    plan = plan_of(wildcards.pid)
-    return [f"{RESULTS}/tiles/{wildcards.pid}/{t['row']}_{t['col']}{suffix}" for t in plan["tiles"]]
+    plan = read_plan(plan_path(wildcards.pid))
+    return [f"{RESULTS}/tiles/{wildcards.pid}/{t.key}{suffix}" for t in plan.tiles]

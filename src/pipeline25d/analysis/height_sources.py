@@ -32,6 +32,7 @@ import numpy as np
 
 from pipeline25d.core.errors import InputFileError
 from pipeline25d.formats.footprints import Footprint, RefBuilding, inside_points, read_footprints
+from pipeline25d.stages.records import Scene
 
 log = logging.getLogger(__name__)
 
@@ -199,14 +200,14 @@ def dsm_roof(fp: Footprint, sample: Sampler, cell: float) -> float:
     return float(np.median(z)) if len(z) else math.nan
 
 
-def ground_sampler(scene: dict, scene_crs: str) -> Sampler:
+def ground_sampler(scene: Scene, scene_crs: str) -> Sampler:
     """The ground the maps were rendered over: the scene's DTM, or the plane z0 (terrain: flat)."""
     from pipeline25d.core.raster import DTM
 
-    if not scene.get("dtm"):
-        z0 = float(scene["z0"])
+    if not scene.dtm:
+        z0 = float(scene.z0)
         return lambda x, y: np.full(len(x), z0)
-    return DTM(scene["dtm"], scene_crs, continuous=True).sample
+    return DTM(scene.dtm, scene_crs, continuous=True).sample
 
 
 # --------------------------------------------------------------------------- statistics
@@ -324,7 +325,7 @@ def run_stage(config: dict, maps: dict[str, str], scene_json: str | Path, dsm_pa
         write_json(out_json, stats)
         log.info("heights skipped: %s", p["skip"])
         return stats
-    scene = json.loads(Path(scene_json).read_text())
+    scene = Scene.read(scene_json)
     h = config.get("heights") or {}
     fps_all, model = load_buildings(p, config)
     ext = _nadir_extent(maps[NADIR_ID])
@@ -370,7 +371,7 @@ def run_stage(config: dict, maps: dict[str, str], scene_json: str | Path, dsm_pa
         "views": views, "reasons": reasons,
         "reference": {"source": ref_source, "kind": ref_kind, "n": len(base), "main_group": main if main in groups else None,
                       "basis": ("roof z minus the mean of the ground the maps used under the outline: "
-                                + (f"DTM {scene['dtm']}" if scene.get("dtm") else f"the plane z0 = {scene['z0']} m"))},
+                                + (f"DTM {scene.dtm}" if scene.dtm else f"the plane z0 = {scene.z0} m"))},
         "groups": groups,
         "own_ground": own_stats,
         "own_ground_source": OWN_GROUND.get(ref_kind) if own_stats else None,

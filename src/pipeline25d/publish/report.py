@@ -9,7 +9,8 @@ from pathlib import Path
 from pipeline25d.core.atomic import write_json, write_text
 from pipeline25d.core.raster import gdal
 from pipeline25d.geometry.perspectives import Perspective
-from pipeline25d.stages.plan import plan_blocks
+from pipeline25d.stages.plan import plan_blocks, read_plan
+from pipeline25d.stages.records import Scene
 
 
 def _size(path: Path) -> int:
@@ -86,19 +87,19 @@ def build_report(config: dict, results: str | Path) -> dict:
     from pipeline25d.config import perspectives
 
     results = Path(results)
-    scene = json.loads((results / "scene.json").read_text())
+    scene = Scene.read(results / "scene.json")
     terrain_meta = results / "terrain" / "terrain.json"
-    terrain = json.loads(terrain_meta.read_text()) if terrain_meta.exists() else {"source": scene.get("terrain")}
+    terrain = json.loads(terrain_meta.read_text()) if terrain_meta.exists() else {"source": scene.terrain}
     persp, blocks = [], {}
     for pid in sorted(p.id for p in perspectives(config)):
-        plan = json.loads((results / "plans" / f"{pid}.json").read_text())
+        plan = read_plan(results / "plans" / f"{pid}.json")
         blocks[pid] = set(plan_blocks(plan, config["render"]["block"]))
         warp = json.loads((results / "maps" / f"{pid}.json").read_text())
         cog = results / "maps" / f"{pid}.tif"
         p = Perspective.from_id(pid)
         persp.append({
             "id": pid, "azimuth": p.azimuth, "elevation": p.elevation,
-            "tiles_rendered": len(plan["tiles"]), "tiles_skipped": plan["n_tiles_skipped"],
+            "tiles_rendered": len(plan.tiles), "tiles_skipped": plan.n_tiles_skipped,
             "gcps_observed": warp["n_observed"], "n_gcp": warp["n_gcp"], "n_check": warp["n_check"],
             "warp": {"method": warp["method"], "order": warp["order"]},
             "relief_px": warp["relief_px"],
@@ -117,9 +118,9 @@ def build_report(config: dict, results: str | Path) -> dict:
     maps = sum(p["map_bytes"] for p in persp)
     tms = sum(p["tms_bytes"] for p in persp)
     return {
-        "scene": config["scene"], "crs": config["crs"], "gsd": config["gsd"], "z0": scene["z0"],
-        "projection": scene.get("projection", "plane"), "terrain": terrain,
-        "dtm_check_holdout_m": scene.get("dtm_check_holdout_m"),
+        "scene": config["scene"], "crs": config["crs"], "gsd": config["gsd"], "z0": scene.z0,
+        "projection": scene.projection, "terrain": terrain,
+        "dtm_check_holdout_m": scene.dtm_check_holdout_m,
         "perspectives": persp,
         "heights": heights,
         "sizes": {"model_bytes": model, "maps_bytes": maps, "tms_bytes": tms,
@@ -289,8 +290,8 @@ def updates_since_last_report(results: Path, perspectives: list[dict]) -> tuple[
     seen, out = {}, {}
     for p in perspectives:
         pid = p["id"]
-        plan = json.loads((results / "plans" / f"{pid}.json").read_text())
-        specs = {f"{t['row']}_{t['col']}": t["spec_hash"] for t in plan["tiles"]}
+        plan = read_plan(results / "plans" / f"{pid}.json")
+        specs = {t.key: t.spec_hash for t in plan.tiles}
         stats_path = results / "work" / "tms" / f"{pid}.json"
         stats = json.loads(stats_path.read_text())
         stamp = stats_path.stat().st_mtime_ns

@@ -10,17 +10,19 @@ the GCP's sub-pixel image position in the perspective's grid.
 from __future__ import annotations
 
 import csv
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from pipeline25d.core.atomic import atomic_path
+from pipeline25d.stages.records import GcpCandidate, Observation
 
-CANDIDATE_FIELDS = ["id", "x", "y", "z", "ground", "sx", "sy", "role"]   # ground: DTM height; s: dz/dx, dz/dy
-OBSERVATION_FIELDS = CANDIDATE_FIELDS + ["map_x", "map_y", "n_pixels"]
+CANDIDATE_FIELDS = list(GcpCandidate.FIELDS)     # the columns of the candidates' table
+OBSERVATION_FIELDS = list(Observation.FIELDS)    # ... and of the observations' tables
 
 
-def candidates_from_sites(sites: dict[str, np.ndarray], holdout: float, seed: int) -> list[dict]:
+def candidates_from_sites(sites: dict[str, np.ndarray], holdout: float, seed: int) -> list[GcpCandidate]:
     """Candidate rows from :func:`pipeline25d.stages.gcp_sites.select_sites`, with roles.
 
     Ids name the candidate's spacing square (``g<col>_<row>``), so a candidate keeps its id,
@@ -36,8 +38,8 @@ def candidates_from_sites(sites: dict[str, np.ndarray], holdout: float, seed: in
     return assign_roles(rows, holdout, seed)
 
 
-def assign_roles(points: list[dict], holdout: float, seed: int) -> list[dict]:
-    """Mark a ``holdout`` share of points as 'check', the rest 'gcp'.
+def assign_roles(points: list[dict], holdout: float, seed: int) -> list[GcpCandidate]:
+    """Candidates of ``points`` (id, x, y, z, ground, sx, sy): a ``holdout`` share as 'check', the rest 'gcp'.
 
     The draw is a hash of (seed, id), so each point's role is stable: adding or removing
     other points never turns a check point into a GCP or back.
@@ -48,19 +50,35 @@ def assign_roles(points: list[dict], holdout: float, seed: int) -> list[dict]:
         digest = hashlib.sha256(f"{seed}:{pid}".encode()).digest()
         return int.from_bytes(digest[:8], "big") / 2 ** 64
 
-    return [{**p, "role": "check" if draw(str(p["id"])) < holdout else "gcp"} for p in points]
+    return [GcpCandidate.from_row({**p, "role": "check" if draw(str(p["id"])) < holdout else "gcp"}) for p in points]
 
 
-def write_csv(path: str | Path, rows: list[dict], fields: list[str]) -> None:
+def write_csv(path: str | Path, rows: Sequence[GcpCandidate], fields: list[str]) -> None:
+    """GCP records as a CSV table of ``fields`` (CANDIDATE_FIELDS or OBSERVATION_FIELDS), atomically."""
     with atomic_path(path) as tmp:
         with open(tmp, "w", newline="") as fh:
             writer = csv.DictWriter(fh, fieldnames=fields, extrasaction="ignore")
             writer.writeheader()
-            writer.writerows(rows)
+            writer.writerows(r.to_row() for r in rows)
+
+
+def read_candidates(path: str | Path) -> list[GcpCandidate]:
+    """The candidates' table (:func:`write_csv` with CANDIDATE_FIELDS)."""
+    return [GcpCandidate.from_row(r) for r in _rows(path)]
+
+
+def read_observations(path: str | Path) -> list[Observation]:
+    """An observations' table (a tile's, or a perspective's)."""
+    return [Observation.from_row(r) for r in _rows(path)]
+
+
+def _rows(path: str | Path) -> list[dict]:
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
 
 
 def read_csv(path: str | Path) -> list[dict]:
-    """Rows with numeric columns as float (id and role stay text)."""
+    """A user's table of points (id, x, y, z ...) as rows, numeric columns as float (id and role stay text)."""
     with open(path, newline="") as fh:
         rows = list(csv.DictReader(fh))
     for row in rows:
@@ -70,8 +88,8 @@ def read_csv(path: str | Path) -> list[dict]:
     return rows
 
 
-def observations(candidates: list[dict], full: np.ndarray, sums: np.ndarray,
-                 top_left: tuple[float, float], gsd: float) -> list[dict]:
+def observations(candidates: Sequence[GcpCandidate], full: np.ndarray, sums: np.ndarray,
+                 top_left: tuple[float, float], gsd: float) -> list[Observation]:
     """GCPs whose marker is seen whole and lies on the model's surface, with its centroid as map coordinates.
 
     ``full``: pixels per marker alone; ``sums``: (count, Σcol, Σrow, agree) with the model drawn
@@ -82,13 +100,14 @@ def observations(candidates: list[dict], full: np.ndarray, sums: np.ndarray,
     out = []
     for cand, n_full, (n, scol, srow, agree) in zip(candidates, full, sums):
         if n_full > 0 and n == n_full and agree == n_full:
-            out.append({**cand, "map_x": top_left[0] + scol / n * gsd, "map_y": top_left[1] - srow / n * gsd,
-                        "n_pixels": int(n)})
+            out.append(Observation(**cand.to_row(), map_x=top_left[0] + scol / n * gsd,
+                                   map_y=top_left[1] - srow / n * gsd, n_pixels=int(n)))
     return out
 
 
-def gather_gcps(tile_csvs: list[str], out_csv: str | Path) -> list[dict]:
-    rows = [r for p in tile_csvs for r in read_csv(p)]
-    rows.sort(key=lambda r: r["id"])
+def gather_gcps(tile_csvs: list[str], out_csv: str | Path) -> list[Observation]:
+    """A perspective's observations: its tiles' tables in one, by id."""
+    rows = [r for p in tile_csvs for r in read_observations(p)]
+    rows.sort(key=lambda r: r.id)
     write_csv(out_csv, rows, OBSERVATION_FIELDS)
     return rows

@@ -22,6 +22,7 @@ from pipeline25d.core.atomic import write_json
 from pipeline25d.core.mesh import Mesh, MeshPart
 from pipeline25d.geometry.proximity import surface_distances
 from pipeline25d.stages.chunks import content_hash, load_npz, pack_parts, save_npz, unpack_parts
+from pipeline25d.stages.records import LodChunk
 
 log = logging.getLogger(__name__)
 
@@ -219,13 +220,12 @@ def build_chunk_lod(chunk_path: str | Path, out_npz: str | Path, max_error: floa
             "triangles": [sum(p.n_triangles for p in ps) for ps, _ in levels], "hash": content_hash(arrays)}
 
 
-def lod_chunks(lod_indexes: list[str | Path]) -> list[dict]:
-    """Every chunk of the given district LOD indexes, in their order then by id:
-    {"id", "district", "bounds", "errors", "triangles", "hash", "npz" (its LOD file)}."""
+def lod_chunks(lod_indexes: list[str | Path]) -> list[LodChunk]:
+    """Every chunk of the given district LOD indexes, in their order then by id."""
     out = []
     for path in lod_indexes:
         index = json.loads(Path(path).read_text())
-        out += [{"id": cid, "district": index["district"], **entry, "npz": str(Path(path).parent / f"{cid}.npz")}
+        out += [LodChunk.from_index(cid, index["district"], entry, str(Path(path).parent / f"{cid}.npz"))
                 for cid, entry in sorted(index["chunks"].items())]
     return out
 
@@ -237,16 +237,16 @@ def load_chunk_level(lod_npz: str | Path, level: int) -> tuple[np.ndarray, list]
     return origin, unpack_parts(data, origin, prefix=f"L{level}_")
 
 
-def chunk_loaders(chunks: list[dict], max_error: float) -> list[tuple[np.ndarray, object]]:
+def chunk_loaders(chunks: list[LodChunk], max_error: float) -> list[tuple[np.ndarray, object]]:
     """(bounds, load) per chunk of :func:`lod_chunks`; load() -> (origin, parts) at the coarsest
     LOD within ``max_error`` m."""
     from functools import partial
 
-    return [(np.array(c["bounds"]), partial(load_chunk_level, c["npz"], choose_level(c["errors"], max_error)))
+    return [(np.array(c.bounds), partial(load_chunk_level, c.npz, choose_level(c.errors, max_error)))
             for c in chunks]
 
 
-def scene_bounds(chunks: list[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def scene_bounds(chunks: list[LodChunk]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Every chunk's bounds (n, 2, 3) and the scene's lowest and highest corners."""
-    bounds = np.array([c["bounds"] for c in chunks])
+    bounds = np.array([c.bounds for c in chunks])
     return bounds, bounds[:, 0].min(axis=0), bounds[:, 1].max(axis=0)

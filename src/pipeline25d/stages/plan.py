@@ -15,14 +15,15 @@ import hashlib
 import json
 import logging
 import math
+from collections.abc import Mapping, Sequence
 from functools import lru_cache
 from pathlib import Path
+from types import MappingProxyType
 
 import numpy as np
 
 from pipeline25d.core.atomic import write_json
 from pipeline25d.geometry.camera import (
-    Extent,
     horizontal_direction,
     pixel_size,
     project,
@@ -31,8 +32,9 @@ from pipeline25d.geometry.camera import (
     relief_factor,
 )
 from pipeline25d.geometry.perspectives import Perspective
-from pipeline25d.stages.gcps import CANDIDATE_FIELDS, read_csv
+from pipeline25d.stages.gcps import read_candidates
 from pipeline25d.stages.lod import choose_level, lod_chunks
+from pipeline25d.stages.records import GcpCandidate, Plan, Scene, Tile, thawed
 from pipeline25d.stages.scene import chunk_ground
 
 log = logging.getLogger(__name__)
@@ -44,9 +46,6 @@ def tile_span(gsd: float, tile_size: int) -> float:
     return gsd * tile_size
 
 
-def plan_pixel(plan: dict) -> float:
-    """Metres per render pixel: the gsd, or the paper camera's image-plane pixel."""
-    return plan.get("pixel_size", plan["gsd"])
 
 
 def camera_of(projection: str | None) -> str:
@@ -54,29 +53,12 @@ def camera_of(projection: str | None) -> str:
     return "paper" if projection == "paper" else "map"
 
 
-def plan_camera(plan: dict) -> str:
-    return camera_of(plan.get("projection"))
 
 
-def tile_extent(plan: dict, row: int, col: int, margin_px: int = 0) -> Extent:
-    """Map (or paper image) extent of tile (row, col), optionally grown by ``margin_px`` on every side."""
-    px = plan_pixel(plan)
-    span = tile_span(px, plan["tile_size"])
-    m = margin_px * px
-    return Extent(col * span - m, row * span - m, (col + 1) * span + m, (row + 1) * span + m)
 
 
-def tile_content(plan: dict, tile: dict) -> tuple[Extent, tuple[int, int]]:
-    """The extent a tile renders and its size in pixels: its content box (whole pixels), or the
-    whole tile for plans without one. Nothing can be drawn outside it."""
-    px = plan_pixel(plan)
-    e = Extent(*tile["content"]) if "content" in tile else tile_extent(plan, tile["row"], tile["col"])
-    return e, (max(round((e.xmax - e.xmin) / px), 1), max(round((e.ymax - e.ymin) / px), 1))
 
 
-def extent_geotransform(plan: dict, e: Extent) -> tuple[float, ...]:
-    """GDAL geotransform of a render extent (top-left corner, north up)."""
-    return (e.xmin, plan_pixel(plan), 0.0, e.ymax, 0.0, -plan_pixel(plan))
 
 
 def _index_range(lo: float, hi: float, span: float) -> range:
@@ -86,14 +68,14 @@ def _index_range(lo: float, hi: float, span: float) -> range:
     return range(first, max(math.ceil(hi / span), first + 1))
 
 
-def plan_perspective(p: Perspective, chunks: list[dict], candidates: list[dict], z0: float, gsd: float,
+def plan_perspective(p: Perspective, chunks: list[dict], candidates: Sequence[GcpCandidate], z0: float, gsd: float,
                      tile_size: int, max_error_px: float, crs: str, render: dict,
-                     terrain: dict | None = None, shadows: dict | None = None) -> dict:
-    """The plan of perspective ``p`` as a JSON-able dict.
+                     terrain: dict | None = None, shadows: dict | None = None) -> Plan:
+    """The plan of perspective ``p`` (its tiles' spec hashes are taken over their JSON form).
 
     ``chunks``: [{"id", "district", "bounds" (2,3), "errors": [m per level]}, plus "ground"
     (lowest, highest DTM height under it) in terrain-relative mode];
-    ``candidates``: GCP candidates [{"id", "x", "y", "z", "ground", "sx", "sy", "role"}, ...];
+    ``candidates``: the GCP candidates;
     ``render``: render settings that, when changed, must re-render (part of each tile's spec);
     ``terrain``: {"projection": "terrain" | "plane" | "paper", "dtm": path or None}. With
     "paper" the tiles lie on the paper camera's image plane (:func:`pipeline25d.geometry.camera.paper_affine`)
@@ -158,7 +140,7 @@ def plan_perspective(p: Perspective, chunks: list[dict], candidates: list[dict],
     }
     if shadows:
         out["shadows"] = shadows
-    return out
+    return Plan.from_json(out)
 
 
 def _add_shadows(tiles: dict, chunks: list[dict], entries: list[dict], p: Perspective, z0: float, relative: bool,
@@ -217,46 +199,58 @@ def _content_in_tile(box: list[float], key: tuple[int, int], span: float, pixel:
     return [round(v, 6) for v in (out[0][0], out[1][0], out[0][1], out[1][1])]
 
 
-def _assign_gcps(tiles: dict, candidates: list[dict], p: Perspective, z0: float, span: float,
+def _assign_gcps(tiles: dict, candidates: Sequence[GcpCandidate], p: Perspective, z0: float, span: float,
                  relative: bool, camera: str = "map") -> None:
     """Give each candidate to the tile holding its projected centre (if that tile exists)."""
     for tile in tiles.values():
         tile["gcps"] = []
     if not candidates:
         return
-    xyz = np.array([[c["x"], c["y"], c["z"]] for c in candidates])
+    xyz = np.array([[c.x, c.y, c.z] for c in candidates])
     if relative:
-        m = project_above_ground(xyz, np.array([c["ground"] for c in candidates]), p)
+        m = project_above_ground(xyz, np.array([c.ground for c in candidates]), p)
     else:
         m = project(xyz, p, z0, camera)
     rows, cols = np.floor(m[:, 1] / span).astype(int), np.floor(m[:, 0] / span).astype(int)
     for cand, r, c in zip(candidates, rows, cols):
         if (r, c) in tiles:
-            tiles[(r, c)]["gcps"].append({k: cand[k] for k in CANDIDATE_FIELDS})
+            tiles[(r, c)]["gcps"].append(cand.to_json())
 
 
 @lru_cache(maxsize=256)
-def _read_plan_cached(path: str, mtime_ns: int) -> dict:
-    return json.loads(Path(path).read_text())
+def _read_plan_cached(path: str, mtime_ns: int) -> Plan:
+    return Plan.from_json(json.loads(Path(path).read_text()))
 
 
-def read_plan(path: str | Path) -> dict:
-    """A plan JSON, cached per file version (Snakemake asks once per render-block job)."""
+def read_plan(path: str | Path) -> Plan:
+    """A plan file, read once per file version (Snakemake asks once per render-block job); a
+    :class:`Plan` is immutable, so every caller may hold the same one."""
     path = Path(path)
     return _read_plan_cached(str(path), path.stat().st_mtime_ns)
+
+
+@lru_cache(maxsize=64)
+def _read_blocks_cached(path: str, mtime_ns: int, block: int) -> Mapping[str, tuple[Tile, ...]]:
+    return MappingProxyType(plan_blocks(_read_plan_cached(path, mtime_ns), block))
+
+
+def read_plan_blocks(path: str | Path, block: int) -> Mapping[str, tuple[Tile, ...]]:
+    """:func:`plan_blocks` of a plan file, computed once per file version and block size."""
+    path = Path(path)
+    return _read_blocks_cached(str(path), path.stat().st_mtime_ns, block)
 
 
 TILE_OVERHEAD = 0.25     # a tile's fixed cost (files, marker pass) in full tiles' pixels
 TOP_LEVEL = 20           # the quadtree's roots: block x 2**20 tiles a side, more than any plan holds
 
 
-def tile_cost(plan: dict, tile: dict) -> float:
+def tile_cost(plan: Plan, tile: Tile) -> float:
     """A tile's render cost in pixels: its content box plus a fixed share of a whole tile."""
-    _, (w, h) = tile_content(plan, tile)
-    return w * h + TILE_OVERHEAD * plan["tile_size"] ** 2
+    _, (w, h) = plan.content(tile)
+    return w * h + TILE_OVERHEAD * plan.tile_size ** 2
 
 
-def plan_blocks(plan: dict, block: int) -> dict[str, list[dict]]:
+def plan_blocks(plan: Plan, block: int) -> dict[str, tuple[Tile, ...]]:
     """The plan's tiles grouped into render jobs, tiles in plan order (ids: :func:`block_node`).
 
     A quadtree over the tile grid: a node at level L holds the tiles of a square of
@@ -269,8 +263,8 @@ def plan_blocks(plan: dict, block: int) -> dict[str, list[dict]]:
     sparse land, where content boxes are small or tiles far apart, gets fewer, larger jobs.
     A change of content regroups only the nodes above it.
     """
-    budget = block * block * (1 + TILE_OVERHEAD) * plan["tile_size"] ** 2
-    costs = [tile_cost(plan, t) for t in plan["tiles"]]
+    budget = block * block * (1 + TILE_OVERHEAD) * plan.tile_size ** 2
+    costs = [tile_cost(plan, t) for t in plan.tiles]
     blocks: dict[str, list[int]] = {}
 
     def cost(members: list[int]) -> float:
@@ -307,9 +301,9 @@ def plan_blocks(plan: dict, block: int) -> dict[str, list[dict]]:
             run_cost += child_cost
         flush()
 
-    for key, members in _group_by_node(plan, range(len(plan["tiles"])), block << TOP_LEVEL).items():
+    for key, members in _group_by_node(plan, range(len(plan.tiles)), block << TOP_LEVEL).items():
         visit(TOP_LEVEL, key, members)
-    return {bid: [plan["tiles"][i] for i in members] for bid, members in blocks.items()}
+    return {bid: tuple(plan.tiles[i] for i in members) for bid, members in blocks.items()}
 
 
 def block_node(block_id: str, block: int) -> tuple[int, int, int, int, str]:
@@ -320,54 +314,52 @@ def block_node(block_id: str, block: int) -> tuple[int, int, int, int, str]:
     return int(row) * side, int(col) * side, side, int(level), "".join(quadrants)
 
 
-def _group_by_node(plan: dict, members, side: int) -> dict[tuple[int, int], list[int]]:
+def _group_by_node(plan: Plan, members, side: int) -> dict[tuple[int, int], list[int]]:
     """Tile indices grouped by the node of ``side`` x ``side`` tiles holding them, in plan order."""
     nodes: dict[tuple[int, int], list[int]] = {}
     for i in members:
-        tile = plan["tiles"][i]
-        nodes.setdefault((tile["row"] // side, tile["col"] // side), []).append(i)
+        tile = plan.tiles[i]
+        nodes.setdefault((tile.row // side, tile.col // side), []).append(i)
     return nodes
 
 
-def plan_block(plan: dict, block_id: str, block: int) -> list[dict]:
-    """The tiles of render block ``block_id`` (see :func:`plan_blocks`), grouped once per (cached) plan."""
-    cache = plan.setdefault("_blocks", {})
-    if block not in cache:
-        cache[block] = plan_blocks(plan, block)
-    if block_id not in cache[block]:
-        raise KeyError(f"block {block_id} is not in the plan of {plan['perspective']['id']}")
-    return cache[block][block_id]
+def plan_block(blocks: Mapping[str, tuple[Tile, ...]], block_id: str, plan_id: str) -> tuple[Tile, ...]:
+    """The tiles of render block ``block_id`` among a plan's :func:`plan_blocks`."""
+    if block_id not in blocks:
+        raise KeyError(f"block {block_id} is not in the plan of {plan_id}")
+    return blocks[block_id]
 
 
-def block_spec_hash(tiles: list[dict]) -> str:
+def block_spec_hash(tiles: Sequence[Tile]) -> str:
     """One hash over a block's tiles and their spec hashes: changes when any of them does."""
-    keys = [f"{t['row']}_{t['col']}:{t['spec_hash']}" for t in tiles]
+    keys = [f"{t.row}_{t.col}:{t.spec_hash}" for t in tiles]
     return hashlib.sha256("|".join(keys).encode()).hexdigest()[:16]
 
 
 def plan(perspective_id: str, lod_indexes: list[str], scene_json: str | Path, candidates_csv: str | Path,
-         gsd: float, tile_size: int, max_error_px: float, crs: str, render: dict, out_plan: str | Path) -> dict:
+         gsd: float, tile_size: int, max_error_px: float, crs: str, render: dict, out_plan: str | Path) -> Plan:
     """Plan one perspective (see :mod:`pipeline25d.stages.plan`); ``render`` holds render + marker settings,
     and the ``shadows`` block when shadows are enabled (:func:`pipeline25d.config.render_settings`)."""
     from pipeline25d.core.raster import DTM
     from pipeline25d.geometry.sun import plan_shadows
 
-    scene = json.loads(Path(scene_json).read_text())
+    scene = Scene.read(scene_json)
     render = dict(render)
     shadow_cfg = render.pop("shadows", None)
-    shadows = plan_shadows(shadow_cfg, np.array(scene["bounds"]), crs, gsd) if shadow_cfg else None
-    relative = scene["projection"] == "terrain"
-    dtm = DTM(scene["dtm"], crs, continuous=True) if relative else None
-    chunks = [{**{k: c[k] for k in ("id", "district", "bounds", "errors", "hash")},
-               "ground": chunk_ground(c["bounds"], dtm) if relative else None} for c in lod_chunks(lod_indexes)]
-    terrain = {"projection": scene["projection"], "dtm": scene["dtm"] if relative else None}
-    result = plan_perspective(Perspective.from_id(perspective_id), chunks, read_csv(candidates_csv),
-                              scene["z0"], gsd, tile_size, max_error_px, crs, render, terrain, shadows)
-    write_json(out_plan, result, indent=None)   # megabytes for a city: compact
-    log.info("%s: %d tiles to render, %d empty tiles skipped", perspective_id, len(result["tiles"]),
-             result["n_tiles_skipped"])
+    shadows = plan_shadows(shadow_cfg, np.array(scene.bounds), crs, gsd) if shadow_cfg else None
+    relative = scene.projection == "terrain"
+    dtm = DTM(scene.dtm, crs, continuous=True) if relative else None
+    chunks = [{"id": c.id, "district": c.district, "bounds": thawed(c.bounds), "errors": list(c.errors),
+               "hash": c.hash, "ground": chunk_ground(c.bounds, dtm) if relative else None}
+              for c in lod_chunks(lod_indexes)]
+    terrain = {"projection": scene.projection, "dtm": scene.dtm if relative else None}
+    result = plan_perspective(Perspective.from_id(perspective_id), chunks, read_candidates(candidates_csv),
+                              scene.z0, gsd, tile_size, max_error_px, crs, render, terrain, shadows)
+    write_json(out_plan, result.to_json(), indent=None)   # megabytes for a city: compact
+    log.info("%s: %d tiles to render, %d empty tiles skipped", perspective_id, len(result.tiles),
+             result.n_tiles_skipped)
     if shadows:
         log.info("%s: sun at azimuth %.2f°, elevation %.2f° (%s); %d shadow casters from other tiles' chunks",
                  perspective_id, shadows["azimuth"], shadows["elevation"], shadows["source"],
-                 sum(len(t["shadow"]["casters"]) for t in result["tiles"]))
+                 sum(len(t.casters) for t in result.tiles))
     return result

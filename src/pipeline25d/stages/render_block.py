@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -17,15 +18,8 @@ from pipeline25d.core.atomic import write_json
 from pipeline25d.geometry.perspectives import Perspective
 from pipeline25d.stages.gcps import OBSERVATION_FIELDS, observations, write_csv
 from pipeline25d.stages.lod import load_chunk_level
-from pipeline25d.stages.plan import (
-    extent_geotransform,
-    plan_block,
-    plan_camera,
-    plan_pixel,
-    read_plan,
-    tile_content,
-    tile_extent,
-)
+from pipeline25d.stages.plan import plan_block, read_plan, read_plan_blocks
+from pipeline25d.stages.records import ChunkRef, Observation, Plan, Tile
 
 log = logging.getLogger(__name__)
 
@@ -36,10 +30,10 @@ def tile_files(tiles_dir: str | Path, row: int, col: int) -> dict[str, Path]:
     return {"gcps": Path(f"{base}.gcps.csv"), "tif": Path(f"{base}.tif"), "spec": Path(f"{base}.spec")}
 
 
-def _tile_current(tiles_dir: str | Path, tile: dict) -> bool:
+def _tile_current(tiles_dir: str | Path, tile: Tile) -> bool:
     """True if the tile's files exist and were rendered for its current spec hash."""
-    files = tile_files(tiles_dir, tile["row"], tile["col"])
-    return all(f.exists() for f in files.values()) and files["spec"].read_text().strip() == tile["spec_hash"]
+    files = tile_files(tiles_dir, tile.row, tile.col)
+    return all(f.exists() for f in files.values()) and files["spec"].read_text().strip() == tile.spec_hash
 
 
 def render_block(plan_path: str | Path, block_id: str, block: int, lod_dir: str | Path, tiles_dir: str | Path,
@@ -54,26 +48,26 @@ def render_block(plan_path: str | Path, block_id: str, block: int, lod_dir: str 
     from pipeline25d.stages.render import TileRenderer, create_context
 
     pl = read_plan(plan_path)
-    tiles = plan_block(pl, block_id, block)
+    tiles = plan_block(read_plan_blocks(plan_path, block), block_id, pl.id)
     todo = [t for t in tiles if not _tile_current(tiles_dir, t)]
     if todo:
         chunks = _ChunkCache(lod_dir, todo)
         ground = _block_ground(pl, todo)
         ctx = create_context()
         try:
-            renderer = TileRenderer(ctx, ambient=todo[0]["render"]["ambient"], samples=todo[0]["render"]["samples"],
-                                    shadows="shadows" in pl)
+            renderer = TileRenderer(ctx, ambient=todo[0].render["ambient"], samples=todo[0].render["samples"],
+                                    shadows=pl.shadows is not None)
             for k, tile in enumerate(todo, 1):
-                casters = chunks.take(_casters(tile)) if "shadows" in pl else None
-                rgba, seen = render_plan_tile(renderer, pl, tile, chunks.take(tile["chunks"]), ground, casters)
+                casters = chunks.take(tile.casters) if pl.shadows is not None else None
+                rgba, seen = render_plan_tile(renderer, pl, tile, chunks.take(tile.chunks), ground, casters)
                 _write_tile(pl, tile, rgba, seen, tiles_dir)
-                log.info("%s tile %d_%d (%d of %d): coverage %.1f%%, GCPs seen %d of %d", pl["perspective"]["id"],
-                         tile["row"], tile["col"], k, len(todo), 100 * float((rgba[..., 3] > 0).mean()),
-                         len(seen), len(tile["gcps"]))
+                log.info("%s tile %d_%d (%d of %d): coverage %.1f%%, GCPs seen %d of %d", pl.id,
+                         tile.row, tile.col, k, len(todo), 100 * float((rgba[..., 3] > 0).mean()),
+                         len(seen), len(tile.gcps))
         finally:
             ctx.release()
-    manifest = {"perspective": pl["perspective"]["id"], "block": block_id,
-                "tiles": [{"row": t["row"], "col": t["col"], "spec_hash": t["spec_hash"]} for t in tiles],
+    manifest = {"perspective": pl.id, "block": block_id,
+                "tiles": [{"row": t.row, "col": t.col, "spec_hash": t.spec_hash} for t in tiles],
                 "rendered": len(todo), "kept": len(tiles) - len(todo)}
     write_json(out_manifest, manifest)
     log.info("block %s: %d tiles rendered, %d unchanged kept", block_id, len(todo),
@@ -84,24 +78,24 @@ def render_block(plan_path: str | Path, block_id: str, block: int, lod_dir: str 
 class _ChunkCache:
     """Chunk LODs loaded once per block job and dropped after the last tile that draws them."""
 
-    def __init__(self, lod_dir: str | Path, tiles: list[dict]):
+    def __init__(self, lod_dir: str | Path, tiles: Sequence[Tile]):
         from collections import Counter
 
         self.lod_dir = Path(lod_dir)
-        self.uses = Counter(self._key(c) for t in tiles for c in (*t["chunks"], *_casters(t)))
+        self.uses = Counter(self._key(c) for t in tiles for c in (*t.chunks, *t.casters))
         self.loaded: dict[tuple, tuple[np.ndarray, list]] = {}
 
     @staticmethod
-    def _key(chunk: dict) -> tuple:
-        return chunk["district"], chunk["id"], chunk["lod"]
+    def _key(chunk: ChunkRef) -> tuple:
+        return chunk.district, chunk.id, chunk.lod
 
-    def take(self, entries: list[dict]) -> list[tuple[np.ndarray, list]]:
+    def take(self, entries: Sequence[ChunkRef]) -> list[tuple[np.ndarray, list]]:
         """The loaded chunks of plan ``entries`` (a tile's chunks or its shadow casters)."""
         out = []
         for c in entries:
             key = self._key(c)
             if key not in self.loaded:
-                self.loaded[key] = load_chunk_level(self.lod_dir / c["district"] / f"{c['id']}.npz", c["lod"])
+                self.loaded[key] = load_chunk_level(self.lod_dir / c.district / f"{c.id}.npz", c.lod)
             out.append(self.loaded[key])
             self.uses[key] -= 1
             if not self.uses[key]:
@@ -109,79 +103,71 @@ class _ChunkCache:
         return out
 
 
-def _casters(tile: dict) -> list[dict]:
-    """The other tiles' chunks that can shadow what a tile draws (none without shadows)."""
-    return tile.get("shadow", {}).get("casters", [])
-
-
-def _block_ground(pl: dict, tiles: list[dict]):
+def _block_ground(pl: Plan, tiles: Sequence[Tile]):
     """DTM(x, y) around what the tiles draw (their chunks' and GCPs' ground extent), read once per
     block; None in plane mode."""
     from pipeline25d.core.raster import DTM
 
-    if pl.get("projection") != "terrain":
+    if pl.projection != "terrain":
         return None
-    xy = [np.array(c["xy"]).reshape(2, 2) for t in tiles for c in t["chunks"]]
-    xy += [np.array([[c["x"], c["y"]] for c in t["gcps"]]).reshape(-1, 2) for t in tiles]
+    xy = [np.array(c.xy).reshape(2, 2) for t in tiles for c in t.chunks]
+    xy += [np.array([[c.x, c.y] for c in t.gcps]).reshape(-1, 2) for t in tiles]
     xy = np.concatenate(xy)
-    return DTM(pl["dtm"], pl["crs"], continuous=True, window=(*xy.min(axis=0), *xy.max(axis=0))).sample
+    return DTM(pl.dtm, pl.crs, continuous=True, window=(*xy.min(axis=0), *xy.max(axis=0))).sample
 
 
-def render_plan_tile(renderer, pl: dict, tile: dict, chunks: list, ground,
-                     casters: list | None = None) -> tuple[np.ndarray, list[dict]]:
+def render_plan_tile(renderer, pl: Plan, tile: Tile, chunks: list, ground,
+                     casters: list | None = None) -> tuple[np.ndarray, list[Observation]]:
     """(RGBA image, GCP observations) of one plan tile from its loaded chunks; ``ground`` = DTM(x, y)
     in terrain-relative mode, else None; ``casters``: its loaded shadow casters (plans with shadows)."""
     from pipeline25d.stages.render import TileView
 
-    row, col = tile["row"], tile["col"]
-    persp = Perspective.from_id(pl["perspective"]["id"])
-    t, gsd, cfg = pl["tile_size"], pl["gsd"], tile["render"]
-    depth = tuple(tile["depth_range"])
-    camera, pixel = plan_camera(pl), plan_pixel(pl)
-    content, size = tile_content(pl, tile)          # where its chunks can draw: the tile or less
-    view = TileView(persp, pl["z0"], content, depth, size, ground, camera)
+    persp, t, gsd, cfg = pl.perspective, pl.tile_size, pl.gsd, tile.render
+    depth = tuple(tile.depth_range)
+    camera, pixel = pl.camera, pl.pixel_size
+    content, size = pl.content(tile)          # where its chunks can draw: the tile or less
+    view = TileView(persp, pl.z0, content, depth, size, ground, camera)
     with renderer.upload(chunks, view) as geometry:          # once for both passes
         rgba = renderer.render_color(geometry, view, shadow_view(pl, tile), casters)
         seen = []
-        if tile["gcps"]:
+        if tile.gcps:
             margin = int(np.ceil(cfg["marker_px"])) + 2
-            extent = tile_extent(pl, row, col, margin)
-            view = TileView(persp, pl["z0"], extent, depth, (t + 2 * margin, t + 2 * margin), ground, camera)
-            pts = np.array([[c["x"], c["y"], c["z"]] for c in tile["gcps"]])
-            slopes = np.array([[c["sx"], c["sy"]] for c in tile["gcps"]])
+            extent = pl.tile_extent(tile.row, tile.col, margin)
+            view = TileView(persp, pl.z0, extent, depth, (t + 2 * margin, t + 2 * margin), ground, camera)
+            pts = np.array([[c.x, c.y, c.z] for c in tile.gcps])
+            slopes = np.array([[c.sx, c.sy] for c in tile.gcps])
             full, sums = renderer.render_markers(geometry, view, pts, slopes, cfg["marker_px"] * gsd,
                                                  cfg["depth_bias"],
                                                  marker_depth_tolerance(persp, gsd, cfg["max_float_px"]))
-            seen = observations(tile["gcps"], full, sums, (extent.xmin, extent.ymax), pixel)
+            seen = observations(tile.gcps, full, sums, (extent.xmin, extent.ymax), pixel)
     return rgba, seen
 
 
-def shadow_view(pl: dict, tile: dict):
+def shadow_view(pl: Plan, tile: Tile):
     """The tile's :class:`~pipeline25d.stages.render.ShadowView` from its plan, or None without shadows."""
     from pipeline25d.geometry.sun import Sun, SunFrame
     from pipeline25d.stages.render import ShadowView
 
-    s = pl.get("shadows")
+    s = pl.shadows
     if not s:
         return None
     frame = SunFrame(Sun(s["azimuth"], s["elevation"]), s["texel"])
-    return ShadowView(frame, tuple(tile["shadow"]["window"]), tuple(tile["shadow"]["depth"]), s["ambient"],
-                      s["bias"], s["radius"])
+    return ShadowView(frame, tuple(tile.shadow.window), tuple(tile.shadow.depth), s["ambient"], s["bias"], s["radius"])
 
 
-def _write_tile(pl: dict, tile: dict, rgba: np.ndarray, seen: list[dict], tiles_dir: str | Path) -> None:
+def _write_tile(pl: Plan, tile: Tile, rgba: np.ndarray, seen: list[Observation], tiles_dir: str | Path) -> None:
     """GCPs, GeoTIFF, then the spec hash that marks the tile complete (see :func:`render_block`)."""
     from pipeline25d.core.atomic import write_text
     from pipeline25d.core.crs import horizontal_wkt
     from pipeline25d.core.raster import write_rgba_geotiff
 
-    files = tile_files(tiles_dir, tile["row"], tile["col"])
+    files = tile_files(tiles_dir, tile.row, tile.col)
     files["spec"].unlink(missing_ok=True)
     # the paper camera's tiles lie on its image plane, which is no CRS: the warp georeferences them
-    wkt = "" if plan_camera(pl) == "paper" else horizontal_wkt(pl["crs"])
+    wkt = "" if pl.camera == "paper" else horizontal_wkt(pl.crs)
     write_csv(files["gcps"], seen, OBSERVATION_FIELDS)
-    write_rgba_geotiff(files["tif"], rgba, extent_geotransform(pl, tile_content(pl, tile)[0]), wkt)
-    write_text(files["spec"], tile["spec_hash"] + "\n")
+    write_rgba_geotiff(files["tif"], rgba, pl.geotransform(pl.content(tile)[0]), wkt)
+    write_text(files["spec"], tile.spec_hash + "\n")
 
 
 def marker_depth_tolerance(p: Perspective, gsd: float, max_float_px: float) -> float:

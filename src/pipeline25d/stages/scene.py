@@ -7,6 +7,7 @@ ground around each check point held out, so check points measure ground the DTM 
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +17,7 @@ from pipeline25d.core.errors import ConfigError
 from pipeline25d.geometry.perspectives import Perspective
 from pipeline25d.stages.gcps import CANDIDATE_FIELDS, assign_roles, read_csv, write_csv
 from pipeline25d.stages.lod import lod_chunks, scene_bounds
+from pipeline25d.stages.records import GcpCandidate, Scene
 
 log = logging.getLogger(__name__)
 
@@ -83,9 +85,8 @@ def scene_setup(lod_indexes: list[str], dsm_path: str | Path, terrain: str, terr
             dtm = _interpolated_dtm(lambda rows, cols: _without_check_points(seed_src.read(rows, cols), grid, cands,
                                                                               radius, (rows, cols)), grid, search,
                                    needed)
-            xy = np.array([[c["x"], c["y"]] for c in cands]).reshape(-1, 2)
-            for c, g in zip(cands, _sample_continuous(dtm, grid, xy)):
-                c["ground"] = round(float(g), 3)
+            xy = np.array([[c.x, c.y] for c in cands]).reshape(-1, 2)
+            cands = [replace(c, ground=round(float(g), 3)) for c, g in zip(cands, _sample_continuous(dtm, grid, xy))]
             log.info("DTM interpolated without the ground within %.1f m of each check point", radius)
     else:
         rows = read_csv(gcp_cfg["source"])
@@ -98,15 +99,13 @@ def scene_setup(lod_indexes: list[str], dsm_path: str | Path, terrain: str, terr
     if terrain == "auto":
         write_float_geotiff(out_dtm, dtm, grid, horizontal_wkt(scene_crs))
     dtm_path = out_dtm if terrain == "auto" else terrain_path
-    scene = {"bounds": [lo.tolist(), hi.tolist()], "z0": z0, "terrain": terrain, "projection": projection,
-             "dtm": None if terrain == "flat" else str(dtm_path),
-             "n_candidates": len(cands), "n_check": sum(c["role"] == "check" for c in cands),
-             "dtm_check_holdout_m": radius,
-             "n_chunks": len(chunks)}
+    scene = Scene(bounds=(tuple(lo.tolist()), tuple(hi.tolist())), z0=z0, terrain=terrain, projection=projection,
+                  dtm=None if terrain == "flat" else str(dtm_path), n_candidates=len(cands),
+                  n_check=sum(c.role == "check" for c in cands), dtm_check_holdout_m=radius, n_chunks=len(chunks))
     write_csv(out_candidates, cands, CANDIDATE_FIELDS)
-    write_json(out_scene, scene)
+    write_json(out_scene, scene.to_json())
     log.info("z0 %.2f m, projection %s, %d GCP candidates (%d check points)", z0, projection, len(cands),
-             scene["n_check"])
+             scene.n_check)
     return scene
 
 
@@ -184,7 +183,7 @@ def holdout_radius(rules, res: float) -> float:
     return rules.radius + rules.clearance + 2 * res
 
 
-def _without_check_points(seed: np.ndarray, grid, cands: list[dict], radius: float,
+def _without_check_points(seed: np.ndarray, grid, cands: list[GcpCandidate], radius: float,
                           window: tuple[slice, slice] | None = None) -> np.ndarray:
     """A copy of the ground heights with the cells within ``radius`` of each check point set to NaN.
 
@@ -195,14 +194,14 @@ def _without_check_points(seed: np.ndarray, grid, cands: list[dict], radius: flo
     xs, ys = grid.column_x(), grid.row_y()
     k = int(np.ceil(radius / grid.res)) + 1
     for c in cands:
-        if c["role"] != "check":
+        if c.role != "check":
             continue
-        col, row = int((c["x"] - grid.xmin) / grid.res), int((grid.ymax - c["y"]) / grid.res)
+        col, row = int((c.x - grid.xmin) / grid.res), int((grid.ymax - c.y) / grid.res)
         r0, r1 = max(row - k, rows.start), min(row + k + 1, rows.stop)
         c0, c1 = max(col - k, cols.start), min(col + k + 1, cols.stop)
         if r0 >= r1 or c0 >= c1:
             continue
-        near = np.hypot(xs[None, c0:c1] - c["x"], ys[r0:r1, None] - c["y"]) <= radius
+        near = np.hypot(xs[None, c0:c1] - c.x, ys[r0:r1, None] - c.y) <= radius
         out[r0 - rows.start:r1 - rows.start, c0 - cols.start:c1 - cols.start][near] = np.nan
     return out
 

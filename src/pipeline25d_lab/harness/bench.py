@@ -153,7 +153,7 @@ def render_against_plain_loop(results: Path, pid: str, samples: int) -> dict:
     from pipeline25d_lab.harness.render_reference import plain_loop_seconds
 
     plan = results / "plans" / f"{pid}.json"
-    n = len(read_plan(plan)["tiles"])
+    n = len(read_plan(plan).tiles)
     job_s = sum(float(row["s"]) for _, row in benchmark_rows(results / "benchmarks" / "render" / pid))
     plain = plain_loop_seconds(plan, results / "lod", samples)
     return {"perspective": pid, "tiles": n, "job_s_per_tile": round(job_s / n, 4),

@@ -15,8 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline25d.geometry.camera import clip_matrix
-from pipeline25d.geometry.perspectives import Perspective
-from pipeline25d.stages.plan import plan_camera, read_plan, tile_content
+from pipeline25d.stages.plan import read_plan
 
 VERTEX = """
 #version 330
@@ -44,9 +43,9 @@ def plain_loop_seconds(plan_path: str | Path, lod_dir: str | Path, samples: int,
     from pipeline25d.stages.render import create_context
 
     pl = read_plan(plan_path)
-    tiles = pl["tiles"] if tiles is None else tiles
-    persp = Perspective.from_id(pl["perspective"]["id"])
-    size = (pl["tile_size"], pl["tile_size"])
+    tiles = pl.tiles if tiles is None else tiles
+    persp = pl.perspective
+    size = (pl.tile_size, pl.tile_size)
     ctx = create_context()
     try:
         prog = ctx.program(vertex_shader=VERTEX, fragment_shader=FRAGMENT)
@@ -59,11 +58,11 @@ def plain_loop_seconds(plan_path: str | Path, lod_dir: str | Path, samples: int,
             fbo_ms.use()
             ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
             ctx.enable(moderngl.DEPTH_TEST)
-            extent, (w, h) = tile_content(pl, tile)        # the jobs render the same window
+            extent, (w, h) = pl.content(tile)        # the jobs render the same window
             ctx.viewport = (0, 0, w, h)
-            for c in tile["chunks"]:
-                origin, parts = load_chunk_level(Path(lod_dir) / c["district"] / f"{c['id']}.npz", c["lod"])
-                matrix = clip_matrix(persp, pl["z0"], extent, tuple(tile["depth_range"]), origin, plan_camera(pl))
+            for c in tile.chunks:
+                origin, parts = load_chunk_level(Path(lod_dir) / c.district / f"{c.id}.npz", c.lod)
+                matrix = clip_matrix(persp, pl.z0, extent, tuple(tile.depth_range), origin, pl.camera)
                 prog["u_mvp"].write(matrix.T.astype("f4").tobytes())
                 for part in parts:
                     if not part.n_triangles:

@@ -15,9 +15,8 @@ import sys
 import time
 from pathlib import Path
 
-from pipeline25d.geometry.perspectives import Perspective
-from pipeline25d.stages.plan import plan_camera, read_plan, tile_content
-from pipeline25d.stages.render_block import _block_ground, _casters, _ChunkCache, shadow_view
+from pipeline25d.stages.plan import read_plan
+from pipeline25d.stages.render_block import _block_ground, _ChunkCache, shadow_view
 
 
 def measure(plan_path: str | Path, lod_dir: str | Path, repeats: int = 3) -> dict:
@@ -25,20 +24,20 @@ def measure(plan_path: str | Path, lod_dir: str | Path, repeats: int = 3) -> dic
     from pipeline25d.stages.render import TileRenderer, TileView, create_context, renderer_info
 
     pl = read_plan(plan_path)
-    if "shadows" not in pl:
+    if pl.shadows is None:
         raise SystemExit(f"{plan_path}: the plan has no shadows (shadows.enabled was off)")
-    tiles = pl["tiles"]
+    tiles = pl.tiles
     cache = _ChunkCache(lod_dir, tiles)
     ground = _block_ground(pl, tiles)
     ctx = create_context()
-    plain, shaded = TileRenderer(ctx, samples=tiles[0]["render"]["samples"]), \
-        TileRenderer(ctx, samples=tiles[0]["render"]["samples"], shadows=True)
-    persp = Perspective.from_id(pl["perspective"]["id"])
+    plain, shaded = TileRenderer(ctx, samples=tiles[0].render["samples"]), \
+        TileRenderer(ctx, samples=tiles[0].render["samples"], shadows=True)
+    persp = pl.perspective
     seconds = {"plain": 0.0, "shadows": 0.0}
     for tile in tiles:
-        content, size = tile_content(pl, tile)
-        view = TileView(persp, pl["z0"], content, tuple(tile["depth_range"]), size, ground, plan_camera(pl))
-        own, casters = cache.take(tile["chunks"]), cache.take(_casters(tile))
+        content, size = pl.content(tile)
+        view = TileView(persp, pl.z0, content, tuple(tile.depth_range), size, ground, pl.camera)
+        own, casters = cache.take(tile.chunks), cache.take(tile.casters)
         with plain.upload(own, view) as g_plain, shaded.upload(own, view) as g_shaded, \
                 shaded.upload(casters, None) as g_casters:
             for _ in range(repeats):
@@ -52,7 +51,7 @@ def measure(plan_path: str | Path, lod_dir: str | Path, repeats: int = 3) -> dic
     info = renderer_info(ctx)
     ctx.release()
     return {"plan": str(plan_path), "tiles": len(tiles), "repeats": repeats,
-            "casters": sum(len(_casters(t)) for t in tiles),
+            "casters": sum(len(t.casters) for t in tiles),
             "plain_s": round(seconds["plain"], 3), "shadows_s": round(seconds["shadows"], 3),
             "ratio": round(seconds["shadows"] / seconds["plain"], 3), "renderer": info["GL_RENDERER"]}
 

@@ -154,15 +154,16 @@ def generated_city(kind: str, arg: float | None, out_dir: Path) -> tuple[dict, P
 def lod_error_px(results: Path) -> float:
     """The largest geometric error (px) of the LOD level any rendered tile draws of any chunk."""
     from pipeline25d.stages.lod import lod_chunks
+    from pipeline25d.stages.plan import read_plan
 
-    errors = {(c["district"], c["id"]): c["errors"] for c in lod_chunks(sorted((results / "lod").glob("*/index.json")))}
+    errors = {(c.district, c.id): c.errors for c in lod_chunks(sorted((results / "lod").glob("*/index.json")))}
     worst = 0.0
     for plan_path in sorted((results / "plans").glob("*.json")):
-        plan = json.loads(plan_path.read_text())
-        for tile in plan["tiles"]:
-            for chunk in tile["chunks"]:
-                levels = errors[(chunk["district"], chunk["id"])]
-                worst = max(worst, levels[min(chunk["lod"], len(levels) - 1)] / plan["gsd"])
+        plan = read_plan(plan_path)
+        for tile in plan.tiles:
+            for chunk in tile.chunks:
+                levels = errors[(chunk.district, chunk.id)]
+                worst = max(worst, levels[min(chunk.lod, len(levels) - 1)] / plan.gsd)
     return worst
 
 

@@ -22,6 +22,7 @@ from typing import NamedTuple
 import numpy as np
 
 from pipeline25d.core.raster import gdal
+from pipeline25d.stages.records import Plan
 
 log = logging.getLogger(__name__)
 
@@ -118,22 +119,17 @@ def box_outline(x0: float, y0: float, x1: float, y1: float, n: int = EDGE_SAMPLE
     return xs, ys
 
 
-def part_bounds(plan: dict, rects: list[tuple[int, int, int, int]], to_map) -> list[tuple[float, ...]]:
+def part_bounds(plan: Plan, rects: list[tuple[int, int, int, int]], to_map) -> list[tuple[float, ...]]:
     """Each part's bounding box on the map (xmin, ymin, xmax, ymax) in the map CRS.
 
-    A part spans its tiles' content boxes (see :mod:`pipeline25d.stages.plan`; whole tiles for plans
-    without them). ``to_map(x, y)`` takes render-plane coordinates (the tiles' geotransform
-    space) to the map's: the identity for an unwarped map, the chosen GCP warp otherwise. The
-    part's outline is sampled, so a curved warp is followed.
+    A part spans its tiles' content boxes (see :mod:`pipeline25d.stages.plan`). ``to_map(x, y)``
+    takes render-plane coordinates (the tiles' geotransform space) to the map's: the identity
+    for an unwarped map, the chosen GCP warp otherwise. The part's outline is sampled, so a
+    curved warp is followed.
     """
-    from pipeline25d.stages.plan import plan_pixel, tile_span
-
-    span = tile_span(plan_pixel(plan), plan["tile_size"])
     out = []
     for r0, c0, r1, c1 in rects:
-        boxes = np.array([t_["content"] if "content" in t_ else
-                          [t_["col"] * span, t_["row"] * span, (t_["col"] + 1) * span, (t_["row"] + 1) * span]
-                          for t_ in plan["tiles"] if r0 <= t_["row"] <= r1 and c0 <= t_["col"] <= c1])
+        boxes = np.array([t.content for t in plan.tiles if r0 <= t.row <= r1 and c0 <= t.col <= c1])
         x0, y0 = boxes[:, :2].min(axis=0)
         x1, y1 = boxes[:, 2:].max(axis=0)
         mx, my = to_map(*box_outline(x0, y0, x1, y1))

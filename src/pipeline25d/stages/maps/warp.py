@@ -17,6 +17,8 @@ import logging
 import math
 import shutil
 import subprocess
+from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -24,10 +26,10 @@ import numpy as np
 from pipeline25d.core.atomic import atomic_path, write_json
 from pipeline25d.core.errors import GdalToolError
 from pipeline25d.core.raster import gdal, tool_env
-from pipeline25d.geometry.perspectives import Perspective
-from pipeline25d.stages.gcps import read_csv
+from pipeline25d.stages.gcps import read_observations
 from pipeline25d.stages.maps.patch import transformer_options
 from pipeline25d.stages.plan import read_plan
+from pipeline25d.stages.records import Observation, Plan
 
 log = logging.getLogger(__name__)
 
@@ -38,23 +40,23 @@ CV_MAX_GCPS = 600                          # cross-validation subsamples larger 
 WARP_GAIN, WARP_MIN_GAIN_PX = 1.1, 0.1     # auto warps only where none's CV error exceeds 1.1 × best + 0.1 px
 
 
-def to_pixels(rows: list[dict], gt: tuple[float, ...]) -> np.ndarray:
+def to_pixels(rows: Sequence[Observation], gt: tuple[float, ...]) -> np.ndarray:
     """(n, 2) [pixel, line] in a north-up raster with geotransform ``gt`` of the rows' map_x/map_y."""
-    mx = np.array([r["map_x"] for r in rows], dtype=np.float64)
-    my = np.array([r["map_y"] for r in rows], dtype=np.float64)
+    mx = np.array([r.map_x for r in rows], dtype=np.float64)
+    my = np.array([r.map_y for r in rows], dtype=np.float64)
     return np.column_stack([(mx - gt[0]) / gt[1], (my - gt[3]) / gt[5]])
 
 
-def gdal_gcps(rows: list[dict], gt: tuple[float, ...]) -> list:
+def gdal_gcps(rows: Sequence[Observation], gt: tuple[float, ...]) -> list:
     """GDAL GCPs pairing each row's image position (in the raster with ``gt``) with its true x, y, z."""
     g = gdal()
-    return [g.GCP(r["x"], r["y"], r["z"], float(p), float(q)) for r, (p, q) in zip(rows, to_pixels(rows, gt))]
+    return [g.GCP(r.x, r.y, r.z, float(p), float(q)) for r, (p, q) in zip(rows, to_pixels(rows, gt))]
 
 
-def predict(method: str, order: int, train: list[dict], query: list[dict], gt: tuple[float, ...]) -> np.ndarray:
+def predict(method: str, order: int, train: Sequence[Observation], query: Sequence[Observation], gt: tuple[float, ...]) -> np.ndarray:
     """Scene (x, y) of the ``query`` rows' image positions under a warp fitted on ``train``."""
     if method == "none":
-        return np.array([[r["map_x"], r["map_y"]] for r in query], dtype=np.float64).reshape(-1, 2)
+        return np.array([[r.map_x, r.map_y] for r in query], dtype=np.float64).reshape(-1, 2)
     g = gdal()
     ds = g.GetDriverByName("MEM").Create("", 1, 1, 1)
     ds.SetGCPs(gdal_gcps(train, gt), "")
@@ -68,20 +70,20 @@ def predict(method: str, order: int, train: list[dict], query: list[dict], gt: t
 
 
 
-def _errors(method: str, order: int, train: list[dict], query: list[dict], gt: tuple[float, ...]) -> np.ndarray:
+def _errors(method: str, order: int, train: Sequence[Observation], query: Sequence[Observation], gt: tuple[float, ...]) -> np.ndarray:
     """(n,) metres between the query rows' predicted and true (x, y)."""
     xy = predict(method, order, train, query, gt)
-    return np.hypot(xy[:, 0] - [r["x"] for r in query], xy[:, 1] - [r["y"] for r in query])
+    return np.hypot(xy[:, 0] - [r.x for r in query], xy[:, 1] - [r.y for r in query])
 
 
-def residuals(method: str, order: int, obs: list[dict], gt: tuple[float, ...], gsd: float) -> dict:
+def residuals(method: str, order: int, obs: Sequence[Observation], gt: tuple[float, ...], gsd: float) -> dict:
     """Check-point error of a method fitted on the GCPs: RMSD and max, metres and pixels.
 
     With fewer than MIN_CHECK_POINTS check points the figures are None and ``check_note``
     says how many there were.
     """
-    train = [r for r in obs if r["role"] == "gcp"]
-    check = [r for r in obs if r["role"] == "check"]
+    train = [r for r in obs if r.role == "gcp"]
+    check = [r for r in obs if r.role == "check"]
     result = {"method": method, "order": order, "n_gcp": len(train), "n_check": len(check),
               "rmsd_m": None, "rmsd_px": None, "max_m": None, "check_note": f"n/a ({len(check)} check points)"}
     if len(check) < MIN_CHECK_POINTS:
@@ -92,7 +94,7 @@ def residuals(method: str, order: int, obs: list[dict], gt: tuple[float, ...], g
             "check_note": f"{len(check)} check points"}
 
 
-def cross_validated_rmsd(method: str, order: int, gcps: list[dict], gt: tuple[float, ...],
+def cross_validated_rmsd(method: str, order: int, gcps: Sequence[Observation], gt: tuple[float, ...],
                          folds: int = CV_FOLDS, seed: int = 0) -> float | None:
     """k-fold cross-validated RMSD (m) of a method on the GCPs alone; None where a fold cannot be fitted."""
     if method == "none":
@@ -113,20 +115,20 @@ def cross_validated_rmsd(method: str, order: int, gcps: list[dict], gt: tuple[fl
     return float(np.sqrt(np.nanmean(err ** 2))) if np.isfinite(err).any() else None
 
 
-def max_relief_displacement_px(obs: list[dict], plan: dict) -> float:
+def max_relief_displacement_px(obs: Sequence[Observation], plan: Plan) -> float:
     """Largest |height above the reference|·cot φ over the observed GCPs, in pixels.
 
     The reference is the DTM under each GCP in terrain mode, the plane z0 in plane mode.
     """
-    el = plan["perspective"]["elevation"]
+    el = plan.perspective.elevation
     if el == 90 or not obs:
         return 0.0
     cot = 1.0 / math.tan(math.radians(el))
-    relative = plan.get("projection") == "terrain"
-    return max(abs(r["z"] - (r["ground"] if relative else plan["z0"])) for r in obs) * cot / plan["gsd"]
+    relative = plan.projection == "terrain"
+    return max(abs(r.z - (r.ground if relative else plan.z0)) for r in obs) * cot / plan.gsd
 
 
-def choose(obs: list[dict], plan: dict, gt: tuple[float, ...], method: str, order: int) -> dict:
+def choose(obs: Sequence[Observation], plan: Plan, gt: tuple[float, ...], method: str, order: int) -> dict:
     """The warp to apply and the scores behind the choice.
 
     ``auto``: none where relief displacement stays under half a pixel, otherwise the
@@ -135,15 +137,15 @@ def choose(obs: list[dict], plan: dict, gt: tuple[float, ...], method: str, orde
     The paper camera's image is not a map: there, ``auto`` and ``none`` mean the paper's
     polynomial warp, and the unwarped "none" is scored as n/a.
     """
-    gcps = [r for r in obs if r["role"] == "gcp"]
+    gcps = [r for r in obs if r.role == "gcp"]
     n_gcp = len(gcps)
     relief = max_relief_displacement_px(obs, plan)
-    if plan.get("projection") == "paper":
-        baseline = {**residuals("none", 0, [], gt, plan["gsd"]), "cv_rmsd_m": None,
+    if plan.projection == "paper":
+        baseline = {**residuals("none", 0, [], gt, plan.gsd), "cv_rmsd_m": None,
                     "check_note": "n/a (the paper camera's image is not a map)"}
         method = "polynomial" if method in ("auto", "none") else method
     else:
-        baseline = {**residuals("none", 0, obs, gt, plan["gsd"]),
+        baseline = {**residuals("none", 0, obs, gt, plan.gsd),
                     "cv_rmsd_m": cross_validated_rmsd("none", 0, gcps, gt)}
     if method == "none" or (method == "auto" and relief < 0.5):
         return {**baseline, "relief_px": relief, "candidates": [baseline]}
@@ -161,21 +163,21 @@ def choose(obs: list[dict], plan: dict, gt: tuple[float, ...], method: str, orde
     scored = [baseline] + [{"method": m, "order": o, "cv_rmsd_m": cross_validated_rmsd(m, o, gcps, gt)}
                            for m, o in candidates]
     if method != "auto":
-        if not candidates and plan.get("projection") == "paper":
-            raise ValueError(f"{plan['perspective']['id']}: {n_gcp} GCPs observed, too few for the paper's "
+        if not candidates and plan.projection == "paper":
+            raise ValueError(f"{plan.id}: {n_gcp} GCPs observed, too few for the paper's "
                              f"{method} warp (order 1 needs {MIN_GCPS[1]})")
         best = scored[-1] if candidates else baseline
     else:
         best = min(scored, key=lambda s: math.inf if s["cv_rmsd_m"] is None else s["cv_rmsd_m"])
         # A warp resamples the whole map: take one only where it clearly beats none.
         if baseline["cv_rmsd_m"] is not None and best["cv_rmsd_m"] is not None and \
-                baseline["cv_rmsd_m"] <= WARP_GAIN * best["cv_rmsd_m"] + WARP_MIN_GAIN_PX * plan["gsd"]:
+                baseline["cv_rmsd_m"] <= WARP_GAIN * best["cv_rmsd_m"] + WARP_MIN_GAIN_PX * plan.gsd:
             best = baseline
     for i, cand in enumerate(scored[1:], 1):
         if cand is best or cand["method"] != "tps" or n_gcp <= CV_MAX_GCPS:
-            scored[i] = {**residuals(cand["method"], cand["order"], obs, gt, plan["gsd"]), **cand}
+            scored[i] = {**residuals(cand["method"], cand["order"], obs, gt, plan.gsd), **cand}
         else:
-            scored[i] = {**residuals(cand["method"], cand["order"], [], gt, plan["gsd"]), **cand, "n_gcp": n_gcp,
+            scored[i] = {**residuals(cand["method"], cand["order"], [], gt, plan.gsd), **cand, "n_gcp": n_gcp,
                          "check_note": f"not scored (TPS on {n_gcp} GCPs, not chosen)"}
         if cand is best:
             best = scored[i]
@@ -212,7 +214,7 @@ def cog_options(compression: str, quality: int) -> list[str]:
     return [*cog_codec(compression, quality), *overviews]
 
 
-def warp_to_cog(mosaic: str | Path, obs: list[dict], choice: dict, plan: dict, out: str | Path,
+def warp_to_cog(mosaic: str | Path, obs: Sequence[Observation], choice: dict, plan: Plan, out: str | Path,
                 compression: str = "deflate", quality: int = 85,
                 parts: list[tuple[int, int, int, int]] | None = None,
                 work_dir: str | Path | None = None) -> list[list[float]]:
@@ -227,14 +229,14 @@ def warp_to_cog(mosaic: str | Path, obs: list[dict], choice: dict, plan: dict, o
     """
     from pipeline25d.core.crs import horizontal_wkt
 
-    crs = horizontal_wkt(plan["crs"])
+    crs = horizontal_wkt(plan.crs)
     cog = [opt for c in cog_options(compression, quality) for opt in ("-co", c)]
     with atomic_path(out) as tmp:
         gcp_vrt = Path(tmp).with_suffix(".gcps.vrt")
         try:
             source = Path(mosaic)
             if choice["method"] != "none":
-                train = [r for r in obs if r["role"] == "gcp"]
+                train = [r for r in obs if r.role == "gcp"]
                 gdal().Translate(str(gcp_vrt), str(mosaic), format="VRT", GCPs=gdal_gcps(train, raster_geotransform(mosaic)),
                                  outputSRS=crs)
                 source = gcp_vrt
@@ -244,7 +246,7 @@ def warp_to_cog(mosaic: str | Path, obs: list[dict], choice: dict, plan: dict, o
 
             kept_dir = Path(work_dir) if work_dir else Path(tmp).with_suffix(".blocks")
             try:
-                kept, _ = patched_map(mosaic, source, choice, crs, plan["gsd"], kept_dir)
+                kept, _ = patched_map(mosaic, source, choice, crs, plan.gsd, kept_dir)
                 run_tool(["gdal_translate", "-q", "-of", "COG", *cog, str(kept), str(tmp)])
             finally:
                 if not work_dir:
@@ -256,7 +258,7 @@ def warp_to_cog(mosaic: str | Path, obs: list[dict], choice: dict, plan: dict, o
             gcp_vrt.unlink(missing_ok=True)
 
 
-def _warp_parts(source: Path, mosaic: str | Path, choice: dict, plan: dict, crs: str,
+def _warp_parts(source: Path, mosaic: str | Path, choice: dict, plan: Plan, crs: str,
                 parts: list[tuple[int, int, int, int]], out: Path, compression: str,
                 quality: int) -> list[list[float]]:
     """A sparse COG: each part warped onto the map grid with its overviews, then assembled."""
@@ -280,7 +282,7 @@ def _warp_parts(source: Path, mosaic: str | Path, choice: dict, plan: dict, crs:
         def to_map(x, y):
             return pixels_to_map((x - mosaic_gt[0]) / mosaic_gt[1], (y - mosaic_gt[3]) / mosaic_gt[5])
 
-    gsd = plan["gsd"]
+    gsd = plan.gsd
     gt, width, height, windows = map_grid(part_bounds(plan, parts, to_map), gsd)
     factors = overview_factors(width, height)
     warp_options = {**window_warp_options(choice, crs, gsd), "format": "GTiff",
@@ -317,20 +319,21 @@ def warp(mosaic_vrt: str | Path, gcps_csv: str | Path, plan_path: str | Path, wa
     from pipeline25d.stages.maps.parts import tile_parts
 
     pl = read_plan(plan_path)
-    obs = read_csv(gcps_csv)
+    obs = read_observations(gcps_csv)
     gt = raster_geotransform(mosaic_vrt)
     choice = choose(obs, pl, gt, warp_cfg["method"], warp_cfg["order"])
-    parts = tile_parts((t["row"], t["col"]) for t in pl["tiles"])
+    parts = tile_parts((t.row, t.col) for t in pl.tiles)
     bounds = warp_to_cog(mosaic_vrt, obs, choice, pl, out_cog, parts=parts, work_dir=work_dir, **(maps_cfg or {}))   # compression, quality
-    record = {"perspective": pl["perspective"], **choice, "n_observed": len(obs), "parts": bounds,
-              "paper_method": paper_method_on(obs, pl, gt) if pl.get("projection") == "terrain" else None}
+    p = pl.perspective
+    record = {"perspective": {"id": p.id, "azimuth": p.azimuth, "elevation": p.elevation}, **choice, "n_observed": len(obs), "parts": bounds,
+              "paper_method": paper_method_on(obs, pl, gt) if pl.projection == "terrain" else None}
     write_json(out_json, record)
-    log.info("%s: warp %s (order %s), check-point RMSD %s m", pl["perspective"]["id"], choice["method"],
+    log.info("%s: warp %s (order %s), check-point RMSD %s m", pl.id, choice["method"],
              choice["order"], None if choice["rmsd_m"] is None else round(choice["rmsd_m"], 3))
     return record
 
 
-def paper_method_on(obs: list[dict], plan: dict, gt: tuple[float, ...]) -> dict | None:
+def paper_method_on(obs: Sequence[Observation], plan: Plan, gt: tuple[float, ...]) -> dict | None:
     """Check-point error of the paper's method (plane at z0 + polynomial warp) on the same GCPs.
 
     Each observed (terrain-relative) marker position is moved to where the plane projection
@@ -342,15 +345,15 @@ def paper_method_on(obs: list[dict], plan: dict, gt: tuple[float, ...]) -> dict 
     """
     from pipeline25d.geometry.camera import horizontal_direction, relief_factor
 
-    p = Perspective.from_id(plan["perspective"]["id"])
+    p = plan.perspective
     if not obs or p.elevation == 90:   # at nadir both methods are the same orthophoto
         return None
     shift = horizontal_direction(p) * relief_factor(p)
-    planar = [{**r, "map_x": r["map_x"] + (r["ground"] - plan["z0"]) * shift[0],
-               "map_y": r["map_y"] + (r["ground"] - plan["z0"]) * shift[1]} for r in obs]
-    n_gcp = sum(r["role"] == "gcp" for r in obs)
+    planar = [replace(r, map_x=r.map_x + (r.ground - plan.z0) * shift[0],
+                      map_y=r.map_y + (r.ground - plan.z0) * shift[1]) for r in obs]
+    n_gcp = sum(r.role == "gcp" for r in obs)
     orders = [k for k in (3, 2, 1) if n_gcp >= MIN_GCPS[k]]
     if not orders:
         return {"order": None, "rmsd_m": None, "rmsd_px": None, "max_m": None,
                 "check_note": f"n/a ({n_gcp} GCPs)"}
-    return residuals("polynomial", orders[0], planar, gt, plan["gsd"])
+    return residuals("polynomial", orders[0], planar, gt, plan.gsd)
