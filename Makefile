@@ -16,7 +16,7 @@ APT_PACKAGES := python3-venv python3-dev build-essential gdal-bin libgdal-dev li
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 PYTHON ?= python3
 
-.PHONY: run test osgb-example shadow-bench bench bench-sparse bench-coarse bench-district killtest sweep slurm-bench deps sysdeps clean-results
+.PHONY: run test pictures osgb-example shadow-bench bench bench-sparse bench-coarse bench-district killtest sweep slurm-bench deps sysdeps clean-results
 
 run: deps
 	$(VENV)/bin/pipeline25d demo resources/demo
@@ -26,6 +26,11 @@ test: deps
 	$(VENV)/bin/lint-imports
 	$(PY) -m pytest -q; rc=$$?; \
 	  if [ $$rc -eq 5 ]; then echo "pytest collected no tests"; exit 1; fi; exit $$rc
+
+# The README's pictures (docs/images/maps.jpg, viewer.jpg) drawn from the demo's own output, so they
+# stay current: run after make run (headless Chromium for the viewer)
+pictures: deps
+	$(PY) -m pipeline25d_lab.pictures results/demo docs/images
 
 # A generated ContextCapture-like OSGB dataset (two tiles, three PagedLOD levels) through the
 # workflow: resources/osgb-sample, results/osgb/

@@ -73,3 +73,33 @@ def test_run_dry_run_lists_the_jobs_of_a_scene(tmp_path):
 def test_run_names_a_missing_config(tmp_path):
     proc = subprocess.run([CLI, "run", str(tmp_path / "nope.yaml")], capture_output=True, text=True)
     assert proc.returncode == 1 and "nope.yaml: no such config file" in proc.stderr
+
+
+def test_serve_stops_on_sigint_even_when_started_with_sigint_ignored(tmp_path):
+    """A shell without job control starts background commands with SIGINT ignored; `kill -INT`
+    must still stop the server (Python alone would never raise KeyboardInterrupt then)."""
+    import signal
+    import socket
+    import time
+    import urllib.request
+
+    (tmp_path / "hello.txt").write_text("hello")
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    proc = subprocess.Popen([CLI, "serve", str(tmp_path), "--port", str(port)], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    try:
+        for _ in range(100):
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{port}/hello.txt", timeout=10) as resp:
+                    assert resp.read() == b"hello"
+                break
+            except OSError:
+                assert proc.poll() is None, proc.stdout.read()
+                time.sleep(0.1)
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.communicate(timeout=30)
+    assert proc.returncode == 0

@@ -19,33 +19,49 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 README = (REPO / "README.md").read_text()
-PROGRAM = re.compile(r"(make|python3?|snakemake|pytest|pip)\b|pipeline25d(?![.\w])|\.venv/bin/")
+#: the README and the docs pages it links: every command they show is checked alike
+PAGES = [README, *(p.read_text() for p in sorted((REPO / "docs").glob("*.md")))]
+PROGRAM = re.compile(r"(make|python3?|snakemake|pytest|pip)\b|\.venv/bin/")
 
 
-def shown_commands() -> list[str]:
-    """Command lines of the README's fenced blocks (comments dropped) and its inline commands."""
+def shown_commands(text: str) -> list[str]:
+    """Command lines of a page's fenced shell blocks (comments dropped) and its inline commands."""
     commands = []
-    for block in re.findall(r"```[a-z]*\n(.*?)```", README, re.S):
+    for block in re.findall(r"```(?:bash|sh)?\n(.*?)```", text, re.S):
         for line in block.splitlines():
             line = re.sub(r"\s+#.*$", "", line).strip()
             if line and not line.startswith("#"):
                 commands.append(line)
-    commands += [code for code in re.findall(r"`([^`\n]+)`", README) if PROGRAM.match(code)]
+    commands += [code for code in re.findall(r"`([^`\n]+)`", text) if PROGRAM.match(code)]
     return list(dict.fromkeys(commands))
 
 
-COMMANDS = shown_commands()
+COMMANDS = list(dict.fromkeys(c for page in PAGES for c in shown_commands(page)))
 
 
 def test_the_readme_shows_the_commands_a_new_user_needs():
-    assert COMMANDS[:2] == ["make run", "make test"]            # the first two, as the guide asks
+    assert shown_commands(README)[:2] == ["make run", "make test"]            # the first two, as the guide asks
     assert any(c.startswith(".venv/bin/snakemake") for c in COMMANDS)   # the engine, still usable directly
     assert any(c.startswith(".venv/bin/pipeline25d run ") for c in COMMANDS)
 
 
 def test_the_readme_has_one_front_door():
     """No ``python -m pipeline25d…`` module commands: every tool is a ``pipeline25d`` command."""
-    assert not re.search(r"python3? -m pipeline25d", README)
+    assert not any(re.search(r"python3? -m pipeline25d", page) for page in PAGES)
+
+
+def test_the_readme_opens_with_pictures_of_the_output_that_exist():
+    """Pictures before the quick start, each a file in the repository (``make pictures`` makes them)."""
+    pictures = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", README.split("```")[0])
+    assert len(pictures) >= 2, "the README opens with pictures of the maps and the viewer"
+    for picture in pictures:
+        assert (REPO / picture).is_file(), picture
+    assert "make pictures" in COMMANDS
+
+
+def test_every_docs_page_is_linked_from_the_readme():
+    for page in (REPO / "docs").glob("*.md"):
+        assert f"docs/{page.name}" in README, page.name
 
 
 @pytest.mark.parametrize("command", COMMANDS)

@@ -16,10 +16,13 @@ import logging
 import os
 import re
 import shutil
+import signal
 from http import HTTPStatus
 from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import BinaryIO, Sequence
+
+from pipeline25d.core.logsetup import exit_on_sigterm
 
 log = logging.getLogger(__name__)
 
@@ -114,7 +117,13 @@ def make_server(root: str | Path, host: str = "127.0.0.1", port: int = 8000,
 
 
 def serve_until_interrupted(server: ThreadingHTTPServer) -> None:
-    """Serve until Ctrl-C, then close the server."""
+    """Serve until Ctrl-C (SIGINT) or SIGTERM, then close the server.
+
+    Both are (re)armed here: a process started in the background by a shell without job control
+    inherits SIGINT ignored, and Python then never raises KeyboardInterrupt, so ``kill -INT``
+    would leave the server running."""
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    exit_on_sigterm()
     try:
         server.serve_forever()
     except KeyboardInterrupt:

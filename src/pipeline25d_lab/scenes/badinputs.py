@@ -453,14 +453,18 @@ def table(corpus: Path) -> str:
 
 def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     """``OUTDIR``: write the corpus there; ``--table CORPUS``: print its table of outcomes."""
-    argv = sys.argv[1:] if argv is None else argv
-    if len(argv) == 2 and argv[0] == "--table":
-        print(table(Path(argv[1])), end="")
+    import argparse
+
+    parser = argparse.ArgumentParser(prog=prog, description="Write the hostile-input corpus, or print its table.")
+    parser.add_argument("out_dir", nargs="?", type=Path, help="where the corpus goes, e.g. tests/data/bad")
+    parser.add_argument("--table", type=Path, metavar="CORPUS", help="print the table of outcomes of a written corpus")
+    args = parser.parse_args(argv)
+    if args.table is not None:
+        print(table(args.table), end="")
         return 0
-    if len(argv) != 1:
-        print("usage: python -m pipeline25d_lab.scenes.badinputs OUTDIR | --table CORPUS", file=sys.stderr)
-        return 2
-    for path in write_corpus(Path(argv[0])):
+    if args.out_dir is None:
+        parser.error("give OUTDIR or --table CORPUS")
+    for path in write_corpus(args.out_dir):
         print(path)
     return 0
 

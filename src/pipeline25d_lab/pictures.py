@@ -1,0 +1,120 @@
+"""The README's pictures, made from a run's own output so they stay current (``make pictures``).
+
+``docs/images/maps.jpg``: the same window of the demo city's nadir map and of one oblique map
+side by side (both north up, as the maps are), read from the COGs at the pixel size that fits
+the picture. ``docs/images/viewer.jpg``: the web viewer in headless Chromium (Debian's
+``chromium`` driven by Playwright) over the run served on 127.0.0.1, turned to that view.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, ImageDraw
+
+from pipeline25d.core.raster import gdal
+from pipeline25d.publish.serve import make_server
+
+PANEL_PX = 760          # each map panel's width and height in the picture
+WINDOW_M = 300.0        # the map window shown, metres a side (the demo's blocks are 240 m)
+LABEL_PX = 28
+
+
+def map_window(cog: Path, centre: tuple[float, float], size_m: float, out_px: int) -> Image.Image:
+    """``size_m`` metres a side of a map around ``centre``, resampled (average) to ``out_px`` pixels,
+    on white where the map holds no data."""
+    x, y = centre
+    ds = gdal().Warp("", str(cog), format="MEM", outputBounds=(x - size_m / 2, y - size_m / 2, x + size_m / 2,
+                                                                y + size_m / 2),
+                     width=out_px, height=out_px, resampleAlg="average")
+    rgba = np.moveaxis(ds.ReadAsArray(), 0, -1).astype(np.float64)
+    alpha = rgba[..., 3:4] / 255.0
+    rgb = rgba[..., :3] * alpha + 255.0 * (1.0 - alpha)
+    return Image.fromarray(np.round(rgb).astype(np.uint8), "RGB")
+
+
+def fullest_window(cog: Path, size_m: float, step_m: float = 4.0) -> tuple[float, float]:
+    """The centre of the ``size_m`` square of a map that holds the most data (a sparse city's
+    empty land is no picture), searched on a ``step_m`` grid."""
+    from scipy.ndimage import uniform_filter
+
+    ds = gdal().Open(str(cog))
+    gt = ds.GetGeoTransform()
+    w, h = max(1, round(ds.RasterXSize * gt[1] / step_m)), max(1, round(ds.RasterYSize * -gt[5] / step_m))
+    small = gdal().Translate("", ds, format="MEM", width=w, height=h, resampleAlg="average")
+    alpha = small.GetRasterBand(4).ReadAsArray().astype(np.float64)
+    k = max(1, round(size_m / step_m))
+    share = uniform_filter(alpha, size=k, mode="constant")
+    row, col = np.unravel_index(np.argmax(share), share.shape)
+    sx, sy = ds.RasterXSize * gt[1] / w, ds.RasterYSize * -gt[5] / h
+    return gt[0] + (col + 0.5) * sx, gt[3] - (row + 0.5) * sy
+
+
+def maps_picture(results: Path, oblique: str, out: Path) -> None:
+    """The nadir map and ``oblique``'s, the same window, side by side with their names."""
+    nadir = results / "maps" / "az000_el90.tif"
+    centre = fullest_window(nadir, WINDOW_M)
+    panels = [(map_window(nadir, centre, WINDOW_M, PANEL_PX), "nadir (az000_el90)"),
+              (map_window(results / "maps" / f"{oblique}.tif", centre, WINDOW_M, PANEL_PX),
+               f"oblique ({oblique}), the same window")]
+    gap = 12
+    sheet = Image.new("RGB", (2 * PANEL_PX + gap, PANEL_PX + LABEL_PX), "white")
+    draw = ImageDraw.Draw(sheet)
+    for k, (panel, label) in enumerate(panels):
+        sheet.paste(panel, (k * (PANEL_PX + gap), LABEL_PX))
+        draw.text((k * (PANEL_PX + gap) + 4, 6), label, fill="black")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    sheet.save(out, quality=82, optimize=True)
+
+
+def viewer_picture(results: Path, view_hash: str, out: Path) -> None:
+    """The viewer over ``results`` served on 127.0.0.1, opened at ``view_hash``, as a screenshot."""
+    from playwright.sync_api import sync_playwright
+
+    chromium = shutil.which("chromium")
+    if chromium is None:
+        raise SystemExit("no chromium on PATH: apt-get install chromium (make sysdeps does)")
+    server = make_server(results, port=0)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        with sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=chromium)
+            page = browser.new_page(viewport={"width": 1280, "height": 720})
+            page.goto(f"http://127.0.0.1:{server.server_address[1]}/viewer/index.html{view_hash}")
+            page.wait_for_load_state("networkidle")
+            page.wait_for_timeout(500)
+            out.parent.mkdir(parents=True, exist_ok=True)
+            png = out.with_suffix(".png")
+            page.screenshot(path=str(png))
+            browser.close()
+        Image.open(png).convert("RGB").save(out, quality=82, optimize=True)
+        png.unlink()
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m pipeline25d_lab.pictures", description=__doc__.split("\n\n")[0])
+    parser.add_argument("results", type=Path, help="a run's results folder, e.g. results/demo")
+    parser.add_argument("out_dir", type=Path, help="where the pictures go, e.g. docs/images")
+    parser.add_argument("--oblique", default="az045_el45", help="the oblique perspective shown (default az045_el45)")
+    args = parser.parse_args(argv)
+    if not (args.results / "maps" / "az000_el90.tif").exists():
+        print(f"{args.results}: no nadir map; run the workflow first (make run)", file=sys.stderr)
+        return 1
+    maps_picture(args.results, args.oblique, args.out_dir / "maps.jpg")
+    viewer_picture(args.results, f"#{args.oblique}/up", args.out_dir / "viewer.jpg")
+    for name in ("maps.jpg", "viewer.jpg"):
+        print(args.out_dir / name)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
