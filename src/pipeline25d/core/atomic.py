@@ -71,6 +71,11 @@ def write_text(path: str | Path, text: str) -> None:
         tmp.write_text(text)
 
 
+def write_bytes(path: str | Path, data: bytes) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+
+
 def replace_dir(src: Path, dst: Path) -> None:
     """Move a finished folder onto ``dst``, replacing an older one."""
     dst = Path(dst)

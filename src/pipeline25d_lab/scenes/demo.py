@@ -31,9 +31,7 @@ import io
 import json
 import logging
 import math
-import os
 import sys
-import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,6 +39,8 @@ from pathlib import Path
 import numpy as np
 
 from pipeline25d.core.errors import ConfigError
+from pipeline25d_lab.scenes.writer import write_bytes
+from pipeline25d_lab.scenes.writer import write_dtm as write_scene_dtm
 
 log = logging.getLogger(__name__)
 
@@ -500,27 +500,6 @@ def district_groups(district: District, seed: int) -> dict[str, _Group]:
 # --------------------------------------------------------------------------- writers
 
 
-def _temp_name(path: Path) -> Path:
-    """A fresh hidden name next to ``path`` (same folder, so os.replace is atomic)."""
-    return path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.part")
-
-
-def _write_atomic(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` via a temporary file in the same folder + os.replace.
-
-    The temporary file is opened normally (not mkstemp), so the result gets the
-    usual umask-derived permissions rather than 0600.
-    """
-    tmp = _temp_name(path)
-    try:
-        with open(tmp, "xb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-
-
 def _format_rows(prefix: str, array: np.ndarray, fmt: str) -> list[str]:
     """OBJ lines ``prefix v0 v1 ...`` for each row, numbers formatted with ``fmt``."""
     template = prefix + " " + " ".join([fmt] * array.shape[1])
@@ -626,29 +605,8 @@ def dtm_grid(scale: float) -> tuple[tuple[float, float, float, float, float, flo
 
 def write_dtm(path: Path, scale: float) -> None:
     """Float32 GeoTIFF of terrain_height at pixel centres (EPSG:25832), atomically."""
-    from osgeo import gdal, osr
-
     gt, width, height = dtm_grid(scale)
-    cols = gt[0] + (np.arange(width) + 0.5) * gt[1]
-    rows = gt[3] + (np.arange(height) + 0.5) * gt[5]
-    z = terrain_height(cols[None, :], rows[:, None]).astype(np.float32)
-    srs = osr.SpatialReference()
-    srs.ImportFromEPSG(EPSG_CODE)
-    tmp = _temp_name(path)
-    try:
-        ds = gdal.GetDriverByName("GTiff").Create(
-            str(tmp), width, height, 1, gdal.GDT_Float32, ["COMPRESS=DEFLATE", "PREDICTOR=3", "TILED=YES"])
-        if ds is None:
-            raise OSError(f"{tmp}: GDAL could not create the DTM: {gdal.GetLastErrorMsg()}")
-        ds.SetGeoTransform(gt)
-        ds.SetProjection(srs.ExportToWkt())
-        ds.GetRasterBand(1).WriteArray(z)
-        ds.FlushCache()
-        ds = None  # closes the file
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    write_scene_dtm(path, gt, width, height, terrain_height, EPSG_CODE)
 
 
 def own_ground_z(corners: np.ndarray, height: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> float:
@@ -751,12 +709,12 @@ def generate_demo_city(out_dir: Path, seed: int = 7, n_buildings: int = 320, sca
 
     districts = build_layout(seed, n_buildings, scale)
     for k in range(N_FACADES):
-        _write_atomic(out_dir / f"facade_{k}.png", facade_png(k))
+        write_bytes(out_dir / f"facade_{k}.png", facade_png(k))
     n_triangles = 0
     for d in districts:
         text, n_tri = obj_text(d.name, district_groups(d, seed))
-        _write_atomic(out_dir / f"{d.name}.mtl", mtl_text().encode("ascii"))
-        _write_atomic(out_dir / f"{d.name}.obj", text.encode("ascii"))
+        write_bytes(out_dir / f"{d.name}.mtl", mtl_text().encode("ascii"))
+        write_bytes(out_dir / f"{d.name}.obj", text.encode("ascii"))
         n_triangles += n_tri
         message = f"demo city: {d.name} {len(d.buildings)} buildings, {n_tri} triangles"
         log.info("%s", message)
@@ -764,7 +722,7 @@ def generate_demo_city(out_dir: Path, seed: int = 7, n_buildings: int = 320, sca
             progress(message)
     write_dtm(out_dir / "dtm.tif", scale)
     truth = truth_dict(districts, scale, seed)
-    _write_atomic(out_dir / "truth.json", (json.dumps(truth, indent=1) + "\n").encode("ascii"))
+    write_bytes(out_dir / "truth.json", (json.dumps(truth, indent=1) + "\n").encode("ascii"))
     manifest = {
         "crs": CRS,
         "districts": {d.name: f"{d.name}.obj" for d in districts},
@@ -776,7 +734,7 @@ def generate_demo_city(out_dir: Path, seed: int = 7, n_buildings: int = 320, sca
         "scale": scale,
         "version": GENERATOR_VERSION,
     }
-    _write_atomic(out_dir / "manifest.json", (json.dumps(manifest, indent=1) + "\n").encode("ascii"))
+    write_bytes(out_dir / "manifest.json", (json.dumps(manifest, indent=1) + "\n").encode("ascii"))
     return manifest
 
 

@@ -46,7 +46,6 @@ from typing import Any
 
 import numpy as np
 
-from pipeline25d.core.atomic import atomic_path
 from pipeline25d.core.errors import ConfigError
 from pipeline25d_lab.scenes.demo import (
     CRS,
@@ -55,10 +54,11 @@ from pipeline25d_lab.scenes.demo import (
     WALL_SINK,
     _format_rows,
     _Group,
-    _write_atomic,
     own_ground_z,
     run_generator,
 )
+from pipeline25d_lab.scenes.writer import write_bytes
+from pipeline25d_lab.scenes.writer import write_dtm as write_scene_dtm
 
 log = logging.getLogger(__name__)
 
@@ -540,25 +540,8 @@ def dtm_grid(size: float) -> tuple[tuple[float, float, float, float, float, floa
 
 def write_dtm(path: Path, size: float, params: dict[str, Any]) -> None:
     """Float32 GeoTIFF of rugged_height at pixel centres (EPSG:25832), atomically."""
-    from osgeo import osr
-
-    from pipeline25d.core.raster import gdal
-
-    g = gdal()
     gt, width, height = dtm_grid(size)
-    cols = gt[0] + (np.arange(width) + 0.5) * gt[1]
-    rows = gt[3] + (np.arange(height) + 0.5) * gt[5]
-    z = rugged_height(cols[None, :], rows[:, None], params).astype(np.float32)
-    srs = osr.SpatialReference()
-    srs.ImportFromEPSG(EPSG_CODE)
-    with atomic_path(path) as tmp:
-        ds = g.GetDriverByName("GTiff").Create(
-            str(tmp), width, height, 1, g.GDT_Float32, ["COMPRESS=DEFLATE", "PREDICTOR=3", "TILED=YES"])
-        ds.SetGeoTransform(gt)
-        ds.SetProjection(srs.ExportToWkt())
-        ds.GetRasterBand(1).WriteArray(z)
-        ds.FlushCache()
-        ds = None  # closes the file
+    write_scene_dtm(path, gt, width, height, lambda x, y: rugged_height(x, y, params), EPSG_CODE)
 
 
 def _json_bytes(data: dict) -> bytes:
@@ -685,7 +668,7 @@ def generate_rugged_city(out_dir: Path, seed: int = 3, size: float = 2000.0, rel
             vertices, faces, rgb, uv, png = _ground_piece(t, xs, ys, params, seed)
             groups[t.name].add(vertices, faces, rgb)
             uv_sets[t.name] = ((t.i1 - t.i0, t.j1 - t.j0, t.width, t.height), uv)
-            _write_atomic(out_dir / f"{t.name}.png", png)
+            write_bytes(out_dir / f"{t.name}.png", png)
             files.append(f"{t.name}.png")
         for b in boxes:
             if b.district == d.name:
@@ -693,8 +676,8 @@ def generate_rugged_city(out_dir: Path, seed: int = 3, size: float = 2000.0, rel
                 groups[f"facade_{b.facade_class}"].add(wv, wf, FACADE_CLASSES[b.facade_class])
                 groups[f"roof_{b.roof_class}"].add(rv, rf, ROOF_CLASSES[b.roof_class])
         text, n_tri = obj_text(d.name, groups, uv_sets)
-        _write_atomic(out_dir / f"{d.name}.mtl", mtl_text(d).encode("ascii"))
-        _write_atomic(out_dir / f"{d.name}.obj", text.encode("ascii"))
+        write_bytes(out_dir / f"{d.name}.mtl", mtl_text(d).encode("ascii"))
+        write_bytes(out_dir / f"{d.name}.obj", text.encode("ascii"))
         files += [f"{d.name}.mtl", f"{d.name}.obj"]
         n_triangles += n_tri
         message = (f"rugged city: {d.name} {sum(b.district == d.name for b in boxes)} buildings, "
@@ -704,7 +687,7 @@ def generate_rugged_city(out_dir: Path, seed: int = 3, size: float = 2000.0, rel
             progress(message)
     write_dtm(out_dir / "dtm.tif", size, params)
     truth = truth_dict(params, layout, boxes, spacing, seed, size, relief, z_range)
-    _write_atomic(out_dir / "truth.json", _json_bytes(truth))
+    write_bytes(out_dir / "truth.json", _json_bytes(truth))
     files += ["dtm.tif", "truth.json"]
     manifest = {
         **key,
@@ -716,7 +699,7 @@ def generate_rugged_city(out_dir: Path, seed: int = 3, size: float = 2000.0, rel
         "relief_m": z_range[1] - z_range[0],
         "files": files,
     }
-    _write_atomic(out_dir / "manifest.json", _json_bytes(manifest))
+    write_bytes(out_dir / "manifest.json", _json_bytes(manifest))
     return manifest
 
 
