@@ -18,8 +18,8 @@ from hypothesis import strategies as st
 from pipeline25d.core.mesh import MeshPart
 from pipeline25d.geometry.perspectives import Perspective
 from pipeline25d.stages.chunks import chunk_origin
-from pipeline25d.stages.plan import plan_perspective, tile_span
-from pipeline25d.stages.records import tile_extent
+from pipeline25d.stages.plan import plan_perspective
+from pipeline25d.stages.records import tile_extent, tile_span
 from pipeline25d.stages.render import TileRenderer, TileView
 
 settings.register_profile("ci", derandomize=True, print_blob=True, deadline=None)

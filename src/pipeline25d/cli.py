@@ -66,16 +66,10 @@ def _measure(args, extra: list[str]) -> int:
     return 0
 
 
-def _delegate(module: str) -> Callable:
+def _pass_on(load_main: Callable[[], Callable[[list[str]], int]]) -> Callable:
+    """A command whose arguments all go to a ``main(argv)`` that ``load_main()`` imports when it runs."""
     def call(args, extra: list[str]) -> int:
-        return import_module(module).main([*args.args, *extra])
-
-    return call
-
-
-def _extension(entry) -> Callable:
-    def call(args, extra: list[str]) -> int:
-        return entry.load()([*args.args, *extra])
+        return load_main()([*args.args, *extra])
 
     return call
 
@@ -108,7 +102,7 @@ def build_parser() -> argparse.ArgumentParser:
     for name, (module, text) in DELEGATED.items():
         p = sub.add_parser(name, help=text, add_help=False)
         p.add_argument("args", nargs=argparse.REMAINDER)
-        p.set_defaults(func=_delegate(module), extra=True)
+        p.set_defaults(func=_pass_on(lambda module=module: import_module(module).main), extra=True)
 
     p = sub.add_parser("web-tiles", help="cut (or update) the XYZ web-tile pyramid of a map, as the tms rule does")
     p.add_argument("map", help="a perspective's map, results/<scene>/maps/<id>.tif")
@@ -127,7 +121,7 @@ def build_parser() -> argparse.ArgumentParser:
         p = sub.add_parser(entry.name, help=f"{entry.name} (from {entry.value.split(':')[0].split('.')[0]})",
                            add_help=False)
         p.add_argument("args", nargs=argparse.REMAINDER)
-        p.set_defaults(func=_extension(entry), extra=True)
+        p.set_defaults(func=_pass_on(entry.load), extra=True)
     return parser
 
 

@@ -34,24 +34,12 @@ from pipeline25d.geometry.camera import (
 from pipeline25d.geometry.perspectives import Perspective
 from pipeline25d.stages.gcps import read_candidates
 from pipeline25d.stages.lod import choose_level, lod_chunks
-from pipeline25d.stages.records import GcpCandidate, Plan, Scene, Tile, thawed
+from pipeline25d.stages.records import GcpCandidate, Plan, Scene, Tile, camera_of, thawed, tile_span
 from pipeline25d.stages.scene import chunk_ground
 
 log = logging.getLogger(__name__)
 
 DEPTH_MARGIN_M = 1.0   # keeps surfaces at a tile's depth range ends off its near/far planes
-
-
-def tile_span(gsd: float, tile_size: int) -> float:
-    return gsd * tile_size
-
-
-
-
-def camera_of(projection: str | None) -> str:
-    """The camera a projection renders with: the paper's image plane, else the map-aligned one."""
-    return "paper" if projection == "paper" else "map"
-
 
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
+from pathlib import Path
 from types import MappingProxyType
 from typing import Any, ClassVar
 
@@ -137,18 +138,26 @@ class Scene:
         return {f.name: thawed(getattr(self, f.name)) for f in fields(self)}
 
     @classmethod
-    def read(cls, path) -> Scene:
-        from pathlib import Path
-
+    def read(cls, path: str | Path) -> Scene:
         return cls.from_json(json.loads(Path(path).read_text()))
 
 
 # --------------------------------------------------------------------------- plan
 
+def tile_span(pixel: float, tile_size: int) -> float:
+    """A tile's edge in metres: ``tile_size`` pixels of ``pixel`` metres."""
+    return pixel * tile_size
+
+
+def camera_of(projection: str | None) -> str:
+    """The camera a projection renders with: the paper's image plane, else the map-aligned one."""
+    return "paper" if projection == "paper" else "map"
+
+
 def tile_extent(pixel: float, tile_size: int, row: int, col: int, margin_px: int = 0) -> Extent:
     """Extent of tile (row, col) of the global grid of ``tile_size`` pixels of ``pixel`` metres,
     optionally grown by ``margin_px`` pixels on every side."""
-    span, m = pixel * tile_size, margin_px * pixel
+    span, m = tile_span(pixel, tile_size), margin_px * pixel
     return Extent(col * span - m, row * span - m, (col + 1) * span + m, (row + 1) * span + m)
 
 
@@ -286,12 +295,12 @@ class Plan:
     @property
     def camera(self) -> str:
         """The camera the tiles are rendered with: the paper's image plane, else the map-aligned one."""
-        return "paper" if self.projection == "paper" else "map"
+        return camera_of(self.projection)
 
     @property
     def span(self) -> float:
         """A tile's edge in metres (of map, or of the paper camera's image plane)."""
-        return self.pixel_size * self.tile_size
+        return tile_span(self.pixel_size, self.tile_size)
 
     def tile_extent(self, row: int, col: int, margin_px: int = 0) -> Extent:
         """Extent of tile (row, col), optionally grown by ``margin_px`` pixels on every side."""

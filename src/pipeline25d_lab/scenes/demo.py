@@ -38,8 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline25d.core.atomic import write_bytes
 from pipeline25d.core.errors import ConfigError
-from pipeline25d_lab.scenes.writer import write_bytes
 from pipeline25d_lab.scenes.writer import write_dtm as write_scene_dtm
 
 log = logging.getLogger(__name__)

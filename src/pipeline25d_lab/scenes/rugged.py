@@ -46,6 +46,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline25d.core.atomic import write_bytes
 from pipeline25d.core.errors import ConfigError
 from pipeline25d_lab.scenes.demo import (
     CRS,
@@ -57,7 +58,6 @@ from pipeline25d_lab.scenes.demo import (
     own_ground_z,
     run_generator,
 )
-from pipeline25d_lab.scenes.writer import write_bytes
 from pipeline25d_lab.scenes.writer import write_dtm as write_scene_dtm
 
 log = logging.getLogger(__name__)

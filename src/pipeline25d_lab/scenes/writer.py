@@ -1,4 +1,4 @@
-"""What the generated scenes write alike: files atomically, and a DTM sampled from an exact terrain function."""
+"""What the generated scenes write alike: a DTM sampled from an exact terrain function (files: core.atomic)."""
 
 from __future__ import annotations
 
@@ -7,9 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline25d.core.atomic import atomic_path, write_bytes
-
-__all__ = ["write_bytes", "write_dtm"]
+from pipeline25d.core.atomic import atomic_path
 
 
 def write_dtm(path: Path, geotransform: tuple[float, ...], width: int, height: int,
