@@ -40,6 +40,8 @@ import numpy as np
 
 from pipeline25d.core.atomic import write_bytes
 from pipeline25d.core.errors import ConfigError
+from pipeline25d_lab.scenes.writer import Group, mtl_block
+from pipeline25d_lab.scenes.writer import obj_text as write_obj_text
 from pipeline25d_lab.scenes.writer import write_dtm as write_scene_dtm
 
 log = logging.getLogger(__name__)
@@ -346,28 +348,6 @@ def build_layout(seed: int, n_buildings: int, scale: float) -> list[District]:
 # --------------------------------------------------------------------------- meshes
 
 
-@dataclass
-class _Group:
-    """Triangles of one OBJ material: vertices (n,3), rgb (n,3), uv (n,2)|None, faces."""
-
-    vertices: list[np.ndarray] = field(default_factory=list)
-    colors: list[np.ndarray] = field(default_factory=list)
-    uv: list[np.ndarray] = field(default_factory=list)
-    faces: list[np.ndarray] = field(default_factory=list)
-    count: int = 0
-
-    def add(self, vertices, faces, colors, uv=None) -> None:
-        """Append a piece; ``faces`` index into ``vertices`` (0-based, local)."""
-        vertices = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
-        colors = np.broadcast_to(np.asarray(colors, dtype=np.float64), vertices.shape)
-        self.vertices.append(vertices)
-        self.colors.append(colors)
-        if uv is not None:
-            self.uv.append(np.asarray(uv, dtype=np.float64).reshape(-1, 2))
-        self.faces.append(np.asarray(faces, dtype=np.int64).reshape(-1, 3) + self.count)
-        self.count += len(vertices)
-
-
 def _grid_coords(lo: float, hi: float) -> np.ndarray:
     """Grid line positions from lo to hi at (about) TERRAIN_SPACING, mm-rounded."""
     n = max(2, int(round((hi - lo) / TERRAIN_SPACING)))
@@ -483,9 +463,9 @@ def _building_pieces(b: Building):
     return facade, (roof_v, roof_f)
 
 
-def district_groups(district: District, seed: int) -> dict[str, _Group]:
+def district_groups(district: District, seed: int) -> dict[str, Group]:
     """All triangles of a district, grouped by OBJ material name (GROUP_ORDER)."""
-    groups = {name: _Group() for name in GROUP_ORDER}
+    groups = {name: Group() for name in GROUP_ORDER}
     rng = np.random.default_rng([seed, DISTRICT_BLOCKS.index(district.block), 1])
     groups["terrain"].add(*_terrain_piece(district.bounds, rng))
     for vertices, faces in _road_pieces(district):
@@ -500,41 +480,12 @@ def district_groups(district: District, seed: int) -> dict[str, _Group]:
 # --------------------------------------------------------------------------- writers
 
 
-def _format_rows(prefix: str, array: np.ndarray, fmt: str) -> list[str]:
-    """OBJ lines ``prefix v0 v1 ...`` for each row, numbers formatted with ``fmt``."""
-    template = prefix + " " + " ".join([fmt] * array.shape[1])
-    return [template % tuple(row) for row in array.tolist()]
-
-
-def obj_text(name: str, groups: dict[str, _Group]) -> tuple[str, int]:
-    """OBJ text for a district and its triangle count.
-
-    Every vertex carries a colour ("v x y z r g b"): trimesh only reads vertex
-    colours when all vertices have them. Textured groups reference "vt" lines.
-    """
-    used = [(k, g) for k, g in groups.items() if g.count]
-    vertices = np.vstack([np.vstack(g.vertices) for _, g in used])
-    colors = np.vstack([np.vstack(g.colors) for _, g in used])
-    uvs = [np.vstack(g.uv) for _, g in used if g.uv]
-    lines = [f"# pipeline25d demo city, district {name}, {CRS}, metres", f"mtllib {name}.mtl", f"o {name}"]
-    lines += _format_rows("v", np.column_stack([vertices, colors]), "%.3f")
-    if uvs:
-        lines += _format_rows("vt", np.vstack(uvs), "%.4f")
-    v_offset, vt_offset, n_tri = 1, 1, 0
-    for material, g in used:
-        faces = np.vstack(g.faces)
-        lines.append(f"usemtl {material}")
-        if g.uv:
-            fv = faces + v_offset
-            ft = faces + vt_offset
-            both = np.stack([fv, ft], axis=2).reshape(-1, 6)
-            lines += ["f %d/%d %d/%d %d/%d" % tuple(r) for r in both.tolist()]
-            vt_offset += g.count
-        else:
-            lines += _format_rows("f", faces + v_offset, "%d")
-        v_offset += g.count
-        n_tri += len(faces)
-    return "\n".join(lines) + "\n", n_tri
+def obj_text(name: str, groups: dict[str, Group]) -> tuple[str, int]:
+    """OBJ text for a district and its triangle count (see :func:`pipeline25d_lab.scenes.writer.obj_text`):
+    numbers to mm, uv to 1e-4, each textured group with its own ``vt`` lines."""
+    uv_sets = {m: (m, np.vstack(g.uv)) for m, g in groups.items() if g.count and g.uv}
+    return write_obj_text(f"# pipeline25d demo city, district {name}, {CRS}, metres", name, groups, uv_sets,
+                          ("%.3f", "%.4f"))
 
 
 def mtl_text() -> str:
@@ -545,16 +496,9 @@ def mtl_text() -> str:
     appearance lives in its vertex colours. Readers report it as a missing material
     and fall back to vertex colours.
     """
-    def block(name: str, rgb, texture: str | None = None) -> str:
-        lines = [f"newmtl {name}", "Ka 0.000 0.000 0.000", "Kd %.3f %.3f %.3f" % tuple(rgb),
-                 "Ks 0.000 0.000 0.000", "d 1.0", "illum 1"]
-        if texture:
-            lines.append(f"map_Kd {texture}")
-        return "\n".join(lines) + "\n"
-
-    parts = ["# pipeline25d demo city materials\n", block("road", ROAD_RGB)]
-    parts += [block(f"roof_{c}", rgb) for c, rgb in ROOF_CLASSES.items()]
-    parts += [block(f"facade_{k}", (1.0, 1.0, 1.0), f"facade_{k}.png") for k in range(N_FACADES)]
+    parts = ["# pipeline25d demo city materials\n", mtl_block("road", ROAD_RGB)]
+    parts += [mtl_block(f"roof_{c}", rgb) for c, rgb in ROOF_CLASSES.items()]
+    parts += [mtl_block(f"facade_{k}", (1.0, 1.0, 1.0), f"facade_{k}.png") for k in range(N_FACADES)]
     return "\n".join(parts)
 
 

@@ -53,11 +53,11 @@ from pipeline25d_lab.scenes.demo import (
     DTM_PIXEL,
     EPSG_CODE,
     WALL_SINK,
-    _format_rows,
-    _Group,
     own_ground_z,
     run_generator,
 )
+from pipeline25d_lab.scenes.writer import Group, mtl_block
+from pipeline25d_lab.scenes.writer import obj_text as write_obj_text
 from pipeline25d_lab.scenes.writer import write_dtm as write_scene_dtm
 
 log = logging.getLogger(__name__)
@@ -472,58 +472,32 @@ def _box_pieces(b: Box) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray
     return (np.vstack(walls_v), np.array(walls_f)), (roof_v, np.array([[0, 1, 2], [0, 2, 3]]))
 
 
-def obj_text(name: str, groups: dict[str, _Group],
+def obj_text(name: str, groups: dict[str, Group],
              uv_sets: dict[str, tuple[tuple, np.ndarray]]) -> tuple[str, int]:
-    """OBJ text (and triangle count) with exact float64 coordinates.
+    """OBJ text (and triangle count) with exact float64 coordinates (see
+    :func:`pipeline25d_lab.scenes.writer.obj_text`).
 
-    Like :func:`pipeline25d_lab.scenes.demo.obj_text`, but numbers are written with ``repr``
-    (shortest round-trip form): x, y are mm-rounded and colours 0.01-rounded
-    beforehand so they stay short, z is exact. Every vertex has a colour (trimesh
-    reads vertex colours only when all vertices have one). ``uv_sets`` maps a
-    textured material (a one-piece group) to (key, uv per vertex); groups with equal
-    keys share one block of ``vt`` lines, which keeps the file about 4 MB smaller.
+    Numbers are written with ``repr`` (shortest round-trip form): x, y are mm-rounded,
+    colours 0.01-rounded and uv 1e-6-rounded beforehand so they stay short, z is exact.
+    Ground tiles of equal grid and texel counts share their ``vt`` lines, which keeps the
+    file about 4 MB smaller.
     """
-    used = [(k, g) for k, g in groups.items() if g.count]
-    vertices = np.vstack([np.vstack(g.vertices) for _, g in used])
-    colors = np.round(np.vstack([np.vstack(g.colors) for _, g in used]), 2)
-    lines = [f"# pipeline25d rugged city, district {name}, {CRS}, metres", f"mtllib {name}.mtl", f"o {name}"]
-    lines += _format_rows("v", np.column_stack([np.round(vertices[:, :2], 3), vertices[:, 2], colors]), "%r")
-    vt_offsets: dict[tuple, int] = {}  # uv key -> 1-based index of its first vt line
-    vt_lines: list[str] = []
-    for material, _ in used:
-        key, uv = uv_sets.get(material, (None, None))
-        if key is not None and key not in vt_offsets:
-            vt_offsets[key] = 1 + len(vt_lines)
-            vt_lines += _format_rows("vt", np.round(uv, 6), "%r")
-    lines += vt_lines
-    v_offset, n_tri = 1, 0
-    for material, g in used:
-        faces = np.vstack(g.faces)
-        lines.append(f"usemtl {material}")
-        if material in uv_sets:
-            vt_offset = vt_offsets[uv_sets[material][0]]
-            both = np.stack([faces + v_offset, faces + vt_offset], axis=2).reshape(-1, 6)
-            lines += ["f %d/%d %d/%d %d/%d" % tuple(r) for r in both.tolist()]
-        else:
-            lines += _format_rows("f", faces + v_offset, "%d")
-        v_offset += g.count
-        n_tri += len(faces)
-    return "\n".join(lines) + "\n", n_tri
+    rounded = {m: (key, np.round(uv, 6)) for m, (key, uv) in uv_sets.items()}
+    return write_obj_text(f"# pipeline25d rugged city, district {name}, {CRS}, metres", name, groups, rounded,
+                          ("%r", "%r"), _exact_columns)
+
+
+def _exact_columns(vertices: np.ndarray, colors: np.ndarray) -> np.ndarray:
+    """x, y to the mm, z exact, colours to 0.01."""
+    return np.column_stack([np.round(vertices[:, :2], 3), vertices[:, 2], np.round(colors, 2)])
 
 
 def mtl_text(district: RuggedDistrict) -> str:
     """MTL of one district: its ground tiles (map_Kd PNG) plus all roof/facade colours."""
-    def block(name: str, rgb, texture: str | None = None) -> str:
-        lines = [f"newmtl {name}", "Ka 0.000 0.000 0.000", "Kd %.3f %.3f %.3f" % tuple(rgb),
-                 "Ks 0.000 0.000 0.000", "d 1.0", "illum 1"]
-        if texture:
-            lines.append(f"map_Kd {texture}")
-        return "\n".join(lines) + "\n"
-
     parts = [f"# pipeline25d rugged city materials, district {district.name}\n"]
-    parts += [block(t.name, (1.0, 1.0, 1.0), f"{t.name}.png") for t in district.tiles]
-    parts += [block(f"roof_{c}", rgb) for c, rgb in ROOF_CLASSES.items()]
-    parts += [block(f"facade_{c}", rgb) for c, rgb in FACADE_CLASSES.items()]
+    parts += [mtl_block(t.name, (1.0, 1.0, 1.0), f"{t.name}.png") for t in district.tiles]
+    parts += [mtl_block(f"roof_{c}", rgb) for c, rgb in ROOF_CLASSES.items()]
+    parts += [mtl_block(f"facade_{c}", rgb) for c, rgb in FACADE_CLASSES.items()]
     return "\n".join(parts)
 
 
@@ -661,9 +635,9 @@ def generate_rugged_city(out_dir: Path, seed: int = 3, size: float = 2000.0, rel
     files: list[str] = []
     n_triangles = 0
     for d in layout:
-        groups: dict[str, _Group] = {t.name: _Group() for t in d.tiles}
+        groups: dict[str, Group] = {t.name: Group() for t in d.tiles}
         uv_sets: dict[str, tuple[tuple, np.ndarray]] = {}
-        groups |= {f"roof_{c}": _Group() for c in ROOF_CLASSES} | {f"facade_{c}": _Group() for c in FACADE_CLASSES}
+        groups |= {f"roof_{c}": Group() for c in ROOF_CLASSES} | {f"facade_{c}": Group() for c in FACADE_CLASSES}
         for t in d.tiles:
             vertices, faces, rgb, uv, png = _ground_piece(t, xs, ys, params, seed)
             groups[t.name].add(vertices, faces, rgb)
