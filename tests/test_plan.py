@@ -18,14 +18,17 @@ from pipeline25d.stages.plan import (
     plan_perspective,
     tile_cost,
 )
-from pipeline25d.stages.records import GcpCandidate, Plan, Tile
+from pipeline25d.stages.records import GcpCandidate, LodChunk, Plan, Tile, frozen
+
+
+def _chunk(cid: str, bounds, errors=(0.0,), hash: str = "") -> LodChunk:
+    return LodChunk(cid, "d", frozen(bounds), tuple(errors), (0,) * len(errors), hash, "")
 
 
 def _plan(hashes: dict | None = None, pitch: float = 100.0, size: float = 100.0, n=(5, 3)) -> Plan:
     """Chunks of ``size`` m on a ``pitch`` m grid (pitch > size: empty land between them)."""
-    chunks = [{"id": f"c{i}_{j}", "district": "d", "errors": [0.0],
-               "bounds": [[i * pitch, j * pitch, 0.0], [i * pitch + size, j * pitch + size, 30.0]],
-               "ground": None, **({"hash": hashes[(i, j)]} if hashes else {})}
+    chunks = [_chunk(f"c{i}_{j}", [[i * pitch, j * pitch, 0.0], [i * pitch + size, j * pitch + size, 30.0]],
+                     hash=hashes[(i, j)] if hashes else "")
               for i in range(n[0]) for j in range(n[1])]
     return plan_perspective(Perspective(45, 45), chunks, [], 0.0, 0.5, 64, 1.0, "EPSG:25832", {"samples": 4})
 
@@ -90,10 +93,9 @@ def test_a_chunk_content_change_rehashes_only_the_tiles_and_blocks_that_draw_it(
 def test_a_tiles_content_box_holds_its_chunks_projected_boxes_and_no_more():
     from pipeline25d.geometry.camera import projected_box
 
-    chunks = [{"id": "a", "district": "d", "bounds": [[3.0, 4.0, 0.0], [21.0, 9.0, 12.0]], "errors": [0.0],
-               "ground": None}]
+    chunks = [_chunk("a", [[3.0, 4.0, 0.0], [21.0, 9.0, 12.0]])]
     plan = plan_perspective(Perspective(45, 45), chunks, [], 0.0, 0.5, 64, 1.0, "EPSG:25832", {"samples": 4})
-    box, _ = projected_box(np.array(chunks[0]["bounds"]), Perspective(45, 45), 0.0, None, "map")
+    box, _ = projected_box(np.array(chunks[0].bounds), Perspective(45, 45), 0.0, None, "map")
     span = 32.0
     covered = []
     for t in plan.tiles:
@@ -111,8 +113,7 @@ def test_a_plan_is_a_frozen_record_with_one_json_round_trip():
     import json
 
     cand = GcpCandidate("g1_2", 40.0, 50.0, 1.5, 1.25, 0.01, -0.02, "check")
-    chunks = [{"id": "a", "district": "d", "bounds": [[3.0, 4.0, 0.0], [71.0, 59.0, 12.0]], "errors": [0.0, 0.4],
-               "hash": "abc", "ground": None}]
+    chunks = [_chunk("a", [[3.0, 4.0, 0.0], [71.0, 59.0, 12.0]], errors=(0.0, 0.4), hash="abc")]
     plan = plan_perspective(Perspective(45, 45), chunks, [cand], 0.0, 0.5, 64, 1.0, "EPSG:25832", {"samples": 4})
     text = json.dumps(plan.to_json())
     assert Plan.from_json(json.loads(text)) == plan and json.dumps(Plan.from_json(json.loads(text)).to_json()) == text

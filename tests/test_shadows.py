@@ -24,6 +24,7 @@ from pipeline25d.geometry.sun import (
     sun_position,
 )
 from pipeline25d.stages.plan import plan_perspective
+from pipeline25d.stages.records import ChunkGround, LodChunk, frozen
 from pipeline25d.stages.render import ShadowView, TileRenderer, TileView
 from pipeline25d.stages.render_block import render_plan_tile
 
@@ -153,9 +154,8 @@ def test_terrain_mode_casts_shadows_by_true_3d_positions_on_sloped_ground(gl_ctx
 
 
 # -- plans: casters within shadow reach ------------------------------------------------------------
-def _chunk(cid: str, lo, hi, ground=None) -> dict:
-    return {"id": cid, "district": "d", "bounds": [list(map(float, lo)), list(map(float, hi))], "errors": [0.0],
-            "ground": ground}
+def _chunk(cid: str, lo, hi) -> LodChunk:
+    return LodChunk(cid, "d", frozen([list(map(float, lo)), list(map(float, hi))]), (0.0,), (0,), "", "")
 
 
 def _shadows(sun: Sun, texel: float, ambient: float = 0.5) -> dict:
@@ -281,7 +281,7 @@ def test_a_tall_buildings_shadow_falls_into_the_neighbouring_tiles(gl_ctx):
     parts["tower"] = [box_part((E0 + 24, N0 + 12, Z0), (E0 + 30, N0 + 20, Z0 + 40))]
     chunks = [_chunk(k, np.min([p.vertices.min(0) for p in v], 0), np.max([p.vertices.max(0) for p in v], 0))
               for k, v in parts.items()]
-    loaded = {c["id"]: (np.array(c["bounds"][0]), parts[c["id"]]) for c in chunks}
+    loaded = {c.id: (np.array(c.bounds[0]), parts[c.id]) for c in chunks}
     plan = plan_perspective(Perspective(0, 90), chunks, [], Z0, gsd, size, 1.0, "EPSG:25832", {"samples": 4}, None,
                             _shadows(sun, 0.75 * gsd))
     row0, col0 = int(N0 // 32), int(E0 // 32)
@@ -302,7 +302,7 @@ def test_a_tall_buildings_shadow_falls_into_the_neighbouring_tiles(gl_ctx):
     assert np.array_equal(with_casters[a], without[a])   # A holds the tower itself
 
 
-def _town(rng: np.random.Generator, relief: float) -> tuple[list[dict], dict, object]:
+def _town(rng: np.random.Generator, relief: float) -> tuple[list[LodChunk], dict, object, dict]:
     """A 64 m square of noisy vertex-coloured ground (4 chunks, gently sloped by ``relief``) and
     ten towers of 6-30 m (a chunk each), one near the middle: chunks, loaded chunks and the ground function."""
     z = lambda x, y: Z0 + relief * ((np.asarray(x) - E0) / 64 + 0.5 * (np.asarray(y) - N0) / 64)
@@ -325,14 +325,15 @@ def _town(rng: np.random.Generator, relief: float) -> tuple[list[dict], dict, ob
         rot = np.array([[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]])
         tower.vertices[:, :2] = tower.vertices[:, :2] @ rot.T + [cx, cy]
         parts[f"t{k}"] = [tower]
-    chunks, loaded = [], {}
+    chunks, loaded, grounds = [], {}, {}
     for cid, ps in parts.items():
         lo = np.min([p.vertices.min(0) for p in ps], 0)
         hi = np.max([p.vertices.max(0) for p in ps], 0)
         g = z(np.array([lo[0], hi[0], lo[0], hi[0]]), np.array([lo[1], lo[1], hi[1], hi[1]]))
-        chunks.append(_chunk(cid, lo, hi, [float(g.min()) - 2, float(g.max()) + 2, cid]))
+        chunks.append(_chunk(cid, lo, hi))
+        grounds[("d", cid)] = ChunkGround(float(g.min()) - 2, float(g.max()) + 2, cid)
         loaded[cid] = (np.floor(lo), ps)
-    return chunks, loaded, z
+    return chunks, loaded, z, grounds
 
 
 @pytest.mark.parametrize("perspective, projection", [(Perspective(0, 90), "plane"), (Perspective(45, 45), "terrain"),
@@ -341,7 +342,7 @@ def test_no_seams_one_big_tile_equals_its_four_quarter_tiles(gl_ctx, perspective
     """The same 64 m square rendered as one 256 px tile and as 2 x 2 tiles of 128 px: the shadows
     agree (the shadow maps sample one global texel grid), and along every border between the
     quarter tiles pixels differ no more than neighbouring pixels inside them do."""
-    chunks, loaded, z = _town(np.random.default_rng(5), 0.0 if projection == "plane" else 6.0)
+    chunks, loaded, z, grounds = _town(np.random.default_rng(5), 0.0 if projection == "plane" else 6.0)
     ground = None if projection == "plane" else z
     terrain = {"projection": projection, "dtm": None}
     shadows = _shadows(Sun(230, 35), 0.75 * 0.25)
@@ -349,7 +350,7 @@ def test_no_seams_one_big_tile_equals_its_four_quarter_tiles(gl_ctx, perspective
 
     def render(size: int, sun: dict | None) -> np.ndarray:
         plan = plan_perspective(perspective, chunks, [], Z0, 0.25, size, 1.0, "EPSG:25832", {"samples": 4}, terrain,
-                                sun)
+                                sun, grounds)
         return _mosaic(plan, _render_plan(gl_ctx, plan, loaded, ground), extent)
 
     big, quarters = render(256, shadows), render(128, shadows)

@@ -19,7 +19,7 @@ from pipeline25d.core.mesh import MeshPart
 from pipeline25d.geometry.perspectives import Perspective
 from pipeline25d.stages.chunks import chunk_origin
 from pipeline25d.stages.plan import plan_perspective
-from pipeline25d.stages.records import tile_extent, tile_span
+from pipeline25d.stages.records import LodChunk, frozen, tile_extent, tile_span
 from pipeline25d.stages.render import TileRenderer, TileView
 
 settings.register_profile("ci", derandomize=True, print_blob=True, deadline=None)
@@ -142,7 +142,7 @@ def test_plan_content_boxes_tile_the_map_without_gaps_or_overlaps(gsd: float, si
     span = tile_span(gsd, size)
     lo = np.array([x, y, z])
     hi = lo + [wx * span, wy * span, wz * span * math.tan(math.radians(min(elevation, 89)))]
-    chunks = [{"id": "c", "district": "d", "errors": [0.0], "bounds": [lo.tolist(), hi.tolist()], "ground": None}]
+    chunks = [LodChunk("c", "d", frozen([lo.tolist(), hi.tolist()]), (0.0,), (0,), "", "")]
     plan = plan_perspective(Perspective(azimuth, elevation), chunks, [], z, gsd, size, 1.0, "EPSG:32632", {})
     tol = 1e-4 * gsd                                   # metres: 1e-4 px
     boxes = {}

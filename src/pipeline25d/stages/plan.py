@@ -34,7 +34,16 @@ from pipeline25d.geometry.camera import (
 from pipeline25d.geometry.perspectives import Perspective
 from pipeline25d.stages.gcps import read_candidates
 from pipeline25d.stages.lod import choose_level, lod_chunks
-from pipeline25d.stages.records import GcpCandidate, Plan, Scene, Tile, camera_of, thawed, tile_span
+from pipeline25d.stages.records import (
+    ChunkGround,
+    GcpCandidate,
+    LodChunk,
+    Plan,
+    Scene,
+    Tile,
+    camera_of,
+    tile_span,
+)
 from pipeline25d.stages.scene import chunk_ground
 
 log = logging.getLogger(__name__)
@@ -56,13 +65,13 @@ def _index_range(lo: float, hi: float, span: float) -> range:
     return range(first, max(math.ceil(hi / span), first + 1))
 
 
-def plan_perspective(p: Perspective, chunks: list[dict], candidates: Sequence[GcpCandidate], z0: float, gsd: float,
-                     tile_size: int, max_error_px: float, crs: str, render: dict,
-                     terrain: dict | None = None, shadows: dict | None = None) -> Plan:
+def plan_perspective(p: Perspective, chunks: Sequence[LodChunk], candidates: Sequence[GcpCandidate], z0: float,
+                     gsd: float, tile_size: int, max_error_px: float, crs: str, render: dict,
+                     terrain: dict | None = None, shadows: dict | None = None,
+                     grounds: Mapping[tuple[str, str], ChunkGround] | None = None) -> Plan:
     """The plan of perspective ``p`` (its tiles' spec hashes are taken over their JSON form).
 
-    ``chunks``: [{"id", "district", "bounds" (2,3), "errors": [m per level]}, plus "ground"
-    (lowest, highest DTM height under it) in terrain-relative mode];
+    ``chunks``: the LOD chunks; ``grounds``: the DTM under each, by (district, id) (terrain-relative maps);
     ``candidates``: the GCP candidates;
     ``render``: render settings that, when changed, must re-render (part of each tile's spec);
     ``terrain``: {"projection": "terrain" | "plane" | "paper", "dtm": path or None}. With
@@ -79,15 +88,16 @@ def plan_perspective(p: Perspective, chunks: list[dict], candidates: Sequence[Gc
     span = tile_span(pixel, tile_size)
     tiles: dict[tuple[int, int], dict] = {}
     entries = []
+    ground_of = (lambda c: grounds[(c.district, c.id)]) if relative else (lambda c: None)
     for chunk in chunks:
-        box, depth = projected_box(np.array(chunk["bounds"]), p, z0, chunk["ground"][:2] if relative else None, camera)
-        entry = {"id": chunk["id"], "district": chunk["district"],
-                 "lod": choose_level(chunk["errors"], max_error_px * gsd),
-                 "xy": [round(float(v), 3) for v in (*chunk["bounds"][0][:2], *chunk["bounds"][1][:2])]}
-        if "hash" in chunk:
-            entry["hash"] = chunk["hash"]   # the chunk's LOD content: a changed chunk re-renders its tiles
-        if relative:
-            entry["ground"] = chunk["ground"][2]   # digest of the DTM under the chunk
+        ground = ground_of(chunk)
+        box, depth = projected_box(np.array(chunk.bounds), p, z0, _ground_range(ground), camera)
+        entry = {"id": chunk.id, "district": chunk.district,
+                 "lod": choose_level(chunk.errors, max_error_px * gsd),
+                 "xy": [round(float(v), 3) for v in (*chunk.bounds[0][:2], *chunk.bounds[1][:2])],
+                 "hash": chunk.hash}   # the chunk's LOD content: a changed chunk re-renders its tiles
+        if ground is not None:
+            entry["ground"] = ground.digest   # digest of the DTM under the chunk
         entries.append(entry)
         for r in _index_range(box.ymin, box.ymax, span):
             for c in _index_range(box.xmin, box.xmax, span):
@@ -110,7 +120,7 @@ def plan_perspective(p: Perspective, chunks: list[dict], candidates: Sequence[Gc
         tile["content"] = _content_in_tile(tile["content"], key, span, pixel)
     if shadows:
         frame["shadows"] = shadows
-        _add_shadows(tiles, chunks, entries, p, z0, relative, camera, shadows)
+        _add_shadows(tiles, chunks, [ground_of(c) for c in chunks], entries, p, z0, camera, shadows)
     out_tiles = []
     for key in sorted(tiles, key=lambda k: (-k[0], k[1])):
         tile = tiles[key]
@@ -131,22 +141,22 @@ def plan_perspective(p: Perspective, chunks: list[dict], candidates: Sequence[Gc
     return Plan.from_json(out)
 
 
-def _add_shadows(tiles: dict, chunks: list[dict], entries: list[dict], p: Perspective, z0: float, relative: bool,
-                 camera: str, shadows: dict) -> None:
+def _add_shadows(tiles: dict, chunks: Sequence[LodChunk], grounds: list[ChunkGround | None], entries: list[dict],
+                 p: Perspective, z0: float, camera: str, shadows: dict) -> None:
     """Give each tile its ``shadow``: the other chunks that can cast a shadow onto what it draws
     (their shadow footprints meet its receivers, see :mod:`pipeline25d.geometry.sun`), its shadow map's
     window on the global texel grid and its depth range (heights)."""
     from pipeline25d.geometry.sun import Sun, SunFrame, casters_of, shadow_footprints
 
     frame = SunFrame(Sun(shadows["azimuth"], shadows["elevation"]), shadows["texel"])
-    bounds = np.array([c["bounds"] for c in chunks], dtype=np.float64)
+    bounds = np.array([c.bounds for c in chunks], dtype=np.float64)
     margin = frame.ground_margin()
     footprints = shadow_footprints(bounds, frame.sun, margin)
-    index = {(c["district"], c["id"]): i for i, c in enumerate(chunks)}
+    index = {(c.district, c.id): i for i, c in enumerate(chunks)}
     for tile in tiles.values():
         own = [index[(e["district"], e["id"])] for e in tile["chunks"]]
         receivers = [box for i in own
-                     if (box := _receiver_box(bounds[i], chunks[i], tile["content"], p, z0, relative, camera)) is not None]
+                     if (box := _receiver_box(bounds[i], grounds[i], tile["content"], p, z0, camera)) is not None]
         receivers = receivers or [bounds[i] for i in own]
         hit = casters_of(footprints, receivers, margin)
         hit[own] = False
@@ -158,7 +168,7 @@ def _add_shadows(tiles: dict, chunks: list[dict], entries: list[dict], p: Perspe
         }
 
 
-def _receiver_box(bounds: np.ndarray, chunk: dict, content: list[float], p: Perspective, z0: float, relative: bool,
+def _receiver_box(bounds: np.ndarray, ground: ChunkGround | None, content: list[float], p: Perspective, z0: float,
                   camera: str) -> np.ndarray | None:
     """(2, 3) box of the chunk's geometry that can land in a tile's ``content`` box (None: none can):
     a map point m comes from the ground point m − k·d, k = (z − reference)·cot φ over the chunk's heights.
@@ -166,11 +176,16 @@ def _receiver_box(bounds: np.ndarray, chunk: dict, content: list[float], p: Pers
     lo, hi = np.asarray(bounds, dtype=np.float64)
     if camera == "paper":
         return np.array([lo, hi])
-    ref = chunk["ground"][:2] if relative else (z0, z0)
+    ref = _ground_range(ground) or (z0, z0)
     shifts = np.outer([(lo[2] - ref[1]), (hi[2] - ref[0])], horizontal_direction(p) * relief_factor(p))
     box = np.array([[max(content[0] - shifts[:, 0].max(), lo[0]), max(content[1] - shifts[:, 1].max(), lo[1]), lo[2]],
                     [min(content[2] - shifts[:, 0].min(), hi[0]), min(content[3] - shifts[:, 1].min(), hi[1]), hi[2]]])
     return box if (box[0, :2] <= box[1, :2]).all() else None
+
+
+def _ground_range(ground: ChunkGround | None) -> tuple[float, float] | None:
+    """(lowest, highest) DTM height under a chunk, or None (maps on a plane)."""
+    return None if ground is None else (ground.lowest, ground.highest)
 
 
 def _content_in_tile(box: list[float], key: tuple[int, int], span: float, pixel: float) -> list[float]:
@@ -337,12 +352,11 @@ def plan(perspective_id: str, lod_indexes: list[str], scene_json: str | Path, ca
     shadows = plan_shadows(shadow_cfg, np.array(scene.bounds), crs, gsd) if shadow_cfg else None
     relative = scene.projection == "terrain"
     dtm = DTM(scene.dtm, crs, continuous=True) if relative else None
-    chunks = [{"id": c.id, "district": c.district, "bounds": thawed(c.bounds), "errors": list(c.errors),
-               "hash": c.hash, "ground": chunk_ground(c.bounds, dtm) if relative else None}
-              for c in lod_chunks(lod_indexes)]
+    chunks = lod_chunks(lod_indexes)
+    grounds = {(c.district, c.id): chunk_ground(c.bounds, dtm) for c in chunks} if relative else None
     terrain = {"projection": scene.projection, "dtm": scene.dtm if relative else None}
     result = plan_perspective(Perspective.from_id(perspective_id), chunks, read_candidates(candidates_csv),
-                              scene.z0, gsd, tile_size, max_error_px, crs, render, terrain, shadows)
+                              scene.z0, gsd, tile_size, max_error_px, crs, render, terrain, shadows, grounds)
     write_json(out_plan, result.to_json(), indent=None)   # megabytes for a city: compact
     log.info("%s: %d tiles to render, %d empty tiles skipped", perspective_id, len(result.tiles),
              result.n_tiles_skipped)

@@ -117,6 +117,16 @@ class LodChunk:
 
 
 @dataclass(frozen=True)
+class ChunkGround:
+    """The DTM under a chunk's footprint: its lowest and highest height (m, widened by a margin)
+    and a digest of the samples, which enters the tile spec (terrain-relative maps)."""
+
+    lowest: float
+    highest: float
+    digest: str
+
+
+@dataclass(frozen=True)
 class Scene:
     """``scene.json``: the scene's bounds, reference plane, terrain and projection, GCP counts."""
 

@@ -17,7 +17,7 @@ from pipeline25d.core.errors import ConfigError
 from pipeline25d.geometry.perspectives import Perspective
 from pipeline25d.stages.gcps import CANDIDATE_FIELDS, assign_roles, read_csv, write_csv
 from pipeline25d.stages.lod import lod_chunks, scene_bounds
-from pipeline25d.stages.records import GcpCandidate, Scene
+from pipeline25d.stages.records import ChunkGround, GcpCandidate, Scene
 
 log = logging.getLogger(__name__)
 
@@ -213,8 +213,8 @@ def _cell_value(values: np.ndarray, grid, x: float, y: float) -> float:
     return float(values[row, col])
 
 
-def chunk_ground(bounds: np.ndarray, dtm) -> list:
-    """[lowest, highest, digest] of the DTM under a chunk's footprint.
+def chunk_ground(bounds: np.ndarray, dtm) -> ChunkGround:
+    """The lowest and highest DTM height under a chunk's footprint, and a digest of the samples.
 
     Heights are sampled every DTM cell (at most 129 × 129) and widened by GROUND_MARGIN_M;
     the digest of the samples enters the tile spec, so a tile re-renders when, and only
@@ -232,4 +232,4 @@ def chunk_ground(bounds: np.ndarray, dtm) -> list:
         raise ValueError(f"{dtm.path}: DTM heights under the chunk at {lo[:2]}..{hi[:2]} are not finite "
                          "or not plausible (|h| > 100 km)")
     digest = hashlib.sha256(np.round(g, 2).tobytes()).hexdigest()[:12]   # cm: float noise does not count
-    return [float(np.min(g)) - GROUND_MARGIN_M, float(np.max(g)) + GROUND_MARGIN_M, digest]
+    return ChunkGround(float(np.min(g)) - GROUND_MARGIN_M, float(np.max(g)) + GROUND_MARGIN_M, digest)
