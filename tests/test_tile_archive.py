@@ -103,3 +103,38 @@ def test_the_server_answers_ranges_with_partial_content(tmp_path):
         server.shutdown()
         server.server_close()
         thread.join()
+
+
+def test_the_server_sends_nothing_from_outside_its_folder(tmp_path):
+    """Neither ``..`` (plain or percent-encoded) nor a link inside the folder reaches a file outside it."""
+    import http.client
+
+    root, outside = tmp_path / "served", tmp_path / "secret"
+    (root / "sub").mkdir(parents=True)
+    outside.mkdir()
+    (outside / "key.txt").write_bytes(b"SECRET")
+    (root / "sub" / "a.txt").write_bytes(b"inside")
+    (root / "leak.txt").symlink_to(outside / "key.txt")
+    (root / "leakdir").symlink_to(outside, target_is_directory=True)
+    (root / "inner.txt").symlink_to(root / "sub" / "a.txt")            # a link that stays inside is served
+    server = make_server(root, port=0)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+
+    def get(path: str, rng: str | None = None) -> tuple[int, bytes]:
+        conn = http.client.HTTPConnection("127.0.0.1", server.server_address[1], timeout=10)
+        conn.request("GET", path, headers={"Range": rng} if rng else {})   # sent as written, not normalised
+        resp = conn.getresponse()
+        out = resp.status, resp.read()
+        conn.close()
+        return out
+
+    try:
+        for path in ("/../secret/key.txt", "/sub/../../secret/key.txt", "/%2e%2e/secret/key.txt",
+                     "/%2E%2E%2Fsecret%2Fkey.txt", "//../secret/key.txt", "/leak.txt", "/leakdir/key.txt"):
+            for rng in (None, "bytes=0-3"):
+                status, body = get(path, rng)
+                assert b"SECRET" not in body and b"SECR" not in body and status == 404, (path, rng, status)
+        assert get("/sub/../sub/a.txt") == (200, b"inside") and get("/inner.txt", "bytes=0-1") == (206, b"in")
+    finally:
+        server.shutdown()
+        server.server_close()

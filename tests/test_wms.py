@@ -16,6 +16,7 @@ import subprocess
 import sys
 import threading
 import time
+import urllib.error
 import urllib.request
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -350,3 +351,22 @@ def test_the_workflow_maps_are_served_as_they_are(tmp_path, mapserv):
     finally:
         server.shutdown()
         server.server_close()
+
+
+def test_a_client_cannot_make_mapserver_open_another_mapfile(synthetic, synthetic_wms, mapserv, tmp_path):
+    """``map=`` in any spelling is refused by the front (400), and MapServer itself, run directly with
+    the service's config, does not open the mapfile a query names: the other file's title never shows."""
+    other = tmp_path / "other.map"
+    other.write_text((synthetic / "wms" / "syn.map").read_text().replace('"wms_title" "', '"wms_title" "OTHERMAP '))
+    for name in ("map", "MAP", "Map"):
+        query = urlencode({name: str(other), "SERVICE": "WMS", "REQUEST": "GetCapabilities"})
+        with pytest.raises(urllib.error.HTTPError) as err:
+            urllib.request.urlopen(f"{synthetic_wms.url}?{query}", timeout=60)
+        assert err.value.code == 400 and b"OTHERMAP" not in err.value.read()
+    ctype, body = request(synthetic_wms, REQUEST="GetCapabilities")       # the service still answers
+    assert b"<WMS_Capabilities" in body and b"OTHERMAP" not in body
+    env = {"PATH": os.environ.get("PATH", "/usr/bin:/bin"), "MAPSERVER_CONFIG_FILE": str(synthetic_wms.config),
+           "MS_MAPFILE": str(synthetic_wms.mapfile), "REQUEST_METHOD": "GET",
+           "QUERY_STRING": f"map={other}&SERVICE=WMS&REQUEST=GetCapabilities"}
+    direct = subprocess.run([mapserv], env=env, capture_output=True, timeout=120).stdout
+    assert b"OTHERMAP" not in direct

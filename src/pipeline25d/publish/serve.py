@@ -4,8 +4,10 @@ Python's ``http.server`` sends whole files and ignores ``Range``; a PMTiles arch
 byte ranges (its header, directories, then one range per tile), so the viewer in PMTiles mode
 needs a server that answers them with ``206 Partial Content``. This one does for one range
 (``bytes=a-b``, ``a-``, ``-n``), answers ``416`` to a range past the end and sends the whole file
-for anything else, as RFC 9110 allows. ``python -m pipeline25d.publish.serve results/demo`` serves a
-results folder on 127.0.0.1:8000.
+for anything else, as RFC 9110 allows. ``pipeline25d serve results/demo`` serves a results folder
+on 127.0.0.1:8000. Nothing outside the served folder is ever sent: ``..`` in a URL cannot climb
+out (``http.server`` drops it), and a link inside the folder that resolves outside it is answered
+404 like a missing file.
 """
 
 from __future__ import annotations
@@ -46,6 +48,12 @@ def byte_range(header: str, size: int) -> tuple[int, int] | None | bool:
     return (first, last) if first < size else False
 
 
+def _inside(path: str, root: str) -> bool:
+    """Whether ``path``, links resolved, lies in the folder ``root`` (links resolved too)."""
+    real_root = os.path.realpath(root)
+    return os.path.commonpath([os.path.realpath(path), real_root]) == real_root
+
+
 class RangeHandler(SimpleHTTPRequestHandler):
     """``SimpleHTTPRequestHandler`` plus single byte ranges; quiet unless ``verbose``."""
 
@@ -60,6 +68,9 @@ class RangeHandler(SimpleHTTPRequestHandler):
         self._left = None
         header = self.headers.get("Range")
         path = self.translate_path(self.path)
+        if not _inside(path, self.directory):
+            self.send_error(HTTPStatus.NOT_FOUND, "File not found")
+            return None
         if header is None or not os.path.isfile(path):
             return super().send_head()
         try:

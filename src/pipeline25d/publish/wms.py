@@ -21,7 +21,7 @@ import tempfile
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import NamedTuple, Sequence
-from urllib.parse import urlsplit
+from urllib.parse import parse_qsl, urlsplit
 
 from pipeline25d.core.atomic import write_text
 from pipeline25d.core.errors import InputFileError, MapServiceError
@@ -34,6 +34,9 @@ log = logging.getLogger(__name__)
 EXTRA_SRS = ("EPSG:3857", "EPSG:4326")     # web mercator and WGS 84, beside each map's own CRS
 MAPSERV = ("/usr/lib/cgi-bin/mapserv", "mapserv")   # Debian's cgi-mapserver, else PATH
 CGI_TIMEOUT_S = 120
+# MapServer 8's config for the local service: a request may never name another mapfile
+# (mapserv already refuses ``map=`` without MS_MAP_PATTERN; this says so explicitly)
+MAPSERVER_CONFIG = 'CONFIG\n  ENV\n    MS_MAP_NO_OVERRIDE "1"\n  END\nEND\n'
 
 
 class MapLayer(NamedTuple):
@@ -200,7 +203,7 @@ class WMSServer(ThreadingHTTPServer):
         self.mapserv = mapserv or find_mapserv()
         self._folder = tempfile.TemporaryDirectory(prefix="pipeline25d-wms-")
         self.config = Path(self._folder.name) / "mapserver.conf"
-        self.config.write_text("CONFIG\nEND\n")
+        self.config.write_text(MAPSERVER_CONFIG)
         super().__init__((host, port), CGIHandler)
 
     @property
@@ -221,6 +224,10 @@ class CGIHandler(BaseHTTPRequestHandler):
     def do_GET(self) -> None:  # noqa: N802 (the http.server name)
         srv = self.server
         url = urlsplit(self.path)
+        if any(name.strip().lower() == "map" for name, _ in parse_qsl(url.query, keep_blank_values=True)):
+            self._answer(400, {"Content-Type": "text/plain"},
+                         b"this service publishes one mapfile: the map parameter is not accepted\n")
+            return
         env = {"PATH": os.environ.get("PATH", "/usr/bin:/bin"), "MAPSERVER_CONFIG_FILE": str(srv.config),
                "MS_MAPFILE": str(srv.mapfile), "GATEWAY_INTERFACE": "CGI/1.1", "REQUEST_METHOD": "GET",
                "QUERY_STRING": url.query, "SCRIPT_NAME": url.path, "SERVER_NAME": srv.server_address[0],
@@ -232,6 +239,9 @@ class CGIHandler(BaseHTTPRequestHandler):
         if proc.returncode or "Content-Type" not in headers:
             status, headers = 500, {"Content-Type": "text/plain"}
             body = b"mapserv failed: " + proc.stdout + proc.stderr
+        self._answer(status, headers, body)
+
+    def _answer(self, status: int, headers: dict[str, str], body: bytes) -> None:
         self.send_response(status)
         for name, value in headers.items():
             self.send_header(name.strip(), value.strip())
