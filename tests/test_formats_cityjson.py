@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 from pathlib import Path
 
@@ -304,3 +305,245 @@ def test_many_geometry_instances_land_on_their_anchors(tmp_path):
     tv = np.asarray(templates["vertices-templates"], dtype=float)
     expected = [key(np.asarray(anchors[i]) + tv[3 * (i % 2):3 * (i % 2) + 3]) for i in range(n)] + [key(plain)]
     assert sorted(key(t) for t in tris) == sorted(expected)
+
+
+# ----------------------------------------------------------------------------- appearances
+
+ORIGIN = np.array([85000.0, 447000.0, 0.0])     # RD New; vertices quantised at 1 mm around it
+BOX = [[0, 0, 0], [10, 0, 0], [10, 8, 0], [0, 8, 0], [0, 0, 6], [10, 0, 6], [10, 8, 6], [0, 8, 6],
+       [4, 0, 2], [6, 0, 2], [6, 0, 4], [4, 0, 4]]                      # 8..11: a window in the south wall
+#: ground, roof, south wall (with the window), east, north, west: all facing outwards
+SHELL = [[[0, 3, 2, 1]], [[4, 5, 6, 7]], [[0, 1, 5, 4], [8, 11, 10, 9]], [[1, 2, 6, 5]], [[2, 3, 7, 6]],
+         [[3, 0, 4, 7]]]
+#: the texture mappings given to the file, as functions of the position (box coordinates)
+SUMMER = {"south": lambda p: (p[0] / 20, p[2] / 6), "east": lambda p: (0.5 + p[1] / 16, p[2] / 6)}
+WINTER_EAST = lambda p: (p[1] / 8, p[2] / 6)  # noqa: E731
+ROOF_PAINT = {"diffuseColor": [0.7, 0.2, 0.1], "transparency": 0.2}
+SOUTH_PAINT = {"diffuseColor": [0.0, 0.0, 1.0]}
+
+
+def _png(path: Path, seed: int, size=(16, 8)) -> bytes:
+    from PIL import Image
+
+    pixels = np.random.default_rng(seed).integers(0, 256, (size[1], size[0], 3), dtype=np.uint8)
+    Image.fromarray(pixels).save(path, format="PNG")
+    return path.read_bytes()
+
+
+def _textured_box(folder: Path, version: str = "2.0", name: str = "box.city.json") -> Path:
+    """A LOD2 box building: the south (with a window) and east walls textured in theme "summer"
+    (facade.png), the east wall in theme "winter" (snow.png, the file's default), the roof and the
+    south wall with materials (theme "paint"); vertices quantised (transform)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "textures").mkdir(exist_ok=True)
+    _png(folder / "textures" / "facade.png", 1)
+    _png(folder / "textures" / "snow.png", 2)
+    uvs: list[list[float]] = []
+
+    def ring(ids, mapping, texture):
+        start = len(uvs)
+        uvs.extend([list(mapping(BOX[i])) for i in ids])
+        return [texture] + list(range(start, start + len(ids)))
+
+    untextured = [[None]]
+    summer = [untextured, untextured,
+              [ring(SHELL[2][0], SUMMER["south"], 0), ring(SHELL[2][1], SUMMER["south"], 0)],
+              [ring(SHELL[3][0], SUMMER["east"], 0)], untextured, untextured]
+    winter = [untextured, untextured, [[None], [None]], [ring(SHELL[3][0], WINTER_EAST, 1)], untextured, untextured]
+    geometry = {"type": "Solid", "lod": 2 if version == "1.0" else "2", "boundaries": [SHELL],
+                "semantics": {"surfaces": [{"type": "GroundSurface"}, {"type": "RoofSurface"},
+                                           {"type": "WallSurface"}], "values": [[0, 1, 2, 2, 2, 2]]},
+                "texture": {"summer": {"values": [summer]}, "winter": {"values": [winter]}},
+                "material": {"paint": {"values": [[None, 0, 1, None, None, None]]}}}
+    scale = 0.001
+    doc = {"type": "CityJSON", "version": version,
+           "transform": {"scale": [scale] * 3, "translate": list(ORIGIN)},
+           "metadata": {"referenceSystem": "urn:ogc:def:crs:EPSG::7415" if version == "1.0"
+                        else "https://www.opengis.net/def/crs/EPSG/0/7415"},
+           "CityObjects": {"b1": {"type": "Building", "geometry": [geometry]}},
+           "vertices": [[round(c / scale) for c in v] for v in BOX],
+           "appearance": {"textures": [{"type": "PNG", "image": "textures/facade.png", "wrapMode": "wrap"},
+                                       {"type": "PNG", "image": "textures/snow.png", "wrapMode": "clamp",
+                                        "borderColor": [0, 0, 0, 1]}],
+                          "vertices-texture": uvs,
+                          "materials": [dict(ROOF_PAINT, name="roof"), dict(SOUTH_PAINT, name="south", isSmooth=False)],
+                          "default-theme-texture": "winter"}}
+    path = folder / name
+    path.write_text(json.dumps(doc))
+    return path
+
+
+def _rgba(material: dict) -> list[int]:
+    return [round(c * 255) for c in material["diffuseColor"]] + [round((1 - material.get("transparency", 0)) * 255)]
+
+
+def _wall_of(normal: np.ndarray) -> str:
+    return {(0, -1): "south", (1, 0): "east", (0, 1): "north", (-1, 0): "west"}[tuple(np.round(normal[:2]).astype(int))]
+
+
+def _unit_normals(part) -> np.ndarray:
+    t = part.vertices[part.faces]
+    n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def _faces_coloured(part, rgba) -> int:
+    return int(np.all(part.colors[part.faces] == rgba, axis=(1, 2)).sum())
+
+
+@pytest.mark.parametrize("version", ["1.0", "1.1", "2.0"])
+def test_textured_box_uvs_texture_and_materials(tmp_path, version):
+    from pipeline25d.formats import load_district
+
+    path = _textured_box(tmp_path, version)
+    mesh = load_district({"path": str(path), "theme": "summer"}, "EPSG:7415")
+    parts = {p.name: p for p in mesh.parts}
+    assert set(parts) == {"facade.png", "ground", "roof", "wall"}
+    tex = parts["facade.png"]
+    assert tex.texture == (tmp_path / "textures" / "facade.png").read_bytes()
+    # south wall: 8 ring vertices with a hole -> 8 triangles; east wall 2; 60 - 4 + 48 m2
+    assert tex.n_triangles == 10
+    assert _triangle_area(type(mesh)([tex])) == pytest.approx(60 - 4 + 48, rel=1e-9)
+    # every corner carries the UV the file gives its vertex on that wall (the shared edge x=10, y=0 has two)
+    local = tex.vertices - ORIGIN
+    for face, normal in zip(tex.faces, _unit_normals(tex)):
+        mapping = SUMMER[_wall_of(normal)]
+        np.testing.assert_allclose(tex.uv[face], [mapping(local[i]) for i in face], atol=1e-7)
+    np.testing.assert_allclose(mesh.bounds(), [ORIGIN, ORIGIN + [10, 8, 6]], atol=1e-9)
+    # the roof in its material's diffuse colour (alpha 1 - transparency); the others in class colours
+    np.testing.assert_array_equal(np.unique(parts["roof"].colors, axis=0), [_rgba(ROOF_PAINT)])
+    np.testing.assert_array_equal(np.unique(parts["ground"].colors, axis=0), [PALETTE["ground"]])
+    assert parts["wall"].n_triangles == 4 and _faces_coloured(parts["wall"], PALETTE["wall"]) == 4
+
+
+def test_default_theme_log_and_unknown_theme(tmp_path, caplog):
+    import logging
+
+    from pipeline25d.core.errors import ConfigError
+    from pipeline25d.formats.cityjson import read_cityjson
+
+    path = _textured_box(tmp_path)
+    with caplog.at_level(logging.INFO, logger="pipeline25d.formats.cityjson_appearance"):
+        loaded = read_cityjson(path, {})
+    said = caplog.text
+    assert "1 of 2 textures drawn on 1 surfaces (texture theme 'winter'; not drawn: 'summer')" in said
+    assert "2 surfaces in material colours (material theme 'paint')" in said
+    parts = {p.name: p for p in loaded.parts}
+    snow = parts["snow.png"]
+    assert snow.texture == (tmp_path / "textures" / "snow.png").read_bytes() and snow.n_triangles == 2
+    np.testing.assert_allclose(snow.uv[snow.faces.ravel()],
+                               [WINTER_EAST(v - ORIGIN) for v in snow.vertices[snow.faces.ravel()]], atol=1e-7)
+    # the south wall has no texture in "winter": its material colour, window and all (8 triangles)
+    assert _faces_coloured(parts["wall"], _rgba(SOUTH_PAINT)) == 8
+    with pytest.raises(ConfigError, match=r"box\.city\.json: theme 'autumn' .*\(texture themes: 'summer', "
+                                          r"'winter'; material themes: 'paint'"):
+        read_cityjson(path, {"theme": "autumn"})
+
+
+def test_missing_texture_image_is_an_error_or_drawn_in_colour(tmp_path):
+    from pipeline25d.core.errors import MissingTextureWarning
+    from pipeline25d.formats import load_district
+
+    path = _textured_box(tmp_path)
+    (tmp_path / "textures" / "facade.png").unlink()
+    spec = {"path": str(path), "theme": "summer"}
+    with pytest.raises(InputFileError, match=r"box\.city\.json: texture image .*facade\.png is missing "
+                                             r"\(set the input's missing_textures: untextured"):
+        load_district(spec, "EPSG:7415")
+    with pytest.warns(MissingTextureWarning, match=r"facade\.png is missing; its parts are drawn untextured"):
+        mesh = load_district(dict(spec, missing_textures="untextured"), "EPSG:7415")
+    parts = {p.name: p for p in mesh.parts}
+    assert set(parts) == {"ground", "roof", "wall"}
+    wall = parts["wall"]   # south: its material; east, north, west: the class colour
+    assert (_faces_coloured(wall, _rgba(SOUTH_PAINT)), _faces_coloured(wall, PALETTE["wall"])) == (8, 6)
+
+
+def test_cityjsonseq_features_with_their_own_appearance(tmp_path):
+    whole = load_cityjson(_textured_box(tmp_path), RD, theme="summer")
+    doc = json.loads((tmp_path / "box.city.json").read_text())
+    header = {k: doc[k] for k in ("type", "version", "transform", "metadata")} | {"CityObjects": {}, "vertices": []}
+    feature = {"type": "CityJSONFeature", "id": "b1", "CityObjects": doc["CityObjects"], "vertices": doc["vertices"],
+               "appearance": doc["appearance"]}
+    (tmp_path / "box.city.jsonl").write_text(json.dumps(header) + "\n" + json.dumps(feature) + "\n")
+    seq = load_cityjson(tmp_path / "box.city.jsonl", RD, theme="summer")
+    assert [p.name for p in seq.parts] == [p.name for p in whole.parts]
+    for a, b in zip(seq.parts, whole.parts):
+        np.testing.assert_array_equal(a.vertices, b.vertices)
+        np.testing.assert_array_equal(a.faces, b.faces)
+        assert (a.uv is None) == (b.uv is None) and a.texture == b.texture
+        if a.uv is not None:
+            np.testing.assert_array_equal(a.uv, b.uv)
+
+
+def test_bad_appearance_values(tmp_path):
+    from pipeline25d.formats.cityjson import read_cityjson
+
+    def edit(name, change):
+        path = _textured_box(tmp_path, name=name)
+        doc = json.loads(path.read_text())
+        change(doc, doc["CityObjects"]["b1"]["geometry"][0])
+        path.write_text(json.dumps(doc))
+        return path
+
+    def bad_texture(doc, geom):
+        geom["texture"]["summer"]["values"][0][3][0][0] = 7
+
+    def bad_uv(doc, geom):
+        geom["texture"]["summer"]["values"][0][3][0][1] = len(doc["appearance"]["vertices-texture"])
+
+    def short_ring(doc, geom):
+        geom["texture"]["summer"]["values"][0][3][0].pop()
+
+    def outside(doc, geom):   # snow.png is clamped: a UV of 1.5 is drawn as 1
+        doc["appearance"]["vertices-texture"][geom["texture"]["winter"]["values"][0][3][0][1]] = [1.5, 0.0]
+
+    with pytest.raises(InputFileError, match=r"t\.json: texture index 7 out of range \(2 textures\)"):
+        read_cityjson(edit("t.json", bad_texture), {"theme": "summer"})
+    with pytest.raises(InputFileError, match=r"u\.json: texture coordinate index out of range"):
+        read_cityjson(edit("u.json", bad_uv), {"theme": "summer"})
+    with pytest.warns(UserWarning, match=r"texture values do not match their rings drawn in colour \(1x\)"):
+        parts = {p.name: p for p in read_cityjson(edit("s.json", short_ring), {"theme": "summer"}).parts}
+    assert parts["facade.png"].n_triangles == 8 and parts["wall"].n_triangles == 6
+    with pytest.warns(UserWarning, match=r"outside \[0, 1\] under wrapMode 'clamp' clamped"):
+        snow = next(p for p in read_cityjson(edit("o.json", outside), {}).parts if p.name == "snow.png")
+    assert snow.uv[:, 0].max() == 1.0 and snow.uv[:, 0].min() == 0.0
+
+
+#: sha256 of Delft's parts (name, vertices, faces, colours) as load_cityjson gave them before appearances
+DELFT_DIGEST = "dbb5f738152231d642384fd1f5d989c21a39e4e726cb50544095c15fe26999da"
+
+
+def test_delft_without_appearance_reads_as_before(delft_mesh):
+    """The parts of Delft (no appearance) byte for byte as the reader gave them before it read
+    appearances (sha256 of names, vertices, faces, colours, taken at commit 035f2a5)."""
+    import hashlib
+
+    digest = hashlib.sha256()
+    for part in delft_mesh.parts:
+        assert part.uv is None and part.texture is None
+        for data in (part.name.encode(), part.vertices.tobytes(), part.faces.tobytes(), part.colors.tobytes()):
+            digest.update(data)
+    assert digest.hexdigest() == DELFT_DIGEST
+
+
+def test_textured_roof_renders_its_image(tmp_path, gl_ctx):
+    """A flat textured roof at nadir, one texel per pixel: the rendered tile shows the image."""
+    from PIL import Image
+    from test_render import E0, GSD, N0, SIZE, Z0, view
+
+    from pipeline25d.formats.cityjson import read_cityjson
+    from pipeline25d.geometry.perspectives import Perspective
+    from pipeline25d.stages.render import TileRenderer
+
+    image = np.asarray(Image.open(io.BytesIO(_png(tmp_path / "roof.png", 3, (32, 32)))))
+    x0, y0, s = E0 + 8, N0 + 8, 32 * GSD
+    geom = {"type": "MultiSurface", "lod": "2", "boundaries": [[[0, 1, 2, 3]]],
+            "texture": {"t": {"values": [[[0, 0, 1, 2, 3]]]}}}
+    path = _model(tmp_path, {"r": {"type": "Building", "geometry": [geom]}},
+                  [[x0, y0, Z0], [x0 + s, y0, Z0], [x0 + s, y0 + s, Z0], [x0, y0 + s, Z0]],
+                  appearance={"textures": [{"type": "PNG", "image": "roof.png"}],
+                              "vertices-texture": [[0, 0], [1, 0], [1, 1], [0, 1]]})
+    parts = read_cityjson(path, {}).parts
+    rgba = TileRenderer(gl_ctx, samples=0).render_color([(np.array([E0, N0, Z0]), parts)], view(Perspective(0, 90)))
+    top, col = round((N0 + SIZE * GSD - (y0 + s)) / GSD), round((x0 - E0) / GSD)
+    assert np.abs(rgba[top:top + 32, col:col + 32, :3].astype(int) - image).max() <= 2

@@ -51,9 +51,9 @@ from pathlib import Path
 import numpy as np
 
 from pipeline25d.core.crs import parse_crs
-from pipeline25d.core.errors import CRSError, InputFileError, MissingTextureWarning
+from pipeline25d.core.errors import CRSError, InputFileError
 from pipeline25d.core.mesh import MeshPart
-from pipeline25d.formats.common import Detail, Loaded, crs_name
+from pipeline25d.formats.common import Detail, Loaded, crs_name, texture_image
 from pipeline25d.formats.surfaces import (
     GROUND_TYPES,
     OBJECT_CLASS,
@@ -324,26 +324,7 @@ class _Reader:
     def _image(self, image: str) -> bytes | None:
         """Encoded image bytes, or None (warned once) when missing or unreadable."""
         if image not in self.images:
-            import io
-
-            from PIL import Image, UnidentifiedImageError
-
-            problem = None
-            try:
-                data = Path(image).read_bytes()
-                with Image.open(io.BytesIO(data)) as img:
-                    img.verify()
-                self.images[image] = data
-            except FileNotFoundError:
-                problem = "is missing"
-            except UnidentifiedImageError:
-                problem = "is not an image"
-            except (OSError, SyntaxError) as exc:
-                problem = f"cannot be read ({exc})"
-            if problem:
-                warnings.warn(f"{self.path}: texture image {image} {problem}; "
-                              "its parts are drawn untextured", MissingTextureWarning, stacklevel=5)
-                self.images[image] = None
+            self.images[image] = texture_image(self.path, image)
         return self.images[image]
 
     # -- objects -----------------------------------------------------------

@@ -3,7 +3,9 @@
 Each CityObject contributes the geometry of one LOD (its highest by default). Surfaces
 are triangulated in float64 (:func:`~pipeline25d.formats.surfaces.triangulate_polygon`);
 triangles pass straight through. Colours: :mod:`pipeline25d.formats.surfaces`. One
-:class:`MeshPart` (RGBA vertex colours) per colour class.
+:class:`MeshPart` (RGBA vertex colours) per colour class; a surface with a material (of the
+theme drawn) has its diffuse colour there. Textured surfaces: one MeshPart per image
+(:mod:`pipeline25d.formats.cityjson_appearance`, which also picks the theme, ``spec["theme"]``).
 """
 
 from __future__ import annotations
@@ -11,12 +13,14 @@ from __future__ import annotations
 import json
 import warnings
 from dataclasses import dataclass, field
+from itertools import repeat
 from pathlib import Path
 
 import numpy as np
 
 from pipeline25d.core.errors import CRSError, InputFileError
 from pipeline25d.core.mesh import Mesh
+from pipeline25d.formats.cityjson_appearance import Appearances
 from pipeline25d.formats.common import Detail, Loaded, crs_name, in_scene, read_text
 from pipeline25d.formats.surfaces import (  # noqa: F401  (PALETTE, triangulate_polygon: public here too)
     GROUND_TYPES,
@@ -34,10 +38,11 @@ _SURFACE_DEPTH = {"MultiSurface": 1, "CompositeSurface": 1, "Solid": 2, "MultiSo
 
 
 def read_cityjson(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
-    """Reader contract (:mod:`pipeline25d.formats`): triangulated, coloured CityJSON/CityJSONSeq
-    in its own CRS (``spec["crs"]``, else ``metadata.referenceSystem``), LOD ``spec["lod"]``."""
+    """Reader contract (:mod:`pipeline25d.formats`): triangulated, textured/coloured
+    CityJSON/CityJSONSeq in its own CRS (``spec["crs"]``, else ``metadata.referenceSystem``),
+    LOD ``spec["lod"]``, appearance theme ``spec["theme"]``."""
     model = _read_model(Path(path))
-    return _build_parts(model, spec.get("crs"), spec.get("lod"), lambda t: True)
+    return _build_parts(model, spec.get("crs"), spec.get("lod"), lambda t: True, spec.get("theme"))
 
 
 def read_cityjson_terrain(path: Path, spec: dict) -> Loaded:
@@ -46,16 +51,16 @@ def read_cityjson_terrain(path: Path, spec: dict) -> Loaded:
     A file without TINRelief (3dfier output such as Delft models the ground as LandUse,
     Road, WaterBody ... polygons) yields its ground-level objects instead:
     :data:`GROUND_TYPES`. PlantCover is left out because 3dfier lifts it to vegetation
-    height, which would bias terrain/GCP heights.
+    height, which would bias terrain/GCP heights. Appearances are not read (class colours).
     """
     model = _read_model(Path(path))
     terrain = _terrain_types(model)
-    return _build_parts(model, spec.get("crs"), None, lambda t: t in terrain)
+    return _build_parts(model, spec.get("crs"), None, lambda t: t in terrain, appearances=False)
 
 
 def load_cityjson(path: str | Path, scene_crs: str, lod: str | None = None, src_crs: str | None = None,
-                  include_terrain: bool = True) -> Mesh:
-    """Triangulated, coloured CityJSON/CityJSONSeq in ``scene_crs``.
+                  include_terrain: bool = True, theme: str | None = None) -> Mesh:
+    """Triangulated, textured/coloured CityJSON/CityJSONSeq in ``scene_crs`` (appearance ``theme``).
 
     ``lod``: per object the geometry of that LOD, else its highest LOD below it, else
     (so no object disappears) its lowest LOD; None takes each object's highest LOD.
@@ -65,7 +70,7 @@ def load_cityjson(path: str | Path, scene_crs: str, lod: str | None = None, src_
     model = _read_model(Path(path))
     terrain = _terrain_types(model)
     keep = (lambda t: True) if include_terrain else (lambda t: t not in terrain)
-    return in_scene(_build_parts(model, src_crs, lod, keep), scene_crs, path)
+    return in_scene(_build_parts(model, src_crs, lod, keep, theme), scene_crs, path)
 
 
 def load_cityjson_terrain(path: str | Path, scene_crs: str, src_crs: str | None = None) -> Mesh:
@@ -82,6 +87,7 @@ class _Chunk:
 
     objects: dict
     base: np.ndarray
+    appearance: dict | None = None                            # a CityJSONSeq feature's own
     placed: list[np.ndarray] = field(default_factory=list)   # GeometryInstance vertices, appended
     n_vertices: int = -1
 
@@ -167,7 +173,7 @@ def _chunk(doc: dict, transform: dict | None, path: Path, where: str) -> _Chunk:
     if transform:
         v = v * np.asarray(transform.get("scale", [1, 1, 1]), dtype=np.float64) \
             + np.asarray(transform.get("translate", [0, 0, 0]), dtype=np.float64)
-    return _Chunk(objects, v)
+    return _Chunk(objects, v, doc.get("appearance"))
 
 
 def source_crs(header: dict, path: Path) -> str:
@@ -184,25 +190,51 @@ def source_crs(header: dict, path: Path) -> str:
 # --------------------------------------------------------------------------- geometry
 
 
-def _build_parts(model: _Model, src_crs: str | None, lod: str | None, keep) -> Loaded:
-    """Triangulate the kept objects and group them by colour class, in the source CRS."""
+@dataclass
+class _Out:
+    """Where one chunk's surfaces go: faces on the chunk's vertices per (colour class, material
+    RGBA or None), and textured pieces (own corners and UVs) per image, shared by all chunks."""
+
+    look: Appearances
+    palette: object                    # the chunk's parsed appearance object (None: not read)
+    textured: dict
+    colour: dict = field(default_factory=dict)
+
+
+def _build_parts(model: _Model, src_crs: str | None, lod: str | None, keep, theme: str | None = None,
+                 appearances: bool = True) -> Loaded:
+    """Triangulate the kept objects and group them by colour class (material colours on their
+    surfaces) and by texture image, in the source CRS."""
     src = src_crs or source_crs(model.header, model.path)
-    by_class: dict[str, list[np.ndarray]] = {}
+    look = Appearances(model.path, model.header, theme, appearances)
+    look.choose_themes(_all_geometries(model))
+    by_class: dict[str, list[tuple]] = {}
+    textured: dict[str, list[tuple]] = {}
     for chunk in model.chunks:
-        tris: dict[str, list[np.ndarray]] = {}
+        out = _Out(look, look.palette(chunk.appearance) if appearances else None, textured)
         for obj in chunk.objects.values():
             if isinstance(obj, dict) and keep(obj.get("type")):
-                _object_triangles(obj, lod, chunk, model, tris)
+                _object_triangles(obj, lod, chunk, model, out)
         verts = chunk.vertices
-        for cls, faces in tris.items():
+        for (cls, rgba), faces in out.colour.items():
             faces = np.concatenate(faces)
             if faces.size and (faces.min() < 0 or faces.max() >= len(verts)):
                 bad = faces.max() if faces.max() >= len(verts) else faces.min()
                 raise InputFileError(model.path, f"vertex index {bad} out of range ({len(verts)} vertices)")
             used, inv = np.unique(faces, return_inverse=True)
-            by_class.setdefault(cls, []).append((verts[used], inv.reshape(-1, 3)))
+            by_class.setdefault(cls, []).append((verts[used], inv.reshape(-1, 3), rgba))
     parts = [class_part(cls, pieces) for cls, pieces in sorted(by_class.items())]
-    return Loaded(parts, src)
+    look.report()
+    return Loaded(parts + look.parts(textured), src)
+
+
+def _all_geometries(model: _Model):
+    """Every geometry of the file (objects of every chunk, and templates), for their theme names."""
+    for chunk in model.chunks:
+        for obj in chunk.objects.values():
+            if isinstance(obj, dict):
+                yield from (g for g in obj.get("geometry") or [] if isinstance(g, dict))
+    yield from (t for t in model.templates if isinstance(t, dict))
 
 
 def _geometry_lod(geom: dict, model: _Model) -> tuple[int, ...]:
@@ -222,8 +254,8 @@ def _pick_geometries(geoms: list, lod: str | None, model: _Model) -> list:
     return [g for k, g in keyed if k == chosen]
 
 
-def _object_triangles(obj: dict, lod: str | None, chunk: _Chunk, model: _Model, out: dict) -> None:
-    """Append the triangles of one CityObject to ``out[colour class]``."""
+def _object_triangles(obj: dict, lod: str | None, chunk: _Chunk, model: _Model, out: _Out) -> None:
+    """Append the triangles of one CityObject to ``out``."""
     obj_class = OBJECT_CLASS.get(str(obj.get("type", "")), "other")
     geoms = [g for g in obj.get("geometry") or [] if isinstance(g, dict)]
     for geom in _pick_geometries(geoms, lod, model):
@@ -268,10 +300,11 @@ def _remap(b, mapping: dict):
     return [_remap(x, mapping) for x in b] if isinstance(b, list) else mapping[int(b)]
 
 
-def _geometry_triangles(geom: dict, obj_class: str, verts: np.ndarray, path: Path, out: dict,
+def _geometry_triangles(geom: dict, obj_class: str, verts: np.ndarray, path: Path, out: _Out,
                         offset: int = 0) -> None:
     """Triangulate every surface of a (Multi/Composite)Surface/Solid geometry on ``verts``;
-    the faces go to ``out`` shifted by ``offset`` (where ``verts`` start in the chunk).
+    the faces go to ``out`` shifted by ``offset`` (where ``verts`` start in the chunk), a
+    textured surface's to ``out.textured`` with its own corners and UVs.
 
     Surfaces that are already triangles (3dfier TINs: the common case) are handled
     together in numpy; other polygons go through :func:`triangulate_polygon`.
@@ -281,23 +314,39 @@ def _geometry_triangles(geom: dict, obj_class: str, verts: np.ndarray, path: Pat
         return  # points, lines: nothing to draw
     semantics = geom.get("semantics") or {}
     sem_surfaces = semantics.get("surfaces") or []
-    tris, values = [], []
+    boundaries = geom.get("boundaries") or []
+    materials, textures = out.look.themed(geom)
+    per_material = (repeat((None, materials)) if materials is None or isinstance(materials, int)
+                    else _iter_surfaces(boundaries, materials, depth))
+    per_texture = repeat((None, None)) if textures is None else _iter_surfaces(boundaries, textures, depth)
+    tris, values, colour_ids, rgbas = [], [], [], {}
     try:
-        for rings, value in _iter_surfaces(geom.get("boundaries") or [], semantics.get("values"), depth):
+        for (rings, value), (_, material), (_, texture) in zip(
+                _iter_surfaces(boundaries, semantics.get("values"), depth), per_material, per_texture):
+            if texture is not None:
+                hit = out.look.textured(texture, rings, verts, out.palette)
+                if hit is not None:
+                    out.textured.setdefault(hit[0], []).append(hit[1])
+                    continue
+            rgba = None if material is None else out.look.rgba(material, out.palette)
             if len(rings) == 1 and len(rings[0]) == 3:
                 tris.append(rings[0])
                 values.append(value)
+                colour_ids.append(rgbas.setdefault(rgba, len(rgbas)))
                 continue
             poly, normal = triangulate_polygon(rings, verts)
             if len(poly):
-                out.setdefault(_surface_classes(sem_surfaces, [value], obj_class, normal[None])[0], []).append(poly + offset)
+                cls = _surface_classes(sem_surfaces, [value], obj_class, normal[None])[0]
+                out.colour.setdefault((cls, rgba), []).append(poly + offset)
         if tris:
             tris = np.asarray(tris, dtype=np.int64)
             p = verts[tris]
             normals = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
             classes = _surface_classes(sem_surfaces, values, obj_class, normals)
+            ids, colours = np.asarray(colour_ids), list(rgbas)
             for cls in set(classes):
-                out.setdefault(cls, []).append(tris[classes == cls] + offset)
+                for k in np.unique(ids[classes == cls]):
+                    out.colour.setdefault((cls, colours[k]), []).append(tris[(classes == cls) & (ids == k)] + offset)
     except (TypeError, ValueError, KeyError) as exc:
         raise InputFileError(path, f"malformed geometry boundaries: {exc!r}") from None
     except IndexError:

@@ -13,7 +13,7 @@ from typing import NamedTuple
 import numpy as np
 
 from pipeline25d.core.crs import check_within_area_of_use, parse_crs, transform_points
-from pipeline25d.core.errors import CRSError, InputFileError, UnsupportedFeatureError
+from pipeline25d.core.errors import CRSError, InputFileError, MissingTextureWarning, UnsupportedFeatureError
 from pipeline25d.core.mesh import Mesh, MeshPart
 
 AREA_SAMPLE = 2000   # vertices checked against the scene CRS's area of use
@@ -49,6 +49,33 @@ def read_text(path: Path, what: str) -> str:
         raise InputFileError(path, f"{what} is missing") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise InputFileError(path, f"cannot read {what}: {exc}") from None
+
+
+def texture_image(model: Path, image: str, problem: str | None = None) -> bytes | None:
+    """The encoded bytes of texture image file ``image``, or None with a MissingTextureWarning
+    ("<model>: texture image <image> <problem>; ...") when it is missing, not an image or
+    unreadable, or when the caller already knows its ``problem``."""
+    import io
+
+    from PIL import Image, UnidentifiedImageError
+
+    data = None
+    if problem is None:
+        try:
+            data = Path(image).read_bytes()
+            with Image.open(io.BytesIO(data)) as img:
+                img.verify()
+        except FileNotFoundError:
+            problem = "is missing"
+        except UnidentifiedImageError:
+            problem = "is not an image"
+        except (OSError, SyntaxError) as exc:
+            problem = f"cannot be read ({exc})"
+    if problem:
+        warnings.warn(f"{model}: texture image {image} {problem}; its parts are drawn untextured",
+                      MissingTextureWarning, stacklevel=3)
+        return None
+    return data
 
 
 #: German AdV CRS names (urn:adv:crs:ETRS89_UTM32*DE_DHHN2016_NH, in most German CityGML):
