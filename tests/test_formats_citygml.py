@@ -318,3 +318,83 @@ def test_plateau_lod1_and_citygml3_excerpt():
     assert v3.n_triangles + dropped == _polygon_triangles(PLATEAU3, "lod2MultiSurface")
     tex = next(p for p in v3.parts if p.texture is not None)
     assert tex.n_triangles == v3.n_triangles - _polygon_triangles(PLATEAU3, "GroundSurface")
+
+
+# ----------------------------------------------------------------------------- XML defects (issue 27)
+
+ENERGY = 'xmlns:energy="http://www.sig3d.org/citygml/2.0/energy/1.0" '
+
+
+def _plateau_copy(folder: Path, declare: bool, edit=None) -> Path:
+    """The real PLATEAU building with ADE elements under the prefix ``energy:`` (declared or not):
+    one element among the building's attributes and one attribute on uro:BuildingDetails, both
+    outside the geometry; ``edit`` changes the text further. Its texture atlas is copied beside it."""
+    folder.mkdir()
+    text = PLATEAU2.read_text(encoding="utf-8")
+    text = text.replace("<uro:buildingDetails>", "<energy:isHeated>true</energy:isHeated>\n<uro:buildingDetails>", 1)
+    text = text.replace("<uro:BuildingDetails>", '<uro:BuildingDetails energy:source="survey">', 1)
+    if declare:
+        text = text.replace("<core:CityModel ", "<core:CityModel " + ENERGY, 1)
+    if edit is not None:
+        text = edit(text)
+    path = folder / PLATEAU2.name
+    path.write_text(text, encoding="utf-8")
+    (folder / "53394517_bldg_6697_appearance").mkdir()
+    (folder / "53394517_bldg_6697_appearance" / "stad0158.jpg").write_bytes(
+        (DATA / "53394517_bldg_6697_appearance" / "stad0158.jpg").read_bytes())
+    return path
+
+
+def _warned(path: Path, **spec):
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        mesh = _load(path, TOKYO, **spec)
+    return mesh, [str(w.message) for w in caught]
+
+
+def test_an_undeclared_ade_prefix_outside_the_geometry_is_read_with_one_warning(tmp_path):
+    declared, _ = _warned(_plateau_copy(tmp_path / "declared", True))
+    path = _plateau_copy(tmp_path / "undeclared", False)
+    line = next(i for i, t in enumerate(path.read_text(encoding="utf-8").splitlines(), 1) if "energy:isHeated" in t)
+    mesh, said = _warned(path)
+    ours = [m for m in said if "energy" in m]
+    assert len(ours) == 1, said                                   # once per prefix, not per element
+    assert ours[0].startswith(f"{path}: line {line}: Namespace prefix energy on isHeated is not defined")
+    assert "1 more like it" in ours[0]                            # the attribute on uro:BuildingDetails
+    # the same geometry, texture and texture coordinates as the file with the prefix declared
+    assert [p.name for p in mesh.parts] == [p.name for p in declared.parts] == ["ground", "stad0158.jpg"]
+    for got, want in zip(mesh.parts, declared.parts):
+        np.testing.assert_array_equal(got.vertices, want.vertices)
+        np.testing.assert_array_equal(got.faces, want.faces)
+        assert got.texture == want.texture
+    np.testing.assert_array_equal(mesh.parts[1].uv, declared.parts[1].uv)
+    assert mesh.parts[1].texture == (DATA / "53394517_bldg_6697_appearance" / "stad0158.jpg").read_bytes()
+
+
+@pytest.mark.parametrize("edit, problem", [
+    # an undeclared prefix on a polygon: its meaning (gml:id here) is lost, so its triangles are too
+    (lambda t: t[:t.index("<bldg:GroundSurface")] + t[t.index("<bldg:GroundSurface"):].replace(
+        "<gml:Polygon ", '<gml:Polygon energy:id="p" ', 1),
+     r"line \d+: attribute energy:id of <Polygon> inside a geometry has an undeclared namespace prefix"),
+    (lambda t: t.replace("</gml:posList>", "</gml:posLst>", 1), r"malformed XML at line \d+: Opening and ending tag"),
+    (lambda t: t[:len(t) // 2], r"malformed XML at line \d+: "),                       # truncated
+    (lambda t: t.replace("<gml:posList>", "<gml:posList>& ", 1), r"malformed XML at line \d+: xmlParseEntityRef"),
+])
+def test_other_xml_defects_and_prefixes_inside_the_geometry_are_still_refused(tmp_path, edit, problem):
+    path = _plateau_copy(tmp_path / "bad", False, edit)
+    with pytest.raises(InputFileError, match=problem) as err:
+        read_citygml(path, {})
+    assert str(err.value).startswith(f"{path}: ")
+
+
+def test_a_texture_outside_the_files_folder_is_refused(tmp_path):
+    outside = tmp_path / "elsewhere"
+    outside.mkdir()
+    (outside / "atlas.jpg").write_bytes((DATA / "53394517_bldg_6697_appearance" / "stad0158.jpg").read_bytes())
+    path = _plateau_copy(tmp_path / "model", True, lambda t: t.replace(
+        "53394517_bldg_6697_appearance/stad0158.jpg", "../elsewhere/atlas.jpg"))
+    with pytest.raises(InputFileError, match=r"texture imageURI '\.\./elsewhere/atlas\.jpg' lies outside the "
+                                             r"dataset folder"):
+        read_citygml(path, {})

@@ -172,12 +172,36 @@ def test_matrix_transform_places_and_scales_child_files(copy, tmp_path):
     np.testing.assert_allclose([got.min(axis=0), got.max(axis=0)], [v.min(axis=0), v.max(axis=0)], atol=1e-4)
 
 
-def test_missing_child_file_is_named(copy):
-    lost = copy / "Data" / "Tile_+001_+000" / "Tile_+001_+000_L2_3.osgb"
-    lost.unlink()
-    assert dict(read_tiles(copy, 2.0)[1].levels) == {1: S.triangles(1)}     # not needed at level 1
-    with pytest.raises(InputFileError, match=r"Tile_\+001_\+000_L2_3\.osgb.*missing.*named by.*_L1\.osgb"):
+def test_a_missing_child_file_draws_its_parents_level_there_with_a_warning(copy, tiles_at):
+    """As OpenSceneGraph keeps drawing a PagedLOD's own level while a child is not there: the
+    quadrant whose level-2 file is gone is drawn at level 1, the rest of the tile at level 2."""
+    tile = copy / "Data" / "Tile_+001_+000"
+    (tile / "Tile_+001_+000_L2_3.osgb").unlink()
+    assert dict(read_tiles(copy, 2.0)[1].levels) == {1: S.triangles(1)}     # not needed at level 1: no word
+    with pytest.warns(UserWarning, match=r"Tile_\+001_\+000\.osgb: 1 PagedLOD child file\(s\) missing, drawn "
+                                         r"coarser than gsd 0\.5.*Tile_\+001_\+000_L2_3\.osgb \(level 1 drawn\)"):
+        tiles = read_tiles(copy, 0.5)
+    assert tiles[1].coarser == [("Tile_+001_+000_L2_3.osgb", 1)] and tiles[0].coarser == []
+    assert dict(tiles[1].levels) == {1: S.triangles(1) // 4, 2: S.triangles(2) // 4 * 3}
+    assert dict(tiles[0].levels) == {2: S.triangles(2)}
+    # the quadrant is there whole: the tile's vertices are the other quadrants' level-2 grid and its level-1 grid
+    full = np.concatenate([p.vertices for p in tiles_at(0.5)[1].parts])
+    got = np.concatenate([p.vertices for p in tiles[1].parts])
+    np.testing.assert_array_equal([got.min(axis=0)[:2], got.max(axis=0)[:2]],
+                                  [full.min(axis=0)[:2], full.max(axis=0)[:2]])
+    # the whole level 1 gone: level 0 everywhere in that tile
+    (tile / "Tile_+001_+000_L1.osgb").unlink()
+    with pytest.warns(UserWarning, match=r"Tile_\+001_\+000_L1\.osgb \(level 0 drawn\)"):
+        tiles = read_tiles(copy, 0.5)
+    assert dict(tiles[1].levels) == {0: S.triangles(0)}
+
+
+def test_a_missing_root_file_is_still_an_error(copy):
+    (copy / "Data" / "Tile_+001_+000" / "Tile_+001_+000.osgb").unlink()
+    with pytest.raises(InputFileError, match=r"Tile_\+001_\+000\.osgb: tile root file is missing"):
         read_tiles(copy, 0.5)
+    with pytest.raises(InputFileError, match=r"none\.osgb: OSGB file is missing"):
+        read_tiles(copy / "none.osgb", 0.5)
 
 
 def test_corrupt_file_is_named(copy):

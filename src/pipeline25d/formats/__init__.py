@@ -117,6 +117,9 @@ def detect_format(path: Path) -> str:
             doc = json.loads(path.read_bytes())
         except (OSError, ValueError) as exc:
             raise InputFileError(path, f"is not valid JSON: {exc}") from None
+        except RecursionError:
+            raise InputFileError(path, "JSON nested deeper than the JSON reader allows (about 1000 objects "
+                                       "and arrays)") from None
         if isinstance(doc, dict) and doc.get("type") in ("CityJSON", "CityJSONFeature"):
             return "cityjson"
         if isinstance(doc, dict) and "asset" in doc and "root" in doc:

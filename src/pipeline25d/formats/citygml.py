@@ -35,6 +35,13 @@ is a :class:`~pipeline25d.core.errors.MissingTextureWarning` (once per image), w
 ``missing_textures: untextured``; then its polygons fall back to colour. The renderer repeats textures; texture coordinates outside [0, 1]
 under wrap modes other than ``wrap`` are clamped per vertex (an approximation).
 
+Forgiving where CityGML tools are: an undeclared namespace prefix (an ADE element such as
+``<energy:isHeated>`` whose ``xmlns:energy`` the file never declares) is recovered from outside
+the geometry, with one warning per prefix naming the file and its first line; inside the
+geometry, and any other XML error (truncated file, mismatched tags), it refuses the file
+naming the line (:mod:`pipeline25d.formats.xml_defects`). Texture images must lie inside the
+file's folder (:func:`~pipeline25d.formats.common.side_file`).
+
 Over 400 lines for one job: one format's streaming reader (three CityGML versions, geometry,
 appearances and terrain share its element walk).
 """
@@ -53,7 +60,7 @@ import numpy as np
 from pipeline25d.core.crs import parse_crs
 from pipeline25d.core.errors import CRSError, InputFileError
 from pipeline25d.core.mesh import MeshPart
-from pipeline25d.formats.common import Detail, Loaded, crs_name, texture_image
+from pipeline25d.formats.common import Detail, Loaded, crs_name, side_file, texture_image
 from pipeline25d.formats.surfaces import (
     GROUND_TYPES,
     OBJECT_CLASS,
@@ -63,6 +70,7 @@ from pipeline25d.formats.surfaces import (
     pick_lod,
     triangulate_polygon,
 )
+from pipeline25d.formats.xml_defects import XmlDefects, recovered_name
 
 GML_ID = ("{http://www.opengis.net/gml}id", "{http://www.opengis.net/gml/3.2}id")
 XLINK_HREF = "{http://www.w3.org/1999/xlink}href"
@@ -161,6 +169,8 @@ class _Reader:
         self.types_drawn: set[str] = set()
         self.issues: Counter = Counter()
         self.version: str | None = None
+        self.xml = XmlDefects(path)
+        self.image_paths: dict[str, str] = {}   # imageURI -> confined, resolved image path
 
     # -- passes ------------------------------------------------------------
     def run(self, keep) -> None:
@@ -170,6 +180,7 @@ class _Reader:
         if self.textures and self._has_global_appearances():
             self._stream(("appearanceMember", "cityObjectMember"), self._global_appearance)
         self._stream(("cityObjectMember", "featureMember", "Envelope"), lambda el: self._member(el, keep))
+        self.xml.warn(stacklevel=4)
         for issue, n in sorted(self.issues.items()):
             warnings.warn(f"{self.path}: {issue} ({n}x)", stacklevel=3)
 
@@ -184,12 +195,14 @@ class _Reader:
     def _stream(self, names: tuple[str, ...], handle) -> None:
         from lxml import etree
 
+        self.xml.start()
         try:
-            # our own handle, closed on every exit: iterparse's own stays open until collected
+            # our own handle, closed on every exit: iterparse's own stays open until collected;
+            # recover: namespace defects are read on, every other error refuses (self.xml.check)
             with open(self.path, "rb") as source:
                 self._iterate(etree.iterparse(source, events=("end",), tag=[f"{{*}}{n}" for n in names],
                                               huge_tree=True, resolve_entities=False, no_network=True,
-                                              remove_comments=True), handle)
+                                              remove_comments=True, recover=True), handle)
         except etree.XMLSyntaxError as exc:
             raise InputFileError(self.path, f"malformed XML at line {exc.lineno}: {exc.msg}") from None
         except InputFileError:
@@ -200,6 +213,7 @@ class _Reader:
     def _iterate(self, context, handle) -> None:
         """Hand every streamed element to ``handle``, then free it and what came before it."""
         for _, elem in context:
+            self.xml.check(context)
             if self.version is None:
                 self._check_root(elem.getroottree().getroot())
             if _local(elem.tag) == "Envelope":
@@ -210,6 +224,7 @@ class _Reader:
             parent = elem.getparent()
             while parent is not None and elem.getprevious() is not None:
                 del parent[0]
+        self.xml.check(context)
         if self.version is None:
             self._check_root(context.root)
 
@@ -292,7 +307,10 @@ class _Reader:
         uri = _child_text(data, "imageURI")
         if not uri:
             return
-        image = str((self.path.parent / uri).resolve())
+        if uri not in self.image_paths:
+            target = side_file(uri, self.path.parent, self.path.parent, self.path, "texture imageURI", url=False)
+            self.image_paths[uri] = str(target.resolve())
+        image = self.image_paths[uri]
         clamp = (_child_text(data, "wrapMode") or "none") != "wrap"
         for target in data.iter("{*}target"):
             with_uri = target.get("uri") is not None            # 2.0: <target uri="#poly">coords</target>
@@ -466,7 +484,7 @@ class _Member:
         while stack:
             elem, flip = stack.pop()
             for child in reversed(elem):
-                name = _local(child.tag)
+                name = self._name(child)
                 if not name or name in _NOT_SURFACES:
                     continue
                 href = child.get(XLINK_HREF)
@@ -477,7 +495,7 @@ class _Member:
                             target is None
                         continue
                     seen.add(href)
-                    child, name = target, _local(target.tag)
+                    child, name = target, self._name(target)
                 if name in _POLYGONS:
                     yield child, flip
                 elif name == "Tin" and not any(_local(c.tag) in ("trianglePatches", "patches") for c in child):
@@ -486,6 +504,16 @@ class _Member:
                     stack.append((child, flip ^ (child.get("orientation") == "-")))
                 else:
                     stack.append((child, flip))
+
+    def _name(self, elem) -> str:
+        """Local name of a geometry element; InputFileError when it or one of its attributes kept
+        an undeclared namespace prefix (the parser recovered it: its meaning is lost)."""
+        if self.r.xml.recovered:
+            bad = recovered_name(elem)
+            if bad:
+                raise InputFileError(self.r.path, f"line {elem.sourceline}: {bad} inside a geometry has an "
+                                                  "undeclared namespace prefix (its polygons cannot be read)")
+        return _local(elem.tag)
 
     def _ref(self, href: str):
         if self.ids is None:
@@ -512,7 +540,7 @@ class _Member:
         self.r._check_geometry_crs(srs, ring)
         texts = []
         for child in ring:
-            name = _local(child.tag)
+            name = self._name(child)
             if name == "posList":
                 dim = int(child.get("srsDimension") or dim)
                 texts.append(child.text or "")
@@ -529,11 +557,11 @@ class _Member:
         """(ring gml:id, coordinates without the closing repeat) of a polygon, exterior first."""
         out = []
         for side in poly:
-            name = _local(side.tag)
+            name = self._name(side)
             if name not in ("exterior", "interior"):
                 continue
             for ring in side:
-                if _local(ring.tag) != "LinearRing":
+                if self._name(ring) != "LinearRing":
                     self.r.issues[f"{_local(ring.tag)} rings (curves) not drawn"] += 1
                     continue
                 pts = self._ring(ring)

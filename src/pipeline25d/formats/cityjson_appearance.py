@@ -29,7 +29,7 @@ import numpy as np
 
 from pipeline25d.core.errors import ConfigError, InputFileError
 from pipeline25d.core.mesh import MeshPart
-from pipeline25d.formats.common import texture_image
+from pipeline25d.formats.common import side_file, texture_image
 from pipeline25d.formats.surfaces import join_pieces, triangulate_polygon
 
 log = logging.getLogger(__name__)
@@ -54,10 +54,11 @@ class _Palette:
 
 
 def image_path(model: Path, uri: str) -> str | None:
-    """The local file a texture's ``image`` names (relative to the model's folder), None for a URL."""
+    """The local file a texture's ``image`` names (relative to the model's folder, and confined to
+    it: :func:`pipeline25d.formats.common.side_file`), None for a URL (drawn as a missing texture)."""
     if "://" in uri:
         return None
-    return str((model.parent / uri).resolve())
+    return str(side_file(uri, model.parent, model.parent, model, "texture image", url=False).resolve())
 
 
 def material_rgba(material: dict) -> Rgba:

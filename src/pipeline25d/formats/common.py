@@ -1,4 +1,5 @@
-"""What every reader shares: its return type, reading a text file with clear errors, reprojection."""
+"""What every reader shares: its return type, reading a text file with clear errors, the one
+confinement check of the side files a model names, reprojection."""
 
 from __future__ import annotations
 
@@ -8,7 +9,9 @@ import subprocess
 import warnings
 from dataclasses import replace
 from pathlib import Path
+from functools import lru_cache
 from typing import NamedTuple
+from urllib.parse import unquote, urlsplit
 
 import numpy as np
 
@@ -76,6 +79,46 @@ def texture_image(model: Path, image: str, problem: str | None = None) -> bytes 
                       MissingTextureWarning, stacklevel=3)
         return None
     return data
+
+
+def side_file(ref: str, base: Path, root: Path, referrer: Path, what: str, url: bool = True) -> Path:
+    """The local file that ``referrer`` names by ``ref`` (relative to folder ``base``), confined to ``root``.
+
+    ``root`` is the dataset's folder: the folder of the file the config's ``inputs`` name (a
+    tileset's root tileset.json, a model file), or an OSGB dataset folder. ``..`` that stays
+    inside it is fine (tilesets reference siblings). A ``ref`` that resolves outside it (an
+    absolute path, a ``file:`` URI, ``..`` climbing out, a symlink pointing out) is an
+    InputFileError naming ``referrer`` and ``ref``; a remote URI (``http(s):``...) an
+    UnsupportedFeatureError (no network). ``url``: ``ref`` is a URI (glTF, 3D Tiles:
+    percent-escapes decoded), else a plain path (CityGML imageURI, OBJ, OSGB). The path is
+    returned as joined (not resolved), so messages keep the names the files use.
+    """
+    parts = urlsplit(ref)
+    scheme = parts.scheme.lower()
+    if scheme == "file":
+        name = unquote(parts.path)
+    elif len(scheme) > 1:   # one letter: a Windows drive
+        raise UnsupportedFeatureError(referrer, f"{what} {ref!r} is remote; pipeline25d reads local files "
+                                                "only (no network)")
+    else:
+        name = unquote(parts.path) if url else ref
+    target = base / name
+    real = target.resolve()
+    if not real.is_relative_to(_real(root)):
+        raise InputFileError(referrer, f"{what} {ref!r} lies outside the dataset folder {root} (it resolves to "
+                                       f"{real}); a model may only name files inside the folder of the input")
+    return target
+
+
+@lru_cache(maxsize=64)
+def _real(root: Path) -> Path:
+    return root.resolve()
+
+
+def dataset_root(path: Path) -> Path:
+    """The folder a model's side files must lie in: the folder itself for a dataset folder,
+    else the folder of the file (see :func:`side_file`)."""
+    return path if path.is_dir() else path.parent
 
 
 #: German AdV CRS names (urn:adv:crs:ETRS89_UTM32*DE_DHHN2016_NH, in most German CityGML):

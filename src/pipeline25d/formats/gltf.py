@@ -35,6 +35,7 @@ import numpy as np
 
 from pipeline25d.core.errors import InputFileError, MissingTextureWarning, UnsupportedFeatureError
 from pipeline25d.core.mesh import MeshPart
+from pipeline25d.formats.common import side_file
 
 #: Extensions this reader honours (or may safely ignore) when a file lists them as required.
 SUPPORTED_EXTENSIONS = frozenset({
@@ -73,13 +74,17 @@ def load_gltf(path: str | Path, y_up_to_z_up: bool = True) -> list[MeshPart]:
     return parse_gltf_bytes(data, path, y_up_to_z_up)
 
 
-def parse_gltf_bytes(data: bytes, path: str | Path, y_up_to_z_up: bool = True) -> list[MeshPart]:
+def parse_gltf_bytes(data: bytes, path: str | Path, y_up_to_z_up: bool = True,
+                     root: Path | None = None) -> list[MeshPart]:
     """Parts of a GLB or JSON glTF held in ``data``.
 
     ``path`` names the file in messages and anchors relative URIs (for GLB embedded in
     b3dm/i3dm it is the tile file, as 3D Tiles resolves glTF URIs relative to the tile).
+    Buffer and image files must lie inside ``root`` (default: ``path``'s folder; a tileset's
+    root folder for its tiles), see :func:`pipeline25d.formats.common.side_file`.
     """
-    doc = _Document.parse(bytes(data), Path(path))
+    path = Path(path)
+    doc = _Document.parse(bytes(data), path, path.parent if root is None else root)
     world = Y_UP_TO_Z_UP if y_up_to_z_up else np.eye(4)
     rtc = doc.json.get("extensions", {}).get("CESIUM_RTC", {}).get("center")
     if rtc is not None:
@@ -112,12 +117,13 @@ class _Document:
 
     json: dict
     path: Path
+    root: Path            # the folder its buffer and image files must lie in
     glb_bin: bytes | None
     _buffers: dict[int, bytes] = field(default_factory=dict)
     _images: dict[int, bytes | None] = field(default_factory=dict)
 
     @classmethod
-    def parse(cls, data: bytes, path: Path) -> "_Document":
+    def parse(cls, data: bytes, path: Path, root: Path) -> "_Document":
         """Split GLB chunks or parse JSON glTF; check version and required extensions."""
         if data[:4] == _GLB_MAGIC:
             doc_json, glb_bin = _split_glb(data, path)
@@ -134,7 +140,7 @@ class _Document:
         unsupported = [e for e in doc_json.get("extensionsRequired", []) if e not in SUPPORTED_EXTENSIONS]
         if unsupported:
             raise UnsupportedFeatureError(path, f"glTF requires unsupported extension(s) {', '.join(unsupported)}")
-        return cls(doc_json, path, glb_bin)
+        return cls(doc_json, path, root, glb_bin)
 
     def item(self, kind: str, index: int) -> dict:
         """``json[kind][index]`` or InputFileError when the reference dangles."""
@@ -250,15 +256,13 @@ class _Document:
         return self._images[index]
 
     def _uri_bytes(self, uri: str, what: str) -> bytes | None:
-        """Bytes of a data: URI or a relative file; None when the file does not exist."""
+        """Bytes of a data: URI or a file inside the dataset's root; None when the file does not exist."""
         if uri.startswith("data:"):
             try:
                 return base64.b64decode(uri.split(",", 1)[1], validate=False)
             except (IndexError, binascii.Error):
                 raise InputFileError(self.path, f"{what}: malformed data URI") from None
-        if "://" in uri:
-            raise UnsupportedFeatureError(self.path, f"{what}: remote URI {uri!r} is not supported")
-        target = self.path.parent / unquote(uri)
+        target = side_file(uri, self.path.parent, self.root, self.path, what)
         try:
             return target.read_bytes()
         except FileNotFoundError:

@@ -17,6 +17,7 @@ import trimesh
 
 from pipeline25d.core.errors import InputFileError, MissingTextureWarning
 from pipeline25d.core.mesh import Mesh, MeshPart
+from pipeline25d.formats.common import side_file
 
 
 def load_mesh_file(path: str | Path) -> Mesh:
@@ -106,13 +107,22 @@ def _part(geom, vertices: np.ndarray, name: str, encoded: dict[int, bytes]) -> M
 
 class _Files(trimesh.resolvers.FilePathResolver):
     """Files next to the model, each request recorded: trimesh only logs a material library
-    or texture it cannot find or decode, and draws the parts in a plain colour."""
+    or texture it cannot find or decode, and draws the parts in a plain colour. A file outside
+    the model's folder is never opened (:func:`~pipeline25d.formats.common.side_file`)."""
 
     def __init__(self, source: str):
         super().__init__(source)
         self.asked: dict[str, bytes | None] = {}
+        self.model = Path(source)
+        self.outside: InputFileError | None = None
 
     def get(self, name: str) -> bytes:
+        what = "material library" if name.lower().endswith(".mtl") else "texture"
+        try:
+            side_file(name.strip(), self.model.parent, self.model.parent, self.model, what, url=False)
+        except InputFileError as exc:
+            self.outside = self.outside or exc
+            raise
         try:
             data = super().get(name)
         except Exception:
@@ -125,6 +135,8 @@ class _Files(trimesh.resolvers.FilePathResolver):
         """Warn of each material library or texture that was missing or is not an image."""
         from PIL import Image, UnidentifiedImageError
 
+        if self.outside is not None:
+            raise self.outside
         for name, data in self.asked.items():
             what = "material library" if name.lower().endswith(".mtl") else "texture"
             if data is None:

@@ -23,6 +23,18 @@ coarsest), so a very fine or very coarse map still gets geometry. ``gsd`` None (
 draws the finest children everywhere. The level of a node is the number of files between it
 and the tile's root file (0: the root file's own geometry).
 
+**Missing children.** A PagedLOD child file that is absent (a partial export, a tile handed
+over on its own) is what OpenSceneGraph meets while a child is still loading: it keeps
+drawing what it has. So does this reader: where a chosen child file is missing, the node's
+finest inline children (its own coarser level) are drawn instead, and one warning per tile
+(also in the job's log) names the missing files and the level drawn there, which is coarser
+than the gsd asks for. A missing root file (the one the input names, or a dataset's
+``Tile_*/Tile_*.osgb``) is still an error.
+
+Child files and texture files must lie inside the dataset folder (a single .osgb: its
+folder), see :func:`~pipeline25d.formats.common.side_file`; a DatabasePath stored by the
+producer's machine is used only when it leads there.
+
 Over 400 lines for one job: one format's reader (dataset layout, PagedLOD levels and the
 osgconv conversion are one path from folder to mesh).
 """
@@ -45,7 +57,7 @@ import numpy as np
 
 from pipeline25d.core.errors import InputFileError, MissingTextureWarning, UnsupportedFeatureError
 from pipeline25d.core.mesh import MeshPart
-from pipeline25d.formats.common import Detail, Loaded, run_converter
+from pipeline25d.formats.common import Detail, Loaded, dataset_root, run_converter, side_file
 
 log = logging.getLogger(__name__)
 
@@ -69,6 +81,7 @@ class TileRead:
     name: str
     parts: list[MeshPart]
     levels: Counter = field(default_factory=Counter)   # level -> triangles drawn
+    coarser: list[tuple[str, int]] = field(default_factory=list)   # (missing child file, level drawn instead)
 
 
 def read_osgb(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
@@ -97,12 +110,19 @@ def read_osgb(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
 def read_tiles(path: Path, gsd: float | None) -> list[TileRead]:
     """Every tile of ``path`` (dataset folder or .osgb) at map pixel size ``gsd``, in file coordinates."""
     roots = dataset_tiles(path) if path.is_dir() else [path]
+    folder = dataset_root(path)
     with tempfile.TemporaryDirectory(prefix="pipeline25d-osgb-") as tmp:
-        jobs = [(root, gsd, Path(tmp) / f"t{k}") for k, root in enumerate(roots)]
+        jobs = [(root, gsd, Path(tmp) / f"t{k}", folder) for k, root in enumerate(roots)]
         with ThreadPoolExecutor(max_workers=min(WORKERS, len(jobs))) as pool:
             tiles = list(pool.map(lambda job: read_tile(*job), jobs))
-    for tile in tiles:
+    for tile, root in zip(tiles, roots):
         log.info("%s at gsd %s: %s", tile.name, gsd, describe_levels(tile.levels))
+        if tile.coarser:
+            said = (f"{root}: {len(tile.coarser)} PagedLOD child file(s) missing, drawn coarser than gsd {gsd} "
+                    "asks for, at the level of the file that names them: "
+                    + ", ".join(f"{name} (level {level} drawn)" for name, level in tile.coarser))
+            log.warning("%s", said)
+            warnings.warn(said, stacklevel=2)
     if not any(t.levels for t in tiles):
         raise InputFileError(path, f"holds no triangles at gsd {gsd} (an empty OSGB tree)")
     return tiles
@@ -154,9 +174,11 @@ def osgconv(src: Path, dst: Path, options: list[str], cwd: Path, what: Path) -> 
 # --------------------------------------------------------------------------- one tile
 
 
-def read_tile(root: Path, gsd: float | None, work: Path) -> TileRead:
-    """The parts drawn at ``gsd`` of the tile whose root file is ``root`` (files walked breadth first)."""
+def read_tile(root: Path, gsd: float | None, work: Path, folder: Path | None = None) -> TileRead:
+    """The parts drawn at ``gsd`` of the tile whose root file is ``root`` (files walked breadth
+    first); its child and texture files must lie in ``folder`` (default: ``root``'s folder)."""
     work.mkdir(parents=True)
+    folder = root.parent if folder is None else folder
     tile = TileRead(root.stem, [])
     queue = [_Child(root, np.eye(4), True, 0, None)]
     seen: set[Path] = set()
@@ -166,11 +188,12 @@ def read_tile(root: Path, gsd: float | None, work: Path) -> TileRead:
         if key in seen:
             raise InputFileError(child.path, f"is referenced twice in the tree of {root} (a cycle?)")
         seen.add(key)
-        walk = _read_file(child, gsd, work / f"f{len(seen)}")
+        walk = _read_file(child, gsd, work / f"f{len(seen)}", folder)
         for part in walk.parts:
             tile.parts.append(part)
             tile.levels[child.level] += part.n_triangles
         queue.extend(walk.children)
+        tile.coarser += [(name, child.level) for name in walk.missing]
     return tile
 
 
@@ -190,9 +213,10 @@ class _Child:
 class _Walked:
     parts: list[MeshPart]
     children: list[_Child]
+    missing: list[str]        # child files named but absent (their parent's level drawn there)
 
 
-def _read_file(child: _Child, gsd: float | None, work: Path) -> _Walked:
+def _read_file(child: _Child, gsd: float | None, work: Path, folder: Path) -> _Walked:
     """One file: its LOD nodes resolved at ``gsd``, its geometry as parts, the child files to read."""
     path = child.path
     if not path.is_file():
@@ -201,13 +225,13 @@ def _read_file(child: _Child, gsd: float | None, work: Path) -> _Walked:
     work.mkdir()
     osgconv(path.resolve(), Path("in.osgt"), ["WriteImageHint=IncludeData", "precision=17"], work, path)
     text = (work / "in.osgt").read_text(errors="replace")
-    walker = _Walker(text, path, gsd, child)
+    walker = _Walker(text, path, gsd, child, folder)
     pruned = walker.emit(parse_osgt(text, path), child.matrix, child.placed)
     if "osg::Geometry" not in pruned:
-        return _Walked([], walker.children)
+        return _Walked([], walker.children, walker.missing)
     (work / "sel.osgt").write_text(pruned)
     osgconv(Path("sel.osgt"), Path("sel.obj"), ["OutputTextureFiles"], work, path)
-    return _Walked(_obj_parts(work / "sel.obj", path, child.matrix), walker.children)
+    return _Walked(_obj_parts(work / "sel.obj", path, child.matrix), walker.children, walker.missing)
 
 
 def _obj_parts(obj: Path, source: Path, matrix: np.ndarray) -> list[MeshPart]:
@@ -310,9 +334,10 @@ class _Walker:
     """Rewrites one file's .osgt text: LOD nodes become Groups of their drawn children, images
     get safe names; the child files to read are collected in ``children``."""
 
-    def __init__(self, text: str, path: Path, gsd: float | None, parent: _Child):
-        self.text, self.path, self.gsd, self.parent = text, path, gsd, parent
+    def __init__(self, text: str, path: Path, gsd: float | None, parent: _Child, folder: Path):
+        self.text, self.path, self.gsd, self.parent, self.folder = text, path, gsd, parent, folder
         self.children: list[_Child] = []
+        self.missing: list[str] = []
         self.next_id = max((int(v) for v in re.findall(r"UniqueID\s+(\d+)", text)), default=0) + 1
         self.images = 0
 
@@ -345,6 +370,9 @@ class _Walker:
         name = next((i for i in image.items if isinstance(i, Stmt) and i.tokens[0] == "FileName"), None)
         if name is None:
             return self.emit(image, np.eye(4), True)
+        stored = _unquote(name.tokens[1]) if len(name.tokens) > 1 else ""
+        if stored and (self.path.parent / stored).exists():   # osgconv loaded it: it must be ours
+            side_file(stored, self.path.parent, self.folder, self.path, "texture file", url=False)
         head = self.text[image.start:name.start]
         return f'{head}FileName "img{self.images}.png"{self.text[name.end:image.end]}'
 
@@ -370,6 +398,11 @@ class _Walker:
         children_block = node.block("Children")
         inline = children_block.objects() if children_block else []
         chosen = select_ranges(ranges, self._pixel_size(node, matrix))
+        files = {i: self._child_path(node, names[i]) for i in chosen if i < len(names) and names[i] != ""}
+        missing = {i for i, p in files.items() if not p.is_file()}
+        if missing:
+            self.missing += [names[i] for i in sorted(missing)]
+            chosen = (chosen - missing) | self._finest_inline(ranges, names, chosen - missing)
         texts, k_inline = [], 0
         for i in range(len(ranges)):
             external = i < len(names) and names[i] != ""
@@ -381,10 +414,20 @@ class _Walker:
                 if not placed:
                     raise UnsupportedFeatureError(self.path, f"child file {names[i]!r} lies under a transform other "
                                                              "than MatrixTransform")
-                self.children.append(_Child(self._child_path(node, names[i]), matrix, True, self.parent.level + 1, self.path))
+                self.children.append(_Child(files[i], matrix, True, self.parent.level + 1, self.path))
             elif k_inline - 1 < len(inline):
                 texts.append(self.emit(inline[k_inline - 1], matrix, placed))
         return self._group(texts)
+
+    @staticmethod
+    def _finest_inline(ranges: list[list[float]], names: list[str], kept: set[int]) -> set[int]:
+        """The inline children with the largest max range (the node's own finest level), drawn
+        where chosen child files are missing; none when something chosen is still drawn."""
+        inline = [i for i in range(len(ranges)) if i >= len(names) or names[i] == ""]
+        if kept or not inline:
+            return set()
+        top = max(ranges[i][1] for i in inline)
+        return {i for i in inline if ranges[i][1] == top}
 
     def _pixel_size(self, node: Block, matrix: np.ndarray) -> float:
         """2·r/gsd: the pixels the node's bounding sphere covers in the map (inf for full detail)."""
@@ -401,11 +444,12 @@ class _Walker:
     def _child_path(self, node: Block, name: str) -> Path:
         """A child file: under the node's DatabasePath when it is there (osgconv sets it to the
         folder it read), else beside this file (a path stored by the producer's machine)."""
-        here = self.path.parent / name
+        here = side_file(name, self.path.parent, self.folder, self.path, "PagedLOD child file", url=False)
         flag = node.stmt("DatabasePath") or ["FALSE"]
         if flag[0] == "TRUE" and len(flag) > 1 and _unquote(flag[1]):
             stored = Path(_unquote(flag[1])) / name
-            return stored if stored.is_file() or not here.is_file() else here
+            inside = stored.resolve().is_relative_to(self.folder.resolve())
+            return stored if inside and (stored.is_file() or not here.is_file()) else here
         return here
 
     def _group(self, texts: list[str]) -> str:

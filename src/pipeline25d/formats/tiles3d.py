@@ -6,7 +6,14 @@ RTC_CENTER / CESIUM_RTC, then the tile transforms multiplied root-to-leaf. Exter
 tilesets (a tile whose content is a ``.json``) inherit the referencing tile's transform
 and refine mode and resolve their URIs relative to their own JSON file. Implicit tiling
 (3D Tiles 1.1 ``implicitTiling``, quadtree or octree, binary or JSON subtrees) is
-expanded lazily into the same tile tree.
+expanded lazily into the same tile tree. The tree is walked with an explicit stack, so its
+depth is bounded by nothing but the JSON reader (Python's ``json`` refuses about 1000 nested
+objects and arrays, about 490 levels of ``children`` in one file: an InputFileError naming the
+file); external tilesets that lead back to one already entered are refused as a cycle.
+
+Every file a tileset names (contents, external tilesets, subtrees and their buffers, glTF
+buffers and images, i3dm glTF URIs) must lie inside the root tileset.json's folder
+(:func:`~pipeline25d.formats.common.side_file`): ``../`` to a sibling inside it is fine.
 
 Bounding volumes are never used: the selection here depends on geometric errors only,
 and geometry is never clipped to a bounding volume (real tilesets, e.g. pg2b3dm's
@@ -28,13 +35,12 @@ import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
-from urllib.parse import unquote, urlsplit
 
 import numpy as np
 
 from pipeline25d.core.errors import InputFileError, UnsupportedFeatureError
 from pipeline25d.core.mesh import Mesh, MeshPart
-from pipeline25d.formats.common import Detail, Loaded, in_scene, read_text
+from pipeline25d.formats.common import Detail, Loaded, in_scene, read_text, side_file
 from pipeline25d.formats.gltf import parse_gltf_bytes
 
 _B3DM_HEADER = 28
@@ -58,12 +64,11 @@ def read_tileset(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
     path = Path(path)
     root_json = _read_json(path)
     up_axis = str(root_json.get("asset", {}).get("gltfUpAxis", "Y")).upper()
-    root = _json_tile(_root_of(root_json, path), path, np.eye(4), "REPLACE")
-    selected: list[tuple[Path, np.ndarray]] = []
-    _select(root, detail.max_error, selected, chain=(path.resolve(),))
+    folder = path.parent
+    root = _json_tile(_root_of(root_json, path), path, np.eye(4), "REPLACE", folder)
     parts: list[MeshPart] = []
-    for content_path, transform in selected:
-        parts.extend(_place(read_content(content_path, y_up=(up_axis != "Z")), transform))
+    for content_path, transform in _select(root, detail.max_error, path, folder):
+        parts.extend(_place(read_content(content_path, y_up=(up_axis != "Z"), root=folder), transform))
     if not parts:
         warnings.warn(f"{path}: the selected tiles hold no triangles", stacklevel=2)
     return Loaded(_merge_untextured(parts), spec.get("crs") or ECEF)
@@ -85,8 +90,9 @@ def load_b3dm(path: str | Path, scene_crs: str, src_crs: str = ECEF) -> Mesh:
     return in_scene(read_b3dm(Path(path), {"crs": src_crs}), scene_crs, path)
 
 
-def read_content(path: Path, y_up: bool = True) -> list[MeshPart]:
-    """Parts of one content file (b3dm, i3dm, cmpt, glb, gltf) in the tile's frame.
+def read_content(path: Path, y_up: bool = True, root: Path | None = None) -> list[MeshPart]:
+    """Parts of one content file (b3dm, i3dm, cmpt, glb, gltf) in the tile's frame; the files it
+    names must lie in ``root`` (default: its folder).
 
     Point clouds (pnts) and unknown formats are skipped with a warning.
     """
@@ -96,7 +102,7 @@ def read_content(path: Path, y_up: bool = True) -> list[MeshPart]:
         raise InputFileError(path, "tile content file is missing") from None
     except OSError as exc:
         raise InputFileError(path, f"cannot read tile content: {exc.strerror or exc}") from None
-    return _parse_content(data, path, y_up)
+    return _parse_content(data, path, y_up, path.parent if root is None else root)
 
 
 # --------------------------------------------------------------------------- tile tree
@@ -115,32 +121,61 @@ class _Tile:
     has_children: bool = False
 
 
-def _select(tile: _Tile, g: float | None, out: list[tuple[Path, np.ndarray]], chain: tuple[Path, ...]) -> None:
-    """Append (content path, transform) of the tiles drawn at geometric error ``g``."""
-    refine = tile.has_children and (g is None or tile.geometric_error > g)
-    if not refine or tile.refine == "ADD":
-        out.extend((c, tile.transform) for c in tile.contents)
-    if refine:
-        for child in tile.children():
-            _select(child, g, out, chain)
-    for ext in tile.externals:
-        key = ext.resolve()
-        if key in chain:
-            loop = " -> ".join(p.name for p in chain[chain.index(key):] + (key,))
-            raise InputFileError(ext, f"external tilesets form a cycle ({loop})")
-        ext_json = _read_json(ext)
-        root = _json_tile(_root_of(ext_json, ext), ext, tile.transform, tile.refine)
-        _select(root, g, out, chain + (key,))
+@dataclass
+class _External:
+    """An external tileset to enter (``tile`` names it), or with ``leave`` the end of one."""
+
+    path: Path
+    tile: _Tile | None = None
+    leave: bool = False
 
 
-def _json_tile(tile: dict, json_path: Path, parent_transform: np.ndarray, parent_refine: str) -> _Tile:
+def _select(root: _Tile, g: float | None, root_path: Path, folder: Path) -> list[tuple[Path, np.ndarray]]:
+    """(content path, transform) of the tiles drawn at geometric error ``g``, depth first in
+    file order, with an explicit stack (no recursion however deep the tree)."""
+    out: list[tuple[Path, np.ndarray]] = []
+    chain = {root_path.resolve(): root_path}   # the external tilesets being walked, outermost first
+    stack: list[_Tile | _External] = [root]
+    while stack:
+        item = stack.pop()
+        if isinstance(item, _External):
+            if item.leave:
+                chain.popitem()
+            else:
+                stack += _enter(item, chain, folder)
+            continue
+        tile = item
+        refine = tile.has_children and (g is None or tile.geometric_error > g)
+        if not refine or tile.refine == "ADD":
+            out.extend((c, tile.transform) for c in tile.contents)
+        stack += [_External(ext, tile) for ext in reversed(tile.externals)]
+        if refine:
+            stack += reversed(tile.children())
+    return out
+
+
+def _enter(ext: _External, chain: dict[Path, Path], folder: Path) -> list[_Tile | _External]:
+    """What the stack gets to walk the external tileset ``ext``: its root, then its end marker."""
+    key = ext.path.resolve()
+    if key in chain:
+        names = list(chain.values())
+        loop = [p.name for p in names[list(chain).index(key):]] + [ext.path.name]
+        raise InputFileError(ext.path, f"external tilesets form a cycle ({' -> '.join(loop)})")
+    chain[key] = ext.path
+    ext_json = _read_json(ext.path)
+    root = _json_tile(_root_of(ext_json, ext.path), ext.path, ext.tile.transform, ext.tile.refine, folder)
+    return [_External(ext.path, leave=True), root]
+
+
+def _json_tile(tile: dict, json_path: Path, parent_transform: np.ndarray, parent_refine: str,
+               folder: Path) -> _Tile:
     """A :class:`_Tile` from a tileset JSON tile object (children built on demand)."""
     transform = parent_transform @ _matrix(tile.get("transform"), json_path)
     refine = str(tile.get("refine", parent_refine)).upper()
     if "implicitTiling" in tile:
-        return _implicit_root(tile, json_path, transform, refine)
+        return _implicit_root(tile, json_path, transform, refine, folder)
     uris = [c["uri"] if "uri" in c else c.get("url") for c in _content_list(tile)]
-    contents, externals = _split_contents([_resolve(u, json_path) for u in uris], json_path)
+    contents, externals = _split_contents([_resolve(u, json_path, folder) for u in uris], json_path)
     kids = tile.get("children") or []
     return _Tile(
         geometric_error=float(tile.get("geometricError", 0.0)),
@@ -148,7 +183,7 @@ def _json_tile(tile: dict, json_path: Path, parent_transform: np.ndarray, parent
         transform=transform,
         contents=contents,
         externals=externals,
-        children=lambda: [_json_tile(c, json_path, transform, refine) for c in kids],
+        children=lambda: [_json_tile(c, json_path, transform, refine, folder) for c in kids],
         has_children=bool(kids),
     )
 
@@ -187,23 +222,24 @@ def _matrix(values: list | None, where: Path) -> np.ndarray:
         raise InputFileError(where, f"tile transform is not 16 numbers: {values!r}") from None
 
 
-def _resolve(uri: str | None, base: Path) -> Path:
-    """Local path of a content/subtree URI relative to the JSON (or subtree) that names it."""
+def _resolve(uri: str | None, base: Path, folder: Path) -> Path:
+    """Local path of a content/subtree URI relative to the JSON (or subtree) that names it,
+    inside the tileset's root ``folder``."""
     if not uri:
         raise InputFileError(base, "tile content without uri")
-    parts = urlsplit(uri)
-    if parts.scheme and len(parts.scheme) > 1:  # one letter: a Windows drive
-        raise UnsupportedFeatureError(base, f"remote content {uri!r} is not supported (local files only)")
-    return base.parent / unquote(parts.path)
+    return side_file(uri, base.parent, folder, base, "content")
 
 
 def _read_json(path: Path) -> dict:
-    """Parsed tileset JSON; InputFileError when missing or invalid."""
+    """Parsed tileset JSON; InputFileError when missing, invalid or nested too deep to parse."""
     text = read_text(path, "tileset JSON")
     try:
         data = json.loads(text)
     except json.JSONDecodeError as exc:
         raise InputFileError(path, f"invalid JSON: {exc}") from None
+    except RecursionError:
+        raise InputFileError(path, "JSON nested deeper than the JSON reader allows (about 1000 objects and "
+                                   "arrays; a tile tree that deep belongs in external tilesets)") from None
     if not isinstance(data, dict):
         raise InputFileError(path, "tileset JSON is not an object")
     return data
@@ -234,12 +270,13 @@ class _Implicit:
     root_error: float
     refine: str
     transform: np.ndarray
+    folder: Path              # the tileset's root folder (every file named must lie in it)
     cache: dict = field(default_factory=dict)
 
     def uri(self, template: str, level: int, xyz: tuple[int, int, int]) -> Path:
         text = (template.replace("{level}", str(level)).replace("{x}", str(xyz[0]))
                 .replace("{y}", str(xyz[1])).replace("{z}", str(xyz[2])))
-        return _resolve(text, self.json_path)
+        return _resolve(text, self.json_path, self.folder)
 
     def subtree(self, level: int, xyz: tuple[int, int, int]) -> _Subtree:
         key = (level, xyz)
@@ -248,7 +285,7 @@ class _Implicit:
         return self.cache[key]
 
 
-def _implicit_root(tile: dict, json_path: Path, transform: np.ndarray, refine: str) -> _Tile:
+def _implicit_root(tile: dict, json_path: Path, transform: np.ndarray, refine: str, folder: Path) -> _Tile:
     """Root :class:`_Tile` of an implicit tileset (3D Tiles 1.1 ``implicitTiling``)."""
     spec = tile["implicitTiling"]
     scheme = str(spec.get("subdivisionScheme", "")).upper()
@@ -258,7 +295,7 @@ def _implicit_root(tile: dict, json_path: Path, transform: np.ndarray, refine: s
         levels = int(spec["availableLevels"]) if "availableLevels" in spec else int(spec["maximumLevel"]) + 1
         ctx = _Implicit(json_path, 4 if scheme == "QUADTREE" else 8, int(spec["subtreeLevels"]), levels,
                         spec["subtrees"]["uri"], [c["uri"] for c in _content_list(tile)],
-                        float(tile.get("geometricError", 0.0)), refine, transform)
+                        float(tile.get("geometricError", 0.0)), refine, transform, folder)
     except (KeyError, TypeError, ValueError) as exc:
         raise InputFileError(json_path, f"incomplete implicitTiling object: {exc}") from None
     return _implicit_tile(ctx, ctx.subtree(0, (0, 0, 0)), 0, 0, 0, (0, 0, 0))
@@ -332,7 +369,8 @@ def _read_subtree(path: Path, ctx: _Implicit) -> _Subtree:
         doc = json.loads(raw_json.decode("utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise InputFileError(path, f"subtree JSON is invalid: {exc}") from None
-    buffers = [internal if "uri" not in b else _resolve(b["uri"], path).read_bytes() for b in doc.get("buffers", [])]
+    buffers = [internal if "uri" not in b else _read_buffer(_resolve(b["uri"], path, ctx.folder), path)
+               for b in doc.get("buffers", [])]
 
     def availability(obj: dict | None) -> np.ndarray:
         if obj is None:
@@ -357,17 +395,25 @@ def _read_subtree(path: Path, ctx: _Implicit) -> _Subtree:
 # --------------------------------------------------------------------------- content formats
 
 
-def _parse_content(data: bytes, path: Path, y_up: bool) -> list[MeshPart]:
+def _read_buffer(path: Path, subtree: Path) -> bytes:
+    """The bytes of a subtree's external buffer; InputFileError naming both when unreadable."""
+    try:
+        return path.read_bytes()
+    except OSError as exc:
+        raise InputFileError(path, f"subtree buffer named by {subtree} cannot be read: {exc.strerror or exc}") from None
+
+
+def _parse_content(data: bytes, path: Path, y_up: bool, root: Path) -> list[MeshPart]:
     """Dispatch on the 4-byte magic (or JSON) of a tile content."""
     magic = data[:4]
     if magic == b"b3dm":
-        return _parse_b3dm(data, path, y_up)
+        return _parse_b3dm(data, path, y_up, root)
     if magic == b"i3dm":
-        return _parse_i3dm(data, path, y_up)
+        return _parse_i3dm(data, path, y_up, root)
     if magic == b"cmpt":
-        return _parse_cmpt(data, path, y_up)
+        return _parse_cmpt(data, path, y_up, root)
     if magic == b"glTF" or data.lstrip()[:1] == b"{":
-        return parse_gltf_bytes(data, path, y_up)
+        return parse_gltf_bytes(data, path, y_up, root)
     if magic == b"pnts":
         warnings.warn(f"{path}: point cloud (pnts) content skipped", stacklevel=3)
         return []
@@ -411,7 +457,7 @@ def _feature_array(table: dict, body: bytes, name: str, count: int, n: int, dtyp
     return np.asarray(value, dtype=np.float64).reshape(count, n)
 
 
-def _parse_b3dm(data: bytes, path: Path, y_up: bool) -> list[MeshPart]:
+def _parse_b3dm(data: bytes, path: Path, y_up: bool, root: Path) -> list[MeshPart]:
     """Batched 3D model: header, feature table (RTC_CENTER), batch table (skipped), GLB."""
     length = _check_length(data, path, _B3DM_HEADER)
     ft_json, ft_bin, bt_json, bt_bin = struct.unpack_from("<4I", data, 12)
@@ -424,12 +470,12 @@ def _parse_b3dm(data: bytes, path: Path, y_up: bool) -> list[MeshPart]:
     if glb_start > length:
         raise InputFileError(path, "b3dm table lengths exceed the tile's byteLength (corrupt)")
     table, body = _feature_table(data, header, ft_json, ft_bin, path)
-    parts = parse_gltf_bytes(data[glb_start:length], path, y_up)
+    parts = parse_gltf_bytes(data[glb_start:length], path, y_up, root)
     rtc = _feature_array(table, body, "RTC_CENTER", 1, 3, "float32", path)
     return parts if rtc is None else [p.transformed(lambda v, t=rtc[0]: v + t) for p in parts]
 
 
-def _parse_i3dm(data: bytes, path: Path, y_up: bool) -> list[MeshPart]:
+def _parse_i3dm(data: bytes, path: Path, y_up: bool, root: Path) -> list[MeshPart]:
     """Instanced 3D model: the glTF repeated at each instance's position/rotation/scale.
 
     Supported: POSITION, POSITION_QUANTIZED, RTC_CENTER, NORMAL_UP + NORMAL_RIGHT,
@@ -444,10 +490,10 @@ def _parse_i3dm(data: bytes, path: Path, y_up: bool) -> list[MeshPart]:
     table, body = _feature_table(data, _I3DM_HEADER, ft_json, ft_bin, path)
     gltf = data[body_start:length]
     if gltf_format == 0:
-        gltf_path = _resolve(gltf.rstrip(b" \x00").decode("utf-8"), path)
-        parts = read_content(gltf_path, y_up)
+        gltf_path = _resolve(gltf.rstrip(b" \x00").decode("utf-8"), path, root)
+        parts = read_content(gltf_path, y_up, root)
     else:
-        parts = parse_gltf_bytes(gltf, path, y_up)
+        parts = parse_gltf_bytes(gltf, path, y_up, root)
     matrices = _instance_matrices(table, body, path)
     return [_instanced(p, matrices) for p in parts]
 
@@ -493,7 +539,7 @@ def _instanced(part: MeshPart, matrices: np.ndarray) -> MeshPart:
                     part.texture, part.name)
 
 
-def _parse_cmpt(data: bytes, path: Path, y_up: bool) -> list[MeshPart]:
+def _parse_cmpt(data: bytes, path: Path, y_up: bool, root: Path) -> list[MeshPart]:
     """Composite tile: the inner tiles one after another."""
     length = _check_length(data, path, 16)
     count = struct.unpack_from("<I", data, 12)[0]
@@ -504,7 +550,7 @@ def _parse_cmpt(data: bytes, path: Path, y_up: bool) -> list[MeshPart]:
         inner_len = struct.unpack_from("<I", data, pos + 8)[0]
         if inner_len < 12 or pos + inner_len > length:
             raise InputFileError(path, "composite inner tile runs past the end (corrupt)")
-        parts.extend(_parse_content(data[pos:pos + inner_len], path, y_up))
+        parts.extend(_parse_content(data[pos:pos + inner_len], path, y_up, root))
         pos += inner_len
     return parts
 
