@@ -62,6 +62,11 @@ def check_semantics(config: dict[str, Any], base_dir: Path = Path(".")) -> None:
     for key, value in (("terrain", config["terrain"]), ("gcp.source", config["gcp"]["source"])):
         if value not in ("auto", "flat"):
             _check_readable(base_dir / value, key)
+    if config["terrain"] not in ("auto", "flat"):
+        _check_raster(base_dir / config["terrain"], "terrain")
+    zoom = config.get("tms", {}).get("zoom", "auto")
+    if zoom != "auto" and "-" in zoom and int(zoom.split("-")[0]) > int(zoom.split("-")[1]):
+        raise ConfigError(f"config key tms.zoom: {zoom} runs from a finer to a coarser level; write it low-high")
     check_sun_config(config.get("shadows", {}))
     heights = config.get("heights") or {}
     for key in ("footprints", "reference"):
@@ -97,8 +102,21 @@ def _check_readable(path: Path, key: str, dataset_ok: bool = False) -> None:
         raise InputFileError(path, f"is empty (config key {key})")
 
 
-def load_config(path: str | Path) -> dict[str, Any]:
-    """Read, validate and check a YAML config file (for the CLI and tests)."""
+def _check_raster(path: Path, key: str) -> None:
+    """``path`` opens as a one-band raster (its header only: cheap at parse time)."""
+    from pipeline25d.core.raster import gdal
+
+    try:
+        ds = gdal().Open(str(path))
+    except RuntimeError as exc:
+        raise InputFileError(path, f"cannot open as a raster (config key {key}): {exc}") from None
+    if ds is None or ds.RasterCount < 1:
+        raise InputFileError(path, f"holds no raster band (config key {key}); a DTM is a one-band GeoTIFF")
+
+
+def load_config(path: str | Path, base_dir: Path = Path(".")) -> dict[str, Any]:
+    """Read, validate and check a YAML config file (for the CLI and tests); its input paths are
+    relative to ``base_dir``."""
     path = Path(path)
     try:
         config = yaml.safe_load(path.read_text())
@@ -107,7 +125,7 @@ def load_config(path: str | Path) -> dict[str, Any]:
     if not isinstance(config, dict):
         raise ConfigError(f"{path}: config must be a mapping")
     validate_schema(config)
-    check_semantics(config)
+    check_semantics(config, base_dir)
     return config
 
 
