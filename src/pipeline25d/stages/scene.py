@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline25d.core.atomic import write_json
-from pipeline25d.core.errors import ConfigError
+from pipeline25d.core.errors import ConfigError, GroundError
 from pipeline25d.geometry.perspectives import Perspective
 from pipeline25d.stages.gcps import CANDIDATE_FIELDS, assign_roles, read_csv, write_csv
 from pipeline25d.stages.lod import lod_chunks, scene_bounds
@@ -65,6 +65,10 @@ def scene_setup(lod_indexes: list[str], dsm_path: str | Path, terrain: str, terr
         height_fn = DTM(terrain_path, scene_crs, continuous=True).sample
         dtm = _sampled_dtm(height_fn, grid)
     covered = np.isfinite(dsm)
+    # terrain-relative tiles sample the DTM over each chunk's box; otherwise only z0 needs it, under the model
+    whole_boxes = projection in ("auto", "terrain")
+    if seed_src is not None:
+        _check_ground(dtm, grid, chunks, terrain_path, 4 * search * grid.res, None if whole_boxes else covered)
     # auto: the median ground height, rounded to whole metres so a local terrain change does not move it
     z0 = float(z0_cfg) if z0_cfg != "auto" else float(round(_median(dtm[covered]))) if covered.any() else float(lo[2])
     if projection == "auto":
@@ -85,6 +89,7 @@ def scene_setup(lod_indexes: list[str], dsm_path: str | Path, terrain: str, terr
             dtm = _interpolated_dtm(lambda rows, cols: _without_check_points(seed_src.read(rows, cols), grid, cands,
                                                                               radius, (rows, cols)), grid, search,
                                    needed)
+            _check_ground(dtm, grid, chunks, terrain_path, 4 * search * grid.res, None if whole_boxes else covered)
             xy = np.array([[c.x, c.y] for c in cands]).reshape(-1, 2)
             cands = [replace(c, ground=round(float(g), 3)) for c, g in zip(cands, _sample_continuous(dtm, grid, xy))]
             log.info("DTM interpolated without the ground within %.1f m of each check point", radius)
@@ -122,6 +127,33 @@ def _interpolated_dtm(read, grid, search: int, needed=None) -> np.ndarray:
     for block, values in dtm_blocks(read, grid, search, needed=needed, reach_cells=reach):
         dtm[block.core] = values
     return dtm
+
+
+def _check_ground(dtm: np.ndarray, grid, chunks: list, ground_path, reach_m: float,
+                  covered: np.ndarray | None = None) -> None:
+    """GroundError naming the inputs and what to do when the DTM has no height somewhere under a
+    chunk (no ground within ``reach_m`` of it): never a NaN z0 or chunk ground range.
+
+    ``covered``: check only these cells (the model's, for z0) rather than each chunk's whole
+    bounding box (what terrain-relative tiles sample, :func:`chunk_ground`)."""
+    bare = []
+    for c in chunks:
+        (x0, y0, _), (x1, y1, _) = c.bounds
+        cols = slice(max(int((x0 - grid.xmin) // grid.res), 0), min(int((x1 - grid.xmin) // grid.res) + 1, grid.width))
+        rows = slice(max(int((grid.ymax - y1) // grid.res), 0), min(int((grid.ymax - y0) // grid.res) + 1, grid.height))
+        missing = ~np.isfinite(dtm[rows, cols])
+        if (missing if covered is None else missing & covered[rows, cols]).any():
+            bare.append(c)
+    if not bare:
+        return
+    where = "; ".join(f"{c.district}/{c.id} at x {c.bounds[0][0]:.0f}..{c.bounds[1][0]:.0f}, "
+                      f"y {c.bounds[0][1]:.0f}..{c.bounds[1][1]:.0f}" for c in bare[:3])
+    districts = ", ".join(sorted({c.district for c in bare}))
+    raise GroundError(f"terrain: auto found no ground within {reach_m:.0f} m of {len(bare)} of the model's "
+                      f"{len(chunks)} chunks ({where}{'; ...' if len(bare) > 3 else ''}) of the input(s) "
+                      f"{districts}: they carry no terrain, no buildings whose bases give one, and the Cloth "
+                      f"Simulation Filter found no ground near them ({ground_path}); give a DTM "
+                      "(terrain: <path of a GeoTIFF>) or set terrain: flat")
 
 
 def _under_chunks(bounds: np.ndarray, grid, margin_cells: int = 2):
