@@ -82,10 +82,10 @@ READERS: dict[str, Reader] = {
     "3dtiles": Reader(_lazy("tiles3d", "read_tileset"), georeferenced=True),
     "cityjson": Reader(_lazy("cityjson", "read_cityjson"), georeferenced=True,
                        terrain=_lazy("cityjson", "read_cityjson_terrain"),
-                       buildings=_lazy("buildings", "read_cityjson_buildings")),
+                       buildings=_lazy("cityjson", "read_cityjson_buildings")),
     "citygml": Reader(_lazy("citygml", "read_citygml"), georeferenced=True,
                       terrain=_lazy("citygml", "read_citygml_terrain"),
-                      buildings=_lazy("buildings", "read_citygml_buildings")),
+                      buildings=_lazy("citygml", "read_citygml_buildings")),
     "osgb": Reader(_lazy("osgb", "read_osgb")),
     "3ds": Reader(_lazy("threeds", "read_3ds")),
 }

@@ -60,6 +60,7 @@ import numpy as np
 from pipeline25d.core.crs import parse_crs
 from pipeline25d.core.errors import CRSError, InputFileError
 from pipeline25d.core.mesh import MeshPart
+from pipeline25d.formats.buildings import Buildings, is_building
 from pipeline25d.formats.common import Detail, Loaded, crs_name, side_file, texture_image
 from pipeline25d.formats.surfaces import (
     GROUND_TYPES,
@@ -664,3 +665,12 @@ class _Member:
         if tex.clamp:
             uv = np.clip(uv, 0.0, 1.0)
         return uv, tex.image
+
+
+def read_citygml_buildings(path: Path, spec: dict) -> Buildings:
+    """The building objects of a CityGML file, in its own CRS, untextured: parts by colour class
+    (see :mod:`pipeline25d.formats.buildings`)."""
+    reader = _Reader(Path(path), spec, textures=False)
+    reader.run(lambda t: True)
+    others = any(not is_building(t) and t != "TINRelief" and t not in _GROUND_TYPES for t in reader.types_drawn)
+    return Buildings(reader.loaded(is_building), others)
