@@ -17,6 +17,7 @@ from pipeline25d.core.errors import ConfigError, CRSError, InputFileError
 from pipeline25d.geometry.perspectives import Perspective, expand
 from pipeline25d.geometry.sun import check_sun_config
 
+# the schema of the checkout this package lives in (an installed copy passes its workflow's own)
 SCHEMA_PATH = Path(__file__).resolve().parents[2] / "config" / "schema.yaml"
 
 
@@ -114,9 +115,9 @@ def _check_raster(path: Path, key: str) -> None:
         raise InputFileError(path, f"holds no raster band (config key {key}); a DTM is a one-band GeoTIFF")
 
 
-def load_config(path: str | Path, base_dir: Path = Path(".")) -> dict[str, Any]:
+def load_config(path: str | Path, base_dir: Path = Path("."), schema_path: Path = SCHEMA_PATH) -> dict[str, Any]:
     """Read, validate and check a YAML config file (for the CLI and tests); its input paths are
-    relative to ``base_dir``."""
+    relative to ``base_dir``; ``schema_path``: the schema of the workflow that will run it."""
     path = Path(path)
     try:
         config = yaml.safe_load(path.read_text())
@@ -124,7 +125,7 @@ def load_config(path: str | Path, base_dir: Path = Path(".")) -> dict[str, Any]:
         raise ConfigError(f"{path}: cannot read config: {exc}") from None
     if not isinstance(config, dict):
         raise ConfigError(f"{path}: config must be a mapping")
-    validate_schema(config)
+    validate_schema(config, schema_path)
     check_semantics(config, base_dir)
     return config
 

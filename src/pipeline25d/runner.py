@@ -62,7 +62,7 @@ def work_estimate(config: str | Path, root: Path) -> str | None:
     from pipeline25d.stages.extent import cheap_extent
 
     try:
-        cfg = load_config(config, base_dir=root)
+        cfg = load_config(config, base_dir=root, schema_path=root / "config" / "schema.yaml")
         work = budget.settings(cfg)
         extent = cheap_extent(cfg, root / "results" / cfg["scene"], base_dir=root)
         return None if extent is None else budget.estimate(work, *extent).summary()

@@ -4,6 +4,7 @@
 # "pipeline25d: error: <file or key>: <problem>" and exits 1 without a traceback, as a job's does.
 
 from functools import wraps
+from pathlib import Path
 
 from pipeline25d.config import check_semantics, chunk_size, perspectives, render_settings, validate_schema
 from pipeline25d.analysis.height_sources import plan as heights_plan
@@ -26,7 +27,7 @@ def parse_guard(func):
 
 
 with stop_on_error(log=False):
-    validate_schema(config)
+    validate_schema(config, Path(workflow.basedir) / "config" / "schema.yaml")
     check_semantics(config)
     RESULTS = f"results/{config['scene']}"
     DISTRICTS = sorted(config["inputs"])
