@@ -86,7 +86,9 @@ def test_same_textured_triangles_and_uvs(city, theme):
 @pytest.mark.parametrize("theme", tc.THEMES)
 def test_same_coloured_triangles_and_materials(city, theme):
     """Coloured parts (one per class): the same triangles with the same RGBA per corner; material
-    surfaces in round(255 * diffuseColor), the area in it that of the theme's material surfaces."""
+    surfaces in round(255 * diffuseColor), the area in it that of the theme's material surfaces
+    (winter: one house's whole LOD2 geometry, ground included, by CityJSON ``value`` and by a
+    CityGML X3DMaterial targeting the solid's CompositeSurface)."""
     _, truth, meshes = city
     coloured = {fmt: {p.name: _corners(p) for p in meshes[fmt, theme].parts if p.texture is None} for fmt in FILES}
     cj, gml = coloured["cityjson"], coloured["citygml"]
@@ -97,7 +99,7 @@ def test_same_coloured_triangles_and_materials(city, theme):
     materials = truth["themes"][theme]["material"]
     rgba = {tuple(round(c * 255) for c in rgb) + (255,) for rgb in materials.values()}
     assert len(rgba) == 1
-    in_material = [k for k, colours in cj["roof"].items() if tuple(colours[0]) in rgba]
+    in_material = [k for name in cj for k, colours in cj[name].items() if tuple(colours[0]) in rgba]
     expected = sum(_polygon_area(truth["surfaces"][g]["rings"]) for g in materials)
     assert _area(in_material) == pytest.approx(expected, rel=1e-9)
     rest = {tuple(c) for name in cj for k, colours in cj[name].items() for c in colours} - rgba
@@ -173,3 +175,36 @@ def test_theme_changes_the_render_where_the_themes_differ(city, renders):
         drawn = summer[..., 3] > 0
         wall_change = np.abs(summer - winter).max(axis=2) > 40
         assert wall_change[drawn].mean() > 0.5
+
+
+def test_citygml_material_on_an_aggregate_colours_its_polygons(city, tmp_path):
+    """The case this comparison found: an X3DMaterial may target "gml:MultiSurface or descendants
+    of gml:AbstractSurfaceType" (CityGML 2.0 appearance schema), here the LOD2 solid's
+    CompositeSurface, whose polygons are xlink:href references: every polygon of it takes the
+    colour (CityGML drew them in class colours before). A material targeting the polygon itself
+    wins over the aggregate's."""
+    out, truth, _ = city
+    house = truth["houses"][tc.WHOLE["winter"]]
+    snow = tuple(round(c * 255) for c in tc.MATERIALS["winter"][1]) + (255,)
+    text = (out / FILES["citygml"]).read_text()
+    cut = text.rindex("</app:Appearance>")        # the winter Appearance: red on one roof polygon
+    gml = tmp_path / "edited.gml"
+    gml.write_text(text[:cut] + f"<app:surfaceDataMember><app:X3DMaterial><app:diffuseColor>1 0 0"
+                   f"</app:diffuseColor><app:target>#{house}_roof0</app:target></app:X3DMaterial>"
+                   f"</app:surfaceDataMember>" + text[cut:])
+    (tmp_path / f"{tc.NAME}_appearance").symlink_to(out / f"{tc.NAME}_appearance")
+    parts = {p.name: p for p in load_district({"path": str(gml), "theme": "winter"}, SCENE).parts}
+
+    def colours(name: str, gid: str) -> set:
+        """Corner colours of the part's triangles whose centroid lies in the surface's box."""
+        ring = np.array(truth["surfaces"][gid]["rings"][0])
+        lo, hi = ring.min(axis=0) - 1e-6, ring.max(axis=0) + 1e-6
+        part = parts[name]
+        centroid = part.vertices[part.faces].mean(axis=1)
+        faces = part.faces[((centroid >= lo) & (centroid <= hi)).all(axis=1)]
+        return {tuple(int(v) for v in c) for c in part.colors[faces.ravel()]}
+
+    assert colours("ground", f"{house}_ground") == {snow}
+    assert colours("ground", f"{truth['houses'][0]}_ground") == {PALETTE["ground"]}
+    assert colours("roof", f"{house}_roof0") == {(255, 0, 0, 255)}
+    assert colours("roof", f"{house}_roof1") == {snow}

@@ -184,15 +184,19 @@ class _Writer:
         return ("<gml:MultiSurface>" + "".join(f"<gml:surfaceMember>{self.polygon(s)}</gml:surfaceMember>"
                                                for s in surfaces) + "</gml:MultiSurface>")
 
-    def solid(self, members: str) -> str:
+    def solid(self, members: str, shell_id: str | None = None) -> str:
         shell = "gml:Shell" if self.v == "3.0" else "gml:CompositeSurface"
-        return f"<gml:Solid><gml:exterior><{shell}>{members}</{shell}></gml:exterior></gml:Solid>"
+        gid = f' gml:id="{shell_id}"' if shell_id else ""
+        return f"<gml:Solid><gml:exterior><{shell}{gid}>{members}</{shell}></gml:exterior></gml:Solid>"
 
     def prop(self, name: str) -> str:
         """Element name of a building property: 2.0 bldg:, 3.0 core:."""
         return ("core:" if self.v == "3.0" else "bldg:") + name
 
-    def house(self, gid: str, lod2: list[Surface], lod1: list[Surface], appearance: str = "") -> str:
+    def house(self, gid: str, lod2: list[Surface], lod1: list[Surface], appearance: str = "",
+              shell_id: str | None = None) -> str:
+        """A Building: LOD1 solid, LOD2 solid (its shell named ``shell_id``) of references to its
+        thematic surfaces."""
         bounded = "core:boundary" if self.v == "3.0" else "bldg:boundedBy"
         surf_ns = "con" if self.v == "3.0" else "bldg"
         parts = [f'<bldg:Building gml:id="{gid}">']
@@ -200,7 +204,7 @@ class _Writer:
         lod1_members = "".join(f"<gml:surfaceMember>{self.polygon(s)}</gml:surfaceMember>" for s in lod1)
         parts.append(f"<{self.prop('lod1Solid')}>{self.solid(lod1_members)}</{self.prop('lod1Solid')}>")
         refs = "".join(f'<gml:surfaceMember xlink:href="#{s.gid}"/>' for s in lod2)
-        parts.append(f"<{self.prop('lod2Solid')}>{self.solid(refs)}</{self.prop('lod2Solid')}>")
+        parts.append(f"<{self.prop('lod2Solid')}>{self.solid(refs, shell_id)}</{self.prop('lod2Solid')}>")
         for s in lod2:
             ms = self.prop("lod2MultiSurface")
             parts.append(f'<{bounded}><{surf_ns}:{s.kind} gml:id="{s.gid}_s"><{ms}>{self.multi_surface([s])}'

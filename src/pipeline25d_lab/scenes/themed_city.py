@@ -10,7 +10,10 @@ a window hole, all on the mm grid in EPSG:25832, so both files hold the same num
 - ``summer``: walls textured from ``summer.png`` (citygml_city's atlas), roofs in a red
   material, except house 0 whose roofs are textured (the atlas's roof tiles);
 - ``winter``: walls textured from ``winter.png`` (a grey facade with lit windows, snowy tiles),
-  except house 1 (no appearance), roofs in a snow material;
+  except house 1 (no appearance), roofs in a snow material; house 3 takes the snow material
+  as a whole, its ground too (CityJSON ``material.winter.value``; CityGML an X3DMaterial whose
+  target is its LOD2 solid's CompositeSurface, a valid X3DMaterial target: "gml:MultiSurface or
+  descendants of gml:AbstractSurfaceType");
 - ground surfaces and the last house: no appearance in either theme.
 
 Writing only: nothing here imports a reader. The truth lists per theme which surfaces take which
@@ -48,6 +51,8 @@ ATLAS_COLOURS = {"summer": dict(noise=12),
                  "winter": dict(roof=(236, 240, 246), roof_line=(150, 160, 176), wall=(150, 150, 158),
                                 window_rgb=(250, 214, 90), noise=12)}
 MATERIALS = {"summer": ("roof tiles", (0.7, 0.25, 0.15)), "winter": ("snow", (0.94, 0.95, 0.97))}
+#: theme -> the house whose LOD2 geometry takes one material as a whole
+WHOLE = {"winter": 3}
 WINDOW = (4.0, 6.0, 2.0, 4.0)  # hole in the first long wall: along it from, to; height from, to (m)
 NAME = "themed"
 
@@ -97,6 +102,8 @@ def looks(houses_: list[dict]) -> dict[str, dict[str, tuple]]:
                     look[s.gid] = ("texture", theme)
                 elif s.kind == "RoofSurface":
                     look[s.gid] = ("texture", theme) if (theme == "summer" and k == 0) else ("material", theme)
+                elif WHOLE.get(theme) == k:
+                    look[s.gid] = ("material", theme)
         out[theme] = look
     return out
 
@@ -109,12 +116,15 @@ def citygml_text(houses_: list[dict], look: dict, images: dict[str, str]) -> str
     w = _Writer("2.0", CRS)
     pts = np.concatenate([r for h in houses_ for s in h["lod2"] for r in s.rings])
     parts = [w.head(pts.min(axis=0), pts.max(axis=0))]
-    parts += [f"<core:cityObjectMember>{w.house(h['id'], h['lod2'], h['lod1'])}</core:cityObjectMember>\n"
-              for h in houses_]
+    parts += [f"<core:cityObjectMember>{w.house(h['id'], h['lod2'], h['lod1'], shell_id=h['id'] + '_lod2')}"
+              f"</core:cityObjectMember>\n" for h in houses_]
     surfaces = {s.gid: s for h in houses_ for s in h["lod2"]}
     for theme in THEMES:
         textured = [surfaces[g] for g, (kind, _) in look[theme].items() if kind == "texture"]
-        painted = [g for g, (kind, _) in look[theme].items() if kind == "material"]
+        whole = houses_[WHOLE[theme]] if theme in WHOLE else None
+        own = {s.gid for s in whole["lod2"]} if whole else set()
+        painted = [g for g, (kind, _) in look[theme].items() if kind == "material" and g not in own]
+        painted += [whole["id"] + "_lod2"] if whole else []
         app = w.themed_appearance(theme, [(images[theme], textured)], [(MATERIALS[theme][1], painted)])
         parts.append(f"<app:appearanceMember>{app}</app:appearanceMember>\n")
     return "".join(parts) + "</core:CityModel>\n"
@@ -168,7 +178,8 @@ def cityjson_doc(houses_: list[dict], look: dict, images: dict[str, str], transl
                         tex.append([[None]])
                     mat.append(materials[which] if kind == "material" else None)
                 lod2["texture"][theme] = {"values": [tex]}
-                lod2["material"][theme] = {"values": [mat]}
+                whole = theme in WHOLE and houses_[WHOLE[theme]] is h
+                lod2["material"][theme] = {"value": materials[theme]} if whole else {"values": [mat]}
         objects[h["id"]] = {"type": "Building", "geometry": [lod1, lod2]}
     return {
         "type": "CityJSON", "version": "2.0",
