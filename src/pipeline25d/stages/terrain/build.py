@@ -22,7 +22,8 @@ def build_terrain(lod_indexes: list[str], inputs: dict, scene_crs: str, gsd: flo
     rasters are written block by block: memory follows a block, not the scene.
     """
     from pipeline25d.core.crs import horizontal_wkt
-    from pipeline25d.core.grid import Grid, float_geotiff_writer
+    from pipeline25d.core.geotiff import float_geotiff_writer
+    from pipeline25d.core.grid import Grid
     from pipeline25d.stages.terrain.dsm import auto_resolution, height_map_tiles
 
     chunks = lod_chunks(lod_indexes)
@@ -55,7 +56,8 @@ def _ground_from_model(inputs: dict, scene_crs: str, ground_cfg: dict, dsm_path:
                        out_ground: str | Path, wkt: str) -> dict:
     """Write the ground heights on the DSM's grid, block by block: the inputs' own terrain where
     they carry one, the Cloth Simulation Filter's ground cells of the DSM elsewhere."""
-    from pipeline25d.core.grid import FloatRaster, cell_blocks, float_geotiff_writer
+    from pipeline25d.core.geotiff import FloatRaster, float_geotiff_writer
+    from pipeline25d.core.grid import cell_blocks
     from pipeline25d.stages.terrain.dsm import render_height_map
     from pipeline25d.stages.terrain.ground import ground_blocks
 
