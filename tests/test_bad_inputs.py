@@ -184,13 +184,14 @@ def test_a_whole_run_works_from_a_folder_with_spaces_and_non_ascii_letters(tmp_p
 
 def _noise_map(path: Path) -> None:
     from pipeline25d.core.crs import horizontal_wkt
-    from pipeline25d.core.raster import write_rgba_geotiff
+    from pipeline25d.core.geotiff import write_rgba_geotiff
+    from pipeline25d.core.grid import Grid
 
     rng = np.random.default_rng(2)
     rgba = np.zeros((1500, 2000, 4), np.uint8)
     rgba[..., :3] = rng.integers(0, 255, (1500, 2000, 3), dtype=np.uint8)
     rgba[..., 3] = 255
-    write_rgba_geotiff(path, rgba, (691000.0, 0.5, 0.0, 5334000.0, 0.0, -0.5), horizontal_wkt("EPSG:25832"))
+    write_rgba_geotiff(path, rgba, Grid.north_up(691000.0, 5334000.0, 0.5, 2000, 1500), horizontal_wkt("EPSG:25832"))
 
 
 @pytest.fixture

@@ -17,7 +17,7 @@ from conftest import DATA
 
 from pipeline25d.config import chunk_size, perspectives, validate_schema
 from pipeline25d.core.errors import GroundError
-from pipeline25d.core.grid import read_float_geotiff
+from pipeline25d.core.geotiff import read_float_geotiff
 from pipeline25d.stages.terrain.bases import BASE_AGREEMENT_M, BaseTin, base_samples, with_bases
 
 CRS = "EPSG:28992"
@@ -247,7 +247,7 @@ def test_no_ground_near_a_chunk_is_an_error_naming_the_inputs(tmp_path, gl_ctx):
     """Ground nowhere near part of the model (here: the ground cells of one of two clusters 3 km
     apart removed): the project's error naming the input and what to do, never a NaN z0."""
     from pipeline25d.core.crs import horizontal_wkt
-    from pipeline25d.core.grid import write_float_geotiff
+    from pipeline25d.core.geotiff import write_float_geotiff
 
     fps = boxes([(X0, Y0), (X0 + 3000, Y0)], n=1)
 

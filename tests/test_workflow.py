@@ -247,7 +247,7 @@ def test_without_a_nadir_map_the_report_says_heights_were_not_measured(plane_run
 
 def test_derived_dtm_matches_the_demo_terrain(small_run):
     """The DTM from the model against the generator's exact terrain function (independent truth)."""
-    from pipeline25d.core.grid import read_float_geotiff
+    from pipeline25d.core.geotiff import read_float_geotiff
     from pipeline25d_lab.scenes.demo import terrain_height
 
     _, results = small_run

@@ -14,6 +14,7 @@ import numpy as np
 
 from pipeline25d.core.atomic import write_json
 from pipeline25d.core.errors import ConfigError, GroundError
+from pipeline25d.core.grid import Window
 from pipeline25d.geometry.perspectives import Perspective
 from pipeline25d.stages.gcps import CANDIDATE_FIELDS, assign_roles, read_csv, write_csv
 from pipeline25d.stages.lod import lod_chunks, scene_bounds
@@ -42,7 +43,7 @@ def scene_setup(lod_indexes: list[str], dsm_path: str | Path, terrain: str, terr
     the DTM's interpolation and the site search run block by block.
     """
     from pipeline25d.core.crs import horizontal_wkt
-    from pipeline25d.core.grid import FloatRaster, write_float_geotiff
+    from pipeline25d.core.geotiff import FloatRaster, write_float_geotiff
     from pipeline25d.core.raster import DTM
     from pipeline25d.stages.gcp_sites import SiteRules, select_sites
     from pipeline25d.stages.gcps import candidates_from_sites
@@ -166,9 +167,8 @@ def _under_chunks(bounds: np.ndarray, grid, margin_cells: int = 2):
 
     def needed(core: tuple[slice, slice]) -> bool:
         rows, cols = core
-        pad = margin_cells * grid.res
-        x0, x1 = grid.xmin + cols.start * grid.res - pad, grid.xmin + cols.stop * grid.res + pad
-        y1, y0 = grid.ymax - rows.start * grid.res + pad, grid.ymax - rows.stop * grid.res - pad
+        pad, b = margin_cells * grid.res, grid.window_bounds(Window.of_slices(rows, cols))
+        x0, x1, y0, y1 = b.xmin - pad, b.xmax + pad, b.ymin - pad, b.ymax + pad
         return bool(np.any((xy[:, 0, 0] <= x1) & (xy[:, 1, 0] >= x0) & (xy[:, 0, 1] <= y1) & (xy[:, 1, 1] >= y0)))
 
     return needed
@@ -198,10 +198,9 @@ def _sample_continuous(values: np.ndarray, grid, xy: np.ndarray) -> np.ndarray:
 
     out = np.empty(len(xy))
     for i, (x, y) in enumerate(xy):
-        col = min(max(int((x - grid.xmin) / grid.res), 0), grid.width - 1)
-        row = min(max(int((grid.ymax - y) / grid.res), 0), grid.height - 1)
+        col, row = grid.cell_of(x, y)
         rows, cols = slice(max(row - 2, 0), min(row + 3, grid.height)), slice(max(col - 2, 0), min(col + 3, grid.width))
-        window = DTM.from_array(values[rows, cols], grid.window(rows, cols).geotransform, continuous=True)
+        window = DTM.from_array(values[rows, cols], grid.window(rows, cols), continuous=True)
         out[i] = window.sample(np.array([x]), np.array([y]))[0]
     return out
 
@@ -228,7 +227,7 @@ def _without_check_points(seed: np.ndarray, grid, cands: list[GcpCandidate], rad
     for c in cands:
         if c.role != "check":
             continue
-        col, row = int((c.x - grid.xmin) / grid.res), int((grid.ymax - c.y) / grid.res)
+        col, row = (int(v) for v in grid.colrow(c.x, c.y))
         r0, r1 = max(row - k, rows.start), min(row + k + 1, rows.stop)
         c0, c1 = max(col - k, cols.start), min(col + k + 1, cols.stop)
         if r0 >= r1 or c0 >= c1:
@@ -240,8 +239,7 @@ def _without_check_points(seed: np.ndarray, grid, cands: list[GcpCandidate], rad
 
 def _cell_value(values: np.ndarray, grid, x: float, y: float) -> float:
     """The value of the grid cell holding (x, y), clamped to the grid."""
-    col = min(max(int((x - grid.xmin) / grid.res), 0), grid.width - 1)
-    row = min(max(int((grid.ymax - y) / grid.res), 0), grid.height - 1)
+    col, row = grid.cell_of(x, y)
     return float(values[row, col])
 
 
@@ -255,7 +253,7 @@ def chunk_ground(bounds: np.ndarray, dtm) -> ChunkGround:
     import hashlib
 
     lo, hi = np.asarray(bounds, dtype=np.float64)
-    step = abs(dtm.gt[1])
+    step = abs(dtm.grid.res)
     nx = int(min(max(np.ceil((hi[0] - lo[0]) / step) + 1, 2), 129))
     ny = int(min(max(np.ceil((hi[1] - lo[1]) / step) + 1, 2), 129))
     gx, gy = np.meshgrid(np.linspace(lo[0], hi[0], nx), np.linspace(lo[1], hi[1], ny))

@@ -161,7 +161,7 @@ class BaseTin:
         """(height, width) float64: the TIN's height at each cell centre of ``grid``, else the
         lowest sample in the cell, else NaN."""
         out = np.full(grid.shape, np.nan)
-        x0, y0, x1, y1 = grid.bounds_xy
+        x0, y0, x1, y1 = grid.bounds
         meets = ((self.boxes[:, 0] <= x1) & (self.boxes[:, 2] >= x0) & (self.boxes[:, 1] <= y1)
                  & (self.boxes[:, 3] >= y0))
         if meets.any():
@@ -185,10 +185,10 @@ class BaseTin:
         """Cells of ``grid`` in the squares of :data:`SQUARE_CELLS` cells that ``boxes`` meet."""
         q = SQUARE_CELLS
         nr, nc = -(-grid.height // q), -(-grid.width // q)
-        c0 = np.clip(np.floor((boxes[:, 0] - grid.xmin) / grid.res / q).astype(np.int64), 0, nc - 1)
-        c1 = np.clip(np.floor((boxes[:, 2] - grid.xmin) / grid.res / q).astype(np.int64), 0, nc - 1)
-        r0 = np.clip(np.floor((grid.ymax - boxes[:, 3]) / grid.res / q).astype(np.int64), 0, nr - 1)
-        r1 = np.clip(np.floor((grid.ymax - boxes[:, 1]) / grid.res / q).astype(np.int64), 0, nr - 1)
+        cols0, rows0 = grid.colrow(boxes[:, 0], boxes[:, 3])     # the boxes' top-left and bottom-right cells
+        cols1, rows1 = grid.colrow(boxes[:, 2], boxes[:, 1])
+        c0, c1 = (np.clip(np.floor(c / q).astype(np.int64), 0, nc - 1) for c in (cols0, cols1))
+        r0, r1 = (np.clip(np.floor(r / q).astype(np.int64), 0, nr - 1) for r in (rows0, rows1))
         diff = np.zeros((nr + 1, nc + 1), np.int64)           # 2-D difference array of the boxes' squares
         np.add.at(diff, (r0, c0), 1)
         np.add.at(diff, (r0, c1 + 1), -1)
@@ -199,8 +199,7 @@ class BaseTin:
 
     def _burn_samples(self, out: np.ndarray, grid: Grid) -> None:
         """The lowest sample in each cell of ``out`` no triangle covers (a building smaller than a cell)."""
-        col = np.floor((self.points[:, 0] - grid.xmin) / grid.res).astype(np.int64)
-        row = np.floor((grid.ymax - self.points[:, 1]) / grid.res).astype(np.int64)
+        col, row = (np.floor(v).astype(np.int64) for v in grid.colrow(self.points[:, 0], self.points[:, 1]))
         inside = (row >= 0) & (row < grid.height) & (col >= 0) & (col < grid.width)
         if not inside.any():
             return

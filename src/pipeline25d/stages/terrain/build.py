@@ -24,7 +24,8 @@ def build_terrain(lod_indexes: list[str], inputs: dict, scene_crs: str, gsd: flo
     rasters are written block by block: memory follows a block, not the scene.
     """
     from pipeline25d.core.crs import horizontal_wkt
-    from pipeline25d.core.grid import Grid, float_geotiff_writer
+    from pipeline25d.core.geotiff import float_geotiff_writer
+    from pipeline25d.core.grid import Grid
     from pipeline25d.stages.terrain.dsm import auto_resolution, height_map_tiles
 
     chunks = lod_chunks(lod_indexes)
@@ -59,7 +60,8 @@ def _ground_from_model(inputs: dict, scene_crs: str, ground_cfg: dict, dsm_path:
     they carry one; elsewhere the bases of their buildings (:mod:`pipeline25d.stages.terrain.bases`)
     and, unless every other input is made of buildings alone, the Cloth Simulation Filter's ground
     cells of the DSM (:func:`~pipeline25d.stages.terrain.bases.with_bases` joins the two)."""
-    from pipeline25d.core.grid import FloatRaster, cell_blocks, float_geotiff_writer
+    from pipeline25d.core.geotiff import FloatRaster, float_geotiff_writer
+    from pipeline25d.core.grid import cell_blocks
     from pipeline25d.stages.terrain.bases import district_bases, with_bases
     from pipeline25d.stages.terrain.dsm import render_height_map
     from pipeline25d.stages.terrain.ground import ground_blocks
