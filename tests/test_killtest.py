@@ -34,15 +34,20 @@ def test_live_members_sees_a_process_group_until_it_is_gone():
     assert live_members(proc.pid) == []
 
 
+HANG_S = 60.0     # a run still going this long after SIGINT/SIGTERM hangs
+
+
 @pytest.mark.slow
 def test_runs_killed_interrupted_and_terminated_resume_to_identical_maps_and_tiles(tmp_path):
-    """Three trials on a small demo city, one per signal; make killtest runs twenty."""
+    """Three trials on a small demo city, one per signal; make killtest runs twenty and reports how
+    long each run took to stop. Here the limit only tells a stop from a hang: on a loaded 2-core
+    machine Snakemake took over 10 s to wind down after SIGTERM (twice in many runs)."""
     config = demo_config(tmp_path / "scene", 0.25, [{"azimuth": 45, "elevation": 45},
                                                     {"azimuth": 225, "elevation": 45}])
-    result = run_trials(tmp_path / "work", config, 3, ["KILL", "INT", "TERM"], seed=3)
+    result = run_trials(tmp_path / "work", config, 3, ["KILL", "INT", "TERM"], seed=3, stop_limit=HANG_S)
     assert result["files_compared"] > 10
     for rec in result["trials"]:
         assert rec["ok"] and rec["identical"] and rec["resume_rc"] == 0, rec
         assert not rec["finished_before_signal"], rec          # the signal came while it ran
         if rec["signal"] != "KILL":
-            assert rec["stopped"] and rec["stop_s"] < 10, rec
+            assert rec["stopped"] and rec["stop_s"] < HANG_S, rec
