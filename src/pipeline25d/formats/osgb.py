@@ -119,8 +119,9 @@ def read_tiles(path: Path, gsd: float | None, missing_children: str = "coarser")
     for tile, root in zip(tiles, roots):
         log.info("%s at gsd %s: %s", tile.name, gsd, describe_levels(tile.levels))
         if tile.coarser:
+            asked = f"gsd {gsd}" if gsd else "full detail"
             said = (f"{root}: {sum(len(c.missing) for c in tile.coarser)} PagedLOD child file(s) missing, drawn "
-                    f"coarser than gsd {gsd} asks for, at the level of the file that names them: "
+                    f"coarser than {asked} asks for, at the level of the file that names them: "
                     + ", ".join(f"{name} (level {c.level} drawn)" for c in tile.coarser for name in c.missing))
             log.warning("%s", said)
             warnings.warn(said, stacklevel=2)
