@@ -202,13 +202,14 @@ def test_a_whole_run_works_from_a_folder_with_spaces_and_non_ascii_letters(tmp_p
 
 def _noise_map(path: Path) -> None:
     from pipeline25d.core.crs import horizontal_wkt
-    from pipeline25d.core.raster import write_rgba_geotiff
+    from pipeline25d.core.geotiff import write_rgba_geotiff
+    from pipeline25d.core.grid import Grid
 
     rng = np.random.default_rng(2)
     rgba = np.zeros((1500, 2000, 4), np.uint8)
     rgba[..., :3] = rng.integers(0, 255, (1500, 2000, 3), dtype=np.uint8)
     rgba[..., 3] = 255
-    write_rgba_geotiff(path, rgba, (691000.0, 0.5, 0.0, 5334000.0, 0.0, -0.5), horizontal_wkt("EPSG:25832"))
+    write_rgba_geotiff(path, rgba, Grid.north_up(691000.0, 5334000.0, 0.5, 2000, 1500), horizontal_wkt("EPSG:25832"))
 
 
 @pytest.fixture
@@ -265,3 +266,37 @@ def test_a_disk_that_fills_up_during_the_web_tile_cut(tmp_path, small_disk, stag
     got = _tile_files(disk / "tms")
     assert sorted(got) == sorted(want) and len(want) > 20
     assert [k for k in want if got[k].read_bytes() != want[k].read_bytes()] == []
+
+
+@pytest.mark.parametrize("case, expected", [
+    ("dtm-not-a-raster", r"^pipeline25d: error: .*dtm\.tif: cannot open as a raster \(config key terrain\)"),
+    ("schema", r"^pipeline25d: error: config key gsd: -1 is less than or equal to the minimum of 0$"),
+])
+@pytest.mark.parametrize("entry", ["snakemake", "pipeline25d run"])
+def test_a_parse_time_error_is_one_line_without_a_traceback(tmp_path, case, expected, entry):
+    """Errors raised while the workflow is parsed (config schema, DTM check)
+    print one line naming the file or key, exit 1 and show no traceback, from either entry point."""
+    write_obj(tmp_path / "site.obj", SQUARE, SQUARE_FACES, None)
+    (tmp_path / "dtm.tif").write_text("not a raster\n")
+    extra = {"dtm-not-a-raster": {"terrain": "dtm.tif"}, "schema": {"gsd": -1}}.get(case, {})
+    _config(tmp_path, {"d0": {"path": "site.obj"}}, **extra)
+    if entry == "snakemake":
+        proc = snakemake(tmp_path, "-n", check=False)
+    else:
+        cli = str(Path(sys.executable).parent / "pipeline25d")
+        proc = subprocess.run([cli, "run", str(tmp_path / "config.yaml"), "--dry-run", "--directory", str(tmp_path)],
+                              capture_output=True, text=True, cwd=tmp_path)
+    assert proc.returncode == 1, proc.stderr[-2000:]
+    assert re.search(expected, proc.stderr, re.M), proc.stderr[-2000:]
+    assert "Traceback" not in proc.stdout + proc.stderr and "File \"" not in proc.stderr, proc.stderr[-2000:]
+
+
+def test_a_plan_cut_short_names_its_file(tmp_path):
+    """The DAG reads an earlier run's plans (render blocks, tiles): one cut short is an InputFileError
+    naming it, which the workflow's input functions print as one line (common.smk parse_guard)."""
+    from pipeline25d.core.errors import InputFileError
+    from pipeline25d.stages.plan import read_plan
+
+    (tmp_path / "az000_el90.json").write_text('{"perspective": {"id"')
+    with pytest.raises(InputFileError, match=r"az000_el90\.json: is not a readable plan .*delete it"):
+        read_plan(tmp_path / "az000_el90.json")

@@ -115,3 +115,96 @@ def test_bad_shadow_settings_name_the_key(tmp_path, shadows, message):
     cfg = validate_schema(with_(shadows=shadows))
     with pytest.raises(ConfigError, match=message):
         check_semantics(cfg, tmp_path)
+
+
+# --------------------------------------------------------------------------- the work a config asks for
+
+def _work(**changes):
+    from pipeline25d.stages import budget
+
+    cfg = validate_schema(with_(**{"gsd": 0.5, "tile_size": 256, "chunk_size": 50, "projection": "plane",
+                                   "perspectives": [{"azimuth": 0, "elevation": 90}, {"azimuth": 90, "elevation": 45}],
+                                   "ground": {"resolution": 2}, **changes}))
+    return budget.settings(cfg)
+
+
+def test_the_work_estimate_is_the_hand_count_of_pixels_tiles_chunks_and_cells():
+    """A 100 × 120 m box, 30 m high, at x 1000, y 2000: the nadir map covers the box; the view from the
+    east (azimuth 90, elevation 45) also the 30 m of height laid east (cot 45° = 1); tiles of 256 px
+    at 0.5 m are 128 m, chunks 50 m, terrain cells 2 m."""
+    from pipeline25d.stages import budget
+
+    found = budget.estimate(_work(), [[1000.0, 2000.0, 0.0], [1100.0, 2120.0, 30.0]], "a test box")
+    assert found.map_pixels == pytest.approx({"az000_el90": 200 * 240, "az090_el45": 260 * 240})
+    # tile columns: [1000, 1100] and [1000, 1130] both meet 128 m cells 7 and 8; rows 15 and 16
+    assert found.tiles == {"az000_el90": 2 * 2, "az090_el45": 2 * 2}
+    assert found.render_jobs == 2          # 4 tiles fit one block of 4 x 4
+    assert found.chunks == 2 * 3           # 50 m cells 20-21 by 40-42
+    assert found.terrain_cells == 50 * 60
+    assert found.total_pixels == 200 * 240 + 260 * 240
+
+
+def test_a_gsd_typo_is_refused_with_the_numbers_the_key_and_the_likely_typo():
+    from pipeline25d.stages import budget
+
+    box = [[0.0, 0.0, 0.0], [100.0, 120.0, 30.0]]
+    work = _work(gsd=0.00001)
+    with pytest.raises(ConfigError) as err:
+        budget.check(work, budget.estimate(work, box, "a test box"))
+    text = str(err.value)
+    pixels = (130 / 0.00001) * (120 / 0.00001)       # the oblique map, the larger one
+    assert "limits.max_map_pixels" in text and "gsd 1e-05 m" in text and "100 × 120 m" in text
+    assert f"{pixels:.2g} pixels" in text and "1e+10" in text and "typo" in text
+    budget.check(_work(), budget.estimate(_work(), box, "a test box"))      # the same scene at 0.5 m runs
+    more = _work(gsd=0.00001, limits={"max_map_pixels": 1e15, "max_tiles": 10 ** 12})
+    budget.check(more, budget.estimate(more, box, "a test box"))             # raised limits let it through
+
+
+@pytest.mark.parametrize("changes, key", [
+    ({"chunk_size": 1}, "limits.max_chunks"),
+    ({"ground": {"resolution": 0.01}}, "limits.max_terrain_cells"),
+    ({"tile_size": 64, "gsd": 0.05}, "limits.max_tiles"),
+])
+def test_each_limit_names_its_key(changes, key):
+    from pipeline25d.stages import budget
+
+    work = _work(**changes)
+    box = [[0.0, 0.0, 0.0], [2000.0, 2000.0, 30.0]]
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        budget.check(work, budget.estimate(work, box, "a test box"))
+
+
+@pytest.mark.parametrize("changes, key", [
+    ({"chunk_size": 0.5}, "chunk_size"),
+    ({"ground": {"resolution": 0.001}}, "ground.resolution"),
+    ({"tms": {"zoom": "14-25"}}, "tms.zoom"),
+    ({"perspectives": [{"azimuth": a, "elevation": 45} for a in range(73)]}, "perspectives"),
+    ({"perspectives": [{"azimuth": 0, "elevation": 45}] * 2}, "perspectives"),
+    ({"limits": {"max_map_pixels": 0}}, "limits.max_map_pixels"),
+    ({"limits": {"max_pixels": 1}}, "limits"),
+])
+def test_values_that_would_exhaust_the_machine_are_schema_errors(changes, key):
+    with pytest.raises(ConfigError) as err:
+        validate_schema(with_(**changes))
+    assert key in str(err.value)
+
+
+def test_the_extent_before_ingest_is_the_obj_vertices_box_with_offset(tmp_path):
+    from pipeline25d.stages.extent import cheap_extent
+
+    (tmp_path / "a.obj").write_text("v 1 2 3\nv -4 5.5 6\nvt 0.5 0.5\nv 7 -8 9\nf 1 2 3\n")
+    (tmp_path / "b.obj").write_text("v 0 0 0\nv 1 1 1\n")
+    cfg = {"crs": "EPSG:25832", "inputs": {"a": {"path": "a.obj"}, "b": {"path": "b.obj", "offset": [10, 20, 30]}}}
+    extent, source = cheap_extent(cfg, tmp_path / "results", tmp_path)
+    assert extent.tolist() == [[-4, -8, 3], [11, 21, 31]] and source == "the OBJ vertices"
+    cfg["inputs"]["c"] = {"path": "c.ply"}
+    (tmp_path / "c.ply").write_text("ply\n")
+    assert cheap_extent(cfg, tmp_path / "results", tmp_path) is None      # a PLY is not scanned
+
+
+def test_a_dtm_that_is_not_a_raster_is_refused_naming_file_and_key(tmp_path):
+    (tmp_path / "model.obj").write_text("v 0 0 0\n")
+    (tmp_path / "dtm.tif").write_text("not a raster\n")
+    cfg = validate_schema(with_(terrain="dtm.tif"))
+    with pytest.raises(InputFileError, match=r"dtm\.tif: cannot open as a raster \(config key terrain\)"):
+        check_semantics(cfg, tmp_path)

@@ -17,7 +17,9 @@ from pipeline25d.analysis.evaluate.visibility import (
     visible_ground,
 )
 from pipeline25d.core.errors import ConfigError
-from pipeline25d.core.raster import gdal, write_rgba_geotiff
+from pipeline25d.core.geotiff import write_rgba_geotiff
+from pipeline25d.core.grid import Grid
+from pipeline25d.core.raster import gdal
 
 GSD = 0.5
 E0, N0 = 691000.0, 5334000.0          # UTM 32N, top-left corner of the big texture
@@ -58,7 +60,7 @@ def write_map(path, grey: np.ndarray, col0: float, row0: float, alpha: np.ndarra
     """Write a grey float image as RGBA GeoTIFF whose top-left corner is big-texture pixel corner (col0, row0)."""
     g = np.clip(np.round(grey), 0, 255).astype(np.uint8)
     rgba = np.dstack([g, g, (g * 0.8 + 20).astype(np.uint8), np.full_like(g, 255) if alpha is None else alpha])
-    write_rgba_geotiff(path, rgba, (E0 + col0 * GSD, gsd, 0.0, N0 - row0 * GSD, 0.0, -gsd), _wkt())
+    write_rgba_geotiff(path, rgba, Grid.north_up(E0 + col0 * GSD, N0 - row0 * GSD, gsd, g.shape[1], g.shape[0]), _wkt())
     return str(path)
 
 

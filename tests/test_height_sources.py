@@ -139,9 +139,10 @@ def test_reference_auto_falls_back_to_the_dsm_and_puts_it_on_the_maps_ground(tmp
     minus the maps' ground under it; a CSV reference is taken as heights above that ground."""
     from pipeline25d.analysis.height_sources import reference_heights
     from pipeline25d.core.crs import horizontal_wkt
-    from pipeline25d.core.grid import Grid, write_float_geotiff
+    from pipeline25d.core.geotiff import write_float_geotiff
+    from pipeline25d.core.grid import Grid
 
-    grid = Grid(1000.0, 2040.0, 0.5, 80, 80)                       # 40 m x 40 m, 0.5 m cells
+    grid = Grid.north_up(1000.0, 2040.0, 0.5, 80, 80)                       # 40 m x 40 m, 0.5 m cells
     xs, ys = grid.cell_centres()
     roof = (xs > 1010) & (xs < 1020) & (ys > 2010) & (ys < 2016)
     dsm = np.where(roof, 17.0, 2.0 + 0.01 * (xs - 1000))          # a flat roof at 17 m on a gentle slope

@@ -13,7 +13,8 @@ from pipeline25d.analysis.heights.cli import main
 from pipeline25d.analysis.heights.reference import reference_heights_from_obj
 from pipeline25d.analysis.heights.views import measure_heights
 from pipeline25d.core.errors import CRSError, InputFileError
-from pipeline25d.core.raster import write_rgba_geotiff
+from pipeline25d.core.geotiff import write_rgba_geotiff
+from pipeline25d.core.grid import Grid, Window
 from pipeline25d.formats.footprints import rasterize, read_footprints
 
 GSD = 0.25
@@ -150,7 +151,7 @@ def scene(tmp_path_factory) -> dict:
     ext = (X0, Y0 - SIZE_M, X0 + SIZE_M, Y0)
     rgba = render(0, 90, ext)
     maps["az000_el90"] = root / "az000_el90.tif"
-    write_rgba_geotiff(maps["az000_el90"], rgba, (ext[0], GSD, 0.0, ext[3], 0.0, -GSD), wkt)
+    write_rgba_geotiff(maps["az000_el90"], rgba, Grid.north_up(ext[0], ext[3], GSD, rgba.shape[1], rgba.shape[0]), wkt)
     for az, el in VIEWS:
         ext = oblique_extent(az, el, frac=0.3 if az == 165 else 0.0)
         rgba = render(az, el, ext)
@@ -162,7 +163,7 @@ def scene(tmp_path_factory) -> dict:
             rgba[row - 20:row + 20, col - 20:col + 20, 3] = 0
         pid = f"az{az:03d}_el{el:02d}"
         maps[pid] = root / f"{pid}.tif"
-        write_rgba_geotiff(maps[pid], rgba, (ext[0], GSD, 0.0, ext[3], 0.0, -GSD), wkt)
+        write_rgba_geotiff(maps[pid], rgba, Grid.north_up(ext[0], ext[3], GSD, rgba.shape[1], rgba.shape[0]), wkt)
     gpkg = root / "footprints.gpkg"
     write_gpkg(gpkg, {k: v[0] for k, v in BUILDINGS.items()}, 28992)
     return {"root": root, "maps": maps, "gpkg": gpkg}
@@ -242,8 +243,7 @@ def test_not_measured(measured):
 def test_shared_colour_neighbours_and_holes_rasterize(scene):
     fps = {f.id: f for f in read_footprints(scene["gpkg"], id_field="ident")}
     assert len(fps["court"].rings) == 2 and len(fps["multi"].rings) == 2
-    gt = (X0, GSD, 0.0, Y0, 0.0, -GSD)
-    mask = rasterize(fps["court"], gt, 0, 0, 256, 256)
+    mask = rasterize(fps["court"], Grid.north_up(X0, Y0, GSD, 256, 256), Window(0, 0, 256, 256))
     hole = rect(46.5, 50.0, 6.0, 5.0, 8.0).mean(0)
     col, row = int((hole[0] - X0) / GSD), int((Y0 - hole[1]) / GSD)
     assert not mask[row, col] and mask[row, col + 18]

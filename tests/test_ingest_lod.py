@@ -176,11 +176,12 @@ def test_dtm_samples_the_same_ground_from_another_crs():
 @needs_data
 def test_dtm_read_through_a_window_samples_the_same_heights_with_a_fraction_of_the_cells(tmp_path):
     from pipeline25d.core.crs import horizontal_wkt, transform_points
-    from pipeline25d.core.grid import Grid, write_float_geotiff
+    from pipeline25d.core.geotiff import write_float_geotiff
+    from pipeline25d.core.grid import Grid
     from pipeline25d.core.raster import DTM
 
     # a hole-free DTM (as terrain: auto writes it): only the window's cells are read
-    grid = Grid(84000.0, 448000.0, 0.5, 2000, 2000)
+    grid = Grid.north_up(84000.0, 448000.0, 0.5, 2000, 2000)
     cols, rows = np.meshgrid(np.arange(2000), np.arange(2000))
     write_float_geotiff(tmp_path / "dtm.tif", 0.01 * cols - 0.02 * rows + np.sin(cols / 9.0), grid,
                         horizontal_wkt("EPSG:28992"))

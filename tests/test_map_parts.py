@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 from conftest import grid_plan
 
-from pipeline25d.core.raster import gdal, write_rgba_geotiff
+from pipeline25d.core.geotiff import write_rgba_geotiff
+from pipeline25d.core.grid import Grid
+from pipeline25d.core.raster import gdal
 from pipeline25d.stages.maps.parts import COG_BLOCK, map_grid, overview_factors, tile_parts
 from pipeline25d.stages.maps.warp import build_mosaic, warp_to_cog
 from pipeline25d.stages.records import Observation
@@ -51,7 +53,8 @@ def test_overview_factors_follow_the_cog_driver():
 
 def test_part_windows_sit_on_a_global_grid_aligned_to_every_overview():
     bounds = [(1000.0, 2000.0, 1100.0, 2050.0), (9000.0, 7000.0, 9100.0, 7100.0)]
-    gt, width, height, windows = map_grid(bounds, 0.25)
+    grid, windows = map_grid(bounds, 0.25)
+    gt, width, height = grid.geotransform, grid.width, grid.height
     align = max([1, *overview_factors(width, height)])
     assert gt[0] % (align * 0.25) == 0 and gt[3] % (align * 0.25) == 0
     for (x0, y0, x1, y1), w in zip(bounds, windows):
@@ -84,7 +87,7 @@ def two_towns(tmp_path_factory):
     for r, c in cells:
         path = d / f"{r}_{c}.tif"
         span = TILE * GSD
-        write_rgba_geotiff(path, _tile_pixels(r, c), (c * span, GSD, 0.0, (r + 1) * span, 0.0, -GSD), horizontal_wkt(CRS))
+        write_rgba_geotiff(path, _tile_pixels(r, c), Grid.north_up(c * span, (r + 1) * span, GSD, TILE, TILE), horizontal_wkt(CRS))
         paths.append(str(path))
     build_mosaic(paths, d / "mosaic.vrt")
     plan = grid_plan(cells, GSD, TILE, CRS)

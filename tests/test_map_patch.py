@@ -9,10 +9,12 @@ import numpy as np
 from conftest import grid_plan
 
 from pipeline25d.core.crs import horizontal_wkt
-from pipeline25d.core.raster import gdal, write_rgba_geotiff
+from pipeline25d.core.geotiff import write_rgba_geotiff
+from pipeline25d.core.grid import Grid
+from pipeline25d.core.raster import gdal
 from pipeline25d.stages.maps import patch as map_patch
 from pipeline25d.stages.maps.patch import block_window, patched_map
-from pipeline25d.stages.maps.warp import build_mosaic, gdal_gcps, raster_geotransform, warp_to_cog
+from pipeline25d.stages.maps.warp import build_mosaic, gdal_gcps, raster_grid, warp_to_cog
 from pipeline25d.stages.records import Observation
 
 GSD, TILE, ROWS, COLS = 0.5, 128, 10, 12
@@ -31,7 +33,7 @@ def _pixels(row: int, col: int, seed: int = 0) -> np.ndarray:
 def _write_tile(d, row, col, seed=0) -> str:
     path = d / f"{row}_{col}.tif"
     span = TILE * GSD
-    write_rgba_geotiff(path, _pixels(row, col, seed), (col * span, GSD, 0.0, (ROWS - row) * span, 0.0, -GSD),
+    write_rgba_geotiff(path, _pixels(row, col, seed), Grid.north_up(col * span, (ROWS - row) * span, GSD, TILE, TILE),
                        horizontal_wkt(CRS))
     return str(path)
 
@@ -52,7 +54,7 @@ def _source(d, obs) -> tuple[str, str]:
     build_mosaic([str(p) for p in sorted(d.glob("*_*.tif"))], mosaic)
     src = d / "gcps.vrt"
     gdal().Translate(str(src), str(mosaic), format="VRT", outputSRS=horizontal_wkt(CRS),
-                     GCPs=gdal_gcps(obs, raster_geotransform(mosaic)))
+                     GCPs=gdal_gcps(obs, raster_grid(mosaic)))
     return str(mosaic), str(src)
 
 

@@ -166,7 +166,7 @@ def test_measure_command_gives_a_demo_buildings_height(small_run):
         measured = float(re.search(r"height (-?[\d.]+) m", proc.stdout).group(1))
         print(f"{pid} {building['id']}: measured {measured:.3f} m, true {height:.3f} m, tolerance {tolerance:.3f} m")
         assert abs(measured - height) <= tolerance, (pid, building["id"], measured, height)
-        gt = open_map(cog).geotransform
+        gt = open_map(cog).grid.geotransform
         px = [f"{(q[0] - gt[0]) / gt[1]},{(q[1] - gt[3]) / gt[5]}" for q in (base, top)]
         by_pixel = measure_cli(cog, "height", *px, "--pixel").stdout
         assert float(re.search(r"height (-?[\d.]+) m", by_pixel).group(1)) == pytest.approx(measured, abs=0.006)

@@ -116,7 +116,8 @@ def test_the_defaults_repeats_are_spread_through_the_sweep():
 
 def test_map_error_is_the_mean_colour_difference_over_covered_pixels(tmp_path):
     from pipeline25d.core.crs import horizontal_wkt
-    from pipeline25d.core.raster import write_rgba_geotiff
+    from pipeline25d.core.geotiff import write_rgba_geotiff
+    from pipeline25d.core.grid import Grid
     from pipeline25d_lab.harness.sweep import map_error
 
     ref = np.zeros((40, 50, 4), np.uint8)
@@ -124,10 +125,10 @@ def test_map_error_is_the_mean_colour_difference_over_covered_pixels(tmp_path):
     run = ref.copy()
     run[10:30, 10:20, :3] += 12                     # a third of the covered pixels 12 grey levels off
     run[30:32, 10:40] = (100, 120, 140, 255)        # two more rows covered (60 px, 120-ish off on average)
-    gt = (1000.0, 0.5, 0.0, 2000.0, 0.0, -0.5)
+    grid = Grid.north_up(1000.0, 2000.0, 0.5, 50, 40)
     for name, img in (("ref", ref), ("run", run)):
         (tmp_path / name / "maps").mkdir(parents=True)
-        write_rgba_geotiff(tmp_path / name / "maps" / "v.tif", img, gt, horizontal_wkt("EPSG:28992"))
+        write_rgba_geotiff(tmp_path / name / "maps" / "v.tif", img, grid, horizontal_wkt("EPSG:28992"))
     covered = 20 * 30 + 60
     expected = (200 * 12 + 60 * (100 + 120 + 140) / 3) / covered
     assert map_error(tmp_path / "run", tmp_path / "ref", ["v"]) == pytest.approx(expected, abs=1e-3)

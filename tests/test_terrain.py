@@ -21,7 +21,7 @@ E0, N0 = 600000.0, 5250000.0
 
 def rugged_scene(n: int = 300, seed: int = 0):
     """A 1 m DSM of steep terrain (~200 m relief) with 40 flat-roofed boxes; truth masks and DTM."""
-    grid = Grid(E0, N0 + n, 1.0, n, n)
+    grid = Grid.north_up(E0, N0 + n, 1.0, n, n)
     xs, ys = grid.cell_centres()
     terrain = 60 * np.sin((xs - E0) / 90) * np.cos((ys - N0) / 110) + 0.3 * (xs - E0)   # slopes up to ~40°
     dsm = terrain.copy()
@@ -56,7 +56,7 @@ def test_sites_are_exposed_clear_of_objects_and_of_their_lines_of_sight():
     north of the tower up to 30·cot 30° = 52 m: no site there is clear for that view, and with
     that view alone no site lies there at all."""
     n = 200
-    grid = Grid(E0, N0 + n, 1.0, n, n)
+    grid = Grid.north_up(E0, N0 + n, 1.0, n, n)
     dsm = np.full((n, n), 10.0)
     tower = (slice(90, 110), slice(90, 110))                             # rows (north at 0), cols
     dsm[tower] = 40.0
@@ -99,7 +99,7 @@ def _plan_45():
 def test_auto_warp_keeps_none_unless_a_warp_clearly_wins_and_never_looks_at_check_points():
     rng = np.random.default_rng(2)
     plan = _plan_45()
-    gt = (0.0, 0.5, 0.0, 500.0, 0.0, -0.5)
+    gt = Grid.north_up(0.0, 500.0, 0.5, 1000, 1000)
     obs = _obs(60, 20, 0.0, rng, z=3.0)                                  # relief 3 m: the warp is considered
     assert choose(obs, plan, gt, "auto", 3)["method"] == "none"           # nothing to correct
     shifted = _obs(60, 20, 2.0, rng, z=3.0)
@@ -114,7 +114,7 @@ def test_auto_warp_keeps_none_unless_a_warp_clearly_wins_and_never_looks_at_chec
 @pytest.mark.parametrize("n_check", [0, 1, MIN_CHECK_POINTS - 1])
 def test_too_few_check_points_give_no_figure(n_check):
     rng = np.random.default_rng(3)
-    res = residuals("none", 0, _obs(20, n_check, 0.0, rng), (0.0, 0.5, 0.0, 500.0, 0.0, -0.5), 0.5)
+    res = residuals("none", 0, _obs(20, n_check, 0.0, rng), Grid.north_up(0.0, 500.0, 0.5, 1000, 1000), 0.5)
     assert res["rmsd_m"] is None and res["check_note"] == f"n/a ({n_check} check points)"
 
 
@@ -126,7 +126,7 @@ def test_a_large_tps_that_is_not_chosen_is_not_fitted_on_every_gcp():
     rng = np.random.default_rng(4)
     plan = _plan_45()
     obs = _obs(CV_MAX_GCPS + 100, 30, 2.0, rng, z=3.0)
-    choice = choose(obs, plan, (0.0, 0.5, 0.0, 500.0, 0.0, -0.5), "auto", 3)
+    choice = choose(obs, plan, Grid.north_up(0.0, 500.0, 0.5, 1000, 1000), "auto", 3)
     assert choice["method"] == "polynomial"                              # a shift: order 1 fits it
     tps = next(c for c in choice["candidates"] if c["method"] == "tps")
     assert tps["cv_rmsd_m"] is not None and tps["rmsd_m"] is None and "not scored" in tps["check_note"]
@@ -150,7 +150,7 @@ def test_sites_closer_than_their_markers_reach_are_thinned_locally():
     from scipy.spatial.distance import pdist
 
     n = 80
-    grid = Grid(E0, N0 + n, 1.0, n, n)
+    grid = Grid.north_up(E0, N0 + n, 1.0, n, n)
     dsm = np.full((n, n), 5.0)
     rules = SiteRules(spacing=2.0, radius=1.0, clearance=0.0)
     views = [Perspective(0, 90), Perspective(45, 45)]

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline25d.core.grid import FloatRaster, Grid, cell_blocks, float_geotiff_writer
+from pipeline25d.core.geotiff import FloatRaster, float_geotiff_writer
+from pipeline25d.core.grid import Grid, cell_blocks
 from pipeline25d.geometry.perspectives import Perspective
 from pipeline25d.stages.gcp_sites import SiteRules, select_sites
 from pipeline25d.stages.terrain.dtm import dtm_blocks, interpolate_dtm
@@ -20,7 +21,7 @@ def boxes_on_a_slope(height: int = 640, width: int = 768, seed: int = 1):
     """A 1 m DSM: a 10 % slope with a gentle swell, 150 flat-roofed boxes up to 30 m wide and
     blocks of the largest object size across the cuts between SMALL_BLOCKS' cores (rows and
     columns 256 and 512)."""
-    grid = Grid(E0, N0 + height, 1.0, width, height)
+    grid = Grid.north_up(E0, N0 + height, 1.0, width, height)
     xs, ys = grid.cell_centres()
     terrain = 0.1 * (xs - E0) + 4 * np.sin((ys - N0) / 70) * np.cos((xs - E0) / 90)
     dsm = terrain.copy()
@@ -115,7 +116,7 @@ def test_blockwise_sites_equal_the_whole_grid_in_float32(scene):
 
 
 def test_geotiff_written_by_blocks_reads_back(tmp_path):
-    grid = Grid(E0, N0 + 600, 0.5, 700, 600)
+    grid = Grid.north_up(E0, N0 + 600, 0.5, 700, 600)
     values = np.random.default_rng(0).normal(size=grid.shape).astype(np.float32)
     values[:40, :90] = np.nan
     with float_geotiff_writer(tmp_path / "r.tif", grid, "") as write:
@@ -129,7 +130,7 @@ def test_geotiff_written_by_blocks_reads_back(tmp_path):
 
 def sparse_scene():
     """Two 1 m districts (copies of boxes_on_a_slope's corners) in a 2 x 1.5 km box of empty land."""
-    grid = Grid(E0, N0 + 1536, 1.0, 2048, 1536)
+    grid = Grid.north_up(E0, N0 + 1536, 1.0, 2048, 1536)
     dsm = boxes_on_a_slope(seed=3)[1][:400, :400]
     sparse = np.full(grid.shape, np.nan)
     sparse[40:440, 60:460] = dsm
@@ -155,7 +156,7 @@ def test_empty_land_is_not_filtered_and_the_districts_are_as_alone(monkeypatch):
     assert blocks >= 12 and 2 <= len(calls) <= blocks // 2       # only the windows that hold a district
     assert not ground[~np.isfinite(dsm)].any()
     for rows, cols in [(slice(40, 440), slice(60, 460)), (slice(1100, 1500), slice(1500, 1900))]:
-        own = Grid(grid.xmin + cols.start * grid.res, grid.ymax - rows.start * grid.res, grid.res, 400, 400)
+        own = Grid.north_up(grid.xmin + cols.start * grid.res, grid.ymax - rows.start * grid.res, grid.res, 400, 400)
         alone = trim_object_edges(csf_ground(dsm[rows, cols], own, MAX_OBJECT_M, 2.0, 2, 0.5), dsm[rows, cols])
         assert (ground[rows, cols] == alone).mean() >= 0.995
 
@@ -231,7 +232,7 @@ def test_the_fill_of_a_sparse_window_equals_gdals_fill_of_all_of_it():
 def test_under_chunks_meets_exactly_the_blocks_under_a_footprint():
     from pipeline25d.stages.scene import _under_chunks
 
-    grid = Grid(E0, N0 + 1000, 0.5, 4000, 2000)            # 2 x 1 km
+    grid = Grid.north_up(E0, N0 + 1000, 0.5, 4000, 2000)            # 2 x 1 km
     bounds = np.array([[[E0 + 100, N0 + 900, 0], [E0 + 180, N0 + 980, 30]]])
     needed = _under_chunks(bounds, grid)
     assert needed((slice(0, 256), slice(0, 512)))            # holds x 100-180 m, y 20-100 m from the top
@@ -244,7 +245,7 @@ def test_empty_blocks_are_not_stored(tmp_path):
     """An all-NaN block is not written: its GeoTIFF tiles have no data on disk and read as NaN."""
     from pipeline25d.core.raster import gdal
 
-    grid = Grid(E0, N0 + 512, 1.0, 768, 512)
+    grid = Grid.north_up(E0, N0 + 512, 1.0, 768, 512)
     values = np.full(grid.shape, np.nan, np.float32)
     values[:256, 512:] = 7.5
     with float_geotiff_writer(tmp_path / "r.tif", grid, "") as write:

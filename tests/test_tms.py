@@ -12,7 +12,8 @@ from conftest import grid_plan
 from PIL import Image
 
 from pipeline25d.core.crs import transform_points
-from pipeline25d.core.raster import write_rgba_geotiff
+from pipeline25d.core.geotiff import write_rgba_geotiff
+from pipeline25d.core.grid import Grid
 from pipeline25d.stages.tiles.web import BLOCK_TILES, WEB_MERCATOR, tms
 
 
@@ -30,7 +31,7 @@ def test_tiles_match_a_default_gdal2tiles_cut(tmp_path):
     cog = tmp_path / "map.tif"
     from pipeline25d.core.crs import horizontal_wkt
 
-    write_rgba_geotiff(cog, rgba, (691000.0, 0.5, 0.0, 5334000.0, 0.0, -0.5), horizontal_wkt("EPSG:25832"))
+    write_rgba_geotiff(cog, rgba, Grid.north_up(691000.0, 5334000.0, 0.5, rgba.shape[1], rgba.shape[0]), horizontal_wkt("EPSG:25832"))
     ours, ref = tmp_path / "ours", tmp_path / "ref"
     tms(cog, "auto", ours, tile_format="png")
     subprocess.run([sys.executable, "-m", "osgeo_utils.gdal2tiles", "-q", "--xyz", "-w", "none", "-r", "average",
@@ -54,7 +55,7 @@ def _smooth_map(path):
     rgba[..., 2] = 90
     rgba[..., 3] = 255
     rgba[:150, :200] = 0
-    write_rgba_geotiff(path, rgba, (691000.0, 0.5, 0.0, 5334000.0, 0.0, -0.5), horizontal_wkt("EPSG:25832"))
+    write_rgba_geotiff(path, rgba, Grid.north_up(691000.0, 5334000.0, 0.5, rgba.shape[1], rgba.shape[0]), horizontal_wkt("EPSG:25832"))
 
 
 def test_webp_tiles_are_the_png_tiles_lossy_and_keep_transparency(tmp_path):
@@ -146,8 +147,8 @@ def test_an_update_recuts_only_the_web_tiles_a_changed_district_reaches_and_equa
     after = before.copy()
     r0, c0 = 900, 1300
     after[r0:r0 + 120, c0:c0 + 150, :3] = 255 - after[r0:r0 + 120, c0:c0 + 150, :3]   # the changed "district"
-    write_rgba_geotiff(tmp_path / "a.tif", before, gt, wkt)
-    write_rgba_geotiff(tmp_path / "b.tif", after, gt, wkt)
+    write_rgba_geotiff(tmp_path / "a.tif", before, Grid.from_gdal(gt, w, h), wkt)
+    write_rgba_geotiff(tmp_path / "b.tif", after, Grid.from_gdal(gt, w, h), wkt)
     work, out = tmp_path / "work", tmp_path / "out"
     first = tms(tmp_path / "a.tif", "auto", out, processes=2, work_dir=work)
     assert first["full"] and first["web_tiles_redone"] == first["web_tiles"] > 50
@@ -201,7 +202,7 @@ def test_sigterm_stops_a_cut_at_once_and_the_next_cut_finishes_it(tmp_path):
     rgba = np.zeros((h, w, 4), np.uint8)
     rgba[..., :3] = rng.integers(0, 255, (h, w, 3), dtype=np.uint8)
     rgba[..., 3] = 255
-    write_rgba_geotiff(tmp_path / "map.tif", rgba, (691000.0, 0.5, 0.0, 5334000.0, 0.0, -0.5),
+    write_rgba_geotiff(tmp_path / "map.tif", rgba, Grid.north_up(691000.0, 5334000.0, 0.5, w, h),
                        horizontal_wkt("EPSG:25832"))
     work, out = tmp_path / "work", tmp_path / "out"
     script = (f"from pipeline25d.core.logsetup import log_to; from pipeline25d.stages.tiles.web import tms\n"

@@ -80,6 +80,34 @@ def test_bad_config_stops_before_any_job(tmp_path):
     assert not (tmp_path / "results").exists()
 
 
+
+def _under_4gb() -> None:
+    import resource
+
+    resource.setrlimit(resource.RLIMIT_AS, (4 << 30, 4 << 30))
+
+
+@pytest.mark.parametrize("dry_run", [True, False])
+def test_a_gsd_typo_is_refused_before_any_job_under_a_memory_limit(tmp_path, dry_run):
+    """gsd 0.00001 m on the demo asks for ~1e15 pixels per map; under a 4 GB address-space limit the run
+    stops at parse time with the estimate and the key to raise, exit status 1, no traceback, no job."""
+    config = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    make_scene(tmp_path, {**config, "gsd": 0.00001}, buildings=10)
+    cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"), "--directory", str(tmp_path),
+           "--configfile", str(tmp_path / "config.yaml"), "-j2", *(["-n"] if dry_run else [])]
+    proc = subprocess.run(cmd, capture_output=True, text=True, preexec_fn=_under_4gb, timeout=120)
+    assert proc.returncode == 1, proc.stderr[-2000:]
+    line = next(ln for ln in proc.stderr.splitlines() if ln.startswith("pipeline25d: error: "))
+    verts = np.array([ln.split()[1:4] for f in sorted((tmp_path / "resources" / "demo").glob("d*.obj"))
+                      for ln in f.read_text().splitlines() if ln.startswith("v ")], dtype=float)
+    w, h = np.ptp(verts[:, 0]), np.ptp(verts[:, 1])
+    assert f"config key limits.max_map_pixels: gsd 1e-05 m on a {w:.4g} × {h:.4g} m scene" in line, line
+    assert float(re.search(r"up to ([\d.e+]+) pixels", line)[1]) >= \
+        0.99 * w * h / 1e-10                        # every map covers at least the scene's footprint
+    assert "Traceback" not in proc.stderr + proc.stdout
+    assert not (tmp_path / "results").exists()
+
+
 SMALL_CONFIG = {"scene": "small", "crs": "EPSG:25832",
                 "inputs": {f"d{i}": {"path": f"resources/demo/d{i}.obj"} for i in range(4)},
                 "gsd": 0.5, "tile_size": 256, "chunk_size": 80,
@@ -219,7 +247,7 @@ def test_without_a_nadir_map_the_report_says_heights_were_not_measured(plane_run
 
 def test_derived_dtm_matches_the_demo_terrain(small_run):
     """The DTM from the model against the generator's exact terrain function (independent truth)."""
-    from pipeline25d.core.grid import read_float_geotiff
+    from pipeline25d.core.geotiff import read_float_geotiff
     from pipeline25d_lab.scenes.demo import terrain_height
 
     _, results = small_run

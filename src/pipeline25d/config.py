@@ -17,6 +17,7 @@ from pipeline25d.core.errors import ConfigError, CRSError, InputFileError
 from pipeline25d.geometry.perspectives import Perspective, expand
 from pipeline25d.geometry.sun import check_sun_config
 
+# the schema of the checkout this package lives in (an installed copy passes its workflow's own)
 SCHEMA_PATH = Path(__file__).resolve().parents[2] / "config" / "schema.yaml"
 
 
@@ -62,6 +63,11 @@ def check_semantics(config: dict[str, Any], base_dir: Path = Path(".")) -> None:
     for key, value in (("terrain", config["terrain"]), ("gcp.source", config["gcp"]["source"])):
         if value not in ("auto", "flat"):
             _check_readable(base_dir / value, key)
+    if config["terrain"] not in ("auto", "flat"):
+        _check_raster(base_dir / config["terrain"], "terrain")
+    zoom = config.get("tms", {}).get("zoom", "auto")
+    if zoom != "auto" and "-" in zoom and int(zoom.split("-")[0]) > int(zoom.split("-")[1]):
+        raise ConfigError(f"config key tms.zoom: {zoom} runs from a finer to a coarser level; write it low-high")
     check_sun_config(config.get("shadows", {}))
     heights = config.get("heights") or {}
     for key in ("footprints", "reference"):
@@ -97,8 +103,21 @@ def _check_readable(path: Path, key: str, dataset_ok: bool = False) -> None:
         raise InputFileError(path, f"is empty (config key {key})")
 
 
-def load_config(path: str | Path) -> dict[str, Any]:
-    """Read, validate and check a YAML config file (for the CLI and tests)."""
+def _check_raster(path: Path, key: str) -> None:
+    """``path`` opens as a one-band raster (its header only: cheap at parse time)."""
+    from pipeline25d.core.raster import gdal
+
+    try:
+        ds = gdal().Open(str(path))
+    except RuntimeError as exc:
+        raise InputFileError(path, f"cannot open as a raster (config key {key}): {exc}") from None
+    if ds is None or ds.RasterCount < 1:
+        raise InputFileError(path, f"holds no raster band (config key {key}); a DTM is a one-band GeoTIFF")
+
+
+def load_config(path: str | Path, base_dir: Path = Path("."), schema_path: Path = SCHEMA_PATH) -> dict[str, Any]:
+    """Read, validate and check a YAML config file (for the CLI and tests); its input paths are
+    relative to ``base_dir``; ``schema_path``: the schema of the workflow that will run it."""
     path = Path(path)
     try:
         config = yaml.safe_load(path.read_text())
@@ -106,8 +125,8 @@ def load_config(path: str | Path) -> dict[str, Any]:
         raise ConfigError(f"{path}: cannot read config: {exc}") from None
     if not isinstance(config, dict):
         raise ConfigError(f"{path}: config must be a mapping")
-    validate_schema(config)
-    check_semantics(config)
+    validate_schema(config, schema_path)
+    check_semantics(config, base_dir)
     return config
 
 

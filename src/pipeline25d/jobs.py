@@ -10,10 +10,13 @@ imports its stage when it runs, so a job pays only for the modules it uses.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from typing import Any
 
 from pipeline25d.core.logsetup import log_to, stop_on_error
+
+log = logging.getLogger(__name__)
 
 #: Snakemake's job object as a script sees it (``snakemake``): input, output, params, wildcards,
 #: threads, log, rule, each with named and positional access.
@@ -40,9 +43,11 @@ def lod_job(job: Job) -> None:
 
 
 def terrain_job(job: Job) -> None:
+    from pipeline25d.stages.budget import check_ingested
     from pipeline25d.stages.terrain.build import build_terrain
 
     p = job.params
+    log.info("work asked for: %s", check_ingested(dict(p.work), list(job.input.lods)).summary())
     build_terrain(list(job.input.lods), dict(p.inputs), p.crs, p.gsd, p.terrain, dict(p.ground), job.output.dsm,
                   _first(job.output.ground), job.output.meta)
 
@@ -61,7 +66,7 @@ def plan_job(job: Job) -> None:
 
     p = job.params
     plan.plan(job.wildcards.pid, list(job.input.lods), job.input.scene, job.input.candidates, p.gsd, p.tile_size,
-              p.max_error_px, p.crs, dict(p.render), job.output.plan)
+              p.max_error_px, p.crs, dict(p.render), job.output.plan, work=dict(p.work))
 
 
 def render_block_job(job: Job) -> None:

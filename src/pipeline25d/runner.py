@@ -34,17 +34,40 @@ def find_workflow(start: Path | None = None) -> Path:
                       "(the folder holding Snakefile and workflow/)")
 
 
+def _own_directory(extra: Sequence[str]) -> bool:
+    """Whether the Snakemake options name their own working directory."""
+    return any(a in ("--directory", "-d") or a.startswith("--directory=") for a in extra)
+
+
 def snakemake_command(config: str | Path, jobs: str, dry_run: bool, extra: Sequence[str], root: Path) -> list[str]:
     """The snakemake command line this run stands for: the working directory is the workflow's
     folder (where ``results/`` goes and relative input paths start) unless ``extra`` names one."""
     config = Path(config)
     if not config.is_file():
         raise ConfigError(f"{config}: no such config file")
-    own_directory = any(a in ("--directory", "-d") or a.startswith("--directory=") for a in extra)
+    own_directory = _own_directory(extra)
     cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(root / "Snakefile"),
            *([] if own_directory else ["--directory", str(root)]),
            "--configfile", str(config.resolve()), "--cores", str(jobs)]
     return cmd + (["--dry-run"] if dry_run else []) + list(extra)
+
+
+def work_estimate(config: str | Path, root: Path) -> str | None:
+    """The start line's estimate of the work ``config`` asks for (:mod:`pipeline25d.stages.budget`),
+    where the scene's extent is cheap to know before ingest; None otherwise, or when the config is
+    invalid (Snakemake then stops on it with the message)."""
+    from pipeline25d.config import load_config
+    from pipeline25d.core.errors import Pipeline25dError
+    from pipeline25d.stages import budget
+    from pipeline25d.stages.extent import cheap_extent
+
+    try:
+        cfg = load_config(config, base_dir=root, schema_path=root / "config" / "schema.yaml")
+        work = budget.settings(cfg)
+        extent = cheap_extent(cfg, root / "results" / cfg["scene"], base_dir=root)
+        return None if extent is None else budget.estimate(work, *extent).summary()
+    except Pipeline25dError:
+        return None
 
 
 def _clock(seconds: float) -> str:
@@ -86,7 +109,8 @@ def run_workflow(config: str | Path, jobs: str = "2", dry_run: bool = False, sna
         return subprocess.run(cmd).returncode
     start = time.monotonic()
     tail: deque[str] = deque(maxlen=40)
-    stream.write(f"pipeline25d: running {config} ({' '.join(cmd[2:])})\n")
+    estimate = None if _own_directory(snakemake_args) else work_estimate(config, root)
+    stream.write(f"pipeline25d: running {config}{f': {estimate}' if estimate else ''} ({' '.join(cmd[2:])})\n")
 
     def lines(source):
         for line in source:

@@ -2,8 +2,9 @@
 
 ``pipeline25d demo [OUT]`` writes the demo city (default ``resources/demo``, what
 ``config/config.yaml`` reads); ``pipeline25d sample KIND OUT`` writes another generated scene:
-``rugged`` (steep terrain), ``citygml`` (a textured LOD2 city), ``osgb`` (a ContextCapture-like
-dataset) or ``badinputs`` (the hostile-input corpus).
+``rugged`` (steep terrain), ``citygml`` (a textured LOD2 city), ``themed`` (a small city with two
+appearance themes as CityJSON and CityGML), ``osgb`` (a ContextCapture-like dataset) or
+``badinputs`` (the hostile-input corpus).
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from importlib import import_module
 SAMPLES = {
     "rugged": "pipeline25d_lab.scenes.rugged",
     "citygml": "pipeline25d_lab.scenes.citygml_city",
+    "themed": "pipeline25d_lab.scenes.themed_city",
     "osgb": "pipeline25d_lab.scenes.osgb_sample",
     "badinputs": "pipeline25d_lab.scenes.badinputs",
 }

@@ -15,8 +15,10 @@ import threading
 from pathlib import Path
 
 import numpy as np
+from affine import Affine
 from PIL import Image, ImageDraw
 
+from pipeline25d.core.grid import Grid
 from pipeline25d.core.raster import gdal
 from pipeline25d.publish.serve import make_server
 
@@ -44,15 +46,15 @@ def fullest_window(cog: Path, size_m: float, step_m: float = 4.0) -> tuple[float
     from scipy.ndimage import uniform_filter
 
     ds = gdal().Open(str(cog))
-    gt = ds.GetGeoTransform()
-    w, h = max(1, round(ds.RasterXSize * gt[1] / step_m)), max(1, round(ds.RasterYSize * -gt[5] / step_m))
+    t = Grid.of_dataset(ds).transform
+    w, h = max(1, round(ds.RasterXSize * t.a / step_m)), max(1, round(ds.RasterYSize * -t.e / step_m))
     small = gdal().Translate("", ds, format="MEM", width=w, height=h, resampleAlg="average")
     alpha = small.GetRasterBand(4).ReadAsArray().astype(np.float64)
     k = max(1, round(size_m / step_m))
     share = uniform_filter(alpha, size=k, mode="constant")
     row, col = np.unravel_index(np.argmax(share), share.shape)
-    sx, sy = ds.RasterXSize * gt[1] / w, ds.RasterYSize * -gt[5] / h
-    return gt[0] + (col + 0.5) * sx, gt[3] - (row + 0.5) * sy
+    sx, sy = ds.RasterXSize * t.a / w, ds.RasterYSize * -t.e / h
+    return Grid(Affine(sx, 0.0, t.c, 0.0, -sy, t.f), w, h).xy(col + 0.5, row + 0.5)      # the search grid's cell
 
 
 def maps_picture(results: Path, oblique: str, out: Path) -> None:

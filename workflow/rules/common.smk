@@ -1,32 +1,52 @@
 # Config validation (before any job), constants, wildcard constraints and input functions.
+# Everything at parse time runs under parse_guard: a Pipeline25dError (a schema violation, a missing
+# or unreadable input, DTM or GCP file, an estimate beyond a limit, an unreadable plan) prints
+# "pipeline25d: error: <file or key>: <problem>" and exits 1 without a traceback, as a job's does.
 
-from snakemake.exceptions import WorkflowError
-from snakemake.utils import validate
+from functools import wraps
+from pathlib import Path
 
-from pipeline25d.config import check_semantics, chunk_size, perspectives, render_settings
+from pipeline25d.config import check_semantics, chunk_size, perspectives, render_settings, validate_schema
 from pipeline25d.analysis.height_sources import plan as heights_plan
-from pipeline25d.core.errors import Pipeline25dError
+from pipeline25d.core.logsetup import stop_on_error
 from pipeline25d.geometry.perspectives import ID_PATTERN
+from pipeline25d.stages import budget
+from pipeline25d.stages.extent import cheap_extent
 from pipeline25d.stages.plan import block_spec_hash, plan_block, read_plan, read_plan_blocks
 
-validate(config, "../../config/schema.yaml")
-try:
-    check_semantics(config)
-except Pipeline25dError as exc:
-    raise WorkflowError(f"invalid configuration: {exc}") from None
 
-RESULTS = f"results/{config['scene']}"
-DISTRICTS = sorted(config["inputs"])
-PERSPECTIVE_IDS = [p.id for p in perspectives(config)]
-# the web-tile pyramids as PMTiles archives too (tms.pmtiles), read by the viewer
-PMTILES = [f"{RESULTS}/pmtiles/{pid}.pmtiles" for pid in PERSPECTIVE_IDS] if config["tms"]["pmtiles"] else []
-MAX_LOD_ERROR = config["gsd"] * config["lod"]["max_error_px"]
-TERRAIN_FILE = [] if config["terrain"] in ("auto", "flat") else [config["terrain"]]
-GCP_FILE = [] if config["gcp"]["source"] == "auto" else [config["gcp"]["source"]]
-RENDER_BLOCK = config["render"]["block"]
-HEIGHTS_PLAN = heights_plan(config)
-# what changes a tile's pixels (the block size does not; shadows only when enabled)
-RENDER_SETTINGS = render_settings(config)
+def parse_guard(func):
+    """``func`` (an input function) ending the run with its Pipeline25dError's message, no traceback."""
+
+    @wraps(func)
+    def guarded(*args, **kwargs):
+        with stop_on_error(log=False):
+            return func(*args, **kwargs)
+
+    return guarded
+
+
+with stop_on_error(log=False):
+    validate_schema(config, Path(workflow.basedir) / "config" / "schema.yaml")
+    check_semantics(config)
+    RESULTS = f"results/{config['scene']}"
+    DISTRICTS = sorted(config["inputs"])
+    PERSPECTIVE_IDS = [p.id for p in perspectives(config)]
+    # the web-tile pyramids as PMTiles archives too (tms.pmtiles), read by the viewer
+    PMTILES = [f"{RESULTS}/pmtiles/{pid}.pmtiles" for pid in PERSPECTIVE_IDS] if config["tms"]["pmtiles"] else []
+    MAX_LOD_ERROR = config["gsd"] * config["lod"]["max_error_px"]
+    TERRAIN_FILE = [] if config["terrain"] in ("auto", "flat") else [config["terrain"]]
+    GCP_FILE = [] if config["gcp"]["source"] == "auto" else [config["gcp"]["source"]]
+    RENDER_BLOCK = config["render"]["block"]
+    HEIGHTS_PLAN = heights_plan(config)
+    # what changes a tile's pixels (the block size does not; shadows only when enabled)
+    RENDER_SETTINGS = render_settings(config)
+    # the work the config asks for, refused beyond config["limits"] before anything is made in
+    # proportion to it: here where the inputs' extent is cheap to know, else in the terrain job
+    WORK = budget.settings(config)
+    EXTENT = cheap_extent(config, RESULTS)
+    if EXTENT is not None:
+        budget.check(WORK, budget.estimate(WORK, *EXTENT))
 
 
 wildcard_constraints:
@@ -45,16 +65,19 @@ def all_lod_meta(wildcards):
     return expand(rules.lod.output.index, district=DISTRICTS)
 
 
+@parse_guard
 def plan_path(pid):
     """The perspective's plan file (the plan checkpoint's output: the DAG waits for it)."""
     return checkpoints.plan.get(pid=pid).output.plan
 
 
+@parse_guard
 def block_tiles(wildcards):
     """The tiles (pipeline25d.stages.records.Tile) of a render block."""
     return plan_block(read_plan_blocks(plan_path(wildcards.pid), RENDER_BLOCK), wildcards.block, wildcards.pid)
 
 
+@parse_guard
 def block_lods(wildcards):
     """The LOD files a block's tiles draw or take shadows from (side files of the lod jobs): a block
     depends on its own chunks and their shadow casters only."""
@@ -62,16 +85,19 @@ def block_lods(wildcards):
     return [f"{RESULTS}/lod/{d}/{c}.npz" for d, c in sorted(chunks)]
 
 
+@parse_guard
 def block_hash(wildcards):
     return block_spec_hash(block_tiles(wildcards))
 
 
+@parse_guard
 def perspective_blocks(wildcards):
     """The render-block manifests of a perspective."""
     blocks = read_plan_blocks(plan_path(wildcards.pid), RENDER_BLOCK)
     return [f"{RESULTS}/tiles/{wildcards.pid}/block_{b}.json" for b in sorted(blocks)]
 
 
+@parse_guard
 def perspective_tiles(wildcards, suffix):
     plan = read_plan(plan_path(wildcards.pid))
     return [f"{RESULTS}/tiles/{wildcards.pid}/{t.key}{suffix}" for t in plan.tiles]

@@ -42,6 +42,7 @@ checkpoint plan:
         max_error_px=config["lod"]["max_error_px"],
         crs=config["crs"],
         render=RENDER_SETTINGS,
+        work=WORK,
     log:
         f"{RESULTS}/logs/plan/{{pid}}.log",
     benchmark:

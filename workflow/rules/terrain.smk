@@ -17,6 +17,7 @@ rule terrain:
         gsd=config["gsd"],
         terrain=config["terrain"],
         ground=config["ground"],
+        work=WORK,
     log:
         f"{RESULTS}/logs/terrain.log",
     benchmark:

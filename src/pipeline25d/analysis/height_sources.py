@@ -305,7 +305,7 @@ def reference_heights(p: dict, config: dict, fps: list[Footprint], model: dict[s
     from pipeline25d.core.raster import DTM
 
     dsm = DTM(dsm_path, config["crs"])
-    cell = abs(dsm.gt[1])
+    cell = abs(dsm.grid.res)
     return ({f.id: RefBuilding(None, dsm_roof(f, dsm.sample, cell)) for f in fps},
             f"the model's DSM ({dsm_path}, {cell:g} m cells): median inside each footprint, one cell in", "dsm")
 

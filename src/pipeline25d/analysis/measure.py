@@ -40,6 +40,7 @@ from typing import NamedTuple
 import numpy as np
 
 from pipeline25d.core.errors import InputFileError, MeasureError
+from pipeline25d.core.grid import Grid
 from pipeline25d.geometry.camera import horizontal_direction, relief_factor
 from pipeline25d.geometry.perspectives import ID_PATTERN, Perspective
 
@@ -47,16 +48,16 @@ MIN_SIN_FACADE = 0.05   # facades closer than ~3° to the view direction are see
 
 
 class MapInfo(NamedTuple):
-    """A map's perspective and north-up geotransform (GDAL's six numbers)."""
+    """A map's perspective and its north-up pixel grid."""
 
     path: Path
     perspective: Perspective
-    geotransform: tuple[float, ...]
+    grid: Grid
 
     @property
     def gsd(self) -> float:
         """Metres per pixel."""
-        return float(self.geotransform[1])
+        return float(self.grid.res)
 
 
 class Height(NamedTuple):
@@ -70,17 +71,17 @@ class Height(NamedTuple):
 
 def open_map(path: str | Path) -> MapInfo:
     """The perspective (from the file name ``<id>.tif``, else the ``perspective`` of the
-    ``<stem>.json`` beside it) and the geotransform of a map COG."""
+    ``<stem>.json`` beside it) and the grid of a map COG."""
     from pipeline25d.analysis.evaluate.rasters import _open
 
     path = Path(path)
-    gt = tuple(float(v) for v in _open(path).GetGeoTransform())
+    grid = Grid.of_dataset(_open(path))
     if re.fullmatch(ID_PATTERN, path.stem):
-        return MapInfo(path, Perspective.from_id(path.stem), gt)
+        return MapInfo(path, Perspective.from_id(path.stem), grid)
     meta = path.with_suffix(".json")
     try:
         pid = json.loads(meta.read_text())["perspective"]["id"]
-        return MapInfo(path, Perspective.from_id(pid), gt)
+        return MapInfo(path, Perspective.from_id(pid), grid)
     except (OSError, ValueError, KeyError, TypeError):
         raise InputFileError(path, f"no perspective: the name is not like az045_el45.tif and {meta.name} "
                                    "beside it does not give perspective.id") from None
@@ -88,9 +89,8 @@ def open_map(path: str | Path) -> MapInfo:
 
 def pixel_to_map(info: MapInfo, cols_rows: np.ndarray) -> np.ndarray:
     """(n, 2) pixel (column, row) -> (n, 2) float64 map coordinates."""
-    gt = info.geotransform
     px = np.asarray(cols_rows, dtype=np.float64).reshape(-1, 2)
-    return np.column_stack([gt[0] + px[:, 0] * gt[1], gt[3] + px[:, 1] * gt[5]])
+    return np.column_stack(info.grid.xy(px[:, 0], px[:, 1]))
 
 
 def _cot(p: Perspective) -> float:

@@ -49,6 +49,11 @@ class RenderError(Pipeline25dError, RuntimeError):
     """The OpenGL context could not be created or a render failed."""
 
 
+class GroundError(Pipeline25dError, ValueError):
+    """``terrain: auto`` found no ground (anywhere, or near part of the model); the message names
+    the inputs and what to do (give a DTM, or terrain: flat)."""
+
+
 class GdalToolError(Pipeline25dError, RuntimeError):
     """A GDAL command-line tool exited with an error."""
 

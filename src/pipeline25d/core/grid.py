@@ -1,22 +1,21 @@
-"""A north-up grid of square cells, blocks of its cells, and its float32 GeoTIFFs (read, written block by block)."""
+"""The raster layer's geometry: a grid of cells placed by an affine transform (``affine``, as in
+rasterio), a pixel window on it, a world rectangle, and blocks of a grid's cells.
+
+Pixel <-> world conversions of the whole project go through :class:`Grid`: world = transform @
+(col, row) (pixel corners; cell centres at +0.5). World -> pixel of a north-up grid divides by
+the cell size, ``(x - c) / a``, which is the exact inverse; ``~transform`` (``x / a - c / a``)
+rounds differently and would move floor/ceil at cell edges, so it is used only for rotated grids.
+"""
 
 from __future__ import annotations
 
-import logging
 import math
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
-
-from pipeline25d.core.atomic import atomic_path
-from pipeline25d.core.raster import gdal
-
-log = logging.getLogger(__name__)
-
+from affine import Affine
 
 TIFF_TILE = 256             # GeoTIFF tile edge (GDAL's default); block cores are cut at its multiples
 
@@ -27,43 +26,140 @@ TIFF_TILE = 256             # GeoTIFF tile edge (GDAL's default); block cores ar
 BLOCK_CELLS = 1 << 22
 
 
-@dataclass(frozen=True)
-class Grid:
-    """A north-up raster grid: top-left corner (xmin, ymax), square cells of ``res`` metres."""
+class Extent(NamedTuple):
+    """Axis-aligned world rectangle in CRS units (metres): the one type of bounds that travels."""
 
     xmin: float
+    ymin: float
+    xmax: float
     ymax: float
-    res: float
+
+    @property
+    def width(self) -> float:
+        return self.xmax - self.xmin
+
+    @property
+    def height(self) -> float:
+        return self.ymax - self.ymin
+
+
+class Window(NamedTuple):
+    """A pixel rectangle of a grid: columns col0..col1, rows row0..row1 (end exclusive)."""
+
+    col0: int
+    row0: int
+    col1: int
+    row1: int
+
+    @property
+    def width(self) -> int:
+        return self.col1 - self.col0
+
+    @property
+    def height(self) -> int:
+        return self.row1 - self.row0
+
+    @property
+    def slices(self) -> tuple[slice, slice]:
+        """(rows, cols) half-open slices, for numpy indexing and :meth:`Grid.window`."""
+        return slice(self.row0, self.row1), slice(self.col0, self.col1)
+
+    @classmethod
+    def of_slices(cls, rows: slice, cols: slice) -> "Window":
+        return cls(cols.start, rows.start, cols.stop, rows.stop)
+
+
+@dataclass(frozen=True)
+class Grid:
+    """``width`` x ``height`` cells placed by ``transform`` (world = transform @ (col, row)).
+
+    Usually north-up with square cells (``north_up``): then ``xmin``/``ymax`` are its top-left
+    corner and ``res`` its cell size.
+    """
+
+    transform: Affine
     width: int
     height: int
 
     @classmethod
-    def covering(cls, bounds_xy: tuple[float, float, float, float], res: float) -> "Grid":
-        """The grid of ``res`` cells aligned to multiples of ``res`` that covers the bounds."""
-        xmin, ymin, xmax, ymax = bounds_xy
+    def north_up(cls, xmin: float, ymax: float, res: float, width: int, height: int) -> "Grid":
+        """The grid whose top-left corner is (xmin, ymax), of square cells of ``res``."""
+        return cls(Affine(float(res), 0.0, float(xmin), 0.0, -float(res), float(ymax)), int(width), int(height))
+
+    @classmethod
+    def of_dataset(cls, ds: Any) -> "Grid":
+        """The grid of a GDAL dataset (its geotransform and size)."""
+        return cls(Affine.from_gdal(*ds.GetGeoTransform()), ds.RasterXSize, ds.RasterYSize)
+
+    @classmethod
+    def from_gdal(cls, geotransform: Sequence[float], width: int, height: int) -> "Grid":
+        """The grid of GDAL's six geotransform numbers (for records that store them)."""
+        return cls(Affine.from_gdal(*geotransform), int(width), int(height))
+
+    @classmethod
+    def covering(cls, bounds: Sequence[float], res: float) -> "Grid":
+        """The grid of ``res`` cells aligned to multiples of ``res`` that covers (xmin, ymin, xmax, ymax)."""
+        xmin, ymin, xmax, ymax = bounds
         x0, y0 = math.floor(xmin / res) * res, math.floor(ymin / res) * res
         x1, y1 = math.ceil(xmax / res) * res, math.ceil(ymax / res) * res
-        return cls(x0, y1, res, max(1, round((x1 - x0) / res)), max(1, round((y1 - y0) / res)))
+        return cls.north_up(x0, y1, res, max(1, round((x1 - x0) / res)), max(1, round((y1 - y0) / res)))
 
     @property
-    def geotransform(self) -> tuple[float, ...]:
-        return (self.xmin, self.res, 0.0, self.ymax, 0.0, -self.res)
+    def geotransform(self) -> tuple[float, float, float, float, float, float]:
+        """GDAL's order (c, a, b, f, d, e), for SetGeoTransform and the records that store it."""
+        return self.transform.to_gdal()
 
     @property
-    def bounds_xy(self) -> tuple[float, float, float, float]:
-        return (self.xmin, self.ymax - self.height * self.res, self.xmin + self.width * self.res, self.ymax)
+    def xmin(self) -> float:
+        return self.transform.c
+
+    @property
+    def ymax(self) -> float:
+        return self.transform.f
+
+    @property
+    def res(self) -> float:
+        """The cell width (a north-up grid's cell size)."""
+        return self.transform.a
+
+    @property
+    def is_north_up(self) -> bool:
+        """Without rotation, x growing with columns and y falling with rows."""
+        t = self.transform
+        return t.b == 0 and t.d == 0 and t.a > 0 and t.e < 0
+
+    @property
+    def bounds(self) -> Extent:
+        """The grid's world rectangle (a north-up grid's)."""
+        return self.window_bounds(Window(0, 0, self.width, self.height))
 
     @property
     def shape(self) -> tuple[int, int]:
         return (self.height, self.width)
 
+    def xy(self, col, row):
+        """World (x, y) of pixel position (col, row) (corners at integers; scalars or arrays)."""
+        return self.transform @ (col, row)
+
+    def colrow(self, x, y):
+        """Fractional pixel position (col, row) of world (x, y) (scalars or arrays); see the module docstring."""
+        t = self.transform
+        if t.b == 0 and t.d == 0:
+            return (x - t.c) / t.a, (y - t.f) / t.e
+        return ~t @ (x, y)
+
+    def cell_of(self, x: float, y: float) -> tuple[int, int]:
+        """(col, row) of the cell holding world (x, y), clamped to the grid."""
+        col, row = self.colrow(x, y)
+        return min(max(int(col), 0), self.width - 1), min(max(int(row), 0), self.height - 1)
+
     def column_x(self) -> np.ndarray:
         """(width,) float64 x of the cell centres of each column."""
-        return self.xmin + (np.arange(self.width) + 0.5) * self.res
+        return self.transform.c + (np.arange(self.width) + 0.5) * self.transform.a
 
     def row_y(self) -> np.ndarray:
         """(height,) float64 y of the cell centres of each row (row 0 is north)."""
-        return self.ymax - (np.arange(self.height) + 0.5) * self.res
+        return self.transform.f + (np.arange(self.height) + 0.5) * self.transform.e
 
     def cell_centres(self) -> tuple[np.ndarray, np.ndarray]:
         """(height, width) float64 x and y of every cell centre."""
@@ -71,8 +167,21 @@ class Grid:
 
     def window(self, rows: slice, cols: slice) -> "Grid":
         """The grid of the cells ``rows`` x ``cols`` (half-open slices within this grid)."""
-        return Grid(self.xmin + cols.start * self.res, self.ymax - rows.start * self.res, self.res,
+        return Grid(self.transform @ Affine.translation(cols.start, rows.start),
                     cols.stop - cols.start, rows.stop - rows.start)
+
+    def window_bounds(self, win: Window) -> Extent:
+        """The world rectangle of a pixel window (of a north-up grid)."""
+        x0, y1 = self.xy(win.col0, win.row0)
+        x1, y0 = self.xy(win.col1, win.row1)
+        return Extent(x0, y0, x1, y1)
+
+    def window_covering(self, e: Extent, pad: int = 0) -> Window:
+        """The pixel window (possibly reaching past the grid) of the cells a world rectangle
+        touches, grown by ``pad`` cells on every side (of a north-up grid)."""
+        c0, r0 = self.colrow(e.xmin, e.ymax)
+        c1, r1 = self.colrow(e.xmax, e.ymin)
+        return Window(math.floor(c0) - pad, math.floor(r0) - pad, math.ceil(c1) + pad, math.ceil(r1) + pad)
 
 
 class Block(NamedTuple):
@@ -129,71 +238,3 @@ def _spans(length: int, span: int, cuts: Sequence[int] | None) -> list[tuple[int
 
 def widen(s: slice, by: int, length: int) -> slice:
     return slice(max(s.start - by, 0), min(s.stop + by, length))
-
-
-class FloatRaster:
-    """A one-band float GeoTIFF read by windows, memory O(window)."""
-
-    def __init__(self, path: str | Path):
-        self._ds = gdal().Open(str(path))
-        gt = self._ds.GetGeoTransform()
-        self.grid = Grid(gt[0], gt[3], gt[1], self._ds.RasterXSize, self._ds.RasterYSize)
-
-    def read(self, rows: slice, cols: slice, dtype: type = np.float64) -> np.ndarray:
-        """The cells ``rows`` x ``cols`` (NaN nodata); GDAL's cached blocks are dropped after."""
-        g = gdal()
-        band = self._ds.GetRasterBand(1)
-        buf = g.GDT_Float32 if np.dtype(dtype) == np.float32 else g.GDT_Float64
-        values = band.ReadAsArray(cols.start, rows.start, cols.stop - cols.start, rows.stop - rows.start,
-                                  buf_type=buf)
-        band.FlushCache()
-        return values
-
-    def read_all(self, dtype: type = np.float64) -> np.ndarray:
-        return self.read(slice(0, self.grid.height), slice(0, self.grid.width), dtype)
-
-
-@contextmanager
-def float_geotiff_writer(path: str | Path, grid: Grid, wkt: str) -> Iterator[Callable[[np.ndarray, int, int], None]]:
-    """``write(values, row, col)`` puts an (h, w) block of heights at (row, col) of a tiled, deflated
-    float32 GeoTIFF (NaN nodata) that appears at ``path`` when the ``with`` ends without error.
-
-    Float32 keeps heights to ~1e-5 m at 100 m, finer than the nadir render's depth steps.
-    A written block leaves GDAL's cache at once (memory O(block)); blocks covering whole
-    TIFF_TILE tiles write each tile once. All-NaN blocks are not written: the file is sparse
-    (GDAL reads unwritten tiles as nodata), so empty land costs neither time nor disk.
-    """
-    g = gdal()
-    with atomic_path(path) as tmp:
-        ds = g.GetDriverByName("GTiff").Create(str(tmp), grid.width, grid.height, 1, g.GDT_Float32,
-                                               ["COMPRESS=DEFLATE", "PREDICTOR=3", "TILED=YES", "SPARSE_OK=TRUE",
-                                                f"BLOCKXSIZE={TIFF_TILE}", f"BLOCKYSIZE={TIFF_TILE}"])
-        ds.SetGeoTransform(grid.geotransform)
-        ds.SetProjection(wkt)
-        band = ds.GetRasterBand(1)
-        band.SetNoDataValue(float("nan"))
-
-        def write(values: np.ndarray, row: int, col: int) -> None:
-            if not np.isfinite(values).any():
-                return
-            band.WriteArray(values.astype(np.float32, copy=False), col, row)
-            band.FlushCache()
-
-        try:
-            yield write
-            ds.FlushCache()
-        finally:
-            band = ds = None
-
-
-def write_float_geotiff(path: str | Path, values: np.ndarray, grid: Grid, wkt: str) -> None:
-    """An (h, w) float raster as a tiled, deflated float32 GeoTIFF (NaN nodata), atomically."""
-    with float_geotiff_writer(path, grid, wkt) as write:
-        for row in range(0, grid.height, TIFF_TILE):     # a row of tiles at a time
-            write(values[row:row + TIFF_TILE], row, 0)
-
-
-def read_float_geotiff(path: str | Path) -> tuple[np.ndarray, Grid]:
-    """Inverse of :func:`write_float_geotiff` (float64 values, NaN nodata)."""
-    raster = FloatRaster(path)
-    return raster.read_all(), raster.grid

@@ -26,12 +26,14 @@ def log_to(path: str) -> None:
 
 
 @contextmanager
-def stop_on_error() -> Iterator[None]:
-    """A Pipeline25dError ends the job with its message, in its log and on stderr (which
-    Snakemake shows on the terminal), and exit status 1, without a traceback."""
+def stop_on_error(log: bool = True) -> Iterator[None]:
+    """A Pipeline25dError ends the job with its message, in its log (``log``) and on stderr (which
+    Snakemake shows on the terminal), and exit status 1, without a traceback. The workflow's
+    parse-time checks use it with ``log=False``: no job log exists yet."""
     try:
         yield
     except Pipeline25dError as exc:
-        logging.getLogger("pipeline25d").error("%s", exc)
+        if log:
+            logging.getLogger("pipeline25d").error("%s", exc)
         print(f"pipeline25d: error: {exc}", file=sys.stderr)
         sys.exit(1)

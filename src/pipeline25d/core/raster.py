@@ -1,4 +1,4 @@
-"""GDAL raster helpers: GeoTIFF writing (atomic) and DTM sampling.
+"""GDAL access, DTM sampling and map change digests (GeoTIFFs are written by core.geotiff).
 
 ``gdal.UseExceptions()`` is called once here, so GDAL errors raise instead of returning None.
 """
@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline25d.core.atomic import atomic_path
 from pipeline25d.core.errors import InputFileError
+from pipeline25d.core.grid import Extent, Grid, Window
 
 CELL_PX = 128          # the map is compared with the one last cut in squares of this many pixels
 CACHE_MB = 256      # GDAL's block cache per job (its default, 5 % of RAM, is what a sparse map's COG filled)
@@ -37,29 +37,9 @@ def tool_env() -> dict[str, str]:
     return {"GDAL_CACHEMAX": str(CACHE_MB), **os.environ}
 
 
-def dataset_bounds(ds) -> tuple[float, float, float, float]:
-    """(xmin, ymin, xmax, ymax) of a north-up GDAL dataset."""
-    gt = ds.GetGeoTransform()
-    return (gt[0], gt[3] + ds.RasterYSize * gt[5], gt[0] + ds.RasterXSize * gt[1], gt[3])
-
-
-def write_rgba_geotiff(path: str | Path, rgba: np.ndarray, geotransform: tuple, wkt: str) -> None:
-    """Write an (h, w, 4) uint8 image as a tiled RGBA GeoTIFF, atomically (ZSTD level 1: lossless
-    and ~3x faster to write than DEFLATE; these are the workflow's intermediate tiles)."""
-    g = gdal()
-    h, w, _ = rgba.shape
-    with atomic_path(path) as tmp:
-        ds = g.GetDriverByName("GTiff").Create(
-            str(tmp), w, h, 4, g.GDT_Byte,
-            ["COMPRESS=ZSTD", "ZSTD_LEVEL=1", "TILED=YES", "PHOTOMETRIC=RGB", "ALPHA=YES"])
-        ds.SetGeoTransform(geotransform)
-        ds.SetProjection(wkt)
-        for b, interp in enumerate((g.GCI_RedBand, g.GCI_GreenBand, g.GCI_BlueBand, g.GCI_AlphaBand)):
-            band = ds.GetRasterBand(b + 1)
-            band.SetColorInterpretation(interp)
-            band.WriteArray(rgba[:, :, b])
-        ds.FlushCache()
-        ds = None
+def dataset_bounds(ds) -> Extent:
+    """The world rectangle of a north-up GDAL dataset."""
+    return Grid.of_dataset(ds).bounds
 
 
 def window_alpha(ds, arr: np.ndarray, col: int, row: int, width: int, height: int) -> np.ndarray:
@@ -104,7 +84,7 @@ class DTM:
     """
 
     def __init__(self, path: str | Path, scene_crs: str, continuous: bool = False,
-                 window: tuple[float, float, float, float] | None = None):
+                 window: Extent | None = None):
         """``window``: (xmin, ymin, xmax, ymax) in the scene CRS: read only the cells around it
         (memory O(window), not O(raster)); points outside it are then clamped to its edge. A
         continuous DTM with nodata inside the window is read whole (see below)."""
@@ -115,25 +95,22 @@ class DTM:
         except RuntimeError as exc:
             raise InputFileError(path, f"cannot open as a raster: {exc}") from None
         band = ds.GetRasterBand(1)
-        gt = ds.GetGeoTransform()
-        if gt[2] or gt[4]:
+        grid = Grid.of_dataset(ds)
+        if grid.transform.b or grid.transform.d:
             raise InputFileError(path, "rotated geotransforms are not supported")
         self.crs_wkt = ds.GetProjection()
         self.scene_crs = scene_crs
-        c0, r0, w, h = 0, 0, ds.RasterXSize, ds.RasterYSize
-        if window is not None:
-            c0, r0, w, h = self._pixel_window(window, gt, ds.RasterXSize, ds.RasterYSize)
+        win = Window(0, 0, grid.width, grid.height) if window is None else self._pixel_window(Extent(*window), grid)
         nodata = band.GetNoDataValue()
-        self.values = band.ReadAsArray(c0, r0, w, h).astype(np.float64)
+        self.values = band.ReadAsArray(win.col0, win.row0, win.width, win.height).astype(np.float64)
         if continuous and nodata is not None and (self.values == nodata).any():
             # holes are filled from the nearest valid cell, which may lie outside the window:
             # read everything, so every tile fills them alike (no seams)
-            c0, r0 = 0, 0
+            win = Window(0, 0, grid.width, grid.height)
             self.values = band.ReadAsArray().astype(np.float64)
         if nodata is not None:
             self.values[self.values == nodata] = np.nan
-        self.gt = (gt[0] + c0 * gt[1], gt[1], 0.0, gt[3] + r0 * gt[5], 0.0, gt[5])
-        self.scene_crs = scene_crs
+        self.grid = grid.window(*win.slices)
         self.continuous = continuous
         if continuous:
 
@@ -141,27 +118,26 @@ class DTM:
                 raise InputFileError(path, "has no valid height")
             self.values = fill_nearest(self.values)
 
-    def _pixel_window(self, window, gt, width: int, height: int, margin: int = 2) -> tuple[int, int, int, int]:
-        """(col, row, w, h) of the raster cells covering a scene-CRS window, plus a margin."""
+    def _pixel_window(self, window: Extent, grid: Grid, margin: int = 2) -> Window:
+        """The raster cells covering a scene-CRS window, plus a margin."""
         from pipeline25d.core.crs import transform_points
 
         x0, y0, x1, y1 = window
         pts = np.array([[x0, y0, 0.0], [x0, y1, 0.0], [x1, y0, 0.0], [x1, y1, 0.0]])
         if self.crs_wkt:
             pts = transform_points(pts, self.scene_crs, self.crs_wkt)
-        cols = (pts[:, 0] - gt[0]) / gt[1]
-        rows = (pts[:, 1] - gt[3]) / gt[5]
-        c0 = int(np.clip(np.floor(cols.min()) - margin, 0, width - 1))
-        r0 = int(np.clip(np.floor(rows.min()) - margin, 0, height - 1))
-        c1 = int(np.clip(np.ceil(cols.max()) + margin, c0 + 1, width))
-        r1 = int(np.clip(np.ceil(rows.max()) + margin, r0 + 1, height))
-        return c0, r0, c1 - c0, r1 - r0
+        cols, rows = grid.colrow(pts[:, 0], pts[:, 1])
+        c0 = int(np.clip(np.floor(cols.min()) - margin, 0, grid.width - 1))
+        r0 = int(np.clip(np.floor(rows.min()) - margin, 0, grid.height - 1))
+        c1 = int(np.clip(np.ceil(cols.max()) + margin, c0 + 1, grid.width))
+        r1 = int(np.clip(np.ceil(rows.max()) + margin, r0 + 1, grid.height))
+        return Window(c0, r0, c1, r1)
 
     @classmethod
-    def from_array(cls, values: np.ndarray, geotransform: tuple[float, ...], continuous: bool = False) -> "DTM":
-        """A DTM over an in-memory (h, w) height array already in the scene CRS (NaN = nodata)."""
+    def from_array(cls, values: np.ndarray, grid: Grid, continuous: bool = False) -> "DTM":
+        """A DTM over an in-memory (h, w) height array on ``grid``, already in the scene CRS (NaN = nodata)."""
         self = cls.__new__(cls)
-        self.path, self.gt, self.crs_wkt, self.scene_crs = Path("<memory>"), tuple(geotransform), "", None
+        self.path, self.grid, self.crs_wkt, self.scene_crs = Path("<memory>"), grid, "", None
         self.values = np.asarray(values, dtype=np.float64)
         self.continuous = continuous
         if continuous:
@@ -176,8 +152,8 @@ class DTM:
         pts = np.column_stack([x, y, np.zeros(len(x))])
         if self.crs_wkt:
             pts = transform_points(pts, self.scene_crs, self.crs_wkt)
-        col = (pts[:, 0] - self.gt[0]) / self.gt[1] - 0.5
-        row = (pts[:, 1] - self.gt[3]) / self.gt[5] - 0.5
+        col, row = self.grid.colrow(pts[:, 0], pts[:, 1])
+        col, row = col - 0.5, row - 0.5
         h, w = self.values.shape
         if self.continuous:
             col, row = np.clip(col, 0, max(w - 1.000001, 0)), np.clip(row, 0, max(h - 1.000001, 0))
@@ -212,7 +188,8 @@ def map_cells(cog: str | Path, cell: int = CELL_PX) -> tuple[list, dict[str, str
     """The map's grid [*geotransform, width, height, cell] and a digest of each ``cell`` x ``cell``
     pixel square of it that holds data ({"col_row": digest}), read block by block."""
     ds = gdal().Open(str(cog))
-    gt, width, height = ds.GetGeoTransform(), ds.RasterXSize, ds.RasterYSize
+    grid = Grid.of_dataset(ds)
+    width, height = grid.width, grid.height
     mask = ds.GetRasterBand(1).GetMaskBand()
     bw, bh = ds.GetRasterBand(1).GetBlockSize()
     step_x, step_y = max(cell, bw // cell * cell), max(cell, bh // cell * cell)
@@ -229,4 +206,9 @@ def map_cells(cog: str | Path, cell: int = CELL_PX) -> tuple[list, dict[str, str
                     if alpha[y:y + cell, x:x + cell].any():
                         digest = hashlib.sha256(np.ascontiguousarray(pixels[:, y:y + cell, x:x + cell])).hexdigest()
                         digests[f"{(c + x) // cell}_{(r + y) // cell}"] = digest[:16]
-    return [*gt, width, height, cell], digests
+    return [*grid.geotransform, width, height, cell], digests
+
+
+def cells_grid_of(cells_grid: list) -> Grid:
+    """The map's grid from :func:`map_cells`' [*geotransform, width, height, cell]."""
+    return Grid.from_gdal(cells_grid[:6], cells_grid[6], cells_grid[7])

@@ -7,7 +7,8 @@ parts, float64, and the CRS they are in (None when the file does not say). Offse
 ContextCapture metadata and the reprojection into the scene CRS are applied once, here
 (:func:`load_district`), for every format. A format that places itself (3D Tiles,
 CityJSON) refuses ``offset``/``metadata``; one that carries its own ground gives a
-``terrain`` loader, which ``terrain: auto`` uses.
+``terrain`` loader, and one with building objects a ``buildings`` loader, which
+``terrain: auto`` uses (:func:`load_district_terrain`, :func:`load_district_buildings`).
 
 A new format plugs in with one entry in :data:`READERS` (and its suffixes in
 :data:`SUFFIXES`).
@@ -20,6 +21,7 @@ import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -27,14 +29,19 @@ from pipeline25d.core.errors import ConfigError, InputFileError, MissingTextureW
 from pipeline25d.core.mesh import Mesh
 from pipeline25d.formats.common import Detail, Loaded, in_scene, side_folders
 
+if TYPE_CHECKING:
+    from pipeline25d.formats.buildings import Buildings
+
 
 @dataclass(frozen=True)
 class Reader:
-    """How one format is read: its loader, whether it georeferences itself, its own terrain."""
+    """How one format is read: its loader, whether it georeferences itself, its own terrain,
+    its building objects (:class:`~pipeline25d.formats.buildings.Buildings`)."""
 
     load: Callable[[Path, dict, Detail], Loaded]
     georeferenced: bool = False
     terrain: Callable[[Path, dict], Loaded] | None = None
+    buildings: Callable[[Path, dict], "Buildings"] | None = None
 
 
 def _mesh_file(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
@@ -74,9 +81,11 @@ READERS: dict[str, Reader] = {
     "b3dm": Reader(_lazy("tiles3d", "read_b3dm"), georeferenced=True),
     "3dtiles": Reader(_lazy("tiles3d", "read_tileset"), georeferenced=True),
     "cityjson": Reader(_lazy("cityjson", "read_cityjson"), georeferenced=True,
-                       terrain=_lazy("cityjson", "read_cityjson_terrain")),
+                       terrain=_lazy("cityjson", "read_cityjson_terrain"),
+                       buildings=_lazy("cityjson", "read_cityjson_buildings")),
     "citygml": Reader(_lazy("citygml", "read_citygml"), georeferenced=True,
-                      terrain=_lazy("citygml", "read_citygml_terrain")),
+                      terrain=_lazy("citygml", "read_citygml_terrain"),
+                      buildings=_lazy("citygml", "read_citygml_buildings")),
     "osgb": Reader(_lazy("osgb", "read_osgb")),
     "3ds": Reader(_lazy("threeds", "read_3ds")),
 }
@@ -197,3 +206,15 @@ def _side_folders(spec: dict, base_dir: Path, path: Path) -> list[Path]:
         if not folder.is_dir():
             raise ConfigError(f"{path}: side_folders names {folder}, which is not a folder")
     return extra
+
+
+def load_district_buildings(spec: dict, scene_crs: str, base_dir: Path = Path(".")) -> tuple[Mesh, bool] | None:
+    """The input's building objects in the scene CRS (parts by colour class: "ground", "wall",
+    "roof" ...) and whether it draws anything else besides its own terrain; None when its
+    format has no building objects."""
+    path, _, reader = reader_of(spec, base_dir)
+    if reader.buildings is None:
+        return None
+    with side_folders(_side_folders(spec, base_dir, path)):
+        found = reader.buildings(path, dict(spec))
+    return in_scene(found.loaded, scene_crs, path), found.others

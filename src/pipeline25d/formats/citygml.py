@@ -25,7 +25,8 @@ easting first, as written in practice. ``srsDimension`` must be 3.
 Appearances: ParameterizedTexture (``TexCoordList`` per ring, or ``TexCoordGen``) makes a
 polygon textured (one :class:`MeshPart` per image; CityGML texture coordinates already
 have t = 0 at the image bottom); X3DMaterial ``diffuseColor`` (and ``transparency``)
-colours it; else the colour class's palette colour. With several themes, ``spec["theme"]``
+colours it, or every polygon of an aggregate it targets (a MultiSurface, a solid's
+CompositeSurface: valid X3DMaterial targets; a polygon's own material wins); else the colour class's palette colour. With several themes, ``spec["theme"]``
 picks one (default: any, the first that targets a surface). Global appearances
 (``appearanceMember`` of the CityModel, before or after the objects) are collected by a
 first streaming pass that keeps only their targets, run only when the bytes
@@ -61,6 +62,7 @@ import numpy as np
 from pipeline25d.core.crs import parse_crs
 from pipeline25d.core.errors import CRSError, InputFileError
 from pipeline25d.core.mesh import MeshPart
+from pipeline25d.formats.buildings import Buildings, is_building
 from pipeline25d.formats.common import Detail, Loaded, crs_name, side_file, texture_image
 from pipeline25d.formats.surfaces import (
     GROUND_TYPES,
@@ -467,15 +469,37 @@ class _Member:
             chosen += [(c, obj_type, cls) for c in own if (c.lod,) == lod]
         # a polygon reached twice (solid + thematic surface) is drawn once, with its semantics
         chosen.sort(key=lambda item: item[0].semantic is None)
+        found = [(poly, flip, held, cand.semantic or cls, obj_type)
+                 for cand, obj_type, cls in chosen for poly, flip, held in self._polygons(cand.prop)]
+        inherited = self._aggregate_materials(found)
         drawn: set[str] = set()
-        for cand, obj_type, cls in chosen:
-            for poly, flip in self._polygons(cand.prop):
-                key = poly.get(GML_ID[0]) or poly.get(GML_ID[1])
-                if key is not None:
-                    if key in drawn:
-                        continue
-                    drawn.add(key)
-                self._draw(poly, flip, key, cand.semantic or cls, obj_type)
+        for poly, flip, held, cls, obj_type in found:
+            key = poly.get(GML_ID[0]) or poly.get(GML_ID[1])
+            if key is not None:
+                if key in drawn:
+                    continue
+                drawn.add(key)
+            rgba = self._material(key) or (inherited.get(key) if key is not None else self._held_material(held))
+            self._draw(poly, flip, key, cls, obj_type, rgba)
+
+    def _material(self, gid: str | None):
+        """RGBA of the X3DMaterial (of the theme drawn) targeting ``gid``, local before global; None."""
+        return self.app.materials.get(gid) or self.r.global_app.materials.get(gid)
+
+    def _held_material(self, held: tuple[str, ...]):
+        """RGBA of the innermost aggregate in ``held`` (gml:ids enclosing a polygon) a material targets."""
+        return next((m for gid in reversed(held) if (m := self._material(gid))), None)
+
+    def _aggregate_materials(self, found: list) -> dict:
+        """{polygon gml:id: RGBA} for polygons inside an aggregate an X3DMaterial targets (CityGML 2.0:
+        "gml:MultiSurface or descendants of gml:AbstractSurfaceType are valid targets", e.g. a
+        thematic surface's MultiSurface or a solid's CompositeSurface), whichever path reaches them."""
+        out: dict = {}
+        for poly, _, held, _, _ in found:
+            key = poly.get(GML_ID[0]) or poly.get(GML_ID[1])
+            if held and key is not None and key not in out and (rgba := self._held_material(held)):
+                out[key] = rgba
+        return out
 
     def _walk(self, feature, semantic: str | None, own: list, objects: list) -> None:
         """Collect ``feature``'s geometry properties into ``own``; child city objects into ``objects``."""
@@ -500,10 +524,12 @@ class _Member:
 
     # -- geometry ----------------------------------------------------------
     def _polygons(self, prop):
-        """(polygon element, flipped) under a geometry property, references followed."""
-        stack, seen = [(prop, False)], set()
+        """(polygon element, flipped, gml:ids of the aggregates around it on the way, outermost first)
+        under a geometry property, references followed; the ids only where materials are read."""
+        track = bool(self.app.materials or self.r.global_app.materials)
+        stack, seen = [(prop, False, ())], set()
         while stack:
-            elem, flip = stack.pop()
+            elem, flip, held = stack.pop()
             for child in reversed(elem):
                 name = self._name(child)
                 if not name or name in _NOT_SURFACES:
@@ -518,13 +544,16 @@ class _Member:
                     seen.add(href)
                     child, name = target, self._name(target)
                 if name in _POLYGONS:
-                    yield child, flip
+                    yield child, flip, held
                 elif name == "Tin" and not any(_local(c.tag) in ("trianglePatches", "patches") for c in child):
-                    yield child, flip
-                elif name == "OrientableSurface":
-                    stack.append((child, flip ^ (child.get("orientation") == "-")))
+                    yield child, flip, held
                 else:
-                    stack.append((child, flip))
+                    gid = (child.get(GML_ID[0]) or child.get(GML_ID[1])) if track else None
+                    inner = held + (gid,) if gid else held
+                    if name == "OrientableSurface":
+                        stack.append((child, flip ^ (child.get("orientation") == "-"), inner))
+                    else:
+                        stack.append((child, flip, inner))
 
     def _name(self, elem) -> str:
         """Local name of a geometry element; InputFileError when it or one of its attributes kept
@@ -595,7 +624,9 @@ class _Member:
                     out.append(entry)
         return out
 
-    def _draw(self, poly, flip: bool, key: str | None, cls: str, obj_type: str) -> None:
+    def _draw(self, poly, flip: bool, key: str | None, cls: str, obj_type: str, rgba=None) -> None:
+        """Triangulate one polygon into its texture's group, else its class's in ``rgba`` (its
+        material) or the class colour."""
         if _local(poly.tag) == "Tin":
             self._draw_tin(poly, flip, cls, obj_type)
             return
@@ -619,8 +650,7 @@ class _Member:
         if texture is not None:
             self.r.group("tex", texture).add(obj_type, verts[used], faces, uv[used])
         else:
-            rgba = self.app.materials.get(key) or self.r.global_app.materials.get(key) or PALETTE[cls]
-            colors = np.tile(np.asarray(rgba, dtype=np.uint8), (len(used), 1))
+            colors = np.tile(np.asarray(rgba or PALETTE[cls], dtype=np.uint8), (len(used), 1))
             self.r.group("col", cls).add(obj_type, verts[used], faces, colors)
         self.r.types_drawn.add(obj_type)
 
@@ -685,3 +715,12 @@ class _Member:
         if tex.clamp:
             uv = np.clip(uv, 0.0, 1.0)
         return uv, tex.image
+
+
+def read_citygml_buildings(path: Path, spec: dict) -> Buildings:
+    """The building objects of a CityGML file, in its own CRS, untextured: parts by colour class
+    (see :mod:`pipeline25d.formats.buildings`)."""
+    reader = _Reader(Path(path), spec, textures=False)
+    reader.run(lambda t: True)
+    others = any(not is_building(t) and t != "TINRelief" and t not in _GROUND_TYPES for t in reader.types_drawn)
+    return Buildings(reader.loaded(is_building), others)

@@ -20,6 +20,7 @@ import numpy as np
 
 from pipeline25d.core.errors import CRSError, InputFileError
 from pipeline25d.core.mesh import Mesh
+from pipeline25d.formats.buildings import Buildings, is_building
 from pipeline25d.formats.cityjson_appearance import Appearances
 from pipeline25d.formats.common import Detail, Loaded, crs_name, in_scene, read_text
 from pipeline25d.formats.surfaces import (  # noqa: F401  (PALETTE, triangulate_polygon: public here too)
@@ -405,3 +406,13 @@ def _terrain_types(model: _Model) -> frozenset[str]:
         if any(isinstance(o, dict) and o.get("type") == "TINRelief" for o in chunk.objects.values()):
             return frozenset({"TINRelief"})
     return GROUND_TYPES
+
+
+def read_cityjson_buildings(path: Path, spec: dict) -> Buildings:
+    """The building objects of a CityJSON/CityJSONSeq file, in its own CRS, untextured
+    (see :mod:`pipeline25d.formats.buildings`)."""
+    model = _read_model(Path(path))
+    terrain = _terrain_types(model)
+    others = any(isinstance(o, dict) and o.get("geometry") and not is_building(o.get("type"))
+                 and o.get("type") not in terrain for c in model.chunks for o in c.objects.values())
+    return Buildings(_build_parts(model, spec.get("crs"), spec.get("lod"), is_building, appearances=False), others)

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline25d.core.errors import CRSError, InputFileError
+from pipeline25d.core.grid import Grid, Window
 
 
 @dataclass(frozen=True)
@@ -176,17 +177,14 @@ def contains(footprint: Footprint, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return out
 
 
-def rasterize(footprint: Footprint, geotransform: tuple[float, ...], col0: int, row0: int,
-              width: int, height: int) -> np.ndarray:
-    """(height, width) bool: pixels of the window at (col0, row0) whose centres are inside (even-odd)."""
+def rasterize(footprint: Footprint, grid: Grid, win: Window) -> np.ndarray:
+    """(height, width) bool: pixels of the window ``win`` of ``grid`` whose centres are inside (even-odd)."""
     from skimage.draw import polygon
 
-    gt = geotransform
-    mask = np.zeros((height, width), dtype=bool)
+    mask = np.zeros((win.height, win.width), dtype=bool)
     for ring in footprint.rings:
-        cols = (ring[:, 0] - gt[0]) / gt[1] - 0.5 - col0
-        rows = (ring[:, 1] - gt[3]) / gt[5] - 0.5 - row0
-        rr, cc = polygon(rows, cols, shape=(height, width))
+        cols, rows = grid.colrow(ring[:, 0], ring[:, 1])
+        rr, cc = polygon(rows - 0.5 - win.row0, cols - 0.5 - win.col0, shape=mask.shape)
         ring_mask = np.zeros_like(mask)
         ring_mask[rr, cc] = True
         mask ^= ring_mask

@@ -16,28 +16,11 @@ v = sin φ × the other rotated axis + z0·cos φ), so the same polynomial warp 
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
 
 import numpy as np
 
+from pipeline25d.core.grid import Extent
 from pipeline25d.geometry.perspectives import Perspective
-
-
-class Extent(NamedTuple):
-    """Axis-aligned map rectangle in scene CRS metres."""
-
-    xmin: float
-    ymin: float
-    xmax: float
-    ymax: float
-
-    @property
-    def width(self) -> float:
-        return self.xmax - self.xmin
-
-    @property
-    def height(self) -> float:
-        return self.ymax - self.ymin
 
 
 def horizontal_direction(p: Perspective) -> np.ndarray:

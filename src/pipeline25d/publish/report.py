@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from pipeline25d.core.atomic import write_json, write_text
-from pipeline25d.core.raster import gdal
+from pipeline25d.core.raster import dataset_bounds, gdal
 from pipeline25d.geometry.perspectives import Perspective
 from pipeline25d.stages.plan import plan_blocks, read_plan
 from pipeline25d.stages.records import Scene, coarser_tiles
@@ -75,9 +75,8 @@ def lonlat_bounds(cog: Path) -> list[float]:
     from pipeline25d.core.crs import transform_points
 
     ds = gdal().Open(str(cog))
-    gt, w, h = ds.GetGeoTransform(), ds.RasterXSize, ds.RasterYSize
-    xs = [gt[0], gt[0] + w * gt[1]]
-    ys = [gt[3] + h * gt[5], gt[3]]
+    b = dataset_bounds(ds)
+    xs, ys = [b.xmin, b.xmax], [b.ymin, b.ymax]
     pts = np.array([[x, y, 0.0] for x in xs for y in ys])
     ll = transform_points(pts, ds.GetProjection(), "EPSG:4326")
     return [float(ll[:, 0].min()), float(ll[:, 1].min()), float(ll[:, 0].max()), float(ll[:, 1].max())]

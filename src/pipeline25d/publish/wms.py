@@ -25,6 +25,7 @@ from urllib.parse import parse_qsl, urlsplit
 
 from pipeline25d.core.atomic import write_text
 from pipeline25d.core.errors import InputFileError, MapServiceError
+from pipeline25d.core.grid import Grid
 from pipeline25d.core.raster import dataset_bounds, gdal
 from pipeline25d.geometry.perspectives import ID_PATTERN, Perspective
 from pipeline25d.publish.serve import serve_until_interrupted
@@ -65,7 +66,7 @@ def read_layer(path: str | Path) -> MapLayer:
     except RuntimeError as exc:
         raise InputFileError(path, f"cannot be opened: {exc}") from None
     gt = ds.GetGeoTransform(can_return_null=True)
-    if gt is None or gt[2] or gt[4] or gt[1] <= 0 or gt[5] >= 0:
+    if gt is None or not Grid.from_gdal(gt, ds.RasterXSize, ds.RasterYSize).is_north_up:
         raise InputFileError(path, f"not a north-up georeferenced raster (geotransform {gt})")
     code = _epsg_code(ds.GetSpatialRef())
     if code is None:

@@ -225,8 +225,7 @@ def _ray_blocked(dsm: np.ndarray, grid: Grid, x: np.ndarray, y: np.ndarray, z: n
     h, w = dsm.shape
     px = x[:, None] + steps[None] * back[0]
     py = y[:, None] + steps[None] * back[1]
-    col = np.floor((px - grid.xmin) / grid.res).astype(np.int64)
-    row = np.floor((grid.ymax - py) / grid.res).astype(np.int64)
+    col, row = (np.floor(v).astype(np.int64) for v in grid.colrow(px, py))
     inside = (col >= 0) & (col < w) & (row >= 0) & (row < h) & (steps[None] <= reach[:, None])
     surf = np.full(px.shape, -np.inf)
     surf[inside] = dsm[row[inside], col[inside]]

@@ -23,6 +23,7 @@ from types import MappingProxyType
 import numpy as np
 
 from pipeline25d.core.atomic import write_json
+from pipeline25d.core.errors import InputFileError
 from pipeline25d.geometry.camera import (
     horizontal_direction,
     pixel_size,
@@ -222,7 +223,11 @@ def _assign_gcps(tiles: dict, candidates: Sequence[GcpCandidate], p: Perspective
 
 @lru_cache(maxsize=256)
 def _read_plan_cached(path: str, mtime_ns: int) -> Plan:
-    return Plan.from_json(json.loads(Path(path).read_text()))
+    try:
+        return Plan.from_json(json.loads(Path(path).read_text()))
+    except (ValueError, KeyError, TypeError) as exc:    # cut short or edited: the DAG cannot be built on it
+        raise InputFileError(path, f"is not a readable plan ({type(exc).__name__}: {exc}); delete it to "
+                             "plan this perspective again") from None
 
 
 def read_plan(path: str | Path) -> Plan:
@@ -340,13 +345,19 @@ def block_spec_hash(tiles: Sequence[Tile]) -> str:
 
 
 def plan(perspective_id: str, lod_indexes: list[str], scene_json: str | Path, candidates_csv: str | Path,
-         gsd: float, tile_size: int, max_error_px: float, crs: str, render: dict, out_plan: str | Path) -> Plan:
+         gsd: float, tile_size: int, max_error_px: float, crs: str, render: dict, out_plan: str | Path,
+         work: dict | None = None) -> Plan:
     """Plan one perspective (see :mod:`pipeline25d.stages.plan`); ``render`` holds render + marker settings,
-    and the ``shadows`` block when shadows are enabled (:func:`pipeline25d.config.render_settings`)."""
+    and the ``shadows`` block when shadows are enabled (:func:`pipeline25d.config.render_settings`).
+    ``work`` (:func:`pipeline25d.stages.budget.settings`): the map's estimated pixels and tiles are
+    checked against its limits before any tile is listed."""
     from pipeline25d.core.raster import DTM
     from pipeline25d.geometry.sun import plan_shadows
+    from pipeline25d.stages import budget
 
     scene = Scene.read(scene_json)
+    if work is not None:
+        budget.check_perspective(work, Perspective.from_id(perspective_id), np.array(scene.bounds))
     render = dict(render)
     shadow_cfg = render.pop("shadows", None)
     shadows = plan_shadows(shadow_cfg, np.array(scene.bounds), crs, gsd) if shadow_cfg else None

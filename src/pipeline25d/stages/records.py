@@ -18,8 +18,8 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any, ClassVar
 
+from pipeline25d.core.grid import Extent, Grid
 from pipeline25d.core.mesh import Coarser
-from pipeline25d.geometry.camera import Extent
 from pipeline25d.geometry.perspectives import Perspective
 
 
@@ -331,6 +331,7 @@ class Plan:
         e, px = Extent(*tile.content), self.pixel_size
         return e, (max(round((e.xmax - e.xmin) / px), 1), max(round((e.ymax - e.ymin) / px), 1))
 
-    def geotransform(self, e: Extent) -> tuple[float, ...]:
-        """GDAL geotransform of a render extent (top-left corner, north up)."""
-        return (e.xmin, self.pixel_size, 0.0, e.ymax, 0.0, -self.pixel_size)
+    def tile_grid(self, tile: Tile) -> Grid:
+        """The pixel grid a tile renders (its content box, north up)."""
+        e, (w, h) = self.content(tile)
+        return Grid.north_up(e.xmin, e.ymax, self.pixel_size, w, h)

@@ -41,8 +41,9 @@ from pathlib import Path
 import numpy as np
 
 from pipeline25d.core.errors import RenderError
+from pipeline25d.core.grid import Extent
 from pipeline25d.core.mesh import MeshPart
-from pipeline25d.geometry.camera import Extent, clip_matrix
+from pipeline25d.geometry.camera import clip_matrix
 from pipeline25d.geometry.perspectives import Perspective
 from pipeline25d.geometry.sun import SunFrame
 

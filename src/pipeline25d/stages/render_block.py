@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline25d.core.atomic import write_json
+from pipeline25d.core.grid import Extent
 from pipeline25d.geometry.perspectives import Perspective
 from pipeline25d.stages.gcps import OBSERVATION_FIELDS, observations, write_csv
 from pipeline25d.stages.lod import load_chunk_level
@@ -113,7 +114,7 @@ def _block_ground(pl: Plan, tiles: Sequence[Tile]):
     xy = [np.array(c.xy).reshape(2, 2) for t in tiles for c in t.chunks]
     xy += [np.array([[c.x, c.y] for c in t.gcps]).reshape(-1, 2) for t in tiles]
     xy = np.concatenate(xy)
-    return DTM(pl.dtm, pl.crs, continuous=True, window=(*xy.min(axis=0), *xy.max(axis=0))).sample
+    return DTM(pl.dtm, pl.crs, continuous=True, window=Extent(*xy.min(axis=0), *xy.max(axis=0))).sample
 
 
 def render_plan_tile(renderer, pl: Plan, tile: Tile, chunks: list, ground,
@@ -159,14 +160,14 @@ def _write_tile(pl: Plan, tile: Tile, rgba: np.ndarray, seen: list[Observation],
     """GCPs, GeoTIFF, then the spec hash that marks the tile complete (see :func:`render_block`)."""
     from pipeline25d.core.atomic import write_text
     from pipeline25d.core.crs import horizontal_wkt
-    from pipeline25d.core.raster import write_rgba_geotiff
+    from pipeline25d.core.geotiff import write_rgba_geotiff
 
     files = tile_files(tiles_dir, tile.row, tile.col)
     files["spec"].unlink(missing_ok=True)
     # the paper camera's tiles lie on its image plane, which is no CRS: the warp georeferences them
     wkt = "" if pl.camera == "paper" else horizontal_wkt(pl.crs)
     write_csv(files["gcps"], seen, OBSERVATION_FIELDS)
-    write_rgba_geotiff(files["tif"], rgba, pl.geotransform(pl.content(tile)[0]), wkt)
+    write_rgba_geotiff(files["tif"], rgba, pl.tile_grid(tile), wkt)
     write_text(files["spec"], tile.spec_hash + "\n")
 
 

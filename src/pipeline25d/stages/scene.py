@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from pipeline25d.core.atomic import write_json
-from pipeline25d.core.errors import ConfigError
+from pipeline25d.core.errors import ConfigError, GroundError
+from pipeline25d.core.grid import Window
 from pipeline25d.geometry.perspectives import Perspective
 from pipeline25d.stages.gcps import CANDIDATE_FIELDS, assign_roles, read_csv, write_csv
 from pipeline25d.stages.lod import lod_chunks, scene_bounds
@@ -42,7 +43,7 @@ def scene_setup(lod_indexes: list[str], dsm_path: str | Path, terrain: str, terr
     the DTM's interpolation and the site search run block by block.
     """
     from pipeline25d.core.crs import horizontal_wkt
-    from pipeline25d.core.grid import FloatRaster, write_float_geotiff
+    from pipeline25d.core.geotiff import FloatRaster, write_float_geotiff
     from pipeline25d.core.raster import DTM
     from pipeline25d.stages.gcp_sites import SiteRules, select_sites
     from pipeline25d.stages.gcps import candidates_from_sites
@@ -65,6 +66,10 @@ def scene_setup(lod_indexes: list[str], dsm_path: str | Path, terrain: str, terr
         height_fn = DTM(terrain_path, scene_crs, continuous=True).sample
         dtm = _sampled_dtm(height_fn, grid)
     covered = np.isfinite(dsm)
+    # terrain-relative tiles sample the DTM over each chunk's box; otherwise only z0 needs it, under the model
+    whole_boxes = projection in ("auto", "terrain")
+    if seed_src is not None:
+        _check_ground(dtm, grid, chunks, terrain_path, 4 * search * grid.res, None if whole_boxes else covered)
     # auto: the median ground height, rounded to whole metres so a local terrain change does not move it
     z0 = float(z0_cfg) if z0_cfg != "auto" else float(round(_median(dtm[covered]))) if covered.any() else float(lo[2])
     if projection == "auto":
@@ -85,6 +90,7 @@ def scene_setup(lod_indexes: list[str], dsm_path: str | Path, terrain: str, terr
             dtm = _interpolated_dtm(lambda rows, cols: _without_check_points(seed_src.read(rows, cols), grid, cands,
                                                                               radius, (rows, cols)), grid, search,
                                    needed)
+            _check_ground(dtm, grid, chunks, terrain_path, 4 * search * grid.res, None if whole_boxes else covered)
             xy = np.array([[c.x, c.y] for c in cands]).reshape(-1, 2)
             cands = [replace(c, ground=round(float(g), 3)) for c, g in zip(cands, _sample_continuous(dtm, grid, xy))]
             log.info("DTM interpolated without the ground within %.1f m of each check point", radius)
@@ -124,6 +130,33 @@ def _interpolated_dtm(read, grid, search: int, needed=None) -> np.ndarray:
     return dtm
 
 
+def _check_ground(dtm: np.ndarray, grid, chunks: list, ground_path, reach_m: float,
+                  covered: np.ndarray | None = None) -> None:
+    """GroundError naming the inputs and what to do when the DTM has no height somewhere under a
+    chunk (no ground within ``reach_m`` of it): never a NaN z0 or chunk ground range.
+
+    ``covered``: check only these cells (the model's, for z0) rather than each chunk's whole
+    bounding box (what terrain-relative tiles sample, :func:`chunk_ground`)."""
+    bare = []
+    for c in chunks:
+        (x0, y0, _), (x1, y1, _) = c.bounds
+        cols = slice(max(int((x0 - grid.xmin) // grid.res), 0), min(int((x1 - grid.xmin) // grid.res) + 1, grid.width))
+        rows = slice(max(int((grid.ymax - y1) // grid.res), 0), min(int((grid.ymax - y0) // grid.res) + 1, grid.height))
+        missing = ~np.isfinite(dtm[rows, cols])
+        if (missing if covered is None else missing & covered[rows, cols]).any():
+            bare.append(c)
+    if not bare:
+        return
+    where = "; ".join(f"{c.district}/{c.id} at x {c.bounds[0][0]:.0f}..{c.bounds[1][0]:.0f}, "
+                      f"y {c.bounds[0][1]:.0f}..{c.bounds[1][1]:.0f}" for c in bare[:3])
+    districts = ", ".join(sorted({c.district for c in bare}))
+    raise GroundError(f"terrain: auto found no ground within {reach_m:.0f} m of {len(bare)} of the model's "
+                      f"{len(chunks)} chunks ({where}{'; ...' if len(bare) > 3 else ''}) of the input(s) "
+                      f"{districts}: they carry no terrain, no buildings whose bases give one, and the Cloth "
+                      f"Simulation Filter found no ground near them ({ground_path}); give a DTM "
+                      "(terrain: <path of a GeoTIFF>) or set terrain: flat")
+
+
 def _under_chunks(bounds: np.ndarray, grid, margin_cells: int = 2):
     """``needed(core)``: whether a block's cells (widened by ``margin_cells``) meet a chunk's footprint.
 
@@ -134,9 +167,8 @@ def _under_chunks(bounds: np.ndarray, grid, margin_cells: int = 2):
 
     def needed(core: tuple[slice, slice]) -> bool:
         rows, cols = core
-        pad = margin_cells * grid.res
-        x0, x1 = grid.xmin + cols.start * grid.res - pad, grid.xmin + cols.stop * grid.res + pad
-        y1, y0 = grid.ymax - rows.start * grid.res + pad, grid.ymax - rows.stop * grid.res - pad
+        pad, b = margin_cells * grid.res, grid.window_bounds(Window.of_slices(rows, cols))
+        x0, x1, y0, y1 = b.xmin - pad, b.xmax + pad, b.ymin - pad, b.ymax + pad
         return bool(np.any((xy[:, 0, 0] <= x1) & (xy[:, 1, 0] >= x0) & (xy[:, 0, 1] <= y1) & (xy[:, 1, 1] >= y0)))
 
     return needed
@@ -166,10 +198,9 @@ def _sample_continuous(values: np.ndarray, grid, xy: np.ndarray) -> np.ndarray:
 
     out = np.empty(len(xy))
     for i, (x, y) in enumerate(xy):
-        col = min(max(int((x - grid.xmin) / grid.res), 0), grid.width - 1)
-        row = min(max(int((grid.ymax - y) / grid.res), 0), grid.height - 1)
+        col, row = grid.cell_of(x, y)
         rows, cols = slice(max(row - 2, 0), min(row + 3, grid.height)), slice(max(col - 2, 0), min(col + 3, grid.width))
-        window = DTM.from_array(values[rows, cols], grid.window(rows, cols).geotransform, continuous=True)
+        window = DTM.from_array(values[rows, cols], grid.window(rows, cols), continuous=True)
         out[i] = window.sample(np.array([x]), np.array([y]))[0]
     return out
 
@@ -196,7 +227,7 @@ def _without_check_points(seed: np.ndarray, grid, cands: list[GcpCandidate], rad
     for c in cands:
         if c.role != "check":
             continue
-        col, row = int((c.x - grid.xmin) / grid.res), int((grid.ymax - c.y) / grid.res)
+        col, row = (int(v) for v in grid.colrow(c.x, c.y))
         r0, r1 = max(row - k, rows.start), min(row + k + 1, rows.stop)
         c0, c1 = max(col - k, cols.start), min(col + k + 1, cols.stop)
         if r0 >= r1 or c0 >= c1:
@@ -208,8 +239,7 @@ def _without_check_points(seed: np.ndarray, grid, cands: list[GcpCandidate], rad
 
 def _cell_value(values: np.ndarray, grid, x: float, y: float) -> float:
     """The value of the grid cell holding (x, y), clamped to the grid."""
-    col = min(max(int((x - grid.xmin) / grid.res), 0), grid.width - 1)
-    row = min(max(int((grid.ymax - y) / grid.res), 0), grid.height - 1)
+    col, row = grid.cell_of(x, y)
     return float(values[row, col])
 
 
@@ -223,7 +253,7 @@ def chunk_ground(bounds: np.ndarray, dtm) -> ChunkGround:
     import hashlib
 
     lo, hi = np.asarray(bounds, dtype=np.float64)
-    step = abs(dtm.gt[1])
+    step = abs(dtm.grid.res)
     nx = int(min(max(np.ceil((hi[0] - lo[0]) / step) + 1, 2), 129))
     ny = int(min(max(np.ceil((hi[1] - lo[1]) / step) + 1, 2), 129))
     gx, gy = np.meshgrid(np.linspace(lo[0], hi[0], nx), np.linspace(lo[1], hi[1], ny))

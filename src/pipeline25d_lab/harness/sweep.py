@@ -39,6 +39,7 @@ from typing import Any
 
 from pipeline25d.core.atomic import write_json
 from pipeline25d.core.errors import ConfigError, WorkflowRunError
+from pipeline25d.core.grid import Grid
 from pipeline25d_lab.harness.bench import REPO, SOURCE, collect, make_scene, results_of, run_workflow
 
 log = logging.getLogger(__name__)
@@ -182,9 +183,8 @@ def map_error(results: Path, reference: Path, views: list[str]) -> float | None:
         if not (ref_path.exists() and run_path.exists()):
             return None
         ref = g.Open(str(ref_path))
-        gt, w, h = ref.GetGeoTransform(), ref.RasterXSize, ref.RasterYSize
-        bounds = (gt[0], gt[3] + h * gt[5], gt[0] + w * gt[1], gt[3])
-        run = g.Warp("", str(run_path), format="MEM", outputBounds=bounds, width=w, height=h,
+        grid = Grid.of_dataset(ref)
+        run = g.Warp("", str(run_path), format="MEM", outputBounds=grid.bounds, width=grid.width, height=grid.height,
                      resampleAlg="bilinear", dstSRS=ref.GetProjection())
         a, b = (ds.ReadAsArray().astype(np.float64) for ds in (ref, run))
         a_rgb, b_rgb = a[:3] * a[3] / 255, b[:3] * b[3] / 255

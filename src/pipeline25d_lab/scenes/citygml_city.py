@@ -57,6 +57,7 @@ class Surface:
     kind: str                      # RoofSurface, WallSurface, GroundSurface
     rings: list[np.ndarray]
     uv: np.ndarray | None = None   # exterior ring's (s, t), closed
+    hole_uv: tuple = ()            # each interior ring's (s, t), closed (textured holes)
 
 
 def terrain_z(x, y, origin) -> np.ndarray:
@@ -131,18 +132,22 @@ def tin_triangles(origin, extent: float, n: int) -> np.ndarray:
     return np.array(tris, dtype=np.float64)
 
 
-def atlas_png() -> bytes:
-    """The texture atlas: roof tiles on top, a facade with windows below."""
+def atlas_png(roof=ROOF_RGB, roof_line=ROOF_LINE, wall=WALL_RGB, window_rgb=WINDOW_RGB, noise: int = 0) -> bytes:
+    """The texture atlas: roof tiles on top, a facade with windows below (RGB colours of each);
+    ``noise``: a seeded per-texel grain of +-noise levels (no two texels alike: a misplaced UV shows)."""
     from PIL import Image
 
     img = np.zeros((ATLAS, ATLAS, 3), np.uint8)
     half = ATLAS // 2
-    img[:half] = ROOF_RGB
-    img[:half][(np.arange(half) % 16) < 3] = ROOF_LINE          # tile rows
-    img[half:] = WALL_RGB
+    img[:half] = roof
+    img[:half][(np.arange(half) % 16) < 3] = roof_line          # tile rows
+    img[half:] = wall
     rows, cols = np.mgrid[half:ATLAS, 0:ATLAS]
     window = ((cols % 32) >= 10) & ((cols % 32) < 22) & (((rows - half) % 42) >= 14) & (((rows - half) % 42) < 32)
-    img[half:][window[:, :]] = WINDOW_RGB
+    img[half:][window[:, :]] = window_rgb
+    if noise:
+        grain = np.random.default_rng(ATLAS).integers(-noise, noise + 1, img.shape)
+        img = np.clip(img.astype(np.int64) + grain, 0, 255).astype(np.uint8)
     buf = io.BytesIO()
     Image.fromarray(img).save(buf, format="PNG")
     return buf.getvalue()
@@ -179,15 +184,19 @@ class _Writer:
         return ("<gml:MultiSurface>" + "".join(f"<gml:surfaceMember>{self.polygon(s)}</gml:surfaceMember>"
                                                for s in surfaces) + "</gml:MultiSurface>")
 
-    def solid(self, members: str) -> str:
+    def solid(self, members: str, shell_id: str | None = None) -> str:
         shell = "gml:Shell" if self.v == "3.0" else "gml:CompositeSurface"
-        return f"<gml:Solid><gml:exterior><{shell}>{members}</{shell}></gml:exterior></gml:Solid>"
+        gid = f' gml:id="{shell_id}"' if shell_id else ""
+        return f"<gml:Solid><gml:exterior><{shell}{gid}>{members}</{shell}></gml:exterior></gml:Solid>"
 
     def prop(self, name: str) -> str:
         """Element name of a building property: 2.0 bldg:, 3.0 core:."""
         return ("core:" if self.v == "3.0" else "bldg:") + name
 
-    def house(self, gid: str, lod2: list[Surface], lod1: list[Surface], appearance: str = "") -> str:
+    def house(self, gid: str, lod2: list[Surface], lod1: list[Surface], appearance: str = "",
+              shell_id: str | None = None) -> str:
+        """A Building: LOD1 solid, LOD2 solid (its shell named ``shell_id``) of references to its
+        thematic surfaces."""
         bounded = "core:boundary" if self.v == "3.0" else "bldg:boundedBy"
         surf_ns = "con" if self.v == "3.0" else "bldg"
         parts = [f'<bldg:Building gml:id="{gid}">']
@@ -195,7 +204,7 @@ class _Writer:
         lod1_members = "".join(f"<gml:surfaceMember>{self.polygon(s)}</gml:surfaceMember>" for s in lod1)
         parts.append(f"<{self.prop('lod1Solid')}>{self.solid(lod1_members)}</{self.prop('lod1Solid')}>")
         refs = "".join(f'<gml:surfaceMember xlink:href="#{s.gid}"/>' for s in lod2)
-        parts.append(f"<{self.prop('lod2Solid')}>{self.solid(refs)}</{self.prop('lod2Solid')}>")
+        parts.append(f"<{self.prop('lod2Solid')}>{self.solid(refs, shell_id)}</{self.prop('lod2Solid')}>")
         for s in lod2:
             ms = self.prop("lod2MultiSurface")
             parts.append(f'<{bounded}><{surf_ns}:{s.kind} gml:id="{s.gid}_s"><{ms}>{self.multi_surface([s])}'
@@ -219,28 +228,37 @@ class _Writer:
 
     def appearance(self, textured: list[Surface], materials: list[str], image: str) -> str:
         """One Appearance: the atlas on ``textured`` surfaces, the block colour on ``materials`` ids."""
+        return self.themed_appearance("rgbTexture", [(image, textured)], [(BLOCK_WALL, materials)] if materials else [])
+
+    def themed_appearance(self, theme: str, textures: list[tuple[str, list[Surface]]],
+                          materials: list[tuple[tuple, list[str]]]) -> str:
+        """One Appearance of ``theme``: a ParameterizedTexture per (image, surfaces: their rings' (s, t)),
+        an X3DMaterial per (diffuse RGB, polygon ids)."""
+        data = "app:surfaceData" if self.v == "3.0" else "app:surfaceDataMember"
+        out = [f"<app:Appearance><app:theme>{theme}</app:theme>"]
+        for image, surfaces in textures:
+            assoc = "".join(self._texture_association(s) for s in surfaces)
+            out.append(f"<{data}><app:ParameterizedTexture><app:imageURI>{image}</app:imageURI>"
+                       f"<app:wrapMode>wrap</app:wrapMode>{assoc}</app:ParameterizedTexture></{data}>")
+        for rgb, ids in materials:
+            targets = "".join(f"<app:target>#{m}</app:target>" for m in ids)
+            rgb_text = " ".join(f"{c:g}" for c in rgb)
+            out.append(f"<{data}><app:X3DMaterial><app:diffuseColor>{rgb_text}</app:diffuseColor>{targets}"
+                       f"</app:X3DMaterial></{data}>")
+        return "".join(out) + "</app:Appearance>"
+
+    def _texture_association(self, s: Surface) -> str:
+        """The texture target of one polygon: (s, t) per ring (exterior, then holes)."""
+        rings = [(f"{s.gid}_r{k}", uv) for k, uv in enumerate((s.uv, *s.hole_uv))]
         if self.v == "3.0":
-            assoc = "".join(
-                f"<app:textureParameterization><app:TextureAssociation><app:target>#{s.gid}</app:target>"
-                f"<app:textureParameterization><app:TexCoordList><app:textureCoordinates>{_st(s.uv)}"
-                f"</app:textureCoordinates><app:ring>#{s.gid}_r0</app:ring></app:TexCoordList>"
-                f"</app:textureParameterization></app:TextureAssociation></app:textureParameterization>"
-                for s in textured)
-            data = "app:surfaceData"
-        else:
-            assoc = "".join(f'<app:target uri="#{s.gid}"><app:TexCoordList><app:textureCoordinates '
-                            f'ring="#{s.gid}_r0">{_st(s.uv)}</app:textureCoordinates></app:TexCoordList>'
-                            f"</app:target>" for s in textured)
-            data = "app:surfaceDataMember"
-        out = (f"<app:Appearance><app:theme>rgbTexture</app:theme><{data}><app:ParameterizedTexture>"
-               f"<app:imageURI>{image}</app:imageURI><app:wrapMode>wrap</app:wrapMode>{assoc}"
-               f"</app:ParameterizedTexture></{data}>")
-        if materials:
-            targets = "".join(f"<app:target>#{m}</app:target>" for m in materials)
-            rgb = " ".join(f"{c:g}" for c in BLOCK_WALL)
-            out += (f"<{data}><app:X3DMaterial><app:diffuseColor>{rgb}</app:diffuseColor>{targets}"
-                    f"</app:X3DMaterial></{data}>")
-        return out + "</app:Appearance>"
+            coords = "".join(f"<app:textureCoordinates>{_st(uv)}</app:textureCoordinates>" for _, uv in rings)
+            refs = "".join(f"<app:ring>#{ring}</app:ring>" for ring, _ in rings)
+            return (f"<app:textureParameterization><app:TextureAssociation><app:target>#{s.gid}</app:target>"
+                    f"<app:textureParameterization><app:TexCoordList>{coords}{refs}</app:TexCoordList>"
+                    f"</app:textureParameterization></app:TextureAssociation></app:textureParameterization>")
+        coords = "".join(f'<app:textureCoordinates ring="#{ring}">{_st(uv)}</app:textureCoordinates>'
+                         for ring, uv in rings)
+        return f'<app:target uri="#{s.gid}"><app:TexCoordList>{coords}</app:TexCoordList></app:target>'
 
     def head(self, lower: np.ndarray, upper: np.ndarray) -> str:
         ns = NS[self.v]

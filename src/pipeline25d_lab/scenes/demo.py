@@ -40,6 +40,7 @@ import numpy as np
 
 from pipeline25d.core.atomic import write_bytes
 from pipeline25d.core.errors import ConfigError
+from pipeline25d.core.grid import Grid
 from pipeline25d_lab.scenes.writer import Group, mtl_block
 from pipeline25d_lab.scenes.writer import obj_text as write_obj_text
 from pipeline25d_lab.scenes.writer import write_dtm as write_scene_dtm
@@ -536,21 +537,20 @@ def facade_png(variant: int) -> bytes:
     return buf.getvalue()
 
 
-def dtm_grid(scale: float) -> tuple[tuple[float, float, float, float, float, float], int, int]:
-    """GDAL geotransform, width, height of the DTM: 1 m pixels over grid + margin."""
+def dtm_grid(scale: float) -> Grid:
+    """The DTM's grid: 1 m pixels over grid + margin."""
     extent_x = GRID_SHAPE[0] * BLOCK_SIZE * scale + 2 * DTM_MARGIN
     extent_y = GRID_SHAPE[1] * BLOCK_SIZE * scale + 2 * DTM_MARGIN
     width = int(math.ceil(extent_x / DTM_PIXEL - 1e-9))
     height = int(math.ceil(extent_y / DTM_PIXEL - 1e-9))
     x0 = ORIGIN_E - DTM_MARGIN
     top = ORIGIN_N - DTM_MARGIN + height * DTM_PIXEL
-    return (x0, DTM_PIXEL, 0.0, top, 0.0, -DTM_PIXEL), width, height
+    return Grid.north_up(x0, top, DTM_PIXEL, width, height)
 
 
 def write_dtm(path: Path, scale: float) -> None:
     """Float32 GeoTIFF of terrain_height at pixel centres (EPSG:25832), atomically."""
-    gt, width, height = dtm_grid(scale)
-    write_scene_dtm(path, gt, width, height, terrain_height, EPSG_CODE)
+    write_scene_dtm(path, dtm_grid(scale), terrain_height, EPSG_CODE)
 
 
 def own_ground_z(corners: np.ndarray, height: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> float:

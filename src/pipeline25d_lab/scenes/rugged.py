@@ -48,6 +48,7 @@ import numpy as np
 
 from pipeline25d.core.atomic import write_bytes
 from pipeline25d.core.errors import ConfigError
+from pipeline25d.core.grid import Grid
 from pipeline25d_lab.scenes.demo import (
     CRS,
     DTM_PIXEL,
@@ -504,18 +505,17 @@ def mtl_text(district: RuggedDistrict) -> str:
 # --------------------------------------------------------------------------- writers
 
 
-def dtm_grid(size: float) -> tuple[tuple[float, float, float, float, float, float], int, int]:
-    """GDAL geotransform, width, height of the truth DTM: 1 m pixels over the square + margin."""
+def dtm_grid(size: float) -> Grid:
+    """The truth DTM's grid: 1 m pixels over the square + margin."""
     n = int(math.ceil((size + 2 * DTM_MARGIN) / DTM_PIXEL - 1e-9))
     x0 = ORIGIN_E - DTM_MARGIN
     top = ORIGIN_N - DTM_MARGIN + n * DTM_PIXEL
-    return (x0, DTM_PIXEL, 0.0, top, 0.0, -DTM_PIXEL), n, n
+    return Grid.north_up(x0, top, DTM_PIXEL, n, n)
 
 
 def write_dtm(path: Path, size: float, params: dict[str, Any]) -> None:
     """Float32 GeoTIFF of rugged_height at pixel centres (EPSG:25832), atomically."""
-    gt, width, height = dtm_grid(size)
-    write_scene_dtm(path, gt, width, height, lambda x, y: rugged_height(x, y, params), EPSG_CODE)
+    write_scene_dtm(path, dtm_grid(size), lambda x, y: rugged_height(x, y, params), EPSG_CODE)
 
 
 def _json_bytes(data: dict) -> bytes:

@@ -14,6 +14,7 @@ from pipeline25d.analysis.evaluate.correlation import _INTERP_MARGIN, measure_wi
 from pipeline25d.analysis.evaluate.rasters import _open, _pair_grids, _read_block, _read_window, _same_crs
 from pipeline25d.analysis.evaluate.visibility import GroundMaskFn, GroundModel, perspective_of
 from pipeline25d.core.errors import CRSError
+from pipeline25d.core.grid import Grid
 from pipeline25d.geometry.perspectives import Perspective
 
 log = logging.getLogger(__name__)
@@ -195,8 +196,8 @@ def ground_offsets(oblique_tif: str | Path, nadir_tif: str | Path,
         p = perspective_of(oblique_tif, perspective)
         view = p.id
         mask_fn = ground_mask_fn.mask(None) & ground_mask_fn.mask(p)
-    gn = nad.GetGeoTransform()
-    gsd = gn[1]
+    ng = Grid.of_dataset(nad)
+    gsd = ng.res
     pair = _pair_grids(obl, nad, oblique_tif)
     src, (oc, orow), (nc, nr), (w, h) = pair.src, pair.obl_off, pair.nad_off, pair.size
 
@@ -228,8 +229,7 @@ def ground_offsets(oblique_tif: str | Path, nadir_tif: str | Path,
         if np.count_nonzero(opaque_n & opaque_o[inner, inner]) < need:
             counts["transparent"] += 1
             continue
-        xs = gn[0] + (nc + c + centre) * gsd
-        ys = gn[3] + (nr + r + centre) * gn[5]
+        xs, ys = ng.xy(nc + c + centre, nr + r + centre)      # cell centres of the window's columns, rows
         if mask_fn is not None:
             xx, yy = np.meshgrid(xs, ys)
             ground = np.asarray(mask_fn(xx, yy), bool)

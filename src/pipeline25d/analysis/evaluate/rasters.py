@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from pipeline25d.core.errors import InputFileError
+from pipeline25d.core.grid import Grid, Window
 from pipeline25d.core.raster import gdal, read_rgba_block, window_alpha
 
 log = logging.getLogger(__name__)
@@ -29,9 +30,9 @@ def _open(path: str | Path):
         ds = gdal().Open(str(path))
     except RuntimeError as exc:
         raise InputFileError(path, f"cannot open as a raster: {exc}") from None
-    gt = ds.GetGeoTransform()
-    if gt[2] or gt[4] or gt[1] <= 0 or gt[5] >= 0:
-        raise InputFileError(path, f"must be north-up without rotation, geotransform {gt}")
+    grid = Grid.of_dataset(ds)
+    if not grid.is_north_up:
+        raise InputFileError(path, f"must be north-up without rotation, geotransform {grid.geotransform}")
     return ds
 
 
@@ -77,12 +78,14 @@ def _pair_grids(obl, nad, oblique_path) -> _Pairing:
     is kept in ``frac`` and added to measured offsets (exact, no resampling). Different gsd:
     the oblique map is resampled bilinearly onto the nadir grid in memory (noted and logged).
     """
-    gn, go = nad.GetGeoTransform(), obl.GetGeoTransform()
-    gsd_x, gsd_y = gn[1], -gn[5]
-    wn, hn, wo, ho = nad.RasterXSize, nad.RasterYSize, obl.RasterXSize, obl.RasterYSize
-    same_gsd = abs(go[1] - gn[1]) <= _GSD_RTOL * gsd_x and abs(go[5] - gn[5]) <= _GSD_RTOL * gsd_y
-    # oblique origin in nadir pixel coordinates
-    c_lo, r_lo = (go[0] - gn[0]) / gsd_x, (gn[3] - go[3]) / gsd_y
+    ng, og = Grid.of_dataset(nad), Grid.of_dataset(obl)
+    tn, to = ng.transform, og.transform
+    gsd_x, gsd_y = tn.a, -tn.e
+    wn, hn, wo, ho = ng.width, ng.height, og.width, og.height
+    same_gsd = abs(to.a - tn.a) <= _GSD_RTOL * gsd_x and abs(to.e - tn.e) <= _GSD_RTOL * gsd_y
+    # oblique origin (and far corner) in nadir pixel coordinates
+    ob = og.bounds
+    c_lo, r_lo = ng.colrow(ob.xmin, ob.ymax)
     if same_gsd:
         kc, kr = round(c_lo), round(r_lo)
         fc, fr = c_lo - kc, r_lo - kr
@@ -96,16 +99,16 @@ def _pair_grids(obl, nad, oblique_path) -> _Pairing:
         else:
             fc = fr = 0.0
         return _Pairing(obl, (c0 - kc, r0 - kr), (c0, r0), (w, h), (fc, fr), False, note)
-    c_hi, r_hi = (go[0] + wo * go[1] - gn[0]) / gsd_x, (gn[3] - (go[3] + ho * go[5])) / gsd_y
+    c_hi, r_hi = ng.colrow(ob.xmax, ob.ymin)
     c0, r0 = max(0, math.ceil(c_lo - _ALIGN_TOL_PX)), max(0, math.ceil(r_lo - _ALIGN_TOL_PX))
     c1, r1 = min(wn, math.floor(c_hi + _ALIGN_TOL_PX)), min(hn, math.floor(r_hi + _ALIGN_TOL_PX))
     w, h = max(0, c1 - c0), max(0, r1 - r0)
     if w == 0 or h == 0:
         return _Pairing(obl, (0, 0), (0, 0), (0, 0), (0.0, 0.0), False, "maps do not overlap")
-    bounds = (gn[0] + c0 * gsd_x, gn[3] - r1 * gsd_y, gn[0] + c1 * gsd_x, gn[3] - r0 * gsd_y)
+    bounds = ng.window_bounds(Window(c0, r0, c1, r1))
     warped = gdal().Warp("", obl, format="MEM", outputBounds=bounds, width=w, height=h,
                          resampleAlg="bilinear", dstSRS=nad.GetProjection() or None)
-    note = (f"oblique gsd {go[1]:g} x {-go[5]:g} m differs from the nadir gsd {gsd_x:g} x {gsd_y:g} m: "
+    note = (f"oblique gsd {to.a:g} x {-to.e:g} m differs from the nadir gsd {gsd_x:g} x {gsd_y:g} m: "
             "resampled bilinearly onto the nadir grid (interpolation can bias sub-pixel offsets)")
     log.warning("%s: %s", oblique_path, note)
     return _Pairing(warped, (0, 0), (c0, r0), (w, h), (0.0, 0.0), True, note)

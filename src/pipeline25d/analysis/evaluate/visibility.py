@@ -11,6 +11,7 @@ import numpy as np
 
 from pipeline25d.analysis.evaluate.rasters import _open, _same_crs
 from pipeline25d.core.errors import ConfigError, InputFileError
+from pipeline25d.core.grid import Grid
 from pipeline25d.geometry.perspectives import Perspective
 
 log = logging.getLogger(__name__)
@@ -111,10 +112,9 @@ class RasterMask:
     ``map_crs`` (if it differs from the raster's CRS ``crs_wkt``): the CRS of the (x, y) asked for.
     """
 
-    def __init__(self, values: np.ndarray, geotransform: tuple[float, ...], crs_wkt: str = "",
-                 map_crs: str | None = None):
+    def __init__(self, values: np.ndarray, grid: Grid, crs_wkt: str = "", map_crs: str | None = None):
         self.values = np.asarray(values, bool)
-        self.gt = tuple(geotransform)
+        self.grid = grid
         self.crs_wkt = crs_wkt
         self.map_crs = map_crs
         self._reproject = bool(map_crs) and bool(crs_wkt) and not _same_crs(map_crs, crs_wkt)
@@ -127,16 +127,15 @@ class RasterMask:
             pts = transform_points(np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)]),
                                    self.map_crs, self.crs_wkt)
             x, y = pts[:, 0].reshape(x.shape), pts[:, 1].reshape(y.shape)
-        gt, (h, w) = self.gt, self.values.shape
-        col = np.floor((x - gt[0]) / gt[1]).astype(np.int64)
-        row = np.floor((y - gt[3]) / gt[5]).astype(np.int64)
+        h, w = self.values.shape
+        col, row = (np.floor(v).astype(np.int64) for v in self.grid.colrow(x, y))
         inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
         out = np.zeros(x.shape, bool)
         out[inside] = self.values[row[inside], col[inside]]
         return out
 
     def __and__(self, other: "RasterMask") -> "RasterMask":
-        return RasterMask(self.values & other.values, self.gt, self.crs_wkt, self.map_crs)
+        return RasterMask(self.values & other.values, self.grid, self.crs_wkt, self.map_crs)
 
 
 class GroundModel:
@@ -155,7 +154,7 @@ class GroundModel:
         if projection not in ("terrain", "plane"):
             raise ConfigError(f"projection must be 'terrain' or 'plane', not {projection!r}")
         ds = _open(dsm_tif)
-        gt = ds.GetGeoTransform()
+        grid = Grid.of_dataset(ds)
         band = ds.GetRasterBand(1)
         dsm = band.ReadAsArray().astype(np.float64)
         if band.GetNoDataValue() is not None:
@@ -163,14 +162,15 @@ class GroundModel:
         dsm_wkt = ds.GetProjection()
         dtm = DTM(dtm_tif, dsm_wkt or "")
         h, w = dsm.shape
-        if dtm.values.shape == dsm.shape and np.allclose(dtm.gt, gt) and _same_crs(dtm.crs_wkt, dsm_wkt):
+        if dtm.values.shape == dsm.shape and np.allclose(dtm.grid.geotransform, grid.geotransform) and _same_crs(dtm.crs_wkt, dsm_wkt):
             terrain = dtm.values
         else:
             if not dsm_wkt and dtm.crs_wkt:
                 raise InputFileError(dsm_tif, "DSM has no CRS but the DTM has one")
             cc, rr = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-            terrain = dtm.sample((gt[0] + cc * gt[1]).ravel(), (gt[3] + rr * gt[5]).ravel()).reshape(h, w)
-        self.dsm, self.dtm, self.gt, self.crs_wkt = dsm, terrain, gt, dsm_wkt
+            x, y = grid.xy(cc, rr)
+            terrain = dtm.sample(x.ravel(), y.ravel()).reshape(h, w)
+        self.dsm, self.dtm, self.grid, self.crs_wkt = dsm, terrain, grid, dsm_wkt
         self.map_crs = map_crs
         self.max_height, self.dilate_m, self.projection, self.clearance = max_height, dilate_m, projection, clearance
         self._masks: dict[str, RasterMask] = {}
@@ -181,9 +181,9 @@ class GroundModel:
         if perspective is None or perspective.elevation >= 90:
             perspective = Perspective(0, 90)
         if perspective.id not in self._masks:
-            values = visible_ground(self.dsm, self.dtm, perspective, (self.gt[1], -self.gt[5]), self.max_height,
+            values = visible_ground(self.dsm, self.dtm, perspective, (self.grid.transform.a, -self.grid.transform.e), self.max_height,
                                     self.dilate_m, self.projection, self.clearance)
-            self._masks[perspective.id] = RasterMask(values, self.gt, self.crs_wkt, self.map_crs)
+            self._masks[perspective.id] = RasterMask(values, self.grid, self.crs_wkt, self.map_crs)
         return self._masks[perspective.id]
 
     def __call__(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:

@@ -13,6 +13,7 @@ import numpy as np
 from pipeline25d.analysis.evaluate.rasters import _open, _pair_grids, _same_crs
 from pipeline25d.analysis.heights.results import MatchSettings
 from pipeline25d.core.errors import CRSError
+from pipeline25d.core.grid import Grid, Window
 from pipeline25d.formats.footprints import Footprint, contains, rasterize
 from pipeline25d.geometry.camera import horizontal_direction, relief_factor
 from pipeline25d.geometry.perspectives import Perspective
@@ -37,10 +38,10 @@ def _prepare_view(pid: str, path: str | Path, nad, nad_path: str | Path) -> _Vie
     if not _same_crs(nad.GetProjection(), obl.GetProjection()):
         raise CRSError(f"{path} and {nad_path} are in different CRSs")
     p = Perspective.from_id(pid)
-    gt = nad.GetGeoTransform()
+    t = Grid.of_dataset(nad).transform
     pair = _pair_grids(obl, nad, path)
     d = horizontal_direction(p)
-    d_px = np.array([d[1] / gt[5], d[0] / gt[1]])
+    d_px = np.array([d[1] / t.e, d[0] / t.a])
     offset = np.array([pair.obl_off[1] - pair.nad_off[1] - pair.frac[1],
                        pair.obl_off[0] - pair.nad_off[0] - pair.frac[0]], dtype=np.float64)
     return _View(pid, relief_factor(p), d_px, pair.src, offset)
@@ -80,14 +81,20 @@ def _sample(img: np.ndarray, rows: np.ndarray, cols: np.ndarray, order: int = 1)
                                              mode="nearest") for ch in range(img.shape[2])], axis=-1)
 
 
-def build_template(fp: Footprint, geotransform: tuple[float, ...], col0: int, row0: int, nad_rgb: np.ndarray,
+def _window_index(grid: Grid, win: Window, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """(2, n) fractional (row, col) of world (x, y) in the window's pixel array (centres at integers)."""
+    cols, rows = grid.colrow(x, y)
+    return np.stack([rows - 0.5 - win.row0, cols - 0.5 - win.col0])
+
+
+def build_template(fp: Footprint, grid: Grid, win: Window, nad_rgb: np.ndarray,
                    nad_alpha: np.ndarray, settings: MatchSettings) -> Template | str:
-    """The matching template of ``fp`` from a nadir window at (col0, row0); a reason string if unusable."""
+    """The matching template of ``fp`` from the nadir window ``win`` of ``grid`` (its pixels
+    ``nad_rgb``, ``nad_alpha``); a reason string if unusable."""
     from scipy import ndimage
 
-    s, gt = settings, geotransform
-    h, w = nad_alpha.shape
-    mask = rasterize(fp, gt, col0, row0, w, h)
+    s, col0, row0 = settings, win.col0, win.row0
+    mask = rasterize(fp, grid, win)
     tmpl = mask & (nad_alpha == 255)
     tr, tc = np.nonzero(tmpl)
     if len(tr) < s.min_pixels:
@@ -111,9 +118,8 @@ def build_template(fp: Footprint, geotransform: tuple[float, ...], col0: int, ro
         roof = np.zeros((0, 3))
 
     # edge model: nearest straight outline stretch of the pixels near the outline
-    gsd = gt[1]
-    x = gt[0] + (col0 + tc + 0.5) * gt[1]
-    y = gt[3] + (row0 + tr + 0.5) * gt[5]
+    gsd = grid.res
+    x, y = grid.xy(col0 + tc + 0.5, row0 + tr + 0.5)
     depth = ndimage.distance_transform_edt(np.pad(mask, 1))[1:-1, 1:-1][tr, tc]
     near = np.flatnonzero(depth <= 3)
     seg_a = np.concatenate([r for r in fp.rings])
@@ -152,9 +158,7 @@ def build_template(fp: Footprint, geotransform: tuple[float, ...], col0: int, ro
         xin, yin = x[near] - nrm[:, 0] * (1.5 * gsd - delta), y[near] - nrm[:, 1] * (1.5 * gsd - delta)
         xout, yout = x[near] + nrm[:, 0] * (1.5 * gsd + delta), y[near] + nrm[:, 1] * (1.5 * gsd + delta)
         ok &= contains(fp, xin, yin) & ~contains(fp, xout, yout)
-        to_idx = lambda xx, yy: np.stack([(yy - gt[3]) / gt[5] - 0.5 - row0,  # noqa: E731
-                                          (xx - gt[0]) / gt[1] - 0.5 - col0])
-        pin, pout = to_idx(xin, yin), to_idx(xout, yout)
+        pin, pout = _window_index(grid, win, xin, yin), _window_index(grid, win, xout, yout)
         r_n, x_n = _sample(nad_rgb, *pin), _sample(nad_rgb, *pout)
         contrast2 = np.sum((r_n - x_n) ** 2, axis=1)
         ok &= contrast2 > tol2

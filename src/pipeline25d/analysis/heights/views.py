@@ -14,6 +14,7 @@ from pipeline25d.analysis.heights.matcher import MatchResult, _Matcher
 from pipeline25d.analysis.heights.results import NADIR_ID, HeightRow, MatchSettings, ViewMeasurement
 from pipeline25d.analysis.heights.template import _PAD, Template, _prepare_view, build_template
 from pipeline25d.core.errors import InputFileError
+from pipeline25d.core.grid import Extent, Grid
 from pipeline25d.core.raster import read_rgba_block
 from pipeline25d.formats.footprints import Footprint
 from pipeline25d.geometry.perspectives import Perspective
@@ -36,25 +37,22 @@ def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint
         raise InputFileError(nadir_id, f"no nadir map {nadir_id!r} among {sorted(map_paths)}")
     nad_path = map_paths[nadir_id]
     nad = _open(nad_path)
-    gt = nad.GetGeoTransform()
-    if abs(gt[1] + gt[5]) > 1e-9 * gt[1]:
-        raise InputFileError(nad_path, f"pixels must be square, geotransform {gt}")
+    grid = Grid.of_dataset(nad)
+    if abs(grid.transform.a + grid.transform.e) > 1e-9 * grid.transform.a:
+        raise InputFileError(nad_path, f"pixels must be square, geotransform {grid.geotransform}")
     views = [_prepare_view(pid, path, nad, nad_path) for pid, path in sorted(map_paths.items())
              if pid != nadir_id and Perspective.from_id(pid).elevation != 90]
-    step_m = gt[1]
+    step_m = grid.res
     pad = s.ring_px + 4
     rows_out: list[HeightRow] = []
     for fp in footprints:
-        xmin, ymin, xmax, ymax = fp.bounds
-        c0 = int(math.floor((xmin - gt[0]) / gt[1])) - pad
-        c1 = int(math.ceil((xmax - gt[0]) / gt[1])) + pad
-        r0 = int(math.floor((ymax - gt[3]) / gt[5])) - pad
-        r1 = int(math.ceil((ymin - gt[3]) / gt[5])) + pad
-        if c1 <= 0 or r1 <= 0 or c0 >= nad.RasterXSize or r0 >= nad.RasterYSize:
+        win = grid.window_covering(Extent(*fp.bounds), pad)
+        c0, r0, c1, r1 = win
+        if win.col1 <= 0 or win.row1 <= 0 or win.col0 >= grid.width or win.row0 >= grid.height:
             tmpl: Template | str = "outside_nadir"
         else:
-            nad_rgb, nad_alpha = read_rgba_block(nad, c0, r0, c1 - c0, r1 - r0)
-            tmpl = build_template(fp, gt, c0, r0, nad_rgb, nad_alpha, s)
+            nad_rgb, nad_alpha = read_rgba_block(nad, win.col0, win.row0, win.width, win.height)
+            tmpl = build_template(fp, grid, win, nad_rgb, nad_alpha, s)
         results: dict[str, MatchResult] = {}
         matchers: dict[str, _Matcher] = {}
         for v in views:

@@ -17,10 +17,11 @@ import logging
 import math
 from collections.abc import Iterable
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 
+from pipeline25d.core.geotiff import geotiff_dataset
+from pipeline25d.core.grid import Extent, Grid, Window
 from pipeline25d.core.raster import gdal
 from pipeline25d.stages.records import Plan
 
@@ -30,28 +31,6 @@ PART_GAP_TILES = 1     # tiles at most this many empty tiles apart share a part
 DENSE_SHARE = 0.5      # parts covering at least this share of the tiles' bounding box: one part
 COG_BLOCK = 512        # the COG driver's block size; its overviews halve until they fit one block
 EDGE_SAMPLES = 33      # points per part edge transformed to find its window on the map
-
-
-class Window(NamedTuple):
-    """A map window in pixels of the map grid: columns col0..col1, rows row0..row1 (exclusive)."""
-
-    col0: int
-    row0: int
-    col1: int
-    row1: int
-
-    @property
-    def width(self) -> int:
-        return self.col1 - self.col0
-
-    @property
-    def height(self) -> int:
-        return self.row1 - self.row0
-
-
-def window_bounds(gt: tuple[float, ...], win: Window) -> tuple[float, float, float, float]:
-    """(xmin, ymin, xmax, ymax) of a window on a north-up grid with geotransform ``gt``."""
-    return (gt[0] + win.col0 * gt[1], gt[3] + win.row1 * gt[5], gt[0] + win.col1 * gt[1], gt[3] + win.row0 * gt[5])
 
 
 def tile_parts(cells: Iterable[tuple[int, int]], gap: int = PART_GAP_TILES,
@@ -119,7 +98,7 @@ def box_outline(x0: float, y0: float, x1: float, y1: float, n: int = EDGE_SAMPLE
     return xs, ys
 
 
-def part_bounds(plan: Plan, rects: list[tuple[int, int, int, int]], to_map) -> list[tuple[float, ...]]:
+def part_bounds(plan: Plan, rects: list[tuple[int, int, int, int]], to_map) -> list[Extent]:
     """Each part's bounding box on the map (xmin, ymin, xmax, ymax) in the map CRS.
 
     A part spans its tiles' content boxes (see :mod:`pipeline25d.stages.plan`). ``to_map(x, y)``
@@ -133,13 +112,12 @@ def part_bounds(plan: Plan, rects: list[tuple[int, int, int, int]], to_map) -> l
         x0, y0 = boxes[:, :2].min(axis=0)
         x1, y1 = boxes[:, 2:].max(axis=0)
         mx, my = to_map(*box_outline(x0, y0, x1, y1))
-        out.append((float(np.min(mx)), float(np.min(my)), float(np.max(mx)), float(np.max(my))))
+        out.append(Extent(float(np.min(mx)), float(np.min(my)), float(np.max(mx)), float(np.max(my))))
     return out
 
 
-def map_grid(bounds: list[tuple[float, ...]], gsd: float, margin_px: int = 2) -> tuple[tuple[float, ...], int, int,
-                                                                                        list[Window]]:
-    """The map's geotransform, size and each part's window on it.
+def map_grid(bounds: list[Extent], gsd: float, margin_px: int = 2) -> tuple[Grid, list[Window]]:
+    """The map's grid and each part's window on it.
 
     Windows are the parts' bounds grown by ``margin_px`` and snapped outward to multiples of
     ``align`` pixels of a global grid (origin 0, 0), where ``align`` is the largest overview
@@ -158,15 +136,15 @@ def map_grid(bounds: list[tuple[float, ...]], gsd: float, margin_px: int = 2) ->
         if not factors or factors[-1] <= align:
             break
         align = factors[-1]
-    gt = (gx0 * step, gsd, 0.0, gy1 * step, 0.0, -gsd)
+    grid = Grid.north_up(gx0 * step, gy1 * step, gsd, width, height)
     windows = [Window((sx0 - gx0) * align, (gy1 - sy1) * align, (sx1 - gx0) * align, (gy1 - sy0) * align)
                for sx0, sy0, sx1, sy1 in snapped]
-    return gt, width, height, windows
+    return grid, windows
 
 
-def assemble_sparse_cog(parts: list[tuple[Path, Window]], width: int, height: int, gt: tuple[float, ...], wkt: str,
-                        out: str | Path, cog_options: list[str], rows_per_copy: int = 1024) -> None:
-    """Write the parts' pixels and overviews into a ``width`` x ``height`` COG at ``out``.
+def assemble_sparse_cog(parts: list[tuple[Path, Window]], grid: Grid, wkt: str, out: str | Path,
+                        cog_options: list[str], rows_per_copy: int = 1024) -> None:
+    """Write the parts' pixels and overviews into a COG on ``grid`` at ``out``.
 
     Each part raster (RGBA, on the map grid, with the map's overview factors already built)
     is copied into an intermediate sparse GeoTIFF, level by level, ``rows_per_copy`` rows at a
@@ -175,37 +153,36 @@ def assemble_sparse_cog(parts: list[tuple[Path, Window]], width: int, height: in
     (OVERVIEWS=FORCE_USE_EXISTING keeps the parts' own).
     """
     g = gdal()
-    factors = overview_factors(width, height)
+    factors = overview_factors(grid.width, grid.height)
     tmp = Path(out).with_suffix(".parts.tif")
+    options = ["TILED=YES", f"BLOCKXSIZE={COG_BLOCK}", f"BLOCKYSIZE={COG_BLOCK}", "SPARSE_OK=TRUE", "COMPRESS=ZSTD",
+               "ZSTD_LEVEL=1", "ALPHA=YES", "PHOTOMETRIC=RGB", "BIGTIFF=IF_SAFER"]
     try:
-        ds = g.GetDriverByName("GTiff").Create(str(tmp), width, height, 4, g.GDT_Byte,
-                                               ["TILED=YES", f"BLOCKXSIZE={COG_BLOCK}", f"BLOCKYSIZE={COG_BLOCK}",
-                                                "SPARSE_OK=TRUE", "COMPRESS=ZSTD", "ZSTD_LEVEL=1", "ALPHA=YES",
-                                                "PHOTOMETRIC=RGB", "BIGTIFF=IF_SAFER"])
-        ds.SetGeoTransform(gt)
-        ds.SetProjection(wkt)
-        if factors:
-            ds.BuildOverviews("NONE", factors)          # empty levels, filled from the parts below
-        for path, win in parts:
-            src = g.Open(str(path))
-            for level, f in enumerate([1, *factors]):
-                src_bands = [src.GetRasterBand(b + 1) for b in range(4)]
-                dst_bands = [ds.GetRasterBand(b + 1) for b in range(4)]
-                if level:
-                    src_bands = [b.GetOverview(level - 1) for b in src_bands]
-                    dst_bands = [b.GetOverview(level - 1) for b in dst_bands]
-                w, h = src_bands[0].XSize, src_bands[0].YSize
-                if (w, h) != (win.width // f, win.height // f):
-                    raise ValueError(f"{path}: level {f} is {w} x {h}, not the window's {win.width // f} x "
-                                     f"{win.height // f}")
-                for r in range(0, h, rows_per_copy):
-                    n = min(rows_per_copy, h - r)
-                    for sb, db in zip(src_bands, dst_bands):
-                        db.WriteRaster(win.col0 // f, win.row0 // f + r, w, n, sb.ReadRaster(0, r, w, n))
-            src = None
-        ds.FlushCache()
-        ds = None
+        with geotiff_dataset(tmp, grid, wkt, 4, "Byte", options, overviews=factors) as dst:  # levels filled below
+            _copy_parts(parts, dst, factors, rows_per_copy)
         g.Translate(str(out), str(tmp), format="COG",
                     creationOptions=[*cog_options, "SPARSE_OK=TRUE", "BIGTIFF=IF_SAFER"])
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def _copy_parts(parts: list[tuple[Path, Window]], dst, factors: list[int], rows_per_copy: int) -> None:
+    """Each part's levels into the same levels of ``dst`` (a :class:`pipeline25d.core.geotiff.GeoTiffOut`)."""
+    g = gdal()
+    for path, win in parts:
+        src = g.Open(str(path))
+        for level, f in enumerate([1, *factors]):
+            src_bands = [src.GetRasterBand(b + 1) for b in range(4)]
+            dst_bands = [dst.band(b + 1) for b in range(4)]
+            if level:
+                src_bands = [b.GetOverview(level - 1) for b in src_bands]
+                dst_bands = [b.GetOverview(level - 1) for b in dst_bands]
+            w, h = src_bands[0].XSize, src_bands[0].YSize
+            if (w, h) != (win.width // f, win.height // f):
+                raise ValueError(f"{path}: level {f} is {w} x {h}, not the window's {win.width // f} x "
+                                 f"{win.height // f}")
+            for r in range(0, h, rows_per_copy):
+                n = min(rows_per_copy, h - r)
+                for sb, db in zip(src_bands, dst_bands):
+                    db.WriteRaster(win.col0 // f, win.row0 // f + r, w, n, sb.ReadRaster(0, r, w, n))
+        src = None

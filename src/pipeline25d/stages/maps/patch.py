@@ -24,9 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline25d.core.geotiff import geotiff_dataset
+from pipeline25d.core.grid import Grid, Window
 from pipeline25d.core.journal import read_state, write_state
-from pipeline25d.core.raster import gdal
-from pipeline25d.stages.maps.parts import Window, box_outline, window_bounds
+from pipeline25d.core.raster import cells_grid_of, gdal
+from pipeline25d.stages.maps.parts import box_outline
 
 log = logging.getLogger(__name__)
 
@@ -79,13 +81,14 @@ def patched_map(mosaic: str | Path, source: str | Path, choice: dict, crs: str, 
 
     g = gdal()
     warped = choice["method"] != "none"
-    grid = g.Warp("", str(source), format="VRT", **warp_options(choice, crs, gsd)) if warped else g.Open(str(mosaic))
-    gt, width, height, bands = grid.GetGeoTransform(), grid.RasterXSize, grid.RasterYSize, grid.RasterCount
-    grid = None
+    target = g.Warp("", str(source), format="VRT", **warp_options(choice, crs, gsd)) if warped else g.Open(str(mosaic))
+    grid, bands = Grid.of_dataset(target), target.RasterCount
+    width, height = grid.width, grid.height
+    target = None
     factors = overview_factors(width, height)
     size = max(BLOCK_PX, factors[-1] if factors else 1)      # a block holds whole pixels of every overview
     key = {"version": STATE_VERSION, "method": choice["method"], "order": choice.get("order"), "crs": crs,
-           "gcps": _gcps_digest(source) if warped else None, "grid": [*gt, width, height], "block": size,
+           "gcps": _gcps_digest(source) if warped else None, "grid": [*grid.geotransform, width, height], "block": size,
            "overviews": factors}
     mosaic_grid, cells = map_cells(mosaic)
     key["mosaic"] = mosaic_grid
@@ -95,15 +98,15 @@ def patched_map(mosaic: str | Path, source: str | Path, choice: dict, crs: str, 
     if full:
         shutil.rmtree(work, ignore_errors=True)
         work.mkdir(parents=True)
-        _create_kept(work / KEPT, gt, width, height, bands, crs, factors)
+        _create_kept(work / KEPT, grid, bands, crs, factors)
         todo = {(bx, by) for bx in range(nx) for by in range(ny)}
         changed: list[str] = []
     else:
         old = state["cells"]
         changed = sorted(c for c in cells.keys() | old.keys() if cells.get(c) != old.get(c))
         to_map = source_to_map(source, choice) if warped else _pixel_to_map(mosaic_grid)
-        todo = {tuple(b) for b in state["dirty"]} | blocks_reached(changed, mosaic_grid, to_map, gt, width, height,
-                                                                   size, MARGIN_PX if warped else 0)
+        todo = {tuple(b) for b in state["dirty"]} | blocks_reached(changed, mosaic_grid, to_map, grid, size,
+                                                                   MARGIN_PX if warped else 0)
     todo = sorted(todo)
     write_state(work, {"key": key, "cells": {} if full else state["cells"], "dirty": todo})    # journal first
     kept = g.Open(str(work / KEPT), 1)
@@ -111,7 +114,7 @@ def patched_map(mosaic: str | Path, source: str | Path, choice: dict, crs: str, 
         win = block_window(bx, by, width, height, size)
         if warped:
             opts = {k: v for k, v in window_warp_options(choice, crs, gsd).items() if k not in ("xRes", "yRes")}
-            block = g.Warp("", str(source), format="MEM", outputBounds=window_bounds(gt, win), width=win.width,
+            block = g.Warp("", str(source), format="MEM", outputBounds=grid.window_bounds(win), width=win.width,
                            height=win.height, **opts)
         else:
             block = g.Translate("", str(mosaic), format="MEM", srcWin=[win.col0, win.row0, win.width, win.height])
@@ -158,8 +161,7 @@ def _gcps_digest(source: str | Path) -> str:
 
 
 def _pixel_to_map(mosaic_grid: list):
-    gt = mosaic_grid[:6]
-    return lambda col, row: (gt[0] + col * gt[1], gt[3] + row * gt[5])
+    return cells_grid_of(mosaic_grid).xy
 
 
 def block_window(bx: int, by: int, width: int, height: int, size: int) -> Window:
@@ -167,21 +169,20 @@ def block_window(bx: int, by: int, width: int, height: int, size: int) -> Window
     return Window(bx * size, by * size, min((bx + 1) * size, width), min((by + 1) * size, height))
 
 
-def blocks_reached(cell_ids: list[str], mosaic_grid: list, to_map, gt: tuple[float, ...], width: int,
-                   height: int, size: int, margin: int) -> set[tuple[int, int]]:
+def blocks_reached(cell_ids: list[str], mosaic_grid: list, to_map, grid: Grid, size: int,
+                   margin: int) -> set[tuple[int, int]]:
     """The map blocks (``size`` px) that mosaic squares ``cell_ids`` (of
     :func:`pipeline25d.core.raster.map_cells`) reach through ``to_map`` (mosaic pixels -> map
     x, y), grown by ``margin`` px."""
     if not cell_ids:
         return set()
-    cell, mw, mh = mosaic_grid[8], mosaic_grid[6], mosaic_grid[7]
+    cell, mw, mh, width, height = mosaic_grid[8], mosaic_grid[6], mosaic_grid[7], grid.width, grid.height
     ids = np.array([[int(v) for v in c.split("_")] for c in cell_ids])
     c0, r0 = ids[:, 0] * cell, ids[:, 1] * cell
     c1, r1 = np.minimum(c0 + cell, mw), np.minimum(r0 + cell, mh)
     outlines = [box_outline(*b, n=EDGE_SAMPLES) for b in zip(c0, r0, c1, r1)]
     x, y = to_map(np.concatenate([o[0] for o in outlines]), np.concatenate([o[1] for o in outlines]))
-    col = ((x - gt[0]) / gt[1]).reshape(len(cell_ids), -1)
-    row = ((y - gt[3]) / gt[5]).reshape(len(cell_ids), -1)
+    col, row = (v.reshape(len(cell_ids), -1) for v in grid.colrow(x, y))
     out = set()
     for a0, a1, b0, b1 in zip(col.min(axis=1), col.max(axis=1), row.min(axis=1), row.max(axis=1)):
         # the pixels [a0, a1) x [b0, b1) the square's outline spans (grown by the margin)
@@ -193,18 +194,12 @@ def blocks_reached(cell_ids: list[str], mosaic_grid: list, to_map, gt: tuple[flo
     return out
 
 
-def _create_kept(path: Path, gt: tuple[float, ...], width: int, height: int, bands: int, crs: str,
-                 factors: list[int]) -> None:
-    g = gdal()
-    ds = g.GetDriverByName("GTiff").Create(str(path), width, height, bands, g.GDT_Byte,
-                                           ["TILED=YES", "BLOCKXSIZE=512", "BLOCKYSIZE=512", "COMPRESS=ZSTD",
-                                            "ZSTD_LEVEL=1", "SPARSE_OK=TRUE", "BIGTIFF=IF_SAFER", "INTERLEAVE=BAND",
-                                            *(["PHOTOMETRIC=RGB"] if bands >= 4 else []), "ALPHA=YES"])
-    ds.SetGeoTransform(gt)
-    ds.SetProjection(crs)
-    if factors:
-        ds.BuildOverviews("NONE", factors)          # empty levels, filled block by block
-    ds = None
+def _create_kept(path: Path, grid: Grid, bands: int, crs: str, factors: list[int]) -> None:
+    """The kept GeoTIFF, empty, with empty overview levels (filled block by block)."""
+    options = ["TILED=YES", "BLOCKXSIZE=512", "BLOCKYSIZE=512", "COMPRESS=ZSTD", "ZSTD_LEVEL=1", "SPARSE_OK=TRUE",
+               "BIGTIFF=IF_SAFER", "INTERLEAVE=BAND", *(["PHOTOMETRIC=RGB"] if bands >= 4 else []), "ALPHA=YES"]
+    with geotiff_dataset(path, grid, crs, bands, "Byte", options, overviews=factors):
+        pass
 
 def transformer_options(method: str, order: int) -> list[str]:
     """GDAL GCP transformer options of a warp method (tps, or polynomial of ``order``)."""

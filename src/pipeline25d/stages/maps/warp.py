@@ -25,6 +25,7 @@ import numpy as np
 
 from pipeline25d.core.atomic import atomic_path, write_json
 from pipeline25d.core.errors import GdalToolError
+from pipeline25d.core.grid import Grid
 from pipeline25d.core.raster import gdal, tool_env
 from pipeline25d.stages.gcps import read_observations
 from pipeline25d.stages.maps.patch import transformer_options
@@ -40,28 +41,28 @@ CV_MAX_GCPS = 600                          # cross-validation subsamples larger 
 WARP_GAIN, WARP_MIN_GAIN_PX = 1.1, 0.1     # auto warps only where none's CV error exceeds 1.1 × best + 0.1 px
 
 
-def to_pixels(rows: Sequence[Observation], gt: tuple[float, ...]) -> np.ndarray:
-    """(n, 2) [pixel, line] in a north-up raster with geotransform ``gt`` of the rows' map_x/map_y."""
+def to_pixels(rows: Sequence[Observation], grid: Grid) -> np.ndarray:
+    """(n, 2) [pixel, line] on the raster ``grid`` of the rows' map_x/map_y."""
     mx = np.array([r.map_x for r in rows], dtype=np.float64)
     my = np.array([r.map_y for r in rows], dtype=np.float64)
-    return np.column_stack([(mx - gt[0]) / gt[1], (my - gt[3]) / gt[5]])
+    return np.column_stack(grid.colrow(mx, my))
 
 
-def gdal_gcps(rows: Sequence[Observation], gt: tuple[float, ...]) -> list:
-    """GDAL GCPs pairing each row's image position (in the raster with ``gt``) with its true x, y, z."""
+def gdal_gcps(rows: Sequence[Observation], grid: Grid) -> list:
+    """GDAL GCPs pairing each row's image position (on the raster ``grid``) with its true x, y, z."""
     g = gdal()
-    return [g.GCP(r.x, r.y, r.z, float(p), float(q)) for r, (p, q) in zip(rows, to_pixels(rows, gt))]
+    return [g.GCP(r.x, r.y, r.z, float(p), float(q)) for r, (p, q) in zip(rows, to_pixels(rows, grid))]
 
 
-def predict(method: str, order: int, train: Sequence[Observation], query: Sequence[Observation], gt: tuple[float, ...]) -> np.ndarray:
+def predict(method: str, order: int, train: Sequence[Observation], query: Sequence[Observation], grid: Grid) -> np.ndarray:
     """Scene (x, y) of the ``query`` rows' image positions under a warp fitted on ``train``."""
     if method == "none":
         return np.array([[r.map_x, r.map_y] for r in query], dtype=np.float64).reshape(-1, 2)
     g = gdal()
     ds = g.GetDriverByName("MEM").Create("", 1, 1, 1)
-    ds.SetGCPs(gdal_gcps(train, gt), "")
+    ds.SetGCPs(gdal_gcps(train, grid), "")
     tr = g.Transformer(ds, None, transformer_options(method, order))
-    pts = np.column_stack([to_pixels(query, gt), np.zeros(len(query))]).tolist()
+    pts = np.column_stack([to_pixels(query, grid), np.zeros(len(query))]).tolist()
     out, ok = tr.TransformPoints(0, pts)
     out = np.array(out, dtype=np.float64)[:, :2]
     out[~np.asarray(ok, dtype=bool)] = np.nan
@@ -70,13 +71,13 @@ def predict(method: str, order: int, train: Sequence[Observation], query: Sequen
 
 
 
-def _errors(method: str, order: int, train: Sequence[Observation], query: Sequence[Observation], gt: tuple[float, ...]) -> np.ndarray:
+def _errors(method: str, order: int, train: Sequence[Observation], query: Sequence[Observation], grid: Grid) -> np.ndarray:
     """(n,) metres between the query rows' predicted and true (x, y)."""
-    xy = predict(method, order, train, query, gt)
+    xy = predict(method, order, train, query, grid)
     return np.hypot(xy[:, 0] - [r.x for r in query], xy[:, 1] - [r.y for r in query])
 
 
-def residuals(method: str, order: int, obs: Sequence[Observation], gt: tuple[float, ...], gsd: float) -> dict:
+def residuals(method: str, order: int, obs: Sequence[Observation], grid: Grid, gsd: float) -> dict:
     """Check-point error of a method fitted on the GCPs: RMSD and max, metres and pixels.
 
     With fewer than MIN_CHECK_POINTS check points the figures are None and ``check_note``
@@ -88,17 +89,17 @@ def residuals(method: str, order: int, obs: Sequence[Observation], gt: tuple[flo
               "rmsd_m": None, "rmsd_px": None, "max_m": None, "check_note": f"n/a ({len(check)} check points)"}
     if len(check) < MIN_CHECK_POINTS:
         return result
-    err = _errors(method, order, train, check, gt)
+    err = _errors(method, order, train, check, grid)
     rmsd = float(np.sqrt(np.nanmean(err ** 2)))
     return {**result, "rmsd_m": rmsd, "rmsd_px": rmsd / gsd, "max_m": float(np.nanmax(err)),
             "check_note": f"{len(check)} check points"}
 
 
-def cross_validated_rmsd(method: str, order: int, gcps: Sequence[Observation], gt: tuple[float, ...],
+def cross_validated_rmsd(method: str, order: int, gcps: Sequence[Observation], grid: Grid,
                          folds: int = CV_FOLDS, seed: int = 0) -> float | None:
     """k-fold cross-validated RMSD (m) of a method on the GCPs alone; None where a fold cannot be fitted."""
     if method == "none":
-        return float(np.sqrt(np.mean(_errors("none", 0, [], gcps, gt) ** 2))) if gcps else None
+        return float(np.sqrt(np.mean(_errors("none", 0, [], gcps, grid) ** 2))) if gcps else None
     rng = np.random.default_rng(seed)
     rows = [gcps[i] for i in rng.permutation(len(gcps))[:CV_MAX_GCPS]]
     need = MIN_GCPS["tps" if method == "tps" else order]
@@ -110,7 +111,7 @@ def cross_validated_rmsd(method: str, order: int, gcps: Sequence[Observation], g
         if len(train) < need:
             return None
         if test:
-            errs.append(_errors(method, order, train, test, gt))
+            errs.append(_errors(method, order, train, test, grid))
     err = np.concatenate(errs) if errs else np.array([np.nan])
     return float(np.sqrt(np.nanmean(err ** 2))) if np.isfinite(err).any() else None
 
@@ -128,7 +129,7 @@ def max_relief_displacement_px(obs: Sequence[Observation], plan: Plan) -> float:
     return max(abs(r.z - (r.ground if relative else plan.z0)) for r in obs) * cot / plan.gsd
 
 
-def choose(obs: Sequence[Observation], plan: Plan, gt: tuple[float, ...], method: str, order: int) -> dict:
+def choose(obs: Sequence[Observation], plan: Plan, grid: Grid, method: str, order: int) -> dict:
     """The warp to apply and the scores behind the choice.
 
     ``auto``: none where relief displacement stays under half a pixel, otherwise the
@@ -141,12 +142,12 @@ def choose(obs: Sequence[Observation], plan: Plan, gt: tuple[float, ...], method
     n_gcp = len(gcps)
     relief = max_relief_displacement_px(obs, plan)
     if plan.projection == "paper":
-        baseline = {**residuals("none", 0, [], gt, plan.gsd), "cv_rmsd_m": None,
+        baseline = {**residuals("none", 0, [], grid, plan.gsd), "cv_rmsd_m": None,
                     "check_note": "n/a (the paper camera's image is not a map)"}
         method = "polynomial" if method in ("auto", "none") else method
     else:
-        baseline = {**residuals("none", 0, obs, gt, plan.gsd),
-                    "cv_rmsd_m": cross_validated_rmsd("none", 0, gcps, gt)}
+        baseline = {**residuals("none", 0, obs, grid, plan.gsd),
+                    "cv_rmsd_m": cross_validated_rmsd("none", 0, gcps, grid)}
     if method == "none" or (method == "auto" and relief < 0.5):
         return {**baseline, "relief_px": relief, "candidates": [baseline]}
     if method == "polynomial":
@@ -160,7 +161,7 @@ def choose(obs: Sequence[Observation], plan: Plan, gt: tuple[float, ...], method
         candidates += [("tps", 0)] if n_gcp >= MIN_GCPS["tps"] else []
     # Cross-validation (on subsamples) for every candidate; the full fit that scores check
     # points is cubic in the GCP count for TPS, so a large TPS is scored only if it is chosen.
-    scored = [baseline] + [{"method": m, "order": o, "cv_rmsd_m": cross_validated_rmsd(m, o, gcps, gt)}
+    scored = [baseline] + [{"method": m, "order": o, "cv_rmsd_m": cross_validated_rmsd(m, o, gcps, grid)}
                            for m, o in candidates]
     if method != "auto":
         if not candidates and plan.projection == "paper":
@@ -175,9 +176,9 @@ def choose(obs: Sequence[Observation], plan: Plan, gt: tuple[float, ...], method
             best = baseline
     for i, cand in enumerate(scored[1:], 1):
         if cand is best or cand["method"] != "tps" or n_gcp <= CV_MAX_GCPS:
-            scored[i] = {**residuals(cand["method"], cand["order"], obs, gt, plan.gsd), **cand}
+            scored[i] = {**residuals(cand["method"], cand["order"], obs, grid, plan.gsd), **cand}
         else:
-            scored[i] = {**residuals(cand["method"], cand["order"], [], gt, plan.gsd), **cand, "n_gcp": n_gcp,
+            scored[i] = {**residuals(cand["method"], cand["order"], [], grid, plan.gsd), **cand, "n_gcp": n_gcp,
                          "check_note": f"not scored (TPS on {n_gcp} GCPs, not chosen)"}
         if cand is best:
             best = scored[i]
@@ -237,7 +238,7 @@ def warp_to_cog(mosaic: str | Path, obs: Sequence[Observation], choice: dict, pl
             source = Path(mosaic)
             if choice["method"] != "none":
                 train = [r for r in obs if r.role == "gcp"]
-                gdal().Translate(str(gcp_vrt), str(mosaic), format="VRT", GCPs=gdal_gcps(train, raster_geotransform(mosaic)),
+                gdal().Translate(str(gcp_vrt), str(mosaic), format="VRT", GCPs=gdal_gcps(train, raster_grid(mosaic)),
                                  outputSRS=crs)
                 source = gcp_vrt
             if parts and len(parts) > 1:
@@ -252,8 +253,7 @@ def warp_to_cog(mosaic: str | Path, obs: Sequence[Observation], choice: dict, pl
                 if not work_dir:
                     shutil.rmtree(kept_dir, ignore_errors=True)
             ds = gdal().Open(str(tmp))
-            gt, w, h = ds.GetGeoTransform(), ds.RasterXSize, ds.RasterYSize
-            return [[gt[0], gt[3] + h * gt[5], gt[0] + w * gt[1], gt[3]]]
+            return [list(Grid.of_dataset(ds).bounds)]
         finally:
             gcp_vrt.unlink(missing_ok=True)
 
@@ -267,12 +267,11 @@ def _warp_parts(source: Path, mosaic: str | Path, choice: dict, plan: Plan, crs:
         map_grid,
         overview_factors,
         part_bounds,
-        window_bounds,
     )
     from pipeline25d.stages.maps.patch import source_to_map, window_warp_options
 
     g = gdal()
-    mosaic_gt = raster_geotransform(mosaic)
+    mosaic_grid = raster_grid(mosaic)
     if choice["method"] == "none":
         def to_map(x, y):
             return x, y
@@ -280,10 +279,11 @@ def _warp_parts(source: Path, mosaic: str | Path, choice: dict, plan: Plan, crs:
         pixels_to_map = source_to_map(source, choice)
 
         def to_map(x, y):
-            return pixels_to_map((x - mosaic_gt[0]) / mosaic_gt[1], (y - mosaic_gt[3]) / mosaic_gt[5])
+            return pixels_to_map(*mosaic_grid.colrow(x, y))
 
     gsd = plan.gsd
-    gt, width, height, windows = map_grid(part_bounds(plan, parts, to_map), gsd)
+    grid, windows = map_grid(part_bounds(plan, parts, to_map), gsd)
+    width, height = grid.width, grid.height
     factors = overview_factors(width, height)
     warp_options = {**window_warp_options(choice, crs, gsd), "format": "GTiff",
                     "creationOptions": ["TILED=YES", "COMPRESS=ZSTD", "ZSTD_LEVEL=1"]}
@@ -292,23 +292,23 @@ def _warp_parts(source: Path, mosaic: str | Path, choice: dict, plan: Plan, crs:
         for k, win in enumerate(windows):
             path = out.with_suffix(f".part{k}.tif")
             part_files.append((path, win))
-            g.Warp(str(path), str(source), outputBounds=window_bounds(gt, win), **warp_options)
+            g.Warp(str(path), str(source), outputBounds=grid.window_bounds(win), **warp_options)
             ds = g.Open(str(path), 1)
             if factors:
                 ds.BuildOverviews("AVERAGE", factors)
             ds = None
         log.info("sparse map: %d parts, %d x %d px, %.1f%% of it in parts", len(windows), width, height,
                  100 * sum(w.width * w.height for w in windows) / (width * height))
-        assemble_sparse_cog(part_files, width, height, gt, crs, out, cog_options(compression, quality))
+        assemble_sparse_cog(part_files, grid, crs, out, cog_options(compression, quality))
     finally:
         for path, _ in part_files:
             path.unlink(missing_ok=True)
             Path(str(path) + ".ovr").unlink(missing_ok=True)
-    return [list(window_bounds(gt, w)) for w in windows]
+    return [list(grid.window_bounds(w)) for w in windows]
 
 
-def raster_geotransform(path: str | Path) -> tuple[float, ...]:
-    return tuple(gdal().Open(str(path)).GetGeoTransform())
+def raster_grid(path: str | Path) -> Grid:
+    return Grid.of_dataset(gdal().Open(str(path)))
 
 
 def warp(mosaic_vrt: str | Path, gcps_csv: str | Path, plan_path: str | Path, warp_cfg: dict,
@@ -320,20 +320,20 @@ def warp(mosaic_vrt: str | Path, gcps_csv: str | Path, plan_path: str | Path, wa
 
     pl = read_plan(plan_path)
     obs = read_observations(gcps_csv)
-    gt = raster_geotransform(mosaic_vrt)
-    choice = choose(obs, pl, gt, warp_cfg["method"], warp_cfg["order"])
+    grid = raster_grid(mosaic_vrt)
+    choice = choose(obs, pl, grid, warp_cfg["method"], warp_cfg["order"])
     parts = tile_parts((t.row, t.col) for t in pl.tiles)
     bounds = warp_to_cog(mosaic_vrt, obs, choice, pl, out_cog, parts=parts, work_dir=work_dir, **(maps_cfg or {}))   # compression, quality
     p = pl.perspective
     record = {"perspective": {"id": p.id, "azimuth": p.azimuth, "elevation": p.elevation}, **choice, "n_observed": len(obs), "parts": bounds,
-              "paper_method": paper_method_on(obs, pl, gt) if pl.projection == "terrain" else None}
+              "paper_method": paper_method_on(obs, pl, grid) if pl.projection == "terrain" else None}
     write_json(out_json, record)
     log.info("%s: warp %s (order %s), check-point RMSD %s m", pl.id, choice["method"],
              choice["order"], None if choice["rmsd_m"] is None else round(choice["rmsd_m"], 3))
     return record
 
 
-def paper_method_on(obs: Sequence[Observation], plan: Plan, gt: tuple[float, ...]) -> dict | None:
+def paper_method_on(obs: Sequence[Observation], plan: Plan, grid: Grid) -> dict | None:
     """Check-point error of the paper's method (plane at z0 + polynomial warp) on the same GCPs.
 
     Each observed (terrain-relative) marker position is moved to where the plane projection
@@ -356,4 +356,4 @@ def paper_method_on(obs: Sequence[Observation], plan: Plan, gt: tuple[float, ...
     if not orders:
         return {"order": None, "rmsd_m": None, "rmsd_px": None, "max_m": None,
                 "check_note": f"n/a ({n_gcp} GCPs)"}
-    return residuals("polynomial", orders[0], planar, gt, plan.gsd)
+    return residuals("polynomial", orders[0], planar, grid, plan.gsd)

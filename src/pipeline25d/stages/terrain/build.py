@@ -1,4 +1,5 @@
-"""The terrain stage's job: the scene's DSM and, with ``terrain: auto``, its ground cells (the inputs' own terrain, else CSF)."""
+"""The terrain stage's job: the scene's DSM and, with ``terrain: auto``, its ground cells (the inputs'
+own terrain, else their buildings' bases and CSF)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline25d.core.atomic import write_json
+from pipeline25d.core.errors import GroundError
 from pipeline25d.stages.lod import chunk_loaders, lod_chunks, scene_bounds
 
 log = logging.getLogger(__name__)
@@ -22,7 +24,8 @@ def build_terrain(lod_indexes: list[str], inputs: dict, scene_crs: str, gsd: flo
     rasters are written block by block: memory follows a block, not the scene.
     """
     from pipeline25d.core.crs import horizontal_wkt
-    from pipeline25d.core.grid import Grid, float_geotiff_writer
+    from pipeline25d.core.geotiff import float_geotiff_writer
+    from pipeline25d.core.grid import Grid
     from pipeline25d.stages.terrain.dsm import auto_resolution, height_map_tiles
 
     chunks = lod_chunks(lod_indexes)
@@ -54,16 +57,21 @@ def build_terrain(lod_indexes: list[str], inputs: dict, scene_crs: str, gsd: flo
 def _ground_from_model(inputs: dict, scene_crs: str, ground_cfg: dict, dsm_path: str | Path,
                        out_ground: str | Path, wkt: str) -> dict:
     """Write the ground heights on the DSM's grid, block by block: the inputs' own terrain where
-    they carry one, the Cloth Simulation Filter's ground cells of the DSM elsewhere."""
-    from pipeline25d.core.grid import FloatRaster, cell_blocks, float_geotiff_writer
+    they carry one; elsewhere the bases of their buildings (:mod:`pipeline25d.stages.terrain.bases`)
+    and, unless every other input is made of buildings alone, the Cloth Simulation Filter's ground
+    cells of the DSM (:func:`~pipeline25d.stages.terrain.bases.with_bases` joins the two)."""
+    from pipeline25d.core.geotiff import FloatRaster, float_geotiff_writer
+    from pipeline25d.core.grid import cell_blocks
+    from pipeline25d.stages.terrain.bases import district_bases, with_bases
     from pipeline25d.stages.terrain.dsm import render_height_map
     from pipeline25d.stages.terrain.ground import ground_blocks
 
     dsm_src = FloatRaster(dsm_path)
     grid = dsm_src.grid
     own = _own_terrain(inputs, scene_crs)
+    bases = district_bases(inputs, scene_crs, own["districts"], 2 * ground_cfg["max_object_size"])
     sources = []
-    if own["districts"] != sorted(inputs):
+    if set(inputs) - set(own["districts"]) - set(bases.buildings_only):
         cloth = ground_cfg["cloth_resolution"]
         cloth = 2 * grid.res if cloth == "auto" else float(cloth)
         blocks = ground_blocks(dsm_src.read, grid, ground_cfg["max_object_size"], cloth, ground_cfg["rigidness"],
@@ -72,13 +80,19 @@ def _ground_from_model(inputs: dict, scene_crs: str, ground_cfg: dict, dsm_path:
     else:
         blocks = ((b, dsm_src.read(*b.core), np.zeros(grid.window(*b.core).shape, bool))
                   for b in cell_blocks(grid.height, grid.width, 0))
+    if bases.tin is not None:
+        sources.append(bases.describe())
     if own["districts"]:
         sources.append("the inputs' own terrain (CityJSON/CityGML TINRelief or ground objects) of "
                        + ", ".join(own["districts"]))
-    n_valid, n_ground, zmin, zmax = 0, 0, np.inf, -np.inf
+    n_valid, n_ground, n_base, zmin, zmax = 0, 0, 0, np.inf, -np.inf
     with float_geotiff_writer(out_ground, grid, wkt) as write:
         for block, dsm, ground in blocks:
             seed = np.where(ground, dsm, np.nan)
+            if bases.tin is not None:
+                base = bases.tin.heights(grid.window(*block.core))
+                n_base += int(np.isfinite(base).sum())
+                seed = with_bases(seed, base)
             if own["chunks"]:
                 heights = render_height_map(own["chunks"], grid.window(*block.core))
                 have = np.isfinite(heights)
@@ -89,10 +103,14 @@ def _ground_from_model(inputs: dict, scene_crs: str, ground_cfg: dict, dsm_path:
             if has.any():
                 zmin, zmax = min(zmin, float(seed[has].min())), max(zmax, float(seed[has].max()))
         if zmax < zmin:
-            raise ValueError("terrain: auto found no ground in the model; give a DTM (terrain: <path>) "
-                             "or terrain: flat")
-    return {"source": " + ".join(sources), "ground": str(out_ground),
-            "ground_share": n_ground / n_valid if n_valid else 0.0, "relief_m": zmax - zmin}
+            raise GroundError(f"terrain: auto found no ground in the model ({', '.join(sorted(inputs))}: "
+                              "no terrain of their own, no buildings' bases, no ground the Cloth Simulation "
+                              "Filter could find); give a DTM (terrain: <path>) or terrain: flat")
+    record = {"source": " + ".join(sources), "ground": str(out_ground),
+              "ground_share": n_ground / n_valid if n_valid else 0.0, "relief_m": zmax - zmin}
+    if bases.tin is not None:
+        record["bases"] = {**bases.record(), "cells": n_base}
+    return record
 
 
 def _own_terrain(inputs: dict, scene_crs: str) -> dict:

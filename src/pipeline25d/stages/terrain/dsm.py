@@ -54,7 +54,6 @@ def height_map_tiles(chunks: list[tuple[np.ndarray, Callable[[], tuple[np.ndarra
     if not chunks:
         yield from ((r0, c0, np.full((h, w), np.nan)) for r0, c0, h, w in tiles)
         return
-    from pipeline25d.geometry.camera import Extent
     from pipeline25d.geometry.perspectives import Perspective
     from pipeline25d.stages.render import TileRenderer, TileView, create_context
 
@@ -65,8 +64,7 @@ def height_map_tiles(chunks: list[tuple[np.ndarray, Callable[[], tuple[np.ndarra
     try:
         renderer = TileRenderer(ctx, samples=0)
         for r0, c0, h, w in tiles:
-            x0, y1 = grid.xmin + c0 * grid.res, grid.ymax - r0 * grid.res
-            ext = Extent(x0, y1 - h * grid.res, x0 + w * grid.res, y1)
+            ext = grid.window(slice(r0, r0 + h), slice(c0, c0 + w)).bounds
             todo = [load() for b, load in chunks
                     if b[0][0] <= ext.xmax and b[1][0] >= ext.xmin and b[0][1] <= ext.ymax and b[1][1] >= ext.ymin]
             if not todo:

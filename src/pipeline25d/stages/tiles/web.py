@@ -33,9 +33,10 @@ import numpy as np
 
 from pipeline25d.core.atomic import atomic_path, device_full, replace_dir
 from pipeline25d.core.errors import OutputError
+from pipeline25d.core.grid import Extent, Grid, Window
 from pipeline25d.core.journal import read_state, write_state
-from pipeline25d.core.raster import gdal, map_cells
-from pipeline25d.stages.maps.parts import Window, box_outline, window_bounds
+from pipeline25d.core.raster import cells_grid_of, gdal, map_cells
+from pipeline25d.stages.maps.parts import box_outline
 
 log = logging.getLogger(__name__)
 
@@ -116,9 +117,10 @@ def update_pyramid(cog: str | Path, zoom: str, work: Path, processes: int = 1, t
     ds = g.Open(str(cog))
     wkt = ds.GetProjection()
     ds = None
-    gt, width, height = mercator_grid(cog)
-    zooms = zoom_range(gt, width, height) if zoom == "auto" else zoom
-    key = {"version": STATE_VERSION, "grid": [*gt, width, height], "zooms": zooms, "format": tile_format,
+    grid = mercator_grid(cog)
+    width, height = grid.width, grid.height
+    zooms = zoom_range(grid) if zoom == "auto" else zoom
+    key = {"version": STATE_VERSION, "grid": [*grid.geotransform, width, height], "zooms": zooms, "format": tile_format,
            "quality": int(quality) if tile_format == "webp" else None, "block_tiles": BLOCK_TILES}
     map_grid, cells = map_cells(cog)
     key["map"] = map_grid
@@ -132,14 +134,14 @@ def update_pyramid(cog: str | Path, zoom: str, work: Path, processes: int = 1, t
     changed = [cell_bounds(c, map_grid) for c in sorted(cells.keys() | old.keys()) if cells.get(c) != old.get(c)]
     max_zoom = int(zooms.split("-")[-1])
     # journal first: a killed update is redone by the next one, whatever the map is by then
-    reach = [(0, 0, width, height)] if full else \
-        [tuple(w) for w in state["dirty"]] + mercator_reach(changed, wkt, gt, width, height)
+    reach = [Window(0, 0, width, height)] if full else \
+        [Window(*w) for w in state["dirty"]] + mercator_reach(changed, wkt, grid)
     write_state(work, {**state, "dirty": reach})
-    todo = sorted({b for w in reach for b in blocks_meeting(w, gt, max_zoom)})
-    jobs = [(b, w) for b, w in ((b, block_window(b, gt, width, height, max_zoom)) for b in todo) if w is not None]
+    todo = sorted({b for w in reach for b in blocks_meeting(w, grid, max_zoom)})
+    jobs = [(b, w) for b, w in ((b, block_window(b, grid, max_zoom)) for b in todo) if w is not None]
     with Workers(processes) as workers:
-        workers.map(partial(_warp_block, str(cog), str(work / "blocks"), gt), jobs)
-        redone = cut(sorted((work / "blocks").glob("*.tif")), work / "tiles", gt, width, height, zooms, reach,
+        workers.map(partial(_warp_block, str(cog), str(work / "blocks"), grid), jobs)
+        redone = cut(sorted((work / "blocks").glob("*.tif")), work / "tiles", grid, zooms, reach,
                      workers, tile_format, quality)
     write_state(work, {"key": key, "cells": cells, "dirty": []})
     stats = {"full": full, "map_cells_changed": len(changed), "blocks_warped": len(jobs),
@@ -153,12 +155,12 @@ def update_pyramid(cog: str | Path, zoom: str, work: Path, processes: int = 1, t
 
 
 
-def cell_bounds(cell_id: str, grid: list) -> list[float]:
-    """[xmin, ymin, xmax, ymax] of a map cell of :func:`map_cells`, in the map's CRS."""
-    gt, width, height, cell = grid[:6], grid[6], grid[7], grid[8]
+def cell_bounds(cell_id: str, cells_grid: list) -> Extent:
+    """The world rectangle, in the map's CRS, of a map cell of :func:`map_cells`."""
+    grid, cell = cells_grid_of(cells_grid), cells_grid[8]
     col, row = (int(v) for v in cell_id.split("_"))
     c0, r0 = col * cell, row * cell
-    return list(window_bounds(gt, Window(c0, r0, min(c0 + cell, width), min(r0 + cell, height))))
+    return grid.window_bounds(Window(c0, r0, min(c0 + cell, grid.width), min(r0 + cell, grid.height)))
 
 
 def _block_metres(max_zoom: int) -> tuple[float, float]:
@@ -168,9 +170,8 @@ def _block_metres(max_zoom: int) -> tuple[float, float]:
     return origin, BLOCK_TILES * 2 * origin / 2 ** max_zoom
 
 
-def mercator_reach(bounds: list[list[float]], crs_wkt: str, gt: tuple[float, ...], width: int,
-                   height: int) -> list[tuple[int, int, int, int]]:
-    """The pixel windows (col0, row0, col1, row1) of the web-mercator grid that map rectangles
+def mercator_reach(bounds: list[Extent], crs_wkt: str, grid: Grid) -> list[Window]:
+    """The pixel windows of the web-mercator ``grid`` that map rectangles
     ``bounds`` reach: each one's reprojected outline, grown by :data:`MARGIN_PX` and clipped
     (nearest-neighbour: a pixel beyond it never reads the rectangle)."""
     from pipeline25d.core.crs import transform_points
@@ -181,47 +182,46 @@ def mercator_reach(bounds: list[list[float]], crs_wkt: str, gt: tuple[float, ...
     xy = np.column_stack([np.concatenate([o[0] for o in outlines]), np.concatenate([o[1] for o in outlines])])
     m = transform_points(np.column_stack([xy, np.zeros(len(xy))]), crs_wkt, WEB_MERCATOR)
     m = m.reshape(len(bounds), -1, 3)
-    c0 = np.floor((m[..., 0].min(axis=1) - gt[0]) / gt[1]).astype(int) - MARGIN_PX
-    c1 = np.ceil((m[..., 0].max(axis=1) - gt[0]) / gt[1]).astype(int) + MARGIN_PX
-    r0 = np.floor((m[..., 1].max(axis=1) - gt[3]) / gt[5]).astype(int) - MARGIN_PX
-    r1 = np.ceil((m[..., 1].min(axis=1) - gt[3]) / gt[5]).astype(int) + MARGIN_PX
+    c0, r0 = grid.colrow(m[..., 0].min(axis=1), m[..., 1].max(axis=1))
+    c1, r1 = grid.colrow(m[..., 0].max(axis=1), m[..., 1].min(axis=1))
+    c0, r0 = np.floor(c0).astype(int) - MARGIN_PX, np.floor(r0).astype(int) - MARGIN_PX
+    c1, r1 = np.ceil(c1).astype(int) + MARGIN_PX, np.ceil(r1).astype(int) + MARGIN_PX
+    width, height = grid.width, grid.height
     windows = zip(np.clip(c0, 0, width), np.clip(r0, 0, height), np.clip(c1, 0, width), np.clip(r1, 0, height))
-    return [tuple(int(v) for v in w) for w in windows if w[2] > w[0] and w[3] > w[1]]
+    return [Window(*(int(v) for v in w)) for w in windows if w[2] > w[0] and w[3] > w[1]]
 
 
-def blocks_meeting(window: tuple[int, int, int, int], gt: tuple[float, ...], max_zoom: int) -> set[tuple[int, int]]:
+def blocks_meeting(window: Window, grid: Grid, max_zoom: int) -> set[tuple[int, int]]:
     """The web-mercator blocks (bx, by; y up) that a pixel window of the grid meets."""
     origin, size = _block_metres(max_zoom)
-    x0, y0, x1, y1 = window_bounds(gt, Window(*window))
+    x0, y0, x1, y1 = grid.window_bounds(window)
     bx0, bx1 = int(np.floor((x0 + origin) / size)), int(np.floor((x1 + origin) / size))
     by0, by1 = int(np.floor((y0 + origin) / size)), int(np.floor((y1 + origin) / size))
     return {(bx, by) for bx in range(bx0, bx1 + 1) for by in range(by0, by1 + 1)}
 
 
-def block_window(block: tuple[int, int], gt: tuple[float, ...], width: int, height: int,
-                 max_zoom: int) -> tuple[int, int, int, int] | None:
-    """A block's pixel window (col0, row0, col1, row1) on the map's web-mercator grid; blocks
-    share their edges, rounded to the grid's pixels. None where it misses the grid."""
+def block_window(block: tuple[int, int], grid: Grid, max_zoom: int) -> Window | None:
+    """A block's pixel window on the map's web-mercator grid; blocks share their edges, rounded
+    to the grid's pixels. None where it misses the grid."""
     origin, size = _block_metres(max_zoom)
     x0, y0 = block[0] * size - origin, block[1] * size - origin
-    c0 = max(round((x0 - gt[0]) / gt[1]), 0)
-    c1 = min(round((x0 + size - gt[0]) / gt[1]), width)
-    r0 = max(round((gt[3] - (y0 + size)) / -gt[5]), 0)
-    r1 = min(round((gt[3] - y0) / -gt[5]), height)
-    return (c0, r0, c1, r1) if c1 > c0 and r1 > r0 else None
+    c0, r0 = grid.colrow(x0, y0 + size)
+    c1, r1 = grid.colrow(x0 + size, y0)
+    c0, r0, c1, r1 = max(round(c0), 0), max(round(r0), 0), min(round(c1), grid.width), min(round(r1), grid.height)
+    return Window(c0, r0, c1, r1) if c1 > c0 and r1 > r0 else None
 
 
-def _warp_block(cog: str, blocks_dir: str, gt: tuple[float, ...], job: tuple[tuple[int, int], tuple[int, ...]]) -> None:
+def _warp_block(cog: str, blocks_dir: str, grid: Grid, job: tuple[tuple[int, int], Window]) -> None:
     """Warp the map onto one block's window of its web-mercator grid (written atomically)."""
     block, window = job
-    bounds = window_bounds(gt, Window(*window))
-    extra = ["-tr", repr(gt[1]), repr(-gt[5]), "-te", *map(repr, bounds)]
+    bounds = grid.window_bounds(Window(*window))
+    extra = ["-tr", repr(grid.transform.a), repr(-grid.transform.e), "-te", *map(repr, bounds)]
     with atomic_path(Path(blocks_dir) / f"{block[0]}_{block[1]}.tif") as tmp:
         gdal().Warp(str(tmp), cog, options=_mercator_args(1, extra))
 
 
-def cut(blocks: list[Path], tiles: Path, gt: tuple[float, ...], width: int, height: int, zooms: str,
-        windows: list[tuple[int, int, int, int]], workers: Workers, tile_format: str, quality: int) -> int:
+def cut(blocks: list[Path], tiles: Path, grid: Grid, zooms: str, windows: list[Window], workers: Workers,
+        tile_format: str, quality: int) -> int:
     """Cut again, with gdal2tiles' own tile functions, every web tile that ``windows`` (pixel
     windows of the web-mercator grid whose blocks were warped again) reach: the base tiles
     whose read window meets one, and all tiles above them. Their old files are deleted first,
@@ -232,8 +232,8 @@ def cut(blocks: list[Path], tiles: Path, gt: tuple[float, ...], width: int, heig
         return 0
     tiles.mkdir(parents=True, exist_ok=True)
     vrt = tiles.parent / "blocks.vrt"
-    bounds = (gt[0], gt[3] + height * gt[5], gt[0] + width * gt[1], gt[3])
-    gdal().BuildVRT(str(vrt), [str(b) for b in blocks], outputBounds=bounds, xRes=gt[1], yRes=-gt[5])
+    gdal().BuildVRT(str(vrt), [str(b) for b in blocks], outputBounds=grid.bounds, xRes=grid.transform.a,
+                    yRes=-grid.transform.e)
     _, _, options = g2t.process_args([*_gdal2tiles_args(zooms, workers.processes, tile_format, quality, True),
                                       str(vrt), str(tiles)])
     conf, details = g2t.worker_tile_details(str(vrt), str(tiles), options)
@@ -324,19 +324,19 @@ def _gdal2tiles_args(zoom: str, processes: int, tile_format: str, quality: int, 
     return args
 
 
-def mercator_grid(cog: str | Path) -> tuple[tuple[float, ...], int, int]:
-    """Geotransform and size of the whole map reprojected to web mercator, as gdalwarp makes it."""
+def mercator_grid(cog: str | Path) -> Grid:
+    """The grid of the whole map reprojected to web mercator, as gdalwarp makes it."""
     g = gdal()
     vrt = g.Warp("", str(cog), format="VRT", dstSRS=WEB_MERCATOR, resampleAlg="near", errorThreshold=0.01,
                  dstAlpha=True)
-    return vrt.GetGeoTransform(), vrt.RasterXSize, vrt.RasterYSize
+    return Grid.of_dataset(vrt)
 
 
-def zoom_range(gt: tuple[float, ...], width: int, height: int) -> str:
+def zoom_range(grid: Grid) -> str:
     """gdal2tiles' automatic zoom levels for a web-mercator raster: "min-max"."""
     from osgeo_utils.gdal2tiles import GlobalMercator
 
     merc = GlobalMercator(GDAL2TILES_TILE)
-    zmin = merc.ZoomForPixelSize(gt[1] * max(width, height) / GDAL2TILES_TILE)
-    zmax = max(zmin, merc.ZoomForPixelSize(gt[1]))
+    zmin = merc.ZoomForPixelSize(grid.transform.a * max(grid.width, grid.height) / GDAL2TILES_TILE)
+    zmax = max(zmin, merc.ZoomForPixelSize(grid.transform.a))
     return f"{zmin}-{zmax}"

@@ -1,0 +1,288 @@
+"""Building-only city models: ``terrain: auto`` takes the ground from where the buildings stand.
+
+Generated CityJSON 1.1 and CityGML 2.0 models of box buildings standing on a known sloped plane
+(no terrain objects) run through the ingest, LOD, terrain and scene stages; their DTM is checked
+against the analytic plane. Delft's CityJSON reduced to its buildings is checked against the DTM
+of the full model (its own terrain objects).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import DATA
+
+from pipeline25d.config import chunk_size, perspectives, validate_schema
+from pipeline25d.core.errors import GroundError
+from pipeline25d.core.geotiff import read_float_geotiff
+from pipeline25d.stages.terrain.bases import BASE_AGREEMENT_M, BaseTin, base_samples, with_bases
+
+CRS = "EPSG:28992"
+X0, Y0 = 85000.0, 447000.0
+SLOPE = (0.04, -0.025, 3.0)           # z = a·(x - X0) + b·(y - Y0) + c
+
+
+def plane(x, y):
+    a, b, c = SLOPE
+    return a * (np.asarray(x) - X0) + b * (np.asarray(y) - Y0) + c
+
+
+def boxes(origins, size=(12.0, 9.0), height=8.0, spacing=30.0, n=3):
+    """Footprints (x0, y0, x1, y1) of n x n boxes per origin, ``spacing`` apart."""
+    return [(ox + i * spacing, oy + j * spacing, ox + i * spacing + size[0], oy + j * spacing + size[1])
+            for ox, oy in origins for i in range(n) for j in range(n)]
+
+
+def _box_surfaces(fp, ground: bool, window: bool, height=8.0):
+    """(vertices, surfaces [(rings, semantic type)]) of a box on the plane: bottom corners on it,
+    a flat roof ``height`` above the highest; a window (hole in the south wall) if asked."""
+    x0, y0, x1, y1 = fp
+    xy = [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]
+    bottom = [(x, y, float(plane(x, y))) for x, y in xy]
+    roof = max(z for *_, z in bottom) + height
+    verts = bottom + [(x, y, roof) for x, y in xy]
+    walls = [[[k, (k + 1) % 4, 4 + (k + 1) % 4, 4 + k]] for k in range(4)]
+    if window:
+        wx0, wx1 = x0 + 3.0, x0 + 5.0
+        sill, top = float(plane(wx0, y0)) + 1.0, float(plane(wx0, y0)) + 2.2
+        verts += [(wx0, y0, sill), (wx1, y0, sill), (wx1, y0, top), (wx0, y0, top)]
+        walls[0].append([8, 11, 10, 9])
+    surfaces = [(w, "WallSurface") for w in walls] + [([[4, 5, 6, 7]], "RoofSurface")]
+    if window:
+        surfaces.append(([[8, 9, 10, 11]], "Window"))
+    if ground:
+        surfaces.append(([[0, 3, 2, 1]], "GroundSurface"))
+    return verts, surfaces
+
+
+def write_cityjson(path: Path, footprints, ground=lambda i: i % 2 == 0, window=lambda i: i == 1) -> Path:
+    """A CityJSON 1.1 file of the boxes (no terrain), vertices at 1 mm."""
+    vertices, objects = [], {}
+    for i, fp in enumerate(footprints):
+        verts, surfaces = _box_surfaces(fp, ground(i), window(i))
+        base = len(vertices)
+        vertices += verts
+        types = sorted({t for _, t in surfaces})
+        objects[f"b{i}"] = {"type": "Building", "geometry": [{
+            "type": "MultiSurface", "lod": "2",
+            "boundaries": [[[base + v for v in ring] for ring in rings] for rings, _ in surfaces],
+            "semantics": {"surfaces": [{"type": t} for t in types], "values": [types.index(t) for _, t in surfaces]},
+        }]}
+    scale = 0.001
+    ints = [[round((x - X0) / scale), round((y - Y0) / scale), round(z / scale)] for x, y, z in vertices]
+    doc = {"type": "CityJSON", "version": "1.1", "transform": {"scale": [scale] * 3, "translate": [X0, Y0, 0.0]},
+           "metadata": {"referenceSystem": f"https://www.opengis.net/def/crs/EPSG/0/{CRS.split(':')[1]}"},
+           "CityObjects": objects, "vertices": ints}
+    path.write_text(json.dumps(doc))
+    return path
+
+
+def write_citygml_lod1(path: Path, footprints) -> Path:
+    """A CityGML 2.0 file of LOD1 box solids without semantics (the floor faces down)."""
+    def poly(pts):
+        coords = " ".join(f"{x:.3f} {y:.3f} {z:.3f}" for x, y, z in pts + pts[:1])
+        return (f"<gml:surfaceMember><gml:Polygon><gml:exterior><gml:LinearRing><gml:posList>{coords}"
+                "</gml:posList></gml:LinearRing></gml:exterior></gml:Polygon></gml:surfaceMember>")
+
+    members = []
+    for i, fp in enumerate(footprints):
+        verts, surfaces = _box_surfaces(fp, True, False)
+        polys = "".join(poly([verts[v] for v in rings[0]]) for rings, _ in surfaces)
+        members.append(f"<cityObjectMember><bldg:Building gml:id=\"b{i}\"><bldg:lod1Solid><gml:Solid><gml:exterior>"
+                       f"<gml:CompositeSurface>{polys}</gml:CompositeSurface></gml:exterior></gml:Solid>"
+                       "</bldg:lod1Solid></bldg:Building></cityObjectMember>")
+    path.write_text(
+        '<?xml version="1.0" encoding="UTF-8"?>\n<CityModel xmlns="http://www.opengis.net/citygml/2.0" '
+        'xmlns:gml="http://www.opengis.net/gml" xmlns:bldg="http://www.opengis.net/citygml/building/2.0">'
+        f'<gml:boundedBy><gml:Envelope srsName="{CRS}" srsDimension="3"><gml:lowerCorner>0 0 0</gml:lowerCorner>'
+        '<gml:upperCorner>1 1 1</gml:upperCorner></gml:Envelope></gml:boundedBy>'
+        + "".join(members) + "</CityModel>")
+    return path
+
+
+def run_stages(tmp_path: Path, inputs: dict, gsd: float = 0.5, edit_ground=None) -> tuple[dict, dict, Path]:
+    """Ingest, LOD, terrain (auto) and scene stages on ``inputs``: (terrain record, scene.json, DTM path).
+    ``edit_ground(path)`` may change the terrain stage's ground heights before the scene stage."""
+    from pipeline25d.stages.ingest import ingest
+    from pipeline25d.stages.lod import build_lod
+    from pipeline25d.stages.scene import scene_setup
+    from pipeline25d.stages.terrain.build import build_terrain
+
+    cfg = validate_schema({"scene": "t", "crs": CRS, "inputs": inputs, "gsd": gsd, "lod": {"max_levels": 1}})
+    max_error = gsd * cfg["lod"]["max_error_px"]
+    lods = []
+    for name, spec in inputs.items():
+        chunks, lod = tmp_path / "chunks" / name / "index.json", tmp_path / "lod" / name / "index.json"
+        ingest(spec, name, CRS, chunk_size(cfg), max_error, chunks, gsd=gsd)
+        build_lod(chunks, lod, max_error, cfg["lod"]["max_levels"])
+        lods.append(str(lod))
+    t = tmp_path / "terrain"
+    record = build_terrain(lods, inputs, CRS, gsd, "auto", cfg["ground"], t / "dsm.tif", t / "ground.tif",
+                           t / "terrain.json")
+    if edit_ground is not None:
+        edit_ground(t / "ground.tif")
+    scene_setup(lods, t / "dsm.tif", "auto", t / "ground.tif", "auto", "auto", cfg["gcp"], CRS, gsd,
+                [p.id for p in perspectives(cfg)], tmp_path / "scene.json", tmp_path / "candidates.csv",
+                t / "dtm.tif", cfg["ground"]["max_object_size"])
+    return record, json.loads((tmp_path / "scene.json").read_text()), t / "dtm.tif"
+
+
+def dtm_at(path: Path, x, y) -> np.ndarray:
+    values, grid = read_float_geotiff(path)
+    col = np.floor((np.asarray(x) - grid.xmin) / grid.res).astype(int)
+    row = np.floor((grid.ymax - np.asarray(y)) / grid.res).astype(int)
+    return values[row, col].astype(np.float64)
+
+
+def cell_centres_in(path: Path, box) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """x, y and DTM of the cell centres inside ``box`` (x0, y0, x1, y1)."""
+    values, grid = read_float_geotiff(path)
+    gx, gy = grid.cell_centres()
+    inside = (gx > box[0]) & (gx < box[2]) & (gy > box[1]) & (gy < box[3])
+    return gx[inside], gy[inside], values[inside].astype(np.float64)
+
+
+# ----------------------------------------------------------------------------- samples and the TIN
+
+
+def test_wall_bottoms_are_the_corners_on_the_ground_not_window_sills(tmp_path):
+    from pipeline25d.formats import load_district_buildings
+
+    fps = boxes([(X0 + 10, Y0 + 10)], n=2)
+    path = write_cityjson(tmp_path / "b.json", fps)
+    mesh, others = load_district_buildings({"path": str(path)}, CRS)
+    got = base_samples(mesh)
+    assert not others and got.buildings == 4 and got.from_ground_surfaces == 2
+    # the four bottom corners of each box, on the plane; nothing from the window (sill 1 m up)
+    assert len(got.points) == 16
+    np.testing.assert_allclose(got.points[:, 2], plane(got.points[:, 0], got.points[:, 1]), atol=6e-4)
+    corners = {(round(x, 3), round(y, 3)) for fp in fps for x in fp[::2] for y in fp[1::2]}
+    assert {(round(x, 3), round(y, 3)) for x, y, _ in got.points} == corners
+
+
+def test_tin_is_the_plane_between_samples_and_leaves_far_ones_apart():
+    rng = np.random.default_rng(3)
+    xy = np.c_[rng.uniform(0, 100, 40), rng.uniform(0, 100, 40)]
+    far = np.array([[1500.0, 1500.0], [1510.0, 1500.0], [1500.0, 1510.0]])
+    pts = np.c_[np.r_[xy, far], np.zeros(43)]
+    pts[:, 2] = 0.3 * pts[:, 0] - 0.1 * pts[:, 1] + 7.0
+    tin = BaseTin(pts, max_edge=200.0)
+    from pipeline25d.core.grid import Grid
+
+    grid = Grid.covering((0, 0, 1520, 1520), 1.0)
+    h = tin.heights(grid)
+    gx, gy = grid.cell_centres()
+    have = np.isfinite(h)
+    # exact where a triangle covers the cell centre; a cell holding a sample but no covered centre
+    # (a triangle's edge) takes the sample's own height: off by at most the slope over half a cell diagonal
+    held = np.zeros(grid.shape, bool)
+    held[np.floor(grid.ymax - pts[:, 1]).astype(int), np.floor(pts[:, 0] - grid.xmin).astype(int)] = True
+    truth = 0.3 * gx - 0.1 * gy + 7.0
+    np.testing.assert_allclose(h[have & ~held], truth[have & ~held], atol=1e-9)
+    assert np.abs(h - truth)[have & held].max() <= np.hypot(0.3, 0.1) * np.sqrt(0.5) + 1e-9
+    # cells only within the two groups: the hull of the 40 (< 100 m square) and the far triangle
+    assert have.sum() < 100 * 100 + 10 * 10 and have[(gx > 200) & (gx < 1400)].sum() == 0
+
+
+def test_filter_cells_keep_their_height_only_where_they_agree_with_the_bases():
+    tin = np.array([10.0, 10.0, 10.0, np.nan, np.nan, 10.0])
+    csf = np.array([10.4, 14.0, np.nan, 7.0, np.nan, 10.0 - BASE_AGREEMENT_M - 0.01])
+    # agreeing: its own; a roof 4 m up: the TIN's; no filter cell: the TIN's; outside the TIN: the filter's
+    np.testing.assert_array_equal(with_bases(csf, tin), [10.4, 10.0, 10.0, 7.0, np.nan, 10.0])
+
+
+# ----------------------------------------------------------------------------- the stages
+
+
+@pytest.mark.parametrize("fmt", ["cityjson", "citygml"])
+def test_building_only_model_gets_the_plane_it_stands_on(tmp_path, gl_ctx, fmt):
+    """(a) DTM under and between the buildings equals the analytic plane; z0 is its median."""
+    fps = boxes([(X0 + 20, Y0 + 20)])
+    path = (write_cityjson(tmp_path / "city.json", fps) if fmt == "cityjson"
+            else write_citygml_lod1(tmp_path / "city.gml", fps))
+    record, scene, dtm = run_stages(tmp_path, {"city": {"path": str(path)}})
+    bases = record["bases"]
+    assert bases["buildings"] == 9 and bases["buildings_only"] == ["city"]
+    assert bases["from_ground_surfaces"] == (5 if fmt == "cityjson" else 9)
+    assert "building bases of city: 9 buildings" in record["source"] and "Cloth" not in record["source"]
+    # under every building and between them (inside the hull of the bases): the plane, to the
+    # file's 1 mm vertices (CityGML: posList written to 1 mm) and float32 (4e-7 m at 5 m)
+    hull = (fps[0][0], fps[0][1], fps[-1][2], fps[-1][3])
+    x, y, z = cell_centres_in(dtm, hull)
+    assert len(x) > 4000
+    np.testing.assert_allclose(z, plane(x, y), atol=1e-3)
+    # z0: the median DTM height under the model, rounded to whole metres
+    dsm, grid = read_float_geotiff(tmp_path / "terrain" / "dsm.tif")
+    gx, gy = grid.cell_centres()
+    covered = np.isfinite(dsm)
+    assert scene["z0"] == round(float(np.median(plane(gx[covered], gy[covered]))))
+    assert np.isfinite(scene["z0"])
+
+
+def test_far_apart_clusters_stay_cheap(tmp_path, gl_ctx):
+    """(c) three clusters 5 km apart: the ground is computed near them only."""
+    origins = [(X0, Y0), (X0 + 5000, Y0), (X0 + 2500, Y0 + 5000)]
+    fps = boxes(origins, n=2)
+    record, scene, dtm = run_stages(tmp_path, {"city": {"path": str(write_cityjson(tmp_path / "c.json", fps))}},
+                                    gsd=0.25)
+    values, grid = read_float_geotiff(dtm)
+    from pipeline25d.stages.terrain.dsm import MAX_DSM_CELLS
+
+    assert grid.width * grid.height <= MAX_DSM_CELLS
+    # the bases' TIN covers each cluster's hull (42 x 39 m) and nothing between the clusters
+    cluster = (42 / grid.res + 2) * (39 / grid.res + 2)
+    assert 0 < record["bases"]["cells"] <= 3 * cluster
+    # the DTM reaches twice the largest object (200 m) beyond the ground, and no farther
+    reach = 200 / grid.res + 2
+    assert np.isfinite(values).sum() <= 3 * (42 / grid.res + 2 * reach) * (39 / grid.res + 2 * reach)
+    for ox, oy in origins:
+        x, y, z = cell_centres_in(dtm, (ox, oy, ox + 42, oy + 39))
+        np.testing.assert_allclose(z, plane(x, y), atol=1e-3)
+
+
+def test_no_ground_near_a_chunk_is_an_error_naming_the_inputs(tmp_path, gl_ctx):
+    """Ground nowhere near part of the model (here: the ground cells of one of two clusters 3 km
+    apart removed): the project's error naming the input and what to do, never a NaN z0."""
+    from pipeline25d.core.crs import horizontal_wkt
+    from pipeline25d.core.geotiff import write_float_geotiff
+
+    fps = boxes([(X0, Y0), (X0 + 3000, Y0)], n=1)
+
+    def drop_the_second(path):
+        values, grid = read_float_geotiff(path)
+        values[:, grid.column_x() > X0 + 1500] = np.nan
+        write_float_geotiff(path, values, grid, horizontal_wkt(CRS))
+
+    with pytest.raises(GroundError, match=r"of the input\(s\) city: .*give a DTM .*or set terrain: flat"):
+        run_stages(tmp_path, {"city": {"path": str(write_cityjson(tmp_path / "c.json", fps))}},
+                   edit_ground=drop_the_second)
+
+
+# ----------------------------------------------------------------------------- Delft
+
+
+@pytest.mark.skipif(not (DATA / "delft" / "delft.json").exists(), reason="needs /work/shared/data/delft")
+def test_delft_buildings_alone_get_the_ground_of_the_full_model(tmp_path, gl_ctx):
+    """(b) Delft's CityJSON reduced to its Building objects: no NaN, and the DTM at the building
+    bases agrees with the full model's (whose ground is its own LandUse/Road/WaterBody objects)."""
+    doc = json.loads((DATA / "delft" / "delft.json").read_text())
+    doc["CityObjects"] = {k: o for k, o in doc["CityObjects"].items() if o["type"] == "Building"}
+    only = tmp_path / "buildings.json"
+    only.write_text(json.dumps(doc))
+    record, scene, dtm = run_stages(tmp_path / "b", {"delft": {"path": str(only)}})
+    full_record, _, full_dtm = run_stages(tmp_path / "f", {"delft": {"path": str(DATA / "delft" / "delft.json")}})
+    assert record["bases"]["buildings_only"] == ["delft"] and "bases" not in full_record
+    from pipeline25d.formats import load_district_buildings
+
+    mesh, _ = load_district_buildings({"path": str(only)}, CRS)
+    pts = base_samples(mesh).points
+    a, b = dtm_at(dtm, pts[:, 0], pts[:, 1]), dtm_at(full_dtm, pts[:, 0], pts[:, 1])
+    assert np.isfinite(a).all() and np.isfinite(b).all() and np.isfinite(scene["z0"])
+    diff = a - b
+    print(f"Delft bases: {len(pts)} samples, DTM buildings-only - full: median {np.median(diff):+.3f} m, "
+          f"mean |d| {np.abs(diff).mean():.3f} m, 90% {np.quantile(np.abs(diff), 0.9):.3f} m, "
+          f"max {np.abs(diff).max():.3f} m")
+    assert abs(np.median(diff)) < 0.15 and np.quantile(np.abs(diff), 0.9) < 0.5
