@@ -181,7 +181,11 @@ def test_a_missing_child_file_draws_its_parents_level_there_with_a_warning(copy,
     with pytest.warns(UserWarning, match=r"Tile_\+001_\+000\.osgb: 1 PagedLOD child file\(s\) missing, drawn "
                                          r"coarser than gsd 0\.5.*Tile_\+001_\+000_L2_3\.osgb \(level 1 drawn\)"):
         tiles = read_tiles(copy, 0.5)
-    assert tiles[1].coarser == [("Tile_+001_+000_L2_3.osgb", 1)] and tiles[0].coarser == []
+    assert [(Path(c.tile).name, c.level, c.missing) for c in tiles[1].coarser] == [
+        ("Tile_+001_+000_L1.osgb", 1, ("Tile_+001_+000_L2_3.osgb",))] and tiles[0].coarser == []
+    with pytest.raises(InputFileError, match=r"Tile_\+001_\+000_L2_3\.osgb: OSGB file is missing \(named by "
+                                             r".*Tile_\+001_\+000_L1\.osgb\); the input's missing_children"):
+        read_tiles(copy, 0.5, missing_children="error")
     assert dict(tiles[1].levels) == {1: S.triangles(1) // 4, 2: S.triangles(2) // 4 * 3}
     assert dict(tiles[0].levels) == {2: S.triangles(2)}
     # the quadrant is there whole: the tile's vertices are the other quadrants' level-2 grid and its level-1 grid
@@ -194,6 +198,29 @@ def test_a_missing_child_file_draws_its_parents_level_there_with_a_warning(copy,
     with pytest.warns(UserWarning, match=r"Tile_\+001_\+000_L1\.osgb \(level 0 drawn\)"):
         tiles = read_tiles(copy, 0.5)
     assert dict(tiles[1].levels) == {0: S.triangles(0)}
+
+
+def test_tiles_drawn_coarser_reach_the_chunk_index_and_the_report(copy, tmp_path):
+    """ingest writes the tiles drawn coarser into the district's index (only then), and the
+    report lists them with the file and the level drawn."""
+    from pipeline25d.publish.report import coarser_inputs, coarser_section
+    from pipeline25d.stages.ingest import ingest
+
+    whole = ingest({"path": str(copy)}, "d", S.SRS, 100.0, 0.25, tmp_path / "whole" / "index.json", gsd=0.5)
+    assert "coarser" not in whole and "coarser" not in json.loads((tmp_path / "whole" / "index.json").read_text())
+    (copy / "Data" / "Tile_+001_+000" / "Tile_+001_+000_L2_3.osgb").unlink()
+    with pytest.warns(UserWarning, match="1 PagedLOD child file"):
+        index = ingest({"path": str(copy)}, "d", S.SRS, 100.0, 0.25, tmp_path / "chunks" / "d" / "index.json",
+                       gsd=0.5)
+    assert list(index)[:6] == ["district", "source", "chunk_size", "n_triangles", "coarser", "chunks"]
+    assert index["n_triangles"] == whole["n_triangles"] - S.triangles(2) // 4 + S.triangles(1) // 4
+    listed = coarser_inputs(tmp_path, ["d", "absent"])
+    tile = str(copy / "Data" / "Tile_+001_+000" / "Tile_+001_+000_L1.osgb")
+    assert [(c["district"], c["tile"], c["level"], c["missing"]) for c in listed] == [
+        ("d", tile, 1, ["Tile_+001_+000_L2_3.osgb"])]
+    assert f"| d | {tile} | 1 | Tile_+001_+000_L2_3.osgb |" in "\n".join(coarser_section(listed))
+    with pytest.raises(InputFileError, match="missing_children: coarser"):
+        load_district({"path": str(copy), "missing_children": "error"}, S.SRS, gsd=0.5)
 
 
 def test_a_missing_root_file_is_still_an_error(copy):

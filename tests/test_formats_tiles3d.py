@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from pipeline25d.core.errors import CRSError, InputFileError, UnsupportedFeatureError
-from pipeline25d.formats.tiles3d import load_b3dm, load_tileset, read_content
+from pipeline25d.formats.tiles3d import load_b3dm, load_tileset, read_content, read_tileset
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 SAMPLES = DATA / "3dtiles-samples"
@@ -197,8 +197,16 @@ def test_missing_content_is_named(tmp_path):
     shutil.copy(src / "tileset2.json", tmp_path / "tileset2.json")
     shutil.copy(src / "parent.b3dm", tmp_path / "parent.b3dm")  # tileset3/ and the leaves are absent
     with pytest.raises(InputFileError) as err:
-        load_tileset(tmp_path / "tileset2.json", GEO)
+        read_tileset(tmp_path / "tileset2.json", {"missing_children": "error"})
     assert "tileset3.json" in str(err.value) and "tileset2.json" in str(err.value)
+    # by default the finest level present: the ADD parent, drawn anyway; the four children left out
+    with pytest.warns(UserWarning, match="4 child content file.s. missing, 1 tile.s. drawn coarser"):
+        loaded = read_tileset(tmp_path / "tileset2.json", {})
+    parent = read_content(tmp_path / "parent.b3dm")
+    assert sum(p.n_triangles for p in loaded.parts) == sum(p.n_triangles for p in parent) > 0
+    (note,) = loaded.coarser
+    assert note.tile == str(tmp_path / "parent.b3dm") and note.level == 0
+    assert [Path(m).name for m in note.missing] == ["tileset3.json", "lr.b3dm", "ur.b3dm", "ul.b3dm"]
 
 
 def test_invalid_tileset_json(tmp_path):

@@ -10,6 +10,7 @@ rule report:
         tms_stats=expand(f"{RESULTS}/work/tms/{{pid}}.json", pid=PERSPECTIVE_IDS),
         scene=rules.scene.output.scene,
         heights=rules.heights.output.json,
+        chunks=expand(f"{RESULTS}/chunks/{{district}}/index.json", district=DISTRICTS),
     output:
         json=f"{RESULTS}/report/report.json",
         md=f"{RESULTS}/report/report.md",

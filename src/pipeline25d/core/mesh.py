@@ -56,12 +56,34 @@ class MeshPart:
         return replace(self, vertices=np.asarray(fn(self.vertices), dtype=np.float64))
 
 
+@dataclass(frozen=True)
+class Coarser:
+    """One input tile drawn coarser than the map's gsd asks for, because finer parts of it are
+    missing (an OSGB PagedLOD child file, a 3D Tiles child's content): the ``tile`` (the file
+    whose level is drawn there), the ``level`` drawn (its depth below the input's root: files
+    for OSGB, tiles for 3D Tiles), the ``missing`` files, and ``drawn``: what stands in for them."""
+
+    tile: str
+    level: int
+    missing: tuple[str, ...]
+    drawn: str
+
+    @classmethod
+    def from_json(cls, data: dict) -> "Coarser":
+        return cls(str(data["tile"]), int(data["level"]), tuple(data["missing"]), str(data["drawn"]))
+
+    def to_json(self) -> dict:
+        return {"tile": self.tile, "level": self.level, "missing": list(self.missing), "drawn": self.drawn}
+
+
 @dataclass
 class Mesh:
-    """A district or chunk: a list of parts plus provenance for messages."""
+    """A district or chunk: a list of parts plus provenance for messages, and the input tiles
+    drawn coarser than asked (:class:`Coarser`)."""
 
     parts: list[MeshPart] = field(default_factory=list)
     source: str = ""
+    coarser: tuple[Coarser, ...] = ()
 
     @property
     def n_triangles(self) -> int:
@@ -76,4 +98,4 @@ class Mesh:
         return np.array([stacked[:, 0].min(axis=0), stacked[:, 1].max(axis=0)])
 
     def transformed(self, fn) -> "Mesh":
-        return Mesh([p.transformed(fn) for p in self.parts], self.source)
+        return Mesh([p.transformed(fn) for p in self.parts], self.source, self.coarser)

@@ -27,7 +27,7 @@ import numpy as np
 
 from pipeline25d.core.errors import ConfigError, InputFileError, MissingTextureWarning
 from pipeline25d.core.mesh import Mesh
-from pipeline25d.formats.common import Detail, Loaded, in_scene
+from pipeline25d.formats.common import Detail, Loaded, in_scene, side_folders
 
 if TYPE_CHECKING:
     from pipeline25d.formats.buildings import Buildings
@@ -154,8 +154,8 @@ def load_district(spec: dict, scene_crs: str, max_geometric_error: float | None 
                   base_dir: Path = Path("."), gsd: float | None = None) -> Mesh:
     """Read one configured input (``inputs.<name>``) into the scene CRS, float64.
 
-    ``spec`` keys: path, format, crs, offset, metadata, lod, missing_textures (see
-    config/schema.yaml). A texture that is missing or not an image is an InputFileError
+    ``spec`` keys: path, format, crs, offset, metadata, lod, missing_textures, missing_children,
+    side_folders (see config/schema.yaml). A texture that is missing or not an image is an InputFileError
     unless ``missing_textures`` is ``untextured`` (then its parts are drawn without it).
     """
     path, fmt, reader = reader_of(spec, base_dir)
@@ -170,7 +170,7 @@ def load_district(spec: dict, scene_crs: str, max_geometric_error: float | None 
         # these formats carry their own georeferencing; a silently ignored offset would misplace the map
         placed_by_offset = ", ".join(f for f, r in READERS.items() if not r.georeferenced)
         raise ConfigError(f"{path}: offset/metadata apply to mesh files ({placed_by_offset}), not {fmt}")
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), side_folders(_side_folders(spec, base_dir, path)):
         if spec.get("missing_textures", "error") == "error":
             warnings.simplefilter("error", MissingTextureWarning)
         try:
@@ -179,7 +179,7 @@ def load_district(spec: dict, scene_crs: str, max_geometric_error: float | None 
             raise InputFileError(path, f"{_texture_problem(str(exc), path)} (set the input's "
                                        "missing_textures: untextured to draw such parts without it)") from None
     parts = [p.transformed(lambda v: v + offset) for p in loaded.parts] if offset.any() else loaded.parts
-    return in_scene(Loaded(parts, loaded.crs or scene_crs), scene_crs, path)
+    return in_scene(Loaded(parts, loaded.crs or scene_crs, loaded.coarser), scene_crs, path)
 
 
 def _texture_problem(message: str, path: Path) -> str:
@@ -195,7 +195,17 @@ def load_district_terrain(spec: dict, scene_crs: str, base_dir: Path = Path(".")
     path, _, reader = reader_of(spec, base_dir)
     if reader.terrain is None:
         return None
-    return in_scene(reader.terrain(path, dict(spec)), scene_crs, path)
+    with side_folders(_side_folders(spec, base_dir, path)):
+        return in_scene(reader.terrain(path, dict(spec)), scene_crs, path)
+
+
+def _side_folders(spec: dict, base_dir: Path, path: Path) -> list[Path]:
+    """The input's ``side_folders`` (relative to ``base_dir``); ConfigError for one that is not a folder."""
+    extra = [base_dir / f for f in spec.get("side_folders") or []]
+    for folder in extra:
+        if not folder.is_dir():
+            raise ConfigError(f"{path}: side_folders names {folder}, which is not a folder")
+    return extra
 
 
 def load_district_buildings(spec: dict, scene_crs: str, base_dir: Path = Path(".")) -> tuple[Mesh, bool] | None:
@@ -205,5 +215,6 @@ def load_district_buildings(spec: dict, scene_crs: str, base_dir: Path = Path(".
     path, _, reader = reader_of(spec, base_dir)
     if reader.buildings is None:
         return None
-    found = reader.buildings(path, dict(spec))
+    with side_folders(_side_folders(spec, base_dir, path)):
+        found = reader.buildings(path, dict(spec))
     return in_scene(found.loaded, scene_crs, path), found.others

@@ -38,9 +38,10 @@ under wrap modes other than ``wrap`` are clamped per vertex (an approximation).
 
 Forgiving where CityGML tools are: an undeclared namespace prefix (an ADE element such as
 ``<energy:isHeated>`` whose ``xmlns:energy`` the file never declares) is recovered from outside
-the geometry, with one warning per prefix naming the file and its first line; inside the
-geometry, and any other XML error (truncated file, mismatched tags), it refuses the file
-naming the line (:mod:`pipeline25d.formats.xml_defects`). Texture images must lie inside the
+the geometry, with one warning per prefix naming the file and its first line; so are stray
+characters (a bare ``&``, an undefined entity, a control character), with a warning naming the
+line and the element. Inside the geometry, and any other XML error (truncated file, mismatched
+tags, a stray ``<``), it refuses the file naming the line (:mod:`pipeline25d.formats.xml_defects`). Texture images must lie inside the
 file's folder (:func:`~pipeline25d.formats.common.side_file`).
 
 Over 400 lines for one job: one format's streaming reader (three CityGML versions, geometry,
@@ -134,6 +135,24 @@ class _Appearances:
     materials: dict[str, tuple[int, int, int, int]] = field(default_factory=dict)
 
 
+#: GML elements whose text or children make a drawn surface or its texture coordinates
+_GEOMETRY_PARTS = frozenset({
+    "Polygon", "LinearRing", "Ring", "posList", "pos", "coordinates", "coord", "exterior", "interior",
+    "outerBoundaryIs", "innerBoundaryIs", "surfaceMember", "surfaceMembers", "MultiSurface", "CompositeSurface",
+    "Solid", "Shell", "CompositeSolid", "MultiSolid", "solidMember", "Triangle", "TriangulatedSurface", "Tin",
+    "trianglePatches", "patches", "OrientableSurface", "baseSurface", "Surface", "PolygonPatch", "ImplicitGeometry",
+    "relativeGMLGeometry", "transformationMatrix", "referencePoint", "textureCoordinates", "TexCoordList"})
+
+
+def _in_geometry(elem) -> bool:
+    """Whether ``elem`` is part of a geometry (a GML geometry element or a lod*Geometry/Solid/... property)."""
+    tag = elem.tag
+    if not isinstance(tag, str):
+        return False
+    name = _local(tag)
+    return name in _GEOMETRY_PARTS or (name.startswith("lod") and name[3:4].isdigit())
+
+
 def _local(tag) -> str:
     return tag[tag.rfind("}") + 1:] if isinstance(tag, str) else ""
 
@@ -216,6 +235,7 @@ class _Reader:
         """Hand every streamed element to ``handle``, then free it and what came before it."""
         for _, elem in context:
             self.xml.check(context)
+            self.xml.place(elem, _in_geometry)
             if self.version is None:
                 self._check_root(elem.getroottree().getroot())
             if _local(elem.tag) == "Envelope":
@@ -227,6 +247,7 @@ class _Reader:
             while parent is not None and elem.getprevious() is not None:
                 del parent[0]
         self.xml.check(context)
+        self.xml.place(None, _in_geometry)
         if self.version is None:
             self._check_root(context.root)
 

@@ -147,6 +147,8 @@ def _parse_json_documents(text: str, path: Path) -> list:
     """One JSON document, or (CityJSONSeq) one per non-empty line."""
     try:
         return [json.loads(text)]
+    except RecursionError:
+        raise InputFileError(path, _TOO_DEEP) from None
     except json.JSONDecodeError as whole_error:
         lines = [ln for ln in text.splitlines() if ln.strip()]
         if len(lines) < 2:
@@ -157,7 +159,15 @@ def _parse_json_documents(text: str, path: Path) -> list:
                 docs.append(json.loads(line))
             except json.JSONDecodeError as exc:
                 raise InputFileError(path, f"invalid JSON on line {n}: {exc}") from None
+            except RecursionError:
+                raise InputFileError(path, f"line {n}: {_TOO_DEEP}") from None
         return docs
+
+
+_TOO_DEEP = ("JSON nested deeper than the JSON reader allows (about 1000 objects and arrays; CityJSON "
+             "boundaries nest at most 5 deep)")
+#: boundaries nest at most this deep (CompositeSolid: solids, shells, surfaces, rings, indices)
+MAX_BOUNDARY_DEPTH = 5
 
 
 def _chunk(doc: dict, transform: dict | None, path: Path, where: str) -> _Chunk:
@@ -279,7 +289,11 @@ def _instantiate(inst: dict, chunk: _Chunk, model: _Model) -> tuple[dict, np.nda
     except (KeyError, IndexError, TypeError, ValueError) as exc:
         warnings.warn(f"{model.path}: GeometryInstance skipped ({exc!r})", stacklevel=4)
         return None
-    used = sorted({i for i in _flatten(template.get("boundaries", []))})
+    used = _indices(template.get("boundaries", []))
+    if used is None:
+        warnings.warn(f"{model.path}: GeometryInstance skipped (its template's boundaries nest deeper than "
+                      f"{MAX_BOUNDARY_DEPTH} levels)", stacklevel=4)
+        return None
     if not used or max(used) >= len(model.template_vertices):
         warnings.warn(f"{model.path}: GeometryInstance with bad template vertices skipped", stacklevel=4)
         return None
@@ -289,15 +303,23 @@ def _instantiate(inst: dict, chunk: _Chunk, model: _Model) -> tuple[dict, np.nda
     return template, placed
 
 
-def _flatten(b):
-    if isinstance(b, list):
-        for x in b:
-            yield from _flatten(x)
-    else:
-        yield int(b)
+def _indices(boundaries: list) -> list[int] | None:
+    """The sorted vertex indices in ``boundaries`` (walked without recursion); None when they
+    nest deeper than :data:`MAX_BOUNDARY_DEPTH`."""
+    found, stack = set(), [(boundaries, 1)]
+    while stack:
+        item, depth = stack.pop()
+        if not isinstance(item, list):
+            found.add(int(item))
+        elif depth > MAX_BOUNDARY_DEPTH:
+            return None
+        else:
+            stack += [(x, depth + 1) for x in item]
+    return sorted(found)
 
 
 def _remap(b, mapping: dict):
+    """``b`` with every index mapped (its depth checked by :func:`_indices` first)."""
     return [_remap(x, mapping) for x in b] if isinstance(b, list) else mapping[int(b)]
 
 

@@ -3,21 +3,24 @@ confinement check of the side files a model names, reprojection."""
 
 from __future__ import annotations
 
+import contextvars
 import os
 import shutil
 import subprocess
 import warnings
 from dataclasses import replace
 from pathlib import Path
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
 from functools import lru_cache
-from typing import NamedTuple
+from typing import Any, NamedTuple
 from urllib.parse import unquote, urlsplit
 
 import numpy as np
 
 from pipeline25d.core.crs import check_within_area_of_use, parse_crs, transform_points
 from pipeline25d.core.errors import CRSError, InputFileError, MissingTextureWarning, UnsupportedFeatureError
-from pipeline25d.core.mesh import Mesh, MeshPart
+from pipeline25d.core.mesh import Coarser, Mesh, MeshPart
 
 AREA_SAMPLE = 2000   # vertices checked against the scene CRS's area of use
 MAX_COORDINATE = 1e8  # |x|, |y|, |z| beyond this is no place on Earth in any CRS (ECEF reaches 6.4e6 m)
@@ -42,6 +45,7 @@ class Loaded(NamedTuple):
 
     parts: list[MeshPart]
     crs: str | None
+    coarser: tuple[Coarser, ...] = ()   # tiles drawn coarser than asked (missing children)
 
 
 def read_text(path: Path, what: str) -> str:
@@ -104,10 +108,34 @@ def side_file(ref: str, base: Path, root: Path, referrer: Path, what: str, url: 
         name = unquote(parts.path) if url else ref
     target = base / name
     real = target.resolve()
-    if not real.is_relative_to(_real(root)):
+    if not any(real.is_relative_to(_real(r)) for r in (root, *_SIDE_FOLDERS.get())):
         raise InputFileError(referrer, f"{what} {ref!r} lies outside the dataset folder {root} (it resolves to "
-                                       f"{real}); a model may only name files inside the folder of the input")
+                                       f"{real}); a model may only name files inside the folder of the input "
+                                       "(or in a folder the input's side_folders names)")
     return target
+
+
+#: extra folders side files may lie in while an input is read (its ``side_folders``)
+_SIDE_FOLDERS: contextvars.ContextVar[tuple[Path, ...]] = contextvars.ContextVar("side_folders", default=())
+
+
+@contextmanager
+def side_folders(folders: Iterable[Path]) -> Iterator[None]:
+    """While inside, :func:`side_file` also accepts files in ``folders`` (an input's
+    ``side_folders``: a texture folder its parts share outside the input's own folder). Threads
+    a reader starts see them through :func:`in_context`."""
+    token = _SIDE_FOLDERS.set(tuple(Path(f) for f in folders))
+    try:
+        yield
+    finally:
+        _SIDE_FOLDERS.reset(token)
+
+
+def in_context(fn: Callable[..., Any]) -> Callable[[tuple], Any]:
+    """``fn(*args)`` as a one-argument function for ``pool.map`` that runs in the caller's
+    context (its :func:`side_folders`) in whichever thread calls it."""
+    context = contextvars.copy_context()
+    return lambda args: context.copy().run(fn, *args)
 
 
 @lru_cache(maxsize=64)
@@ -205,7 +233,7 @@ def in_scene(loaded: Loaded, scene_crs: str, where: str | Path) -> Mesh:
     (``loaded.crs`` None: already there)."""
     parts = checked_parts(loaded.parts, where)
     parts = parts if loaded.crs is None else reproject_parts(parts, loaded.crs, scene_crs, where)
-    return Mesh(parts, source=str(where))
+    return Mesh(parts, source=str(where), coarser=loaded.coarser)
 
 
 def checked_parts(parts: list[MeshPart], where: str | Path) -> list[MeshPart]:

@@ -26,10 +26,11 @@ def load_mesh_file(path: str | Path) -> Mesh:
     path = Path(path)
     kind = path.suffix.lstrip(".").upper()
     model = f"{'an' if kind[:1] in 'AEIOU' else 'a'} {kind} model"
-    {"OBJ": _check_obj, "DAE": _check_dae}.get(kind, lambda p: None)(path)
+    repaired = {"OBJ": _check_obj, "DAE": _check_dae}.get(kind, lambda p: None)(path)
     files = _Files(str(path))
+    source = {"file_obj": str(path)} if repaired is None else {"file_obj": io.BytesIO(repaired), "file_type": "dae"}
     try:
-        scene = trimesh.load(str(path), force="scene", process=False, resolver=files)
+        scene = trimesh.load(**source, force="scene", process=False, resolver=files)
     except IndexError as exc:
         raise InputFileError(path, f"cannot read it as {model}: an index is out of range ({exc})") from None
     except Exception as exc:  # trimesh raises many exception types for bad files
@@ -70,12 +71,29 @@ def _check_obj(path: Path) -> None:
         raise InputFileError(path, f"ends in the middle of a statement ({' '.join(words)!r}): truncated")
 
 
-def _check_dae(path: Path) -> None:
+#: COLLADA elements whose text or children make triangles or place them
+_DAE_GEOMETRY = frozenset({"float_array", "int_array", "p", "vcount", "v", "h", "source", "accessor", "param",
+                           "triangles", "polylist", "polygons", "tristrips", "trifans", "vertices", "input", "mesh",
+                           "geometry", "matrix", "translate", "rotate", "scale", "lookat", "skew"})
+
+
+def _dae_geometry(elem) -> bool:
+    tag = elem.tag
+    return isinstance(tag, str) and tag[tag.rfind("}") + 1:] in _DAE_GEOMETRY
+
+
+def _check_dae(path: Path) -> bytes | None:
     """InputFileError for what trimesh's COLLADA reading (pycollada) hides: NaN/inf coordinates
-    (read as 0) and malformed geometry such as indices beyond their source (geometry dropped)."""
+    (read as 0) and malformed geometry such as indices beyond their source (geometry dropped).
+    XML defects outside the geometry (stray characters, undeclared prefixes) are recovered from
+    with a warning (:func:`~pipeline25d.formats.xml_defects.recovered_xml`); the repaired
+    document is returned then (None: the file is read as it is)."""
     import collada
 
-    data = path.read_bytes()
+    from pipeline25d.formats.xml_defects import recovered_xml
+
+    original = path.read_bytes()
+    data = recovered_xml(original, path, _dae_geometry)
     if re.search(rb"<float_array[^>]*>[^<]*?(?<![\w.])[+-]?(nan|inf)", data, re.IGNORECASE):
         raise InputFileError(path, "has NaN or infinite coordinates")
     try:
@@ -83,6 +101,7 @@ def _check_dae(path: Path) -> None:
                                                   collada.common.DaeBrokenRefError])
     except collada.common.DaeError as exc:
         raise InputFileError(path, f"cannot read it as a DAE model: {exc}") from None
+    return None if data is original else data
 
 
 def _part(geom, vertices: np.ndarray, name: str, encoded: dict[int, bytes]) -> MeshPart:

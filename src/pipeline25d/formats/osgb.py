@@ -56,8 +56,8 @@ from pathlib import Path
 import numpy as np
 
 from pipeline25d.core.errors import InputFileError, MissingTextureWarning, UnsupportedFeatureError
-from pipeline25d.core.mesh import MeshPart
-from pipeline25d.formats.common import Detail, Loaded, dataset_root, run_converter, side_file
+from pipeline25d.core.mesh import Coarser, MeshPart
+from pipeline25d.formats.common import Detail, Loaded, dataset_root, in_context, run_converter, side_file
 
 log = logging.getLogger(__name__)
 
@@ -81,7 +81,7 @@ class TileRead:
     name: str
     parts: list[MeshPart]
     levels: Counter = field(default_factory=Counter)   # level -> triangles drawn
-    coarser: list[tuple[str, int]] = field(default_factory=list)   # (missing child file, level drawn instead)
+    coarser: list[Coarser] = field(default_factory=list)   # per file naming missing children: its level drawn
 
 
 def read_osgb(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
@@ -100,27 +100,29 @@ def read_osgb(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
 
         meta_crs, origin = read_metadata_xml(path / "metadata.xml")
         crs = crs or meta_crs
-    tiles = read_tiles(path, detail.gsd)
+    tiles = read_tiles(path, detail.gsd, spec.get("missing_children", "coarser"))
     parts = [p for t in tiles for p in t.parts]
     if origin.any():
         parts = [p.transformed(lambda v: v + origin) for p in parts]
-    return Loaded(parts, crs)
+    return Loaded(parts, crs, tuple(c for t in tiles for c in t.coarser))
 
 
-def read_tiles(path: Path, gsd: float | None) -> list[TileRead]:
-    """Every tile of ``path`` (dataset folder or .osgb) at map pixel size ``gsd``, in file coordinates."""
+def read_tiles(path: Path, gsd: float | None, missing_children: str = "coarser") -> list[TileRead]:
+    """Every tile of ``path`` (dataset folder or .osgb) at map pixel size ``gsd``, in file
+    coordinates; ``missing_children``: ``coarser`` (module docstring) or ``error``."""
     roots = dataset_tiles(path) if path.is_dir() else [path]
     folder = dataset_root(path)
     with tempfile.TemporaryDirectory(prefix="pipeline25d-osgb-") as tmp:
-        jobs = [(root, gsd, Path(tmp) / f"t{k}", folder) for k, root in enumerate(roots)]
+        jobs = [(root, gsd, Path(tmp) / f"t{k}", folder, missing_children) for k, root in enumerate(roots)]
         with ThreadPoolExecutor(max_workers=min(WORKERS, len(jobs))) as pool:
-            tiles = list(pool.map(lambda job: read_tile(*job), jobs))
+            tiles = list(pool.map(in_context(read_tile), jobs))
     for tile, root in zip(tiles, roots):
         log.info("%s at gsd %s: %s", tile.name, gsd, describe_levels(tile.levels))
         if tile.coarser:
-            said = (f"{root}: {len(tile.coarser)} PagedLOD child file(s) missing, drawn coarser than gsd {gsd} "
-                    "asks for, at the level of the file that names them: "
-                    + ", ".join(f"{name} (level {level} drawn)" for name, level in tile.coarser))
+            asked = f"gsd {gsd}" if gsd else "full detail"
+            said = (f"{root}: {sum(len(c.missing) for c in tile.coarser)} PagedLOD child file(s) missing, drawn "
+                    f"coarser than {asked} asks for, at the level of the file that names them: "
+                    + ", ".join(f"{name} (level {c.level} drawn)" for c in tile.coarser for name in c.missing))
             log.warning("%s", said)
             warnings.warn(said, stacklevel=2)
     if not any(t.levels for t in tiles):
@@ -174,9 +176,11 @@ def osgconv(src: Path, dst: Path, options: list[str], cwd: Path, what: Path) -> 
 # --------------------------------------------------------------------------- one tile
 
 
-def read_tile(root: Path, gsd: float | None, work: Path, folder: Path | None = None) -> TileRead:
+def read_tile(root: Path, gsd: float | None, work: Path, folder: Path | None = None,
+              missing_children: str = "coarser") -> TileRead:
     """The parts drawn at ``gsd`` of the tile whose root file is ``root`` (files walked breadth
-    first); its child and texture files must lie in ``folder`` (default: ``root``'s folder)."""
+    first); its child and texture files must lie in ``folder`` (default: ``root``'s folder).
+    A missing child file is drawn coarser, or with ``missing_children="error"`` an error."""
     work.mkdir(parents=True)
     folder = root.parent if folder is None else folder
     tile = TileRead(root.stem, [])
@@ -188,12 +192,14 @@ def read_tile(root: Path, gsd: float | None, work: Path, folder: Path | None = N
         if key in seen:
             raise InputFileError(child.path, f"is referenced twice in the tree of {root} (a cycle?)")
         seen.add(key)
-        walk = _read_file(child, gsd, work / f"f{len(seen)}", folder)
+        walk = _read_file(child, gsd, work / f"f{len(seen)}", folder, missing_children == "error")
         for part in walk.parts:
             tile.parts.append(part)
             tile.levels[child.level] += part.n_triangles
         queue.extend(walk.children)
-        tile.coarser += [(name, child.level) for name in walk.missing]
+        if walk.missing:
+            tile.coarser.append(Coarser(str(child.path), child.level, tuple(walk.missing),
+                                        "the finest level of the file that names them"))
     return tile
 
 
@@ -216,7 +222,7 @@ class _Walked:
     missing: list[str]        # child files named but absent (their parent's level drawn there)
 
 
-def _read_file(child: _Child, gsd: float | None, work: Path, folder: Path) -> _Walked:
+def _read_file(child: _Child, gsd: float | None, work: Path, folder: Path, strict: bool = False) -> _Walked:
     """One file: its LOD nodes resolved at ``gsd``, its geometry as parts, the child files to read."""
     path = child.path
     if not path.is_file():
@@ -225,7 +231,7 @@ def _read_file(child: _Child, gsd: float | None, work: Path, folder: Path) -> _W
     work.mkdir()
     osgconv(path.resolve(), Path("in.osgt"), ["WriteImageHint=IncludeData", "precision=17"], work, path)
     text = (work / "in.osgt").read_text(errors="replace")
-    walker = _Walker(text, path, gsd, child, folder)
+    walker = _Walker(text, path, gsd, child, folder, strict)
     pruned = walker.emit(parse_osgt(text, path), child.matrix, child.placed)
     if "osg::Geometry" not in pruned:
         return _Walked([], walker.children, walker.missing)
@@ -334,8 +340,9 @@ class _Walker:
     """Rewrites one file's .osgt text: LOD nodes become Groups of their drawn children, images
     get safe names; the child files to read are collected in ``children``."""
 
-    def __init__(self, text: str, path: Path, gsd: float | None, parent: _Child, folder: Path):
+    def __init__(self, text: str, path: Path, gsd: float | None, parent: _Child, folder: Path, strict: bool = False):
         self.text, self.path, self.gsd, self.parent, self.folder = text, path, gsd, parent, folder
+        self.strict = strict   # a missing child file is an error (missing_children: error)
         self.children: list[_Child] = []
         self.missing: list[str] = []
         self.next_id = max((int(v) for v in re.findall(r"UniqueID\s+(\d+)", text)), default=0) + 1
@@ -400,6 +407,9 @@ class _Walker:
         chosen = select_ranges(ranges, self._pixel_size(node, matrix))
         files = {i: self._child_path(node, names[i]) for i in chosen if i < len(names) and names[i] != ""}
         missing = {i for i, p in files.items() if not p.is_file()}
+        if missing and self.strict:
+            raise InputFileError(files[min(missing)], f"OSGB file is missing (named by {self.path}); the input's "
+                                                      "missing_children: coarser draws the level present instead")
         if missing:
             self.missing += [names[i] for i in sorted(missing)]
             chosen = (chosen - missing) | self._finest_inline(ranges, names, chosen - missing)

@@ -1,15 +1,12 @@
-"""3D Tiles 1.0 / 1.1 reader: tileset traversal, LOD selection, b3dm/i3dm/cmpt/glb/gltf content.
+"""3D Tiles 1.0 / 1.1 reader: b3dm/i3dm/cmpt/glb/gltf content placed by the tile tree.
 
 Placement follows the 3D Tiles spec (and CesiumJS): glTF node hierarchy, glTF y-up ->
 z-up ((x, y, z) -> (x, -z, y), unless ``asset.gltfUpAxis`` is "Z"), then the content's
 RTC_CENTER / CESIUM_RTC, then the tile transforms multiplied root-to-leaf. External
 tilesets (a tile whose content is a ``.json``) inherit the referencing tile's transform
-and refine mode and resolve their URIs relative to their own JSON file. Implicit tiling
-(3D Tiles 1.1 ``implicitTiling``, quadtree or octree, binary or JSON subtrees) is
-expanded lazily into the same tile tree. The tree is walked with an explicit stack, so its
-depth is bounded by nothing but the JSON reader (Python's ``json`` refuses about 1000 nested
-objects and arrays, about 490 levels of ``children`` in one file: an InputFileError naming the
-file); external tilesets that lead back to one already entered are refused as a cycle.
+and refine mode and resolve their URIs relative to their own JSON file. The tree (explicit,
+external, implicit), its limits and the tiles drawn where children are unreachable are
+:mod:`pipeline25d.formats.tileset_tree`.
 
 Every file a tileset names (contents, external tilesets, subtrees and their buffers, glTF
 buffers and images, i3dm glTF URIs) must lie inside the root tileset.json's folder
@@ -22,9 +19,6 @@ Amsterdam sample, have boxes that are too small on one side).
 Vertices stay float64 from the decoded glTF to the scene CRS; ECEF (``src_crs``) is
 reprojected once per tileset with :func:`pipeline25d.core.crs.transform_points` after an
 area-of-use check of the scene CRS.
-
-Over 400 lines for one job: one format's reader (tileset traversal, LOD choice and four
-content types share the tile transform chain).
 """
 
 from __future__ import annotations
@@ -32,16 +26,15 @@ from __future__ import annotations
 import json
 import struct
 import warnings
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
-from pipeline25d.core.errors import InputFileError, UnsupportedFeatureError
+from pipeline25d.core.errors import InputFileError
 from pipeline25d.core.mesh import Mesh, MeshPart
-from pipeline25d.formats.common import Detail, Loaded, in_scene, read_text, side_file
+from pipeline25d.formats.common import Detail, Loaded, in_scene
 from pipeline25d.formats.gltf import parse_gltf_bytes
+from pipeline25d.formats.tileset_tree import read_json, resolve, select
 
 _B3DM_HEADER = 28
 _I3DM_HEADER = 32
@@ -62,16 +55,19 @@ def read_tileset(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
     Content tileset JSONs (external tilesets) are always entered, as CesiumJS does.
     """
     path = Path(path)
-    root_json = _read_json(path)
-    up_axis = str(root_json.get("asset", {}).get("gltfUpAxis", "Y")).upper()
-    folder = path.parent
-    root = _json_tile(_root_of(root_json, path), path, np.eye(4), "REPLACE", folder)
+    up_axis = str(read_json(path).get("asset", {}).get("gltfUpAxis", "Y")).upper()
+    chosen = select(path, detail.max_error, spec.get("missing_children", "coarser"))
+    if chosen.coarser:
+        missing = [m for c in chosen.coarser for m in c.missing]
+        warnings.warn(f"{path}: {len(missing)} child content file(s) missing, {len(chosen.coarser)} tile(s) drawn "
+                      f"coarser than asked, at the finest level present: {', '.join(missing[:5])}"
+                      + (" ..." if len(missing) > 5 else ""), stacklevel=2)
     parts: list[MeshPart] = []
-    for content_path, transform in _select(root, detail.max_error, path, folder):
-        parts.extend(_place(read_content(content_path, y_up=(up_axis != "Z"), root=folder), transform))
+    for content_path, transform in chosen.contents:
+        parts.extend(_place(read_content(content_path, y_up=(up_axis != "Z"), root=path.parent), transform))
     if not parts:
         warnings.warn(f"{path}: the selected tiles hold no triangles", stacklevel=2)
-    return Loaded(_merge_untextured(parts), spec.get("crs") or ECEF)
+    return Loaded(_merge_untextured(parts), spec.get("crs") or ECEF, tuple(chosen.coarser))
 
 
 def read_b3dm(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
@@ -105,302 +101,7 @@ def read_content(path: Path, y_up: bool = True, root: Path | None = None) -> lis
     return _parse_content(data, path, y_up, path.parent if root is None else root)
 
 
-# --------------------------------------------------------------------------- tile tree
-
-
-@dataclass
-class _Tile:
-    """A tile of the (explicit or implicit) tree with its composed world transform."""
-
-    geometric_error: float
-    refine: str
-    transform: np.ndarray
-    contents: list[Path]
-    externals: list[Path]
-    children: Callable[[], list["_Tile"]] = field(default=lambda: [])
-    has_children: bool = False
-
-
-@dataclass
-class _External:
-    """An external tileset to enter (``tile`` names it), or with ``leave`` the end of one."""
-
-    path: Path
-    tile: _Tile | None = None
-    leave: bool = False
-
-
-def _select(root: _Tile, g: float | None, root_path: Path, folder: Path) -> list[tuple[Path, np.ndarray]]:
-    """(content path, transform) of the tiles drawn at geometric error ``g``, depth first in
-    file order, with an explicit stack (no recursion however deep the tree)."""
-    out: list[tuple[Path, np.ndarray]] = []
-    chain = {root_path.resolve(): root_path}   # the external tilesets being walked, outermost first
-    stack: list[_Tile | _External] = [root]
-    while stack:
-        item = stack.pop()
-        if isinstance(item, _External):
-            if item.leave:
-                chain.popitem()
-            else:
-                stack += _enter(item, chain, folder)
-            continue
-        tile = item
-        refine = tile.has_children and (g is None or tile.geometric_error > g)
-        if not refine or tile.refine == "ADD":
-            out.extend((c, tile.transform) for c in tile.contents)
-        stack += [_External(ext, tile) for ext in reversed(tile.externals)]
-        if refine:
-            stack += reversed(tile.children())
-    return out
-
-
-def _enter(ext: _External, chain: dict[Path, Path], folder: Path) -> list[_Tile | _External]:
-    """What the stack gets to walk the external tileset ``ext``: its root, then its end marker."""
-    key = ext.path.resolve()
-    if key in chain:
-        names = list(chain.values())
-        loop = [p.name for p in names[list(chain).index(key):]] + [ext.path.name]
-        raise InputFileError(ext.path, f"external tilesets form a cycle ({' -> '.join(loop)})")
-    chain[key] = ext.path
-    ext_json = _read_json(ext.path)
-    root = _json_tile(_root_of(ext_json, ext.path), ext.path, ext.tile.transform, ext.tile.refine, folder)
-    return [_External(ext.path, leave=True), root]
-
-
-def _json_tile(tile: dict, json_path: Path, parent_transform: np.ndarray, parent_refine: str,
-               folder: Path) -> _Tile:
-    """A :class:`_Tile` from a tileset JSON tile object (children built on demand)."""
-    transform = parent_transform @ _matrix(tile.get("transform"), json_path)
-    refine = str(tile.get("refine", parent_refine)).upper()
-    if "implicitTiling" in tile:
-        return _implicit_root(tile, json_path, transform, refine, folder)
-    uris = [c["uri"] if "uri" in c else c.get("url") for c in _content_list(tile)]
-    contents, externals = _split_contents([_resolve(u, json_path, folder) for u in uris], json_path)
-    kids = tile.get("children") or []
-    return _Tile(
-        geometric_error=float(tile.get("geometricError", 0.0)),
-        refine=refine,
-        transform=transform,
-        contents=contents,
-        externals=externals,
-        children=lambda: [_json_tile(c, json_path, transform, refine, folder) for c in kids],
-        has_children=bool(kids),
-    )
-
-
-def _split_contents(paths: list[Path], referrer: Path) -> tuple[list[Path], list[Path]]:
-    """(renderable contents, external tileset JSONs); InputFileError naming a missing file."""
-    for target in paths:
-        if not target.is_file():
-            raise InputFileError(target, f"content referenced by {referrer} is missing")
-    return ([p for p in paths if p.suffix.lower() != ".json"],
-            [p for p in paths if p.suffix.lower() == ".json"])
-
-
-def _content_list(tile: dict) -> list[dict]:
-    """The tile's content objects (1.0 ``content``, 1.1 ``contents``)."""
-    contents = list(tile.get("contents") or [])
-    if tile.get("content"):
-        contents.insert(0, tile["content"])
-    return contents
-
-
-def _root_of(tileset: dict, path: Path) -> dict:
-    root = tileset.get("root")
-    if not isinstance(root, dict):
-        raise InputFileError(path, "tileset JSON has no root tile")
-    return root
-
-
-def _matrix(values: list | None, where: Path) -> np.ndarray:
-    """4x4 float64 matrix from a column-major 16-number list (identity when absent)."""
-    if values is None:
-        return np.eye(4)
-    try:
-        return np.asarray(values, dtype=np.float64).reshape(4, 4).T
-    except ValueError:
-        raise InputFileError(where, f"tile transform is not 16 numbers: {values!r}") from None
-
-
-def _resolve(uri: str | None, base: Path, folder: Path) -> Path:
-    """Local path of a content/subtree URI relative to the JSON (or subtree) that names it,
-    inside the tileset's root ``folder``."""
-    if not uri:
-        raise InputFileError(base, "tile content without uri")
-    return side_file(uri, base.parent, folder, base, "content")
-
-
-def _read_json(path: Path) -> dict:
-    """Parsed tileset JSON; InputFileError when missing, invalid or nested too deep to parse."""
-    text = read_text(path, "tileset JSON")
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise InputFileError(path, f"invalid JSON: {exc}") from None
-    except RecursionError:
-        raise InputFileError(path, "JSON nested deeper than the JSON reader allows (about 1000 objects and "
-                                   "arrays; a tile tree that deep belongs in external tilesets)") from None
-    if not isinstance(data, dict):
-        raise InputFileError(path, "tileset JSON is not an object")
-    return data
-
-
-# --------------------------------------------------------------------------- implicit tiling
-
-
-@dataclass
-class _Subtree:
-    """Availability bitstreams of one implicit-tiling subtree."""
-
-    tiles: np.ndarray
-    contents: list[np.ndarray]
-    child_subtrees: np.ndarray
-
-
-@dataclass
-class _Implicit:
-    """Shared state of an implicit tileset: templates, scheme, subtree cache."""
-
-    json_path: Path
-    branching: int
-    subtree_levels: int
-    available_levels: int
-    subtree_uri: str
-    content_uris: list[str]
-    root_error: float
-    refine: str
-    transform: np.ndarray
-    folder: Path              # the tileset's root folder (every file named must lie in it)
-    cache: dict = field(default_factory=dict)
-
-    def uri(self, template: str, level: int, xyz: tuple[int, int, int]) -> Path:
-        text = (template.replace("{level}", str(level)).replace("{x}", str(xyz[0]))
-                .replace("{y}", str(xyz[1])).replace("{z}", str(xyz[2])))
-        return _resolve(text, self.json_path, self.folder)
-
-    def subtree(self, level: int, xyz: tuple[int, int, int]) -> _Subtree:
-        key = (level, xyz)
-        if key not in self.cache:
-            self.cache[key] = _read_subtree(self.uri(self.subtree_uri, level, xyz), self)
-        return self.cache[key]
-
-
-def _implicit_root(tile: dict, json_path: Path, transform: np.ndarray, refine: str, folder: Path) -> _Tile:
-    """Root :class:`_Tile` of an implicit tileset (3D Tiles 1.1 ``implicitTiling``)."""
-    spec = tile["implicitTiling"]
-    scheme = str(spec.get("subdivisionScheme", "")).upper()
-    if scheme not in ("QUADTREE", "OCTREE"):
-        raise UnsupportedFeatureError(json_path, f"implicit subdivisionScheme {scheme!r} is not supported")
-    try:
-        levels = int(spec["availableLevels"]) if "availableLevels" in spec else int(spec["maximumLevel"]) + 1
-        ctx = _Implicit(json_path, 4 if scheme == "QUADTREE" else 8, int(spec["subtreeLevels"]), levels,
-                        spec["subtrees"]["uri"], [c["uri"] for c in _content_list(tile)],
-                        float(tile.get("geometricError", 0.0)), refine, transform, folder)
-    except (KeyError, TypeError, ValueError) as exc:
-        raise InputFileError(json_path, f"incomplete implicitTiling object: {exc}") from None
-    return _implicit_tile(ctx, ctx.subtree(0, (0, 0, 0)), 0, 0, 0, (0, 0, 0))
-
-
-def _implicit_tile(ctx: _Implicit, sub: _Subtree, sub_level: int, local_level: int, morton: int,
-                   xyz: tuple[int, int, int]) -> _Tile:
-    """The available tile at local (level, morton) of subtree ``sub`` rooted at ``sub_level``."""
-    level = sub_level + local_level
-    bit = _level_offset(ctx.branching, local_level) + morton
-    contents, externals = _split_contents(
-        [ctx.uri(t, level, xyz) for t, avail in zip(ctx.content_uris, sub.contents) if _bit(avail, bit)],
-        ctx.json_path)
-
-    available = []  # (morton, xyz, inside this subtree) of each available child
-    if level + 1 < ctx.available_levels:
-        for c in range(ctx.branching):
-            child_xyz = tuple(2 * v + ((c >> i) & 1) for i, v in enumerate(xyz))
-            child_morton = morton * ctx.branching + c
-            if local_level + 1 < ctx.subtree_levels:
-                if _bit(sub.tiles, _level_offset(ctx.branching, local_level + 1) + child_morton):
-                    available.append((child_morton, child_xyz, True))
-            elif _bit(sub.child_subtrees, child_morton):
-                available.append((child_morton, child_xyz, False))
-
-    def children() -> list[_Tile]:
-        return [_implicit_tile(ctx, sub, sub_level, local_level + 1, m, c_xyz) if inside
-                else _implicit_tile(ctx, ctx.subtree(level + 1, c_xyz), level + 1, 0, 0, c_xyz)
-                for m, c_xyz, inside in available]
-
-    return _Tile(
-        geometric_error=ctx.root_error / 2.0 ** level,
-        refine=ctx.refine,
-        transform=ctx.transform,
-        contents=contents,
-        externals=externals,
-        children=children,
-        has_children=bool(available),
-    )
-
-
-def _level_offset(branching: int, level: int) -> int:
-    """Index of the first bit of ``level`` in a subtree's tile availability bitstream."""
-    return (branching ** level - 1) // (branching - 1)
-
-
-def _bit(bits: np.ndarray, index: int) -> bool:
-    """Bit ``index`` of a little-endian-bit-order bitstream (or a constant: 0-d array)."""
-    if bits.ndim == 0:
-        return bool(bits)
-    byte = index >> 3
-    return byte < len(bits) and bool((bits[byte] >> (index & 7)) & 1)
-
-
-def _read_subtree(path: Path, ctx: _Implicit) -> _Subtree:
-    """Parse a binary (``subt``) or JSON subtree file into availability bitstreams."""
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise InputFileError(path, f"subtree file named by {ctx.json_path} is missing") from None
-    if data[:4] == b"subt":
-        if len(data) < 24:
-            raise InputFileError(path, "subtree file is truncated")
-        json_len, bin_len = struct.unpack_from("<QQ", data, 8)
-        if 24 + json_len + bin_len > len(data):
-            raise InputFileError(path, "subtree file is shorter than its header says (truncated)")
-        raw_json, internal = data[24:24 + json_len], data[24 + json_len:24 + json_len + bin_len]
-    else:
-        raw_json, internal = data, b""
-    try:
-        doc = json.loads(raw_json.decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputFileError(path, f"subtree JSON is invalid: {exc}") from None
-    buffers = [internal if "uri" not in b else _read_buffer(_resolve(b["uri"], path, ctx.folder), path)
-               for b in doc.get("buffers", [])]
-
-    def availability(obj: dict | None) -> np.ndarray:
-        if obj is None:
-            return np.array(0, dtype=np.uint8)
-        if "constant" in obj:
-            return np.array(int(obj["constant"]), dtype=np.uint8)
-        view = doc["bufferViews"][int(obj.get("bitstream", obj.get("bufferView")))]
-        buf = buffers[int(view["buffer"])]
-        start = int(view.get("byteOffset", 0))
-        return np.frombuffer(buf, np.uint8, int(view["byteLength"]), start)
-
-    try:
-        contents = doc.get("contentAvailability") or []
-        if isinstance(contents, dict):
-            contents = [contents]
-        return _Subtree(availability(doc.get("tileAvailability")), [availability(c) for c in contents],
-                        availability(doc.get("childSubtreeAvailability")))
-    except (KeyError, IndexError, TypeError, ValueError) as exc:
-        raise InputFileError(path, f"malformed subtree availability: {exc}") from None
-
-
 # --------------------------------------------------------------------------- content formats
-
-
-def _read_buffer(path: Path, subtree: Path) -> bytes:
-    """The bytes of a subtree's external buffer; InputFileError naming both when unreadable."""
-    try:
-        return path.read_bytes()
-    except OSError as exc:
-        raise InputFileError(path, f"subtree buffer named by {subtree} cannot be read: {exc.strerror or exc}") from None
 
 
 def _parse_content(data: bytes, path: Path, y_up: bool, root: Path) -> list[MeshPart]:
@@ -490,7 +191,7 @@ def _parse_i3dm(data: bytes, path: Path, y_up: bool, root: Path) -> list[MeshPar
     table, body = _feature_table(data, _I3DM_HEADER, ft_json, ft_bin, path)
     gltf = data[body_start:length]
     if gltf_format == 0:
-        gltf_path = _resolve(gltf.rstrip(b" \x00").decode("utf-8"), path, root)
+        gltf_path = resolve(gltf.rstrip(b" \x00").decode("utf-8"), path, root)
         parts = read_content(gltf_path, y_up, root)
     else:
         parts = parse_gltf_bytes(gltf, path, y_up, root)

@@ -10,7 +10,7 @@ from pipeline25d.core.atomic import write_json, write_text
 from pipeline25d.core.raster import dataset_bounds, gdal
 from pipeline25d.geometry.perspectives import Perspective
 from pipeline25d.stages.plan import plan_blocks, read_plan
-from pipeline25d.stages.records import Scene
+from pipeline25d.stages.records import Scene, coarser_tiles
 
 
 def _size(path: Path) -> int:
@@ -116,6 +116,7 @@ def build_report(config: dict, results: str | Path) -> dict:
     model = input_size(config)
     maps = sum(p["map_bytes"] for p in persp)
     tms = sum(p["tms_bytes"] for p in persp)
+    coarser = coarser_inputs(results, sorted(config["inputs"]))
     return {
         "scene": config["scene"], "crs": config["crs"], "gsd": config["gsd"], "z0": scene.z0,
         "projection": scene.projection, "terrain": terrain,
@@ -125,7 +126,19 @@ def build_report(config: dict, results: str | Path) -> dict:
         "sizes": {"model_bytes": model, "maps_bytes": maps, "tms_bytes": tms,
                   "model_to_maps": model / maps if maps else None},
         "timings": stage_timings(results, current_jobs(set(config["inputs"]), blocks)),
+        **({"coarser": coarser} if coarser else {}),
     }
+
+
+def coarser_inputs(results: Path, districts: list[str]) -> list[dict]:
+    """The input tiles drawn coarser than the gsd asks for, per district (from the chunk
+    indexes ingest wrote): ``{district, tile, level, missing, drawn}``; [] when none was."""
+    out = []
+    for district in districts:
+        index = results / "chunks" / district / "index.json"
+        if index.is_file():
+            out += [{"district": district, **c.to_json()} for c in coarser_tiles(json.loads(index.read_text()))]
+    return out
 
 
 def fmt_measure(v: float | None, nd: int = 3, missing: str = "–") -> str:
@@ -197,6 +210,8 @@ def render_markdown(rep: dict) -> str:
               "| stage | jobs | seconds (sum) | max RSS MB |", "|---|---:|---:|---:|"]
     for stage, t in rep["timings"].items():
         lines.append(f"| {stage} | {t['jobs']} | {t['seconds']:.1f} | {t['max_rss_mb']:.0f} |")
+    if rep.get("coarser"):
+        lines += coarser_section(rep["coarser"])
     if rep.get("updates"):
         lines += ["", "## Redone since the last report", "",
                   "Map tiles whose spec (chunks, LODs, GCPs, frame, render settings) changed are rendered again;"
@@ -207,6 +222,18 @@ def render_markdown(rep: dict) -> str:
             lines.append(f"| {pid} | {u['tiles_redone']} | {u['tiles']} | {u['web_tiles_redone']} | {u['web_tiles']} | "
                          f"{u['web_cut']} |")
     return "\n".join(lines) + "\n"
+
+
+def coarser_section(coarser: list[dict]) -> list[str]:
+    """The report's list of input tiles drawn coarser than the gsd asks for (missing children)."""
+    lines = ["", "## Drawn coarser than the gsd asks for", "",
+             "Parts of these input tiles are missing (an OSGB PagedLOD child file, a 3D Tiles child's content);"
+             " where they would be drawn, the finest level present is drawn instead (the input's"
+             " `missing_children: error` refuses such an input).", "",
+             "| district | tile drawn | level | missing | drawn instead |", "|---|---|---:|---|---|"]
+    for c in coarser:
+        lines.append(f"| {c['district']} | {c['tile']} | {c['level']} | {', '.join(c['missing'])} | {c['drawn']} |")
+    return lines
 
 
 HEIGHT_GROUPS = {"all": "All buildings", "flat": "Flat roofs",

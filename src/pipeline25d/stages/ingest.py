@@ -58,14 +58,19 @@ def _subset(part: MeshPart, face_index: np.ndarray) -> MeshPart:
 def write_chunks(mesh: Mesh, district: str, chunk_size: float, out_dir: Path, index_path: Path) -> dict:
     """Write the district's chunks into ``out_dir`` and its index JSON last.
 
-    Returns the index: {district, source, n_triangles, chunk_size, chunks: {id: {...}}}.
+    Returns the index: {district, source, n_triangles, chunk_size, [coarser,] chunks: {id: {...}}};
+    ``coarser`` (the input tiles drawn coarser than asked, :class:`~pipeline25d.core.mesh.Coarser`
+    as JSON, see :func:`pipeline25d.stages.records.coarser_tiles`) only when there are any.
     """
     out_dir.mkdir(parents=True, exist_ok=True)
     sidecar = index_path.with_suffix(".hashes.json")
     previous = _previous_hashes(sidecar)
     chunks = split_into_chunks(mesh, chunk_size)
     index = {"district": district, "source": mesh.source, "chunk_size": chunk_size,
-             "n_triangles": mesh.n_triangles, "chunks": {}}
+             "n_triangles": mesh.n_triangles,
+             # only when there are any: the index of a district drawn as asked stays as it was
+             **({"coarser": [c.to_json() for c in mesh.coarser]} if mesh.coarser else {}),
+             "chunks": {}}
     for cid, parts in sorted(chunks.items()):
         bounds = Mesh(parts).bounds()
         origin = chunk_origin(bounds)
@@ -99,5 +104,8 @@ def ingest(spec: dict, district: str, scene_crs: str, chunk_size: float, max_geo
 
     mesh = load_district(spec, scene_crs, max_geometric_error=max_geometric_error, gsd=gsd)
     log.info("%s: %d triangles from %s", district, mesh.n_triangles, spec["path"])
+    for c in mesh.coarser:
+        log.warning("%s: %s drawn at level %d (%s): missing %s", district, c.tile, c.level, c.drawn,
+                    ", ".join(c.missing))
     index_path = Path(index_path)
     return write_chunks(mesh, district, chunk_size, index_path.parent, index_path)

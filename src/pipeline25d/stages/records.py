@@ -19,6 +19,7 @@ from types import MappingProxyType
 from typing import Any, ClassVar
 
 from pipeline25d.core.grid import Extent, Grid
+from pipeline25d.core.mesh import Coarser
 from pipeline25d.geometry.perspectives import Perspective
 
 
@@ -40,6 +41,15 @@ def thawed(value: Any) -> Any:
     if isinstance(value, (list, tuple)):
         return [thawed(v) for v in value]
     return value
+
+
+# --------------------------------------------------------------------------- ingest
+
+
+def coarser_tiles(index: Mapping[str, Any]) -> tuple[Coarser, ...]:
+    """The input tiles a district's chunk index (``chunks/<district>/index.json``) says were
+    drawn coarser than the gsd asks for (none: the key is absent)."""
+    return tuple(Coarser.from_json(c) for c in index.get("coarser", ()))
 
 
 # --------------------------------------------------------------------------- GCPs
