@@ -11,7 +11,6 @@ file holds anything else (then the model's surface may show real ground between 
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import NamedTuple
 
 from pipeline25d.formats.common import Loaded
