@@ -2,8 +2,8 @@
 
 Generated CityJSON 1.1 and CityGML 2.0 models of box buildings standing on a known sloped plane
 (no terrain objects; pipeline25d_lab.scenes.building_city) run through the ingest, LOD, terrain
-and scene stages; their DTM is checked against the analytic plane. Delft's CityJSON reduced to its buildings is checked against the DTM
-of the full model (its own terrain objects).
+and scene stages; their DTM is checked against the analytic plane. Delft's CityJSON reduced to
+its buildings is checked against the DTM of the full model (its own terrain objects).
 """
 
 from __future__ import annotations

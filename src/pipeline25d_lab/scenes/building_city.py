@@ -106,7 +106,8 @@ def write_citygml_lod1(path: Path, footprints: Sequence[Footprint]) -> Path:
 SPARSE_ORIGINS = [(X0, Y0), (X0 + 5000, Y0), (X0, Y0 + 5000), (X0 + 5000, Y0 + 5000), (X0 + 2500, Y0 + 2500)]
 
 
-def write_sparse_city(path: Path, origins: Sequence[tuple[float, float]] = SPARSE_ORIGINS, n: int = 3) -> list[Footprint]:
+def write_sparse_city(path: Path, origins: Sequence[tuple[float, float]] = SPARSE_ORIGINS,
+                      n: int = 3) -> list[Footprint]:
     """A buildings-only CityJSON city: n x n boxes at each origin (default: five clusters over
     5 x 5 km, 45 buildings; every other one with a GroundSurface), on the sloped :func:`plane`.
     Returns the footprints."""
