@@ -271,15 +271,18 @@ def test_a_disk_that_fills_up_during_the_web_tile_cut(tmp_path, small_disk, stag
 @pytest.mark.parametrize("case, expected", [
     ("dtm-not-a-raster", r"^pipeline25d: error: .*dtm\.tif: cannot open as a raster \(config key terrain\)"),
     ("schema", r"^pipeline25d: error: config key gsd: -1 is less than or equal to the minimum of 0$"),
+    ("side-folder-missing", r"^pipeline25d: error: config key inputs\.d0\.side_folders\.0: .*nowhere is not a "
+                            r"folder$"),
 ])
 @pytest.mark.parametrize("entry", ["snakemake", "pipeline25d run"])
 def test_a_parse_time_error_is_one_line_without_a_traceback(tmp_path, case, expected, entry):
-    """Errors raised while the workflow is parsed (config schema, DTM check)
+    """Errors raised while the workflow is parsed (config schema, DTM check, side folders)
     print one line naming the file or key, exit 1 and show no traceback, from either entry point."""
     write_obj(tmp_path / "site.obj", SQUARE, SQUARE_FACES, None)
     (tmp_path / "dtm.tif").write_text("not a raster\n")
     extra = {"dtm-not-a-raster": {"terrain": "dtm.tif"}, "schema": {"gsd": -1}}.get(case, {})
-    _config(tmp_path, {"d0": {"path": "site.obj"}}, **extra)
+    side = {"side_folders": ["nowhere"]} if case == "side-folder-missing" else {}
+    _config(tmp_path, {"d0": {"path": "site.obj", **side}}, **extra)
     if entry == "snakemake":
         proc = snakemake(tmp_path, "-n", check=False)
     else:

@@ -208,3 +208,18 @@ def test_a_dtm_that_is_not_a_raster_is_refused_naming_file_and_key(tmp_path):
     cfg = validate_schema(with_(terrain="dtm.tif"))
     with pytest.raises(InputFileError, match=r"dtm\.tif: cannot open as a raster \(config key terrain\)"):
         check_semantics(cfg, tmp_path)
+
+
+def test_a_side_folder_that_is_not_a_folder_is_refused_at_parse_time(tmp_path):
+    """Before any job (the reader keeps the same check for callers that skip the config)."""
+    (tmp_path / "model.obj").write_text("v 0 0 0\n")
+    (tmp_path / "shared").mkdir()
+    (tmp_path / "file.txt").write_text("x")
+    ok = validate_schema(with_(inputs={"a": {"path": "model.obj", "side_folders": ["shared"]}}))
+    check_semantics(ok, tmp_path)
+    for k, bad in ((1, "nowhere"), (0, "file.txt")):
+        folders = ["shared", bad] if k else [bad]
+        cfg = validate_schema(with_(inputs={"a": {"path": "model.obj", "side_folders": folders}}))
+        with pytest.raises(ConfigError, match=rf"^config key inputs\.a\.side_folders\.{k}: "
+                                              rf"{tmp_path / bad} is not a folder$"):
+            check_semantics(cfg, tmp_path)

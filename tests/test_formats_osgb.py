@@ -276,18 +276,22 @@ def test_ingest_at_two_gsds_draws_the_level_of_each(dataset, tmp_path, caplog):
         assert saved["n_triangles"] == index["n_triangles"]
 
 
-def test_workflow_maps_the_level_of_its_gsd(dataset, tmp_path):
-    """The whole workflow on the sample at gsd 1 m, nadir: the map shows level 1's texture (green
-    checker) where the generator put it (pixel centres off checker lines and roof edges)."""
+def _run_workflow(dataset: Path, workdir: Path, gsd: float, target: str) -> None:
+    """The workflow on the dataset at ``gsd``, nadir, up to ``target`` (under results/osgb/)."""
     config = {"scene": "osgb", "crs": S.SRS, "inputs": {"sample": {"path": str(dataset)}}, "terrain": "flat",
-              "gsd": 1.0, "tile_size": 256, "perspectives": "nadir", "lod": {"max_error_px": 0.001},
+              "gsd": gsd, "tile_size": 256, "perspectives": "nadir", "lod": {"max_error_px": 0.001},
               "gcp": {"spacing": 30}, "tms": {"zoom": "16-17"}}
-    (tmp_path / "config.yaml").write_text(yaml.safe_dump(config))
-    cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"), "--directory", str(tmp_path),
-           "--configfile", str(tmp_path / "config.yaml"), "-j2", "results/osgb/maps/az000_el90.tif"]
+    (workdir / "config.yaml").write_text(yaml.safe_dump(config))
+    cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"), "--directory", str(workdir),
+           "--configfile", str(workdir / "config.yaml"), "-j2", f"results/osgb/{target}"]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    ds = gdal.Open(str(tmp_path / "results/osgb/maps/az000_el90.tif"))
+
+
+def _map_samples(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(rgba, local x, local y, inside, sample) of a nadir map: ``sample`` = pixel centres inside
+    the dataset, over 1.5 m off checker lines and roof edges (where a texel's colour is its own)."""
+    ds = gdal.Open(str(path))
     x0, dx, _, y0, _, dy = ds.GetGeoTransform()
     rgba = np.stack([ds.GetRasterBand(b + 1).ReadAsArray() for b in range(4)], axis=-1)
     rows, cols = np.indices(rgba.shape[:2])
@@ -300,8 +304,42 @@ def test_workflow_maps_the_level_of_its_gsd(dataset, tmp_path):
             far = np.minimum(far, np.where((y > y0b - 2) & (y < y1b + 2), np.abs(x - edge_x), np.inf))
         for edge_y in (y0b, y1b):
             far = np.minimum(far, np.where((x > x0b - 2) & (x < x1b + 2), np.abs(y - edge_y), np.inf))
-    sample = inside & (far > 1.5)
+    return rgba, x, y, inside, inside & (far > 1.5)
+
+
+def test_workflow_maps_the_level_of_its_gsd(dataset, tmp_path):
+    """The whole workflow on the sample at gsd 1 m, nadir: the map shows level 1's texture (green
+    checker) where the generator put it (pixel centres off checker lines and roof edges)."""
+    _run_workflow(dataset, tmp_path, 1.0, "maps/az000_el90.tif")
+    rgba, x, y, inside, sample = _map_samples(tmp_path / "results/osgb/maps/az000_el90.tif")
     assert sample.sum() > 0.3 * inside.sum()
     assert (rgba[sample][:, 3] == 255).all()
     # textured surfaces are drawn unlit (photogrammetry textures carry their own light)
     np.testing.assert_allclose(rgba[sample][:, :3], S.colour(1, x[sample], y[sample]), atol=3)
+
+
+def test_a_dataset_with_a_missing_child_file_runs_to_maps_drawn_at_the_finest_level_present(copy, tmp_path):
+    """Issue 27: one level-2 child file gone, the whole workflow at gsd 0.5 m (level 2) still runs
+    to the map and the report; the map shows level 2 (blue) everywhere but in that quadrant, which
+    shows level 1 (green), its parent's own level; the ingest log warns, and report.json and
+    report.md list the tile file drawn, its level and the missing file."""
+    gone = copy / "Data" / "Tile_+001_+000" / "Tile_+001_+000_L2_3.osgb"
+    gone.unlink()
+    work = tmp_path / "work"
+    work.mkdir()
+    _run_workflow(copy, work, 0.5, "report/report.json")
+    results = work / "results" / "osgb"
+    rgba, x, y, inside, sample = _map_samples(results / "maps" / "az000_el90.tif")
+    assert sample.sum() > 0.3 * inside.sum() and (rgba[sample][:, 3] == 255).all()
+    quadrant = (x >= 150) & (y >= 50)                      # tile (1, 0), quadrant 3: x 150-200, y 50-100
+    for level, where in ((1, sample & quadrant), (2, sample & ~quadrant)):
+        assert where.sum() > 1000
+        np.testing.assert_allclose(rgba[where][:, :3], S.colour(level, x[where], y[where]), atol=3)
+    tile = str(copy / "Data" / "Tile_+001_+000" / "Tile_+001_+000_L1.osgb")
+    report = json.loads((results / "report" / "report.json").read_text())
+    assert report["coarser"] == [{"district": "sample", "tile": tile, "level": 1, "missing": [gone.name],
+                                  "drawn": "the finest level of the file that names them"}]
+    assert f"| sample | {tile} | 1 | {gone.name} |" in (results / "report" / "report.md").read_text()
+    log = (results / "logs" / "ingest" / "sample.log").read_text()
+    assert f"WARNING pipeline25d.warnings: UserWarning: {copy / 'Data' / 'Tile_+001_+000' / 'Tile_+001_+000.osgb'}: " \
+           f"1 PagedLOD child file(s) missing" in log and f"{gone.name} (level 1 drawn)" in log

@@ -86,6 +86,31 @@ def test_gcp_markers_centroid_and_occlusion(gl_ctx):
     assert err.max() < 0.15, err
 
 
+def test_markers_on_bare_ground_beside_a_building_only_model(gl_ctx):
+    """A model of a building and a small paved patch, no ground (a buildings-only city): markers
+    with nothing of the model under them (bare ground, the DTM's) are accepted at their analytic
+    positions; one behind the building is hidden, one straddling the patch's edge lies partly over
+    nothing (the model's edge) and one floats 1 m over the patch: those three are rejected."""
+    p = Perspective(0, 45)
+    box = box_part((E0 + 20, N0 + 20, Z0), (E0 + 40, N0 + 30, Z0 + 20))
+    patch = ground_part(E0 + 45, N0 + 5, E0 + 60, N0 + 15, Z0)
+    bare = np.array([[E0 + 8, N0 + 8, Z0], [E0 + 30, N0 + 10, Z0], [E0 + 10, N0 + 40, Z0], [E0 + 50, N0 + 40, Z0]])
+    rejected = np.array([[E0 + 30, N0 + 34, Z0],          # behind the box
+                         [E0 + 45, N0 + 10, Z0],          # half on the patch
+                         [E0 + 52, N0 + 10, Z0 + 1.0]])   # floating over the patch
+    pts = np.vstack([bare, rejected])
+    margin = 8
+    v = view(p, margin)
+    full, sums = TileRenderer(gl_ctx).render_markers([(np.array([E0, N0, Z0]), [box, patch])], v, pts,
+                                                     np.zeros((len(pts), 2)), 6 * GSD, 0.3, 0.1)
+    cands = [GcpCandidate(f"g{i}", x, y, z, 0.0, 0.0, 0.0, "gcp") for i, (x, y, z) in enumerate(pts)]
+    seen = observations(cands, full, sums, (v.extent.xmin, v.extent.ymax), GSD)
+    assert [s.id for s in seen] == [f"g{i}" for i in range(len(bare))]
+    truth = project(bare, p, Z0)
+    err = np.hypot([s.map_x for s in seen] - truth[:, 0], [s.map_y for s in seen] - truth[:, 1]) / GSD
+    assert err.max() < 0.15, err
+
+
 def test_texture_lands_at_its_own_pixels(gl_ctx):
     """A textured square at nadir, one texel per pixel: the render reproduces the image."""
     from PIL import Image

@@ -45,7 +45,7 @@ def validate_schema(config: dict[str, Any], schema_path: Path = SCHEMA_PATH) -> 
 
 def check_semantics(config: dict[str, Any], base_dir: Path = Path(".")) -> None:
     """Checks beyond the schema: CRSs exist, the scene CRS is projected and every input's CRS
-    transforms to it; input files exist and are files."""
+    transforms to it; input files exist and are files; an input's ``side_folders`` are folders."""
     try:
         check_scene_crs(config["crs"])
     except CRSError as exc:
@@ -60,6 +60,9 @@ def check_semantics(config: dict[str, Any], base_dir: Path = Path(".")) -> None:
         for key in ("path", "metadata"):
             if key in spec:
                 _check_readable(base_dir / spec[key], f"inputs.{name}.{key}", dataset_ok=key == "path")
+        for k, folder in enumerate(spec.get("side_folders") or []):
+            if not (base_dir / folder).is_dir():
+                raise ConfigError(f"config key inputs.{name}.side_folders.{k}: {base_dir / folder} is not a folder")
     for key, value in (("terrain", config["terrain"]), ("gcp.source", config["gcp"]["source"])):
         if value not in ("auto", "flat"):
             _check_readable(base_dir / value, key)

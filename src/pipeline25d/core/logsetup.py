@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import signal
 import sys
+import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
 
@@ -19,10 +20,24 @@ def exit_on_sigterm() -> None:
 
 
 def log_to(path: str) -> None:
-    """Log a Snakemake script job to ``path``, and make it stop cleanly on SIGTERM."""
+    """Log a Snakemake script job to ``path`` (its Python warnings too: :func:`warnings_to_log`),
+    and make it stop cleanly on SIGTERM."""
     logging.basicConfig(filename=path, level=logging.INFO, force=True,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    warnings_to_log()
     exit_on_sigterm()
+
+
+def warnings_to_log() -> None:
+    """Every warning shown from now on (a reader's recovered defect, a texture drawn without it, a
+    tile drawn coarser) is a WARNING line of the job's log, logger ``pipeline25d.warnings``, and one
+    line ``pipeline25d: warning: <message>`` on stderr. Without this a job's warnings reached only
+    stderr: not its log, and nowhere at all under ``pipeline25d run`` (which condenses the output)."""
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        logging.getLogger("pipeline25d.warnings").warning("%s: %s", category.__name__, message)
+        print(f"pipeline25d: warning: {message}", file=sys.stderr if file is None else file)
+
+    warnings.showwarning = show
 
 
 @contextmanager

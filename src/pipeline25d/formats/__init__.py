@@ -200,7 +200,8 @@ def load_district_terrain(spec: dict, scene_crs: str, base_dir: Path = Path(".")
 
 
 def _side_folders(spec: dict, base_dir: Path, path: Path) -> list[Path]:
-    """The input's ``side_folders`` (relative to ``base_dir``); ConfigError for one that is not a folder."""
+    """The input's ``side_folders`` (relative to ``base_dir``); ConfigError for one that is not a folder
+    (config.check_semantics refuses it at parse time; this stays for callers that skip the config)."""
     extra = [base_dir / f for f in spec.get("side_folders") or []]
     for folder in extra:
         if not folder.is_dir():

@@ -123,8 +123,7 @@ def read_tiles(path: Path, gsd: float | None, missing_children: str = "coarser")
             said = (f"{root}: {sum(len(c.missing) for c in tile.coarser)} PagedLOD child file(s) missing, drawn "
                     f"coarser than {asked} asks for, at the level of the file that names them: "
                     + ", ".join(f"{name} (level {c.level} drawn)" for c in tile.coarser for name in c.missing))
-            log.warning("%s", said)
-            warnings.warn(said, stacklevel=2)
+            warnings.warn(said, stacklevel=2)      # a job's log has it too (core.logsetup.warnings_to_log)
     if not any(t.levels for t in tiles):
         raise InputFileError(path, f"holds no triangles at gsd {gsd} (an empty OSGB tree)")
     return tiles

@@ -370,7 +370,10 @@ class TileRenderer:
         sums[i] = (count, Σcol, Σrow, agree) with the model drawn first (pixel centres at +0.5,
         row 0 = north). ``agree`` counts marker pixels where the model's surface depth is
         within ``depth_tolerance_m`` of the marker's own: fewer than counts_full means the
-        marker floats above the model (or over a hole) somewhere.
+        marker floats above the model (or over a hole) somewhere. A marker with nothing of the
+        model under any of its pixels stands on bare ground (the DTM where a buildings-only
+        model draws nothing: the scene stage puts sites there only for such models) and agrees
+        whole; one partly over the model and partly over nothing lies on its edge and does not.
         """
         import moderngl
 
@@ -415,7 +418,11 @@ class TileRenderer:
         agree = np.zeros((h, w), dtype=bool)
         agree[rows, cols] = (np.abs(model_depth - marker_depth).astype(np.float64) * (dmax - dmin)
                              <= depth_tolerance_m) & (model_depth < 1.0)
+        over_model = np.zeros((h, w), dtype=bool)
+        over_model[rows, cols] = model_depth < 1.0
         alone_stats = _marker_stats(alone, n, agree)
+        bare = (_marker_stats(alone, n, over_model)[:, 3] == 0) & (alone_stats[:, 0] > 0)
+        alone_stats[bare, 3] = alone_stats[bare, 0]
         full = alone_stats[:, 0].copy()
         full[_overlapping(points, slopes, radius_m, view)] = 0   # one marker hides another: no clean centroid
         sums = _marker_stats(seen, n)

@@ -82,8 +82,10 @@ def scene_setup(lod_indexes: list[str], dsm_path: str | Path, terrain: str, terr
         rules = SiteRules(spacing=gcp_cfg["spacing"], radius=gcp_cfg["marker_px"] * gsd,
                           clearance=gcp_cfg["clearance"], max_height=gcp_cfg["max_height"],
                           max_roughness=gcp_cfg["max_roughness"], max_slope=gcp_cfg["max_slope"])
-        cands = candidates_from_sites(select_sites(dsm, dtm, grid, rules, perspectives),
+        surface = dsm if seed_src is None else with_bare_ground(dsm, dtm, seed_src.read_all(np.float32))
+        cands = candidates_from_sites(select_sites(surface, dtm, grid, rules, perspectives),
                                       gcp_cfg["holdout"], gcp_cfg["seed"])
+        del surface
         if seed_src is not None:
             radius = holdout_radius(rules, grid.res)
             del dtm
@@ -113,6 +115,21 @@ def scene_setup(lod_indexes: list[str], dsm_path: str | Path, terrain: str, terr
     log.info("z0 %.2f m, projection %s, %d GCP candidates (%d check points)", z0, projection, len(cands),
              scene.n_check)
     return scene
+
+
+def with_bare_ground(dsm: np.ndarray, dtm: np.ndarray, seed: np.ndarray) -> np.ndarray:
+    """The surface GCP sites are chosen on: the DSM, and the DTM where the model draws nothing but
+    the ground heights (``seed``, the terrain stage's) hold a value. Only the bases of a
+    buildings-only model give ground there (between its buildings; every other source is a
+    drawn surface): bare ground, whose markers the render draws over an empty map
+    (:meth:`pipeline25d.stages.render.TileRenderer.render_markers`). Without it such a model
+    has no check points at all."""
+    bare = ~np.isfinite(dsm) & np.isfinite(seed)
+    if not bare.any():
+        return dsm
+    out = dsm.copy()
+    out[bare] = dtm[bare]
+    return out
 
 
 def _interpolated_dtm(read, grid, search: int, needed=None) -> np.ndarray:

@@ -1,1 +1,2 @@
-"""Generated scenes with exact truth: the demo city, the rugged city, a CityGML city, an OSGB dataset, bad inputs."""
+"""Generated scenes with exact truth: the demo city, the rugged city, a CityGML city, building-only
+cities, an OSGB dataset, bad inputs."""

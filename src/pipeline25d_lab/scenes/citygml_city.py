@@ -5,7 +5,8 @@ box too), LOD1 courtyard blocks (a roof with a hole, X3DMaterial walls) and a TI
 EPSG:25832), its texture atlas ``city_appearance/atlas.png`` and ``truth.json``, the scene of
 ``config/examples/citygml.yaml``. Options: ``--version 3.0``, ``--crs EPSG:6697`` (the same
 city near Tokyo, written latitude first), ``--appearance local|start|end``, ``--grid NX NY``
-(``--grid 320 320`` makes about 100k buildings, ~1 GB). ``--memory SIZES`` measures the peak
+(``--grid 320 320`` makes about 100k buildings, ~1 GB), ``--ade`` (ADE attributes under undeclared
+prefixes). ``--memory SIZES`` measures the peak
 RSS of reading files of growing size (:func:`memory_benchmark`).
 
 The atlas's top half (v in [0.5, 1]) is roof tiles (reds), its bottom half facades (light
@@ -275,6 +276,27 @@ class _Writer:
                 f"<gml:upperCorner>{hi}</gml:upperCorner></gml:Envelope></gml:boundedBy>\n")
 
 
+#: Application Domain Extension elements a real city file carries (PLATEAU's ``uro:``, the energy
+#: ADE), written by ``write_city(ade=True)`` under prefixes the file never declares: an element and an
+#: attribute in each building's attributes (outside its geometry), as CityGML tools meet them
+ADE_PREFIXES = ("energy", "uro")
+
+
+def ade_attributes(gid: str) -> str:
+    """A building's ADE attributes under the undeclared :data:`ADE_PREFIXES` (deterministic per id)."""
+    area = 80 + sum(map(ord, gid)) % 40
+    return (f"<energy:isHeated>{'true' if len(gid) % 2 else 'false'}</energy:isHeated>"
+            f'<uro:buildingDetails><uro:BuildingDetails uro:surveyYear="2020">'
+            f'<uro:buildingRoofEdgeArea uom="m2">{area}</uro:buildingRoofEdgeArea>'
+            f"</uro:BuildingDetails></uro:buildingDetails>")
+
+
+def _with_ade(member: str, gid: str) -> str:
+    """``member`` (one bldg:Building) with :func:`ade_attributes` right after its start tag."""
+    start = f'<bldg:Building gml:id="{gid}">'
+    return member.replace(start, start + ade_attributes(gid), 1)
+
+
 def _st(uv: np.ndarray) -> str:
     return " ".join(f"{s:g} {t:g}" for s, t in uv)
 
@@ -285,12 +307,14 @@ def _srs_name(crs: str) -> str:
 
 
 def write_city(out_dir: str | Path, crs: str = "EPSG:25832", version: str = "2.0", appearance: str = "end",
-               grid: tuple[int, int] = (4, 4), tin_cells: int = 8, name: str = "city") -> dict:
+               grid: tuple[int, int] = (4, 4), tin_cells: int = 8, name: str = "city", ade: bool = False) -> dict:
     """Write ``<name>.gml``, ``<name>_appearance/atlas.png`` and return (and write) the truth.
 
     ``grid``: lots in x and y, ``SPACING`` m apart, houses and courtyard blocks alternating
     (a chessboard). ``appearance``: global at the ``start`` or ``end`` of the file, or ``local``
     (inside each house). The TINRelief (``tin_cells``² squares, 2 triangles each) covers the lots.
+    ``ade``: every building carries :func:`ade_attributes` under prefixes the file never declares
+    (the file's geometry and appearances are the same as without).
     """
     out = Path(out_dir)
     (out / f"{name}_appearance").mkdir(parents=True, exist_ok=True)
@@ -335,6 +359,7 @@ def write_city(out_dir: str | Path, crs: str = "EPSG:25832", version: str = "2.0
                     materials += [m.gid for m in surfaces if "_w" in m.gid or "_c" in m.gid]
                     member = w.block(gid, surfaces)
                     truth["blocks"].append({"id": gid, "x": x, "y": y, "z": z})
+                member = _with_ade(member, gid) if ade else member
                 f.write(f"<core:cityObjectMember>{member}</core:cityObjectMember>\n")
         app_member = "core:appearanceMember" if version == "3.0" else "app:appearanceMember"
         if appearance != "local" or materials:
@@ -408,6 +433,7 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     ap.add_argument("--version", default="2.0", choices=sorted(NS))
     ap.add_argument("--appearance", default="end", choices=["start", "end", "local"])
     ap.add_argument("--grid", type=int, nargs=2, default=(4, 4))
+    ap.add_argument("--ade", action="store_true", help="ADE attributes under undeclared prefixes (energy:, uro:)")
     ap.add_argument("--memory", type=int, nargs="+", help="lots per side of each benchmark file")
     args = ap.parse_args(argv)
     if args.memory:
@@ -415,7 +441,7 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
         print(json.dumps(rows, indent=1))
         return 0
     truth = write_city(args.out, args.crs, args.version, args.appearance, tuple(args.grid),
-                       tin_cells=max(2, math.ceil(max(args.grid) * 2)))
+                       tin_cells=max(2, math.ceil(max(args.grid) * 2)), ade=args.ade)
     print(f"{args.out / 'city.gml'}: {len(truth['houses'])} houses, {len(truth['blocks'])} blocks")
     return 0
 
