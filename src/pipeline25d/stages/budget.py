@@ -29,7 +29,7 @@ import numpy as np
 from pipeline25d.core.errors import ConfigError
 from pipeline25d.geometry.camera import pixel_size, projected_box
 from pipeline25d.geometry.perspectives import Perspective, expand
-from pipeline25d.stages.records import camera_of, tile_span
+from pipeline25d.stages.records import camera_of, index_range, tile_span
 
 #: the schema's defaults, for callers without a validated config (the plan stage's tests)
 DEFAULT_LIMITS = {"max_map_pixels": 1.0e10, "max_tiles": 200_000, "max_chunks": 100_000,
@@ -68,12 +68,6 @@ def settings(config: dict[str, Any]) -> dict[str, Any]:
             "limits": dict(config["limits"])}
 
 
-def grid_cells(lo: float, hi: float, step: float) -> int:
-    """Cells of a grid of ``step`` (origin 0) that [lo, hi] overlaps, as plan._index_range counts them."""
-    first = math.floor(lo / step)
-    return max(math.ceil(hi / step), first + 1) - first
-
-
 def perspective_work(p: Perspective, extent: np.ndarray, gsd: float, tile_size: int,
                      projection: str) -> tuple[float, int]:
     """(map pixels, tiles) of perspective ``p`` over the (2, 3) ``extent``: its projected box (with
@@ -83,7 +77,7 @@ def perspective_work(p: Perspective, extent: np.ndarray, gsd: float, tile_size: 
     box, _ = projected_box(extent, p, float(extent[0][2]), None, camera)
     span = tile_span(pixel, tile_size)
     pixels = max(box.width, pixel) * max(box.height, pixel) / pixel ** 2
-    return pixels, grid_cells(box.xmin, box.xmax, span) * grid_cells(box.ymin, box.ymax, span)
+    return pixels, len(index_range(box.xmin, box.xmax, span)) * len(index_range(box.ymin, box.ymax, span))
 
 
 def terrain_resolution(ground: dict[str, Any], extent_xy: tuple[float, float, float, float], gsd: float) -> float:
@@ -108,7 +102,7 @@ def estimate(work: dict[str, Any], extent: np.ndarray, source: str) -> Work:
     res = terrain_resolution(work["ground"], (x0, y0, x1, y1), work["gsd"])
     cells = math.ceil(max(x1 - x0, res) / res) * math.ceil(max(y1 - y0, res) / res)
     size = float(work["chunk_size"])
-    chunks = grid_cells(x0, x1, size) * grid_cells(y0, y1, size)
+    chunks = len(index_range(x0, x1, size)) * len(index_range(y0, y1, size))
     return Work((x0, y0, z0, x1, y1, z1), source, pixels, tiles, render_jobs, chunks, cells)
 
 

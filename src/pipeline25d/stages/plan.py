@@ -43,6 +43,7 @@ from pipeline25d.stages.records import (
     Scene,
     Tile,
     camera_of,
+    index_range,
     tile_span,
 )
 from pipeline25d.stages.scene import chunk_ground
@@ -50,20 +51,6 @@ from pipeline25d.stages.scene import chunk_ground
 log = logging.getLogger(__name__)
 
 DEPTH_MARGIN_M = 1.0   # keeps surfaces at a tile's depth range ends off its near/far planes
-
-
-
-
-
-
-
-
-
-def _index_range(lo: float, hi: float, span: float) -> range:
-    """Grid cells of ``span`` that [lo, hi] overlaps with positive length (one for lo == hi): a box
-    ending on a cell edge does not reach the next cell, which would get an empty job."""
-    first = math.floor(lo / span)
-    return range(first, max(math.ceil(hi / span), first + 1))
 
 
 def plan_perspective(p: Perspective, chunks: Sequence[LodChunk], candidates: Sequence[GcpCandidate], z0: float,
@@ -100,8 +87,8 @@ def plan_perspective(p: Perspective, chunks: Sequence[LodChunk], candidates: Seq
         if ground is not None:
             entry["ground"] = ground.digest   # digest of the DTM under the chunk
         entries.append(entry)
-        for r in _index_range(box.ymin, box.ymax, span):
-            for c in _index_range(box.xmin, box.xmax, span):
+        for r in index_range(box.ymin, box.ymax, span):
+            for c in index_range(box.xmin, box.xmax, span):
                 tile = tiles.setdefault((r, c), {"row": r, "col": c, "chunks": [], "depth_range": [math.inf, -math.inf],
                                                  "content": [math.inf, math.inf, -math.inf, -math.inf]})
                 tile["chunks"].append(entry)

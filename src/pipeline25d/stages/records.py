@@ -12,6 +12,7 @@ is a new one (``dataclasses.replace``).
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -167,6 +168,13 @@ class Scene:
 def tile_span(pixel: float, tile_size: int) -> float:
     """A tile's edge in metres: ``tile_size`` pixels of ``pixel`` metres."""
     return pixel * tile_size
+
+
+def index_range(lo: float, hi: float, span: float) -> range:
+    """Cells of a grid of ``span`` (origin 0) that [lo, hi] overlaps with positive length (one for
+    lo == hi): a box ending on a cell edge does not reach the next cell, which would get an empty job."""
+    first = math.floor(lo / span)
+    return range(first, max(math.ceil(hi / span), first + 1))
 
 
 def camera_of(projection: str | None) -> str:
