@@ -156,7 +156,7 @@ def test_a_gsd_typo_is_refused_with_the_numbers_the_key_and_the_likely_typo():
     assert "limits.max_map_pixels" in text and "gsd 1e-05 m" in text and "100 × 120 m" in text
     assert f"{pixels:.2g} pixels" in text and "1e+10" in text and "typo" in text
     budget.check(_work(), budget.estimate(_work(), box, "a test box"))      # the same scene at 0.5 m runs
-    more = _work(gsd=0.00001, limits={"max_map_pixels": 1e15, "max_tiles": 10 ** 12})
+    more = _work(gsd=0.00001, limits={"max_map_pixels": 1e15, "max_tiles": 10 ** 12, "max_output_bytes": 1e20})
     budget.check(more, budget.estimate(more, box, "a test box"))             # raised limits let it through
 
 
@@ -189,6 +189,20 @@ def test_values_that_would_exhaust_the_machine_are_schema_errors(changes, key):
     assert key in str(err.value)
 
 
+def test_the_bytes_estimate_is_every_rendered_and_published_pixel_at_four_bytes():
+    from pipeline25d.stages import budget
+
+    box = [[0.0, 0.0, 0.0], [100.0, 120.0, 30.0]]
+    work = _work()
+    found = budget.estimate(work, box, "a test box")
+    rendered = sum(found.tiles.values()) * work["tile_size"] ** 2
+    assert found.output_bytes == pytest.approx(4 * (rendered + found.total_pixels * (1 + 4 / 3)))
+    assert f"at most {found.output_bytes / 1e9:.3g} GB written" in found.summary()
+    tight = _work(limits={"max_output_bytes": found.output_bytes / 2})
+    with pytest.raises(ConfigError, match=r"limits\.max_output_bytes: gsd 0\.5 m on a 100 × 120 m scene writes up to"):
+        budget.check(tight, budget.estimate(tight, box, "a test box"))
+
+
 def test_the_extent_before_ingest_is_the_obj_vertices_box_with_offset(tmp_path):
     from pipeline25d.stages.extent import cheap_extent
 
@@ -197,9 +211,9 @@ def test_the_extent_before_ingest_is_the_obj_vertices_box_with_offset(tmp_path):
     cfg = {"crs": "EPSG:25832", "inputs": {"a": {"path": "a.obj"}, "b": {"path": "b.obj", "offset": [10, 20, 30]}}}
     extent, source = cheap_extent(cfg, tmp_path / "results", tmp_path)
     assert extent.tolist() == [[-4, -8, 3], [11, 21, 31]] and source == "the OBJ vertices"
-    cfg["inputs"]["c"] = {"path": "c.ply"}
-    (tmp_path / "c.ply").write_text("ply\n")
-    assert cheap_extent(cfg, tmp_path / "results", tmp_path) is None      # a PLY is not scanned
+    cfg["inputs"]["c"] = {"path": "c.glb"}
+    (tmp_path / "c.glb").write_bytes(b"glTF")
+    assert cheap_extent(cfg, tmp_path / "results", tmp_path) is None      # a glb is not boxed
 
 
 def test_a_dtm_that_is_not_a_raster_is_refused_naming_file_and_key(tmp_path):

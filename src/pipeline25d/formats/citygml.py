@@ -109,6 +109,17 @@ def read_citygml_terrain(path: Path, spec: dict) -> Loaded:
     return reader.loaded(lambda t: t == "TINRelief" if has_tin else t in _GROUND_TYPES)
 
 
+def _horizontal(crs_name: str):
+    crs = parse_crs(crs_name)
+    return crs.sub_crs_list[0] if crs.is_compound else crs
+
+
+def latitude_first(crs_name: str) -> bool:
+    """Whether coordinates in ``crs_name``'s own axis order give latitude first (EPSG:6697, 4326, 4979)."""
+    horizontal = _horizontal(crs_name)
+    return horizontal.is_geographic and horizontal.axis_info[0].direction.lower() in ("north", "south")
+
+
 def is_citygml(head: bytes) -> bool:
     """Whether the first bytes of a file look like a CityGML CityModel."""
     return b"CityModel" in head and b"opengis.net/citygml/" in head
@@ -293,14 +304,8 @@ class _Reader:
             self._decide_axes()
 
     def _decide_axes(self) -> None:
-        self.swap = False
-        if self.crs is None:
-            return
-        crs = parse_crs(self.crs)
-        horizontal = crs.sub_crs_list[0] if crs.is_compound else crs
-        if horizontal.is_geographic:
-            first = horizontal.axis_info[0].direction.lower()
-            self.swap = first in ("north", "south")
+        self.swap = self.crs is not None and latitude_first(self.crs)
+        if self.crs is not None and _horizontal(self.crs).is_geographic:
             self.scale = None  # set from the first vertex (cos latitude)
 
     # -- appearances -------------------------------------------------------

@@ -82,6 +82,13 @@ def load_cityjson_terrain(path: str | Path, scene_crs: str, src_crs: str | None 
     return in_scene(read_cityjson_terrain(Path(path), {"crs": src_crs}), scene_crs, path)
 
 
+def vertices_and_crs(path: str | Path, src_crs: str | None = None) -> tuple[np.ndarray, str]:
+    """Every vertex of the file's documents (transform applied, float64) and their CRS
+    (``src_crs``, else ``metadata.referenceSystem``): its extent without triangulating it."""
+    model = _read_model(Path(path))
+    return np.concatenate([c.base for c in model.chunks]), src_crs or source_crs(model.header, Path(path))
+
+
 # --------------------------------------------------------------------------- reading
 
 

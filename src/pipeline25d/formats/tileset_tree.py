@@ -186,7 +186,7 @@ def _json_tile(tile: dict, json_path: Path, parent_transform: np.ndarray, parent
                files: _Files, depth: int = 0) -> _Tile:
     """A :class:`_Tile` from a tileset JSON tile object (children built on demand)."""
     own = tile.get("transform")
-    transform = parent_transform if own is None else parent_transform @ _matrix(own, json_path)
+    transform = parent_transform if own is None else parent_transform @ tile_matrix(own, json_path)
     refine = str(tile.get("refine", parent_refine)).upper()
     if "implicitTiling" in tile:
         return _implicit_root(tile, json_path, transform, refine, files.folder, depth)
@@ -229,7 +229,7 @@ def _root_of(tileset: dict, path: Path) -> dict:
     return root
 
 
-def _matrix(values: list | None, where: Path) -> np.ndarray:
+def tile_matrix(values: list | None, where: Path) -> np.ndarray:
     """4x4 float64 matrix from a column-major 16-number list (identity when absent)."""
     if values is None:
         return np.eye(4)

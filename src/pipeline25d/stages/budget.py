@@ -10,7 +10,11 @@ scene's extent (x, y, z bounds in the scene CRS) and the config alone, in O(pers
 * tiles per perspective: the cells of the global tile grid that box overlaps (an upper bound
   of the non-empty tiles a plan lists), and the render jobs they make at most;
 * chunks: the cells of the chunk grid over the extent (an upper bound of the chunks ingest makes);
-* terrain cells: the DSM/DTM grid at ``ground.resolution`` (or the cloth grid, if finer).
+* terrain cells: the DSM/DTM grid at ``ground.resolution`` (or the cloth grid, if finer);
+* bytes written, at most: every render tile, every map and the web pyramid over it (4/3 of the
+  maps' pixels, all zoom levels) at 4 bytes (RGBA) a pixel before compression. Compression makes
+  the real figure smaller (zstd render tiles and COGs, webp tiles: about 2 to 3 times on a
+  textured city); the bound is what a disk must be ready for.
 
 :func:`check` refuses work beyond a limit with one paragraph: what was asked, the limit, the
 key that raises it and the likely cause. It runs at parse time when the extent is cheaply known
@@ -33,7 +37,9 @@ from pipeline25d.stages.records import camera_of, index_range, tile_span
 
 #: the schema's defaults, for callers without a validated config (the plan stage's tests)
 DEFAULT_LIMITS = {"max_map_pixels": 1.0e10, "max_tiles": 200_000, "max_chunks": 100_000,
-                  "max_terrain_cells": 2.5e8}
+                  "max_terrain_cells": 2.5e8, "max_output_bytes": 1.0e12}
+BYTES_PER_PIXEL = 4          # RGBA, before compression
+PYRAMID = 4 / 3              # a web pyramid's pixels over its finest level's
 
 
 @dataclass(frozen=True)
@@ -47,15 +53,24 @@ class Work:
     render_jobs: int
     chunks: int
     terrain_cells: int
+    tile_size: int
 
     @property
     def total_pixels(self) -> float:
         return float(sum(self.map_pixels.values()))
 
+    @property
+    def output_bytes(self) -> float:
+        """At most this many bytes written: render tiles, maps and web pyramid (module docstring)."""
+        rendered = sum(self.tiles.values()) * self.tile_size ** 2
+        return BYTES_PER_PIXEL * (rendered + (1 + PYRAMID) * self.total_pixels)
+
     def summary(self) -> str:
-        """``9 maps, 2.3e+08 px, 1350 tiles (about 90 render jobs), 36 chunks, 5.2e+05 terrain cells``."""
+        """``9 maps, 2.3e+08 px, 1350 tiles (about 90 render jobs), 36 chunks, 5.2e+05 terrain cells,
+        at most 2.1 GB written``."""
         return (f"{len(self.map_pixels)} maps, {self.total_pixels:.2g} px, {sum(self.tiles.values())} tiles "
-                f"(about {self.render_jobs} render jobs), {self.chunks} chunks, {self.terrain_cells:.2g} terrain cells")
+                f"(about {self.render_jobs} render jobs), {self.chunks} chunks, {self.terrain_cells:.2g} terrain "
+                f"cells, at most {self.output_bytes / 1e9:.3g} GB written")
 
 
 def settings(config: dict[str, Any]) -> dict[str, Any]:
@@ -103,7 +118,7 @@ def estimate(work: dict[str, Any], extent: np.ndarray, source: str) -> Work:
     cells = math.ceil(max(x1 - x0, res) / res) * math.ceil(max(y1 - y0, res) / res)
     size = float(work["chunk_size"])
     chunks = len(index_range(x0, x1, size)) * len(index_range(y0, y1, size))
-    return Work((x0, y0, z0, x1, y1, z1), source, pixels, tiles, render_jobs, chunks, cells)
+    return Work((x0, y0, z0, x1, y1, z1), source, pixels, tiles, render_jobs, chunks, cells, work["tile_size"])
 
 
 def check(work: dict[str, Any], found: Work) -> None:
@@ -129,6 +144,9 @@ def check(work: dict[str, Any], found: Work) -> None:
          f"the terrain grid (ground.resolution {work['ground']['resolution']}, cloth_resolution "
          f"{work['ground'].get('cloth_resolution', 'auto')}) on {scene} has {found.terrain_cells:.2g} cells",
          "Is ground.resolution or ground.cloth_resolution a typo? (auto: 2·gsd, 0.5 to 5 m)"),
+        (found.output_bytes, "max_output_bytes",
+         f"gsd {work['gsd']:g} m on {scene} writes up to {found.output_bytes:.2g} bytes (render tiles, "
+         f"{len(found.map_pixels)} maps and their web pyramids, before compression)", gsd_typo),
     ]
     for value, key, asked, cause in problems:
         if value > limits[key]:
