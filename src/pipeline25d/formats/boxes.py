@@ -26,6 +26,7 @@ from __future__ import annotations
 import re
 import tempfile
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -222,11 +223,10 @@ def _osgb(path: Path, spec: dict) -> tuple | None:
     if len(indexed) != len(roots):
         return None
     ends = {min(indexed, key=lambda t: t[0][axis] * sign)[1] for axis in (0, 1) for sign in (1, -1)}
-    points = []
-    with tempfile.TemporaryDirectory(prefix="pipeline25d-box-") as tmp:
-        for k, root in enumerate(sorted(ends)):
-            tile = read_tile(root, _COARSEST, Path(tmp) / f"t{k}", path, "coarser")
-            points += [p.vertices for p in tile.parts]
+    with tempfile.TemporaryDirectory(prefix="pipeline25d-box-") as tmp, ThreadPoolExecutor(len(ends)) as pool:
+        tiles = pool.map(lambda k_root: read_tile(k_root[1], _COARSEST, Path(tmp) / f"t{k_root[0]}", path, "coarser"),
+                         enumerate(sorted(ends)))
+        points = [p.vertices for tile in tiles for p in tile.parts]
     if not points:
         return None
     crs, origin = None, np.zeros(3)
