@@ -32,7 +32,6 @@ set of GL programs, one upload of the chunks and one texture cache.
 
 from __future__ import annotations
 
-import io
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -46,6 +45,8 @@ from pipeline25d.core.mesh import MeshPart
 from pipeline25d.geometry.camera import clip_matrix
 from pipeline25d.geometry.perspectives import Perspective
 from pipeline25d.geometry.sun import SunFrame
+from pipeline25d.stages.textures import texture_anisotropy
+from pipeline25d.stages.textures import upload as upload_texture
 
 LIGHT_DIRECTION = np.array([0.45, 0.65, -0.62]) / np.linalg.norm([0.45, 0.65, -0.62])
 MARKER_SEGMENTS = 32
@@ -170,14 +171,18 @@ def create_context():
 
 
 def renderer_info(ctx) -> dict[str, str]:
-    return {k: ctx.info[k] for k in ("GL_VENDOR", "GL_RENDERER", "GL_VERSION")}
+    """The driver's names and the texture anisotropy a renderer on it uses."""
+    info = {k: ctx.info[k] for k in ("GL_VENDOR", "GL_RENDERER", "GL_VERSION")}
+    return {**info, "texture_anisotropy": f"{texture_anisotropy(ctx):g}"}
 
 
 class TileRenderer:
     """Renders chunks into tiles; one instance per GL context (programs compiled once)."""
 
-    def __init__(self, ctx, ambient: float = 0.45, samples: int = 4, shadows: bool = False):
+    def __init__(self, ctx, ambient: float = 0.45, samples: int = 4, shadows: bool = False,
+                 anisotropy: float | None = None):
         self.ctx = ctx
+        self.anisotropy = texture_anisotropy(ctx) if anisotropy is None else anisotropy
         self.ambient = ambient
         self.samples = min(samples, ctx.max_samples) if samples else 0
         self.shadows = shadows
@@ -187,18 +192,9 @@ class TileRenderer:
 
     # -- resources -----------------------------------------------------------
     def _texture(self, data: bytes):
-        """A GL texture for encoded image bytes, uploaded once per distinct image."""
+        """A GL texture for encoded image bytes, uploaded once per distinct image (:mod:`.textures`)."""
         if data not in self._textures:
-            import moderngl
-            from PIL import Image
-
-            img = Image.open(io.BytesIO(data)).convert("RGBA").transpose(Image.Transpose.FLIP_TOP_BOTTOM)
-            tex = self.ctx.texture(img.size, 4, img.tobytes())
-            tex.build_mipmaps()
-            tex.repeat_x = tex.repeat_y = True
-            # Trilinear only: llvmpipe's anisotropic filter blurs even 1:1 texel-to-pixel mappings.
-            tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
-            self._textures[data] = tex
+            self._textures[data] = upload_texture(self.ctx, data, self.anisotropy)
         return self._textures[data]
 
     def _vao(self, positions: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None,
