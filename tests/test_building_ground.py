@@ -28,6 +28,7 @@ def run_stages(tmp_path: Path, inputs: dict, gsd: float = 0.5, edit_ground=None)
     from pipeline25d.stages.ingest import ingest
     from pipeline25d.stages.lod import build_lod
     from pipeline25d.stages.scene import scene_setup
+    from pipeline25d.stages.lod import lod_chunks
     from pipeline25d.stages.terrain.build import build_terrain
 
     cfg = validate_schema({"scene": "t", "crs": CRS, "inputs": inputs, "gsd": gsd, "lod": {"max_levels": 1}})
@@ -39,7 +40,7 @@ def run_stages(tmp_path: Path, inputs: dict, gsd: float = 0.5, edit_ground=None)
         build_lod(chunks, lod, max_error, cfg["lod"]["max_levels"])
         lods.append(str(lod))
     t = tmp_path / "terrain"
-    record = build_terrain(lods, inputs, CRS, gsd, "auto", cfg["ground"], t / "dsm.tif", t / "ground.tif",
+    record = build_terrain(lod_chunks(lods), inputs, CRS, gsd, "auto", cfg["ground"], t / "dsm.tif", t / "ground.tif",
                            t / "terrain.json")
     if edit_ground is not None:
         edit_ground(t / "ground.tif")

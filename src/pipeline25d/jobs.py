@@ -44,11 +44,13 @@ def lod_job(job: Job) -> None:
 
 def terrain_job(job: Job) -> None:
     from pipeline25d.stages.budget import check_ingested
+    from pipeline25d.stages.lod import lod_chunks
     from pipeline25d.stages.terrain.build import build_terrain
 
     p = job.params
-    log.info("work asked for: %s", check_ingested(dict(p.work), list(job.input.lods)).summary())
-    build_terrain(list(job.input.lods), dict(p.inputs), p.crs, p.gsd, p.terrain, dict(p.ground), job.output.dsm,
+    chunks = lod_chunks(list(job.input.lods))
+    log.info("work asked for: %s", check_ingested(dict(p.work), chunks).summary())
+    build_terrain(chunks, dict(p.inputs), p.crs, p.gsd, p.terrain, dict(p.ground), job.output.dsm,
                   _first(job.output.ground), job.output.meta)
 
 

@@ -25,15 +25,17 @@ and in each plan job before any tile is listed.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from pipeline25d.core.errors import ConfigError
+from pipeline25d.core.grid import Grid
 from pipeline25d.geometry.camera import pixel_size, projected_box
 from pipeline25d.geometry.perspectives import Perspective, expand
-from pipeline25d.stages.records import camera_of, index_range, tile_span
+from pipeline25d.stages.records import LodChunk, camera_of, index_range, tile_span
 
 #: the schema's defaults, for callers without a validated config (the plan stage's tests)
 DEFAULT_LIMITS = {"max_map_pixels": 1.0e10, "max_tiles": 200_000, "max_chunks": 100_000,
@@ -115,7 +117,8 @@ def estimate(work: dict[str, Any], extent: np.ndarray, source: str) -> Work:
     block = work["block"]
     render_jobs = sum(math.ceil(n / block ** 2) for n in tiles.values())
     res = terrain_resolution(work["ground"], (x0, y0, x1, y1), work["gsd"])
-    cells = math.ceil(max(x1 - x0, res) / res) * math.ceil(max(y1 - y0, res) / res)
+    grid = Grid.covering((x0, y0, x1, y1), res)            # the grid the terrain stage makes
+    cells = grid.width * grid.height
     size = float(work["chunk_size"])
     chunks = len(index_range(x0, x1, size)) * len(index_range(y0, y1, size))
     return Work((x0, y0, z0, x1, y1, z1), source, pixels, tiles, render_jobs, chunks, cells, work["tile_size"])
@@ -155,11 +158,11 @@ def check(work: dict[str, Any], found: Work) -> None:
                               "in the config.")
 
 
-def check_ingested(work: dict[str, Any], lod_indexes: list[str]) -> Work:
+def check_ingested(work: dict[str, Any], chunks: Sequence[LodChunk]) -> Work:
     """:func:`check` over the ingested chunks' extent (the terrain job, before any grid is made)."""
-    from pipeline25d.stages.lod import lod_chunks, scene_bounds
+    from pipeline25d.stages.lod import scene_bounds
 
-    _, lo, hi = scene_bounds(lod_chunks(lod_indexes))
+    _, lo, hi = scene_bounds(chunks)
     found = estimate(work, np.array([lo, hi]), "the ingested chunks")
     check(work, found)
     return found

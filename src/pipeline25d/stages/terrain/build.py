@@ -4,20 +4,22 @@ own terrain, else their buildings' bases and CSF)."""
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from pipeline25d.core.atomic import write_json
 from pipeline25d.core.errors import GroundError
-from pipeline25d.stages.lod import chunk_loaders, lod_chunks, scene_bounds
+from pipeline25d.stages.lod import chunk_loaders, scene_bounds
+from pipeline25d.stages.records import LodChunk
 
 log = logging.getLogger(__name__)
 
 
-def build_terrain(lod_indexes: list[str], inputs: dict, scene_crs: str, gsd: float, terrain: str, ground_cfg: dict,
+def build_terrain(chunks: Sequence[LodChunk], inputs: dict, scene_crs: str, gsd: float, terrain: str, ground_cfg: dict,
                   out_dsm: str | Path, out_ground: str | Path | None, out_json: str | Path) -> dict:
-    """Render the scene's DSM; with ``terrain: auto`` also find its ground cells (see :mod:`pipeline25d.stages.terrain`).
+    """Render the DSM of the LOD ``chunks``; with ``terrain: auto`` also find its ground cells (see :mod:`pipeline25d.stages.terrain`).
 
     ``out_ground`` holds the ground heights (NaN elsewhere); the scene stage interpolates
     the DTM from it once it knows the check points, which it holds out of the DTM. Both
@@ -28,7 +30,6 @@ def build_terrain(lod_indexes: list[str], inputs: dict, scene_crs: str, gsd: flo
     from pipeline25d.core.grid import Grid
     from pipeline25d.stages.terrain.dsm import auto_resolution, height_map_tiles
 
-    chunks = lod_chunks(lod_indexes)
     _, lo, hi = scene_bounds(chunks)
     bounds_xy = (lo[0], lo[1], hi[0], hi[1])
     res = ground_cfg["resolution"]
