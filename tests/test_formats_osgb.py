@@ -343,3 +343,39 @@ def test_a_dataset_with_a_missing_child_file_runs_to_maps_drawn_at_the_finest_le
     log = (results / "logs" / "ingest" / "sample.log").read_text()
     assert f"WARNING pipeline25d.warnings: UserWarning: {copy / 'Data' / 'Tile_+001_+000' / 'Tile_+001_+000.osgb'}: " \
            f"1 PagedLOD child file(s) missing" in log and f"{gone.name} (level 1 drawn)" in log
+
+
+def test_a_dataset_is_ingested_tile_by_tile_into_the_chunks_of_a_whole_read(dataset, tmp_path, monkeypatch):
+    """Pieces (one tile at a time) and a spool that holds nothing in memory give the chunk files and
+    index that writing the dataset read whole gives, byte for byte."""
+    from pipeline25d.formats import load_district
+    from pipeline25d.stages import ingest
+
+    spec = {"path": str(dataset)}
+    whole = tmp_path / "whole" / "index.json"
+    ingest.write_chunks(load_district(spec, "EPSG:32650", gsd=0.5), "d", 40.0, whole.parent, whole)
+    monkeypatch.setattr(ingest, "SPOOL_BYTES", 0)           # every piece's share goes to the spool
+    pieces = tmp_path / "pieces" / "index.json"
+    index = ingest.ingest(spec, "d", "EPSG:32650", 40.0, 0.0, pieces, gsd=0.5)
+    assert index == json.loads(whole.read_text()) and len(index["chunks"]) > 4
+    for name in index["chunks"]:
+        assert (pieces.parent / f"{name}.npz").read_bytes() == (whole.parent / f"{name}.npz").read_bytes()
+    assert not list(pieces.parent.glob(".spool-*"))          # the spool is gone
+
+
+def test_tiles_are_read_as_they_are_taken(copy, monkeypatch):
+    """With one worker, taking the first of four tiles has read two (the next one is under way):
+    memory follows the tiles in flight, not the dataset."""
+    from pipeline25d.formats import osgb
+
+    for k in (2, 3):                                    # two more tiles, copies of the second
+        tile = copy / "Data" / f"Tile_+00{k}_+000"
+        shutil.copytree(copy / "Data" / "Tile_+001_+000", tile)
+        (tile / "Tile_+001_+000.osgb").rename(tile / f"Tile_+00{k}_+000.osgb")
+    calls = []
+    real = osgb.read_tile
+    monkeypatch.setattr(osgb, "WORKERS", 1)
+    monkeypatch.setattr(osgb, "read_tile", lambda *a, **k: calls.append(a[0].stem) or real(*a, **k))
+    tiles = osgb.iter_tiles(copy, 0.5)
+    assert next(tiles).name == "Tile_+000_+000" and len(calls) == 2
+    assert [t.name for t in tiles] == [f"Tile_+00{k}_+000" for k in (1, 2, 3)] and len(calls) == 4

@@ -9,6 +9,8 @@ ContextCapture metadata and the reprojection into the scene CRS are applied once
 CityJSON) refuses ``offset``/``metadata``; one that carries its own ground gives a
 ``terrain`` loader, and one with building objects a ``buildings`` loader, which
 ``terrain: auto`` uses (:func:`load_district_terrain`, :func:`load_district_buildings`).
+A format whose inputs come in pieces (an OSGB dataset's tiles) gives a ``pieces`` loader, which
+ingest takes a piece at a time (:func:`district_pieces`), so its memory follows a piece.
 
 A new format plugs in with one entry in :data:`READERS` (and its suffixes in
 :data:`SUFFIXES`).
@@ -18,7 +20,7 @@ from __future__ import annotations
 
 import json
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -42,6 +44,7 @@ class Reader:
     georeferenced: bool = False
     terrain: Callable[[Path, dict], Loaded] | None = None
     buildings: Callable[[Path, dict], "Buildings"] | None = None
+    pieces: Callable[[Path, dict, Detail], Iterator[Loaded]] | None = None   # ``load`` a piece at a time
 
 
 def _mesh_file(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
@@ -86,7 +89,7 @@ READERS: dict[str, Reader] = {
     "citygml": Reader(_lazy("citygml", "read_citygml"), georeferenced=True,
                       terrain=_lazy("citygml", "read_citygml_terrain"),
                       buildings=_lazy("citygml", "read_citygml_buildings")),
-    "osgb": Reader(_lazy("osgb", "read_osgb")),
+    "osgb": Reader(_lazy("osgb", "read_osgb"), pieces=_lazy("osgb", "read_osgb_pieces")),
     "3ds": Reader(_lazy("threeds", "read_3ds")),
 }
 
@@ -158,6 +161,16 @@ def load_district(spec: dict, scene_crs: str, max_geometric_error: float | None 
     side_folders (see config/schema.yaml). A texture that is missing or not an image is an InputFileError
     unless ``missing_textures`` is ``untextured`` (then its parts are drawn without it).
     """
+    pieces = list(district_pieces(spec, scene_crs, max_geometric_error, base_dir, gsd, whole=True))
+    if len(pieces) == 1:
+        return pieces[0]
+    return Mesh([p for m in pieces for p in m.parts], pieces[0].source, tuple(c for m in pieces for c in m.coarser))
+
+
+def district_pieces(spec: dict, scene_crs: str, max_geometric_error: float | None = None,
+                    base_dir: Path = Path("."), gsd: float | None = None, whole: bool = False) -> Iterator[Mesh]:
+    """:func:`load_district` a piece at a time where the format has pieces (an OSGB dataset's
+    tiles; memory then follows a piece, not the input), else (or with ``whole``) in one piece."""
     path, fmt, reader = reader_of(spec, base_dir)
     offset = np.asarray(spec.get("offset", [0.0, 0.0, 0.0]), dtype=np.float64)
     spec = dict(spec)
@@ -170,16 +183,21 @@ def load_district(spec: dict, scene_crs: str, max_geometric_error: float | None 
         # these formats carry their own georeferencing; a silently ignored offset would misplace the map
         placed_by_offset = ", ".join(f for f, r in READERS.items() if not r.georeferenced)
         raise ConfigError(f"{path}: offset/metadata apply to mesh files ({placed_by_offset}), not {fmt}")
+    detail = Detail(max_geometric_error, gsd)
     with warnings.catch_warnings(), side_folders(_side_folders(spec, base_dir, path)):
         if spec.get("missing_textures", "error") == "error":
             warnings.simplefilter("error", MissingTextureWarning)
         try:
-            loaded = reader.load(path, spec, Detail(max_geometric_error, gsd))
+            if reader.pieces is None or whole:
+                loaded = [reader.load(path, spec, detail)]
+            else:
+                loaded = reader.pieces(path, spec, detail)
+            for piece in loaded:
+                parts = [p.transformed(lambda v: v + offset) for p in piece.parts] if offset.any() else piece.parts
+                yield in_scene(Loaded(parts, piece.crs or scene_crs, piece.coarser), scene_crs, path)
         except MissingTextureWarning as exc:
             raise InputFileError(path, f"{_texture_problem(str(exc), path)} (set the input's "
                                        "missing_textures: untextured to draw such parts without it)") from None
-    parts = [p.transformed(lambda v: v + offset) for p in loaded.parts] if offset.any() else loaded.parts
-    return in_scene(Loaded(parts, loaded.crs or scene_crs, loaded.coarser), scene_crs, path)
 
 
 def _texture_problem(message: str, path: Path) -> str:

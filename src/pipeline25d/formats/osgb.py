@@ -45,10 +45,12 @@ import argparse
 import logging
 import os
 import re
+import shutil
 import sys
 import tempfile
 import warnings
-from collections import Counter
+from collections import Counter, deque
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -92,6 +94,13 @@ def read_osgb(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
     :func:`pipeline25d.formats.load_district` applies. Levels follow ``detail.gsd`` (module
     docstring); each tile's levels are logged.
     """
+    pieces = list(read_osgb_pieces(path, spec, detail))
+    return Loaded([p for piece in pieces for p in piece.parts], pieces[0].crs,
+                  tuple(c for piece in pieces for c in piece.coarser))
+
+
+def read_osgb_pieces(path: Path, spec: dict, detail: Detail = Detail()) -> Iterator[Loaded]:
+    """:func:`read_osgb` one tile at a time, in name order (memory follows a few tiles, not the dataset)."""
     path = Path(path)
     crs = spec.get("crs")
     origin = np.zeros(3)
@@ -100,33 +109,58 @@ def read_osgb(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
 
         meta_crs, origin = read_metadata_xml(path / "metadata.xml")
         crs = crs or meta_crs
-    tiles = read_tiles(path, detail.gsd, spec.get("missing_children", "coarser"))
-    parts = [p for t in tiles for p in t.parts]
-    if origin.any():
-        parts = [p.transformed(lambda v: v + origin) for p in parts]
-    return Loaded(parts, crs, tuple(c for t in tiles for c in t.coarser))
+    for tile in iter_tiles(path, detail.gsd, spec.get("missing_children", "coarser")):
+        parts = [p.transformed(lambda v: v + origin) for p in tile.parts] if origin.any() else tile.parts
+        yield Loaded(parts, crs, tuple(tile.coarser))
 
 
 def read_tiles(path: Path, gsd: float | None, missing_children: str = "coarser") -> list[TileRead]:
     """Every tile of ``path`` (dataset folder or .osgb) at map pixel size ``gsd``, in file
     coordinates; ``missing_children``: ``coarser`` (module docstring) or ``error``."""
+    return list(iter_tiles(path, gsd, missing_children))
+
+
+def iter_tiles(path: Path, gsd: float | None, missing_children: str = "coarser") -> Iterator[TileRead]:
+    """:func:`read_tiles` one tile at a time, in name order: :data:`WORKERS` tiles are converted at
+    once and at most that many wait to be taken, each tile's converted files removed once it is read."""
     roots = dataset_tiles(path) if path.is_dir() else [path]
     folder = dataset_root(path)
-    with tempfile.TemporaryDirectory(prefix="pipeline25d-osgb-") as tmp:
-        jobs = [(root, gsd, Path(tmp) / f"t{k}", folder, missing_children) for k, root in enumerate(roots)]
-        with ThreadPoolExecutor(max_workers=min(WORKERS, len(jobs))) as pool:
-            tiles = list(pool.map(in_context(read_tile), jobs))
-    for tile, root in zip(tiles, roots):
-        log.info("%s at gsd %s: %s", tile.name, gsd, describe_levels(tile.levels))
-        if tile.coarser:
-            asked = f"gsd {gsd}" if gsd else "full detail"
-            said = (f"{root}: {sum(len(c.missing) for c in tile.coarser)} PagedLOD child file(s) missing, drawn "
-                    f"coarser than {asked} asks for, at the level of the file that names them: "
-                    + ", ".join(f"{name} (level {c.level} drawn)" for c in tile.coarser for name in c.missing))
-            warnings.warn(said, stacklevel=2)      # a job's log has it too (core.logsetup.warnings_to_log)
-    if not any(t.levels for t in tiles):
+    drawn = False
+    with tempfile.TemporaryDirectory(prefix="pipeline25d-osgb-") as tmp, \
+            ThreadPoolExecutor(max_workers=min(WORKERS, len(roots))) as pool:
+        read = in_context(read_tile)
+        queued = iter(enumerate(roots))
+        waiting: deque = deque()
+
+        def submit() -> None:
+            for k, root in queued:
+                work = Path(tmp) / f"t{k}"
+                waiting.append((root, work, pool.submit(read, (root, gsd, work, folder, missing_children))))
+                return
+
+        for _ in range(WORKERS):
+            submit()
+        while waiting:
+            root, work, future = waiting.popleft()
+            tile = future.result()
+            submit()
+            shutil.rmtree(work, ignore_errors=True)
+            _say(tile, root, gsd)
+            drawn = drawn or bool(tile.levels)
+            yield tile
+    if not drawn:
         raise InputFileError(path, f"holds no triangles at gsd {gsd} (an empty OSGB tree)")
-    return tiles
+
+
+def _say(tile: TileRead, root: Path, gsd: float | None) -> None:
+    """Log the tile's levels; warn of its PagedLOD children that are missing."""
+    log.info("%s at gsd %s: %s", tile.name, gsd, describe_levels(tile.levels))
+    if tile.coarser:
+        asked = f"gsd {gsd}" if gsd else "full detail"
+        said = (f"{root}: {sum(len(c.missing) for c in tile.coarser)} PagedLOD child file(s) missing, drawn "
+                f"coarser than {asked} asks for, at the level of the file that names them: "
+                + ", ".join(f"{name} (level {c.level} drawn)" for c in tile.coarser for name in c.missing))
+        warnings.warn(said, stacklevel=3)      # a job's log has it too (core.logsetup.warnings_to_log)
 
 
 def dataset_tiles(folder: Path) -> list[Path]:

@@ -5,12 +5,21 @@ chunk's bounds may reach a little past its grid cell. Chunk ids (``c{ix}_{iy}``)
 from the global grid, so they are stable across runs and districts. A chunk whose
 content is unchanged keeps its file (and mtime), so Snakemake re-runs nothing downstream
 of it; chunks that no longer exist are removed.
+
+An input read in pieces (:func:`pipeline25d.formats.district_pieces`: an OSGB dataset's tiles)
+is chunked piece by piece; the pieces' share of each chunk waits in memory up to
+:data:`SPOOL_BYTES`, beyond that in a spool file beside the index, and each chunk is assembled
+on its own, its parts in input order as if the input had been read whole. Memory then follows a
+piece and a chunk, not the input.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import pickle
+import tempfile
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +29,8 @@ from pipeline25d.core.mesh import Mesh, MeshPart
 from pipeline25d.stages.chunks import chunk_origin, content_hash, pack_parts, save_npz
 
 log = logging.getLogger(__name__)
+
+SPOOL_BYTES = 256 * 2 ** 20     # pieces' chunk shares held in memory before they go to the spool
 
 def chunk_id(ix: int, iy: int) -> str:
     return f"c{ix}_{iy}"
@@ -55,8 +66,10 @@ def _subset(part: MeshPart, face_index: np.ndarray) -> MeshPart:
     )
 
 
-def write_chunks(mesh: Mesh, district: str, chunk_size: float, out_dir: Path, index_path: Path) -> dict:
-    """Write the district's chunks into ``out_dir`` and its index JSON last.
+def write_chunks(mesh: Mesh | Iterable[Mesh], district: str, chunk_size: float, out_dir: Path,
+                 index_path: Path) -> dict:
+    """Write the district's chunks into ``out_dir`` and its index JSON last; ``mesh`` whole or in
+    pieces (module docstring).
 
     Returns the index: {district, source, n_triangles, chunk_size, [coarser,] chunks: {id: {...}}};
     ``coarser`` (the input tiles drawn coarser than asked, :class:`~pipeline25d.core.mesh.Coarser`
@@ -65,30 +78,90 @@ def write_chunks(mesh: Mesh, district: str, chunk_size: float, out_dir: Path, in
     out_dir.mkdir(parents=True, exist_ok=True)
     sidecar = index_path.with_suffix(".hashes.json")
     previous = _previous_hashes(sidecar)
-    chunks = split_into_chunks(mesh, chunk_size)
-    index = {"district": district, "source": mesh.source, "chunk_size": chunk_size,
-             "n_triangles": mesh.n_triangles,
-             # only when there are any: the index of a district drawn as asked stays as it was
-             **({"coarser": [c.to_json() for c in mesh.coarser]} if mesh.coarser else {}),
-             "chunks": {}}
-    for cid, parts in sorted(chunks.items()):
-        bounds = Mesh(parts).bounds()
-        origin = chunk_origin(bounds)
-        arrays = pack_parts(parts, origin)
-        arrays["origin"] = origin
-        digest = content_hash(arrays)
-        path = out_dir / f"{cid}.npz"
-        n_triangles = sum(p.n_triangles for p in parts)
-        if previous.get(cid) != digest or not path.exists():
-            save_npz(path, arrays)
-            log.info("chunk %s/%s written (%d triangles)", district, cid, n_triangles)
-        index["chunks"][cid] = {"bounds": bounds.tolist(), "n_triangles": n_triangles, "hash": digest}
+    pieces = [mesh] if isinstance(mesh, Mesh) else mesh
+    with _Spool(out_dir) as spool:
+        source, n_triangles, coarser = "", 0, []
+        for piece in pieces:
+            source, n_triangles = piece.source, n_triangles + piece.n_triangles
+            coarser += piece.coarser
+            spool.add(split_into_chunks(piece, chunk_size))
+        index = {"district": district, "source": source, "chunk_size": chunk_size, "n_triangles": n_triangles,
+                 # only when there are any: the index of a district drawn as asked stays as it was
+                 **({"coarser": [c.to_json() for c in coarser]} if coarser else {}),
+                 "chunks": {}}
+        for cid, parts in spool.chunks():
+            bounds = Mesh(parts).bounds()
+            origin = chunk_origin(bounds)
+            arrays = pack_parts(parts, origin)
+            arrays["origin"] = origin
+            digest = content_hash(arrays)
+            path = out_dir / f"{cid}.npz"
+            n = sum(p.n_triangles for p in parts)
+            if previous.get(cid) != digest or not path.exists():
+                save_npz(path, arrays)
+                log.info("chunk %s/%s written (%d triangles)", district, cid, n)
+            index["chunks"][cid] = {"bounds": bounds.tolist(), "n_triangles": n, "hash": digest}
     for stale in out_dir.glob("c*.npz"):
         if stale.stem not in index["chunks"]:
             stale.unlink()
     write_json(sidecar, {k: v["hash"] for k, v in index["chunks"].items()})
     write_json(index_path, index)
     return index
+
+
+class _Spool:
+    """Each chunk's parts from every piece, in order: in memory up to :data:`SPOOL_BYTES`, then
+    appended to one pickle file per chunk in a temporary folder beside the chunks."""
+
+    def __init__(self, out_dir: Path):
+        self.out_dir = out_dir
+        self.held: dict[str, list[MeshPart]] = {}
+        self.held_bytes = 0
+        self.folder: tempfile.TemporaryDirectory | None = None
+        self.spooled: set[str] = set()
+
+    def __enter__(self) -> "_Spool":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.folder is not None:
+            self.folder.cleanup()
+
+    def add(self, chunks: dict[str, list[MeshPart]]) -> None:
+        for cid, parts in chunks.items():
+            self.held.setdefault(cid, []).extend(parts)
+            self.held_bytes += sum(_part_bytes(p) for p in parts)
+        if self.held_bytes > SPOOL_BYTES:
+            self._spill()
+
+    def _spill(self) -> None:
+        if self.folder is None:
+            self.folder = tempfile.TemporaryDirectory(prefix=".spool-", dir=self.out_dir)
+        for cid, parts in self.held.items():
+            with open(Path(self.folder.name) / cid, "ab") as f:
+                pickle.dump(parts, f, protocol=pickle.HIGHEST_PROTOCOL)
+            self.spooled.add(cid)
+        log.info("spooled %.0f MB of chunk parts", self.held_bytes / 2 ** 20)
+        self.held, self.held_bytes = {}, 0
+
+    def chunks(self) -> Iterator[tuple[str, list[MeshPart]]]:
+        """(chunk id, its parts in input order), one chunk at a time, sorted by id."""
+        for cid in sorted(self.spooled | set(self.held)):
+            parts: list[MeshPart] = []
+            if cid in self.spooled:
+                with open(Path(self.folder.name) / cid, "rb") as f:
+                    while True:
+                        try:
+                            parts.extend(pickle.load(f))
+                        except EOFError:
+                            break
+            parts.extend(self.held.pop(cid, []))
+            yield cid, parts
+
+
+def _part_bytes(part: MeshPart) -> int:
+    arrays = (part.vertices, part.faces, part.colors, part.uv)
+    return sum(a.nbytes for a in arrays if a is not None) + len(part.texture or b"")
 
 
 def _previous_hashes(sidecar: Path) -> dict[str, str]:
@@ -100,12 +173,16 @@ def _previous_hashes(sidecar: Path) -> dict[str, str]:
 def ingest(spec: dict, district: str, scene_crs: str, chunk_size: float, max_geometric_error: float,
            index_path: str | Path, gsd: float | None = None) -> dict:
     """Read one district and write its chunks beside ``index_path``."""
-    from pipeline25d.formats import load_district
+    from pipeline25d.formats import district_pieces
 
-    mesh = load_district(spec, scene_crs, max_geometric_error=max_geometric_error, gsd=gsd)
-    log.info("%s: %d triangles from %s", district, mesh.n_triangles, spec["path"])
-    for c in mesh.coarser:
-        log.warning("%s: %s drawn at level %d (%s): missing %s", district, c.tile, c.level, c.drawn,
-                    ", ".join(c.missing))
+    def pieces() -> Iterator[Mesh]:
+        for piece in district_pieces(spec, scene_crs, max_geometric_error=max_geometric_error, gsd=gsd):
+            for c in piece.coarser:
+                log.warning("%s: %s drawn at level %d (%s): missing %s", district, c.tile, c.level, c.drawn,
+                            ", ".join(c.missing))
+            yield piece
+
     index_path = Path(index_path)
-    return write_chunks(mesh, district, chunk_size, index_path.parent, index_path)
+    index = write_chunks(pieces(), district, chunk_size, index_path.parent, index_path)
+    log.info("%s: %d triangles from %s", district, index["n_triangles"], spec["path"])
+    return index
