@@ -245,3 +245,23 @@ def test_composite_tile(tmp_path):
     mesh = load_b3dm(tmp_path / "two.cmpt", GEO)
     assert mesh.n_triangles == 240
     _assert_bounds(mesh, (-75.613037, -75.610940), (40.041630, 40.043288))
+
+
+def test_a_tileset_read_in_pieces_holds_the_triangles_of_a_whole_read(monkeypatch):
+    """Ingest's pieces (here one content each) carry the whole read's triangles, and a tileset smaller
+    than a piece is one piece: the parts of the whole read."""
+    from pipeline25d.formats import district_pieces, load_district, tiles3d
+
+    spec = {"path": str(SAMPLES / "TilesetUniform" / "tileset.json")}
+    whole = load_district(spec, "EPSG:4978", max_geometric_error=0.0)
+    one = list(district_pieces(spec, "EPSG:4978", max_geometric_error=0.0))
+    assert len(one) == 1 and [p.vertices.tobytes() for p in one[0].parts] == [p.vertices.tobytes() for p in whole.parts]
+    monkeypatch.setattr(tiles3d, "PIECE_BYTES", 1)
+    pieces = list(district_pieces(spec, "EPSG:4978", max_geometric_error=0.0))
+
+    def triangles(meshes) -> np.ndarray:
+        rows = [np.round(p.vertices[p.faces].reshape(-1, 9), 4) for m in meshes for p in m.parts]
+        return np.unique(np.concatenate(rows), axis=0)
+
+    assert len(pieces) > 10 and np.array_equal(triangles(pieces), triangles([whole]))
+    assert sum(m.n_triangles for m in pieces) == whole.n_triangles

@@ -9,7 +9,7 @@ ContextCapture metadata and the reprojection into the scene CRS are applied once
 CityJSON) refuses ``offset``/``metadata``; one that carries its own ground gives a
 ``terrain`` loader, and one with building objects a ``buildings`` loader, which
 ``terrain: auto`` uses (:func:`load_district_terrain`, :func:`load_district_buildings`).
-A format whose inputs come in pieces (an OSGB dataset's tiles) gives a ``pieces`` loader, which
+A format whose inputs come in pieces (an OSGB dataset's tiles, a tileset's contents) gives a ``pieces`` loader, which
 ingest takes a piece at a time (:func:`district_pieces`), so its memory follows a piece.
 
 A new format plugs in with one entry in :data:`READERS` (and its suffixes in
@@ -82,7 +82,8 @@ READERS: dict[str, Reader] = {
     "glb": Reader(_gltf),
     "gltf": Reader(_gltf),
     "b3dm": Reader(_lazy("tiles3d", "read_b3dm"), georeferenced=True),
-    "3dtiles": Reader(_lazy("tiles3d", "read_tileset"), georeferenced=True),
+    "3dtiles": Reader(_lazy("tiles3d", "read_tileset"), georeferenced=True,
+                      pieces=_lazy("tiles3d", "read_tileset_pieces")),
     "cityjson": Reader(_lazy("cityjson", "read_cityjson"), georeferenced=True,
                        terrain=_lazy("cityjson", "read_cityjson_terrain"),
                        buildings=_lazy("cityjson", "read_cityjson_buildings")),

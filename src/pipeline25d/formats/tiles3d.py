@@ -26,6 +26,7 @@ from __future__ import annotations
 import json
 import struct
 import warnings
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +40,7 @@ from pipeline25d.formats.tileset_tree import read_json, resolve, select
 _B3DM_HEADER = 28
 _I3DM_HEADER = 32
 ECEF = "EPSG:4978"         # the CRS of 3D Tiles coordinates
+PIECE_BYTES = 256 * 2 ** 20  # ingest reads a tileset in pieces of contents this large on disk
 _LEGACY_LIMIT = 570425344  # CesiumJS: a "length" this large is really the start of a glTF header
 
 
@@ -54,20 +56,36 @@ def read_tileset(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
     their descendants. ``None`` is full detail (every leaf plus ADD ancestors).
     Content tileset JSONs (external tilesets) are always entered, as CesiumJS does.
     """
+    return next(read_tileset_pieces(path, spec, detail, piece_bytes=float("inf")))
+
+
+def read_tileset_pieces(path: Path, spec: dict, detail: Detail = Detail(),
+                        piece_bytes: float | None = None) -> Iterator[Loaded]:
+    """:func:`read_tileset` in pieces of contents that add up to ``piece_bytes`` on disk (None:
+    :data:`PIECE_BYTES`), untextured parts merged within a piece: a tileset smaller than that is
+    one piece, the parts :func:`read_tileset` returns."""
     path = Path(path)
     up_axis = str(read_json(path).get("asset", {}).get("gltfUpAxis", "Y")).upper()
     chosen = select(path, detail.max_error, spec.get("missing_children", "coarser"))
+    crs, coarser = spec.get("crs") or ECEF, tuple(chosen.coarser)
     if chosen.coarser:
         missing = [m for c in chosen.coarser for m in c.missing]
         warnings.warn(f"{path}: {len(missing)} child content file(s) missing, {len(chosen.coarser)} tile(s) drawn "
                       f"coarser than asked, at the finest level present: {', '.join(missing[:5])}"
                       + (" ..." if len(missing) > 5 else ""), stacklevel=2)
+    piece_bytes = PIECE_BYTES if piece_bytes is None else piece_bytes
     parts: list[MeshPart] = []
-    for content_path, transform in chosen.contents:
+    held, drawn = 0, False
+    for k, (content_path, transform) in enumerate(chosen.contents):
         parts.extend(_place(read_content(content_path, y_up=(up_axis != "Z"), root=path.parent), transform))
-    if not parts:
+        held += content_path.stat().st_size
+        if held >= piece_bytes and k < len(chosen.contents) - 1:
+            drawn = drawn or bool(parts)
+            yield Loaded(_merge_untextured(parts), crs, coarser)
+            parts, held, coarser = [], 0, ()
+    if not (drawn or parts):
         warnings.warn(f"{path}: the selected tiles hold no triangles", stacklevel=2)
-    return Loaded(_merge_untextured(parts), spec.get("crs") or ECEF, tuple(chosen.coarser))
+    yield Loaded(_merge_untextured(parts), crs, coarser)
 
 
 def read_b3dm(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
