@@ -23,6 +23,9 @@ class MeshPart:
               to GL convention: v=0 is the bottom row of the image), or None.
     texture:  encoded image bytes (PNG/JPEG) for ``uv``, or None.
     name:     free text for messages (material or object name).
+    objects:  the keys of the input objects (CityJSON/CityGML ids ...) its faces belong to.
+    face_objects: (m,) int32 index into ``objects`` of every face, or None (the faces carry
+              no object identity).
     """
 
     vertices: np.ndarray
@@ -31,6 +34,8 @@ class MeshPart:
     uv: np.ndarray | None = None
     texture: bytes | None = None
     name: str = ""
+    objects: tuple[str, ...] = ()
+    face_objects: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float64).reshape(-1, 3)
@@ -41,6 +46,10 @@ class MeshPart:
             self.uv = np.ascontiguousarray(self.uv, dtype=np.float32).reshape(-1, 2)
         if self.texture is None:
             self.uv = None
+        if self.face_objects is not None:
+            self.face_objects = np.ascontiguousarray(self.face_objects, dtype=np.int32).reshape(-1)
+            if len(self.face_objects) != len(self.faces):
+                raise ValueError(f"{len(self.face_objects)} face objects for {len(self.faces)} faces")
 
     @property
     def n_triangles(self) -> int:
@@ -50,6 +59,12 @@ class MeshPart:
         """(2, 3) float64 min/max corner of the vertices that faces use."""
         used = self.vertices[np.unique(self.faces)] if len(self.faces) else self.vertices
         return np.array([used.min(axis=0), used.max(axis=0)])
+
+    def with_faces(self, faces: np.ndarray, kept: np.ndarray) -> "MeshPart":
+        """A copy drawing ``faces``, which are the faces ``kept`` (indices or mask) of this part
+        (renumbered, merged or moved: their objects are those of the kept faces)."""
+        objects = None if self.face_objects is None else self.face_objects[kept]
+        return replace(self, faces=faces, face_objects=objects)
 
     def transformed(self, fn) -> "MeshPart":
         """A copy whose vertices are ``fn(vertices)`` ((n, 3) float64 -> (n, 3) float64)."""

@@ -220,6 +220,7 @@ class _Out:
     palette: object                    # the chunk's parsed appearance object (None: not read)
     textured: dict
     colour: dict = field(default_factory=dict)
+    obj: int = -1                      # the object whose faces go in now (index into the model's keys)
 
 
 def _build_parts(model: _Model, src_crs: str | None, lod: str | None, keep, theme: str | None = None,
@@ -231,22 +232,26 @@ def _build_parts(model: _Model, src_crs: str | None, lod: str | None, keep, them
     look.choose_themes(_all_geometries(model))
     by_class: dict[str, list[tuple]] = {}
     textured: dict[str, list[tuple]] = {}
+    keys: list[str] = []                # every drawn CityObject's id, in file order
     for chunk in model.chunks:
         out = _Out(look, look.palette(chunk.appearance) if appearances else None, textured)
-        for obj in chunk.objects.values():
+        for key, obj in chunk.objects.items():
             if isinstance(obj, dict) and keep(obj.get("type")):
+                out.obj = len(keys)
+                keys.append(str(key))
                 _object_triangles(obj, lod, chunk, model, out)
         verts = chunk.vertices
-        for (cls, rgba), faces in out.colour.items():
-            faces = np.concatenate(faces)
+        for (cls, rgba), pieces in out.colour.items():
+            faces = np.concatenate([f for f, _ in pieces])
             if faces.size and (faces.min() < 0 or faces.max() >= len(verts)):
                 bad = faces.max() if faces.max() >= len(verts) else faces.min()
                 raise InputFileError(model.path, f"vertex index {bad} out of range ({len(verts)} vertices)")
             used, inv = np.unique(faces, return_inverse=True)
-            by_class.setdefault(cls, []).append((verts[used], inv.reshape(-1, 3), rgba))
-    parts = [class_part(cls, pieces) for cls, pieces in sorted(by_class.items())]
+            objects = np.concatenate([np.full(len(f), k, dtype=np.int32) for f, k in pieces])
+            by_class.setdefault(cls, []).append((verts[used], inv.reshape(-1, 3), rgba, objects))
+    parts = [class_part(cls, pieces, tuple(keys)) for cls, pieces in sorted(by_class.items())]
     look.report()
-    return Loaded(parts + look.parts(textured), src)
+    return Loaded(parts + look.parts(textured, tuple(keys)), src)
 
 
 def _all_geometries(model: _Model):
@@ -359,7 +364,7 @@ def _geometry_triangles(geom: dict, obj_class: str, verts: np.ndarray, path: Pat
             if texture is not None:
                 hit = out.look.textured(texture, rings, verts, out.palette)
                 if hit is not None:
-                    out.textured.setdefault(hit[0], []).append(hit[1])
+                    out.textured.setdefault(hit[0], []).append((*hit[1], out.obj))
                     continue
             rgba = None if material is None else out.look.rgba(material, out.palette)
             if len(rings) == 1 and len(rings[0]) == 3:
@@ -370,7 +375,7 @@ def _geometry_triangles(geom: dict, obj_class: str, verts: np.ndarray, path: Pat
             poly, normal = triangulate_polygon(rings, verts)
             if len(poly):
                 cls = _surface_classes(sem_surfaces, [value], obj_class, normal[None])[0]
-                out.colour.setdefault((cls, rgba), []).append(poly + offset)
+                out.colour.setdefault((cls, rgba), []).append((poly + offset, out.obj))
         if tris:
             tris = np.asarray(tris, dtype=np.int64)
             p = verts[tris]
@@ -379,7 +384,8 @@ def _geometry_triangles(geom: dict, obj_class: str, verts: np.ndarray, path: Pat
             ids, colours = np.asarray(colour_ids), list(rgbas)
             for cls in set(classes):
                 for k in np.unique(ids[classes == cls]):
-                    out.colour.setdefault((cls, colours[k]), []).append(tris[(classes == cls) & (ids == k)] + offset)
+                    out.colour.setdefault((cls, colours[k]), []).append(
+                        (tris[(classes == cls) & (ids == k)] + offset, out.obj))
     except (TypeError, ValueError, KeyError) as exc:
         raise InputFileError(path, f"malformed geometry boundaries: {exc!r}") from None
     except IndexError:

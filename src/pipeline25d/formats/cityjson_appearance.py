@@ -195,13 +195,16 @@ class Appearances:
             self.images[key] = texture_image(self.path, key, None if texture.image else "is a URL (not fetched)")
         return self.images[key]
 
-    def parts(self, groups: dict[str, list[tuple]]) -> list[MeshPart]:
-        """One textured MeshPart per image of ``groups`` (image -> (positions, faces, UVs) pieces)."""
+    def parts(self, groups: dict[str, list[tuple]], objects: tuple[str, ...]) -> list[MeshPart]:
+        """One textured MeshPart per image of ``groups`` (image -> (positions, faces, UVs, object)
+        pieces, the object an index into ``objects``)."""
         out = []
         for image, pieces in sorted(groups.items()):
-            vertices, faces = join_pieces([(v, f) for v, f, _ in pieces])
-            uv = np.concatenate([u for _, _, u in pieces])
-            out.append(MeshPart(vertices, faces, uv=uv, texture=self.images[image], name=Path(image).name))
+            vertices, faces = join_pieces([(v, f) for v, f, _, _ in pieces])
+            uv = np.concatenate([u for _, _, u, _ in pieces])
+            face_objects = np.concatenate([np.full(len(f), k, dtype=np.int32) for _, f, _, k in pieces])
+            out.append(MeshPart(vertices, faces, uv=uv, texture=self.images[image], name=Path(image).name,
+                                objects=objects, face_objects=face_objects))
         return out
 
     def report(self) -> None:

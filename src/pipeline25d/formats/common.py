@@ -249,7 +249,7 @@ def checked_parts(parts: list[MeshPart], where: str | Path) -> list[MeshPart]:
         keep = _valid_faces(part, where)
         total += len(keep)
         dropped += int((~keep).sum())
-        out.append(part if keep.all() else replace(part, faces=part.faces[keep]))
+        out.append(part if keep.all() else part.with_faces(part.faces[keep], keep))
     if dropped == total and total:
         raise InputFileError(where, f"all {total} triangles are degenerate (zero area)")
     if dropped:

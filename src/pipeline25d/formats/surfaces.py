@@ -62,13 +62,17 @@ def normal_classes(normals: np.ndarray) -> np.ndarray:
     return np.where(nz > ROOF_NZ, "roof", np.where(nz < -ROOF_NZ, "ground", "wall")).astype(object)
 
 
-def class_part(cls: str, pieces: list[tuple]) -> MeshPart:
-    """One MeshPart of the (vertices, faces) or (vertices, faces, RGBA) ``pieces`` of colour class
-    ``cls``: each piece in its RGBA (a material's), else in the class's palette colour."""
+def class_part(cls: str, pieces: list[tuple], objects: tuple[str, ...] | None = None) -> MeshPart:
+    """One MeshPart of the (vertices, faces), (vertices, faces, RGBA) or (vertices, faces, RGBA,
+    face objects) ``pieces`` of colour class ``cls``: each piece in its RGBA (a material's), else in
+    the class's palette colour; with ``objects`` (the keys the pieces' face objects index) the part
+    carries them."""
     vertices, faces = join_pieces([(p[0], p[1]) for p in pieces])
     colors = [np.tile(np.array(p[2] if len(p) > 2 and p[2] is not None else PALETTE[cls], dtype=np.uint8),
                       (len(p[0]), 1)) for p in pieces]
-    return MeshPart(vertices, faces, colors=np.concatenate(colors) if colors else np.empty((0, 4)), name=cls)
+    face_objects = None if objects is None else np.concatenate([p[3] for p in pieces])
+    return MeshPart(vertices, faces, colors=np.concatenate(colors) if colors else np.empty((0, 4)), name=cls,
+                    objects=objects or (), face_objects=face_objects)
 
 
 def join_pieces(pieces: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:

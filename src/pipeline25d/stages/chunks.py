@@ -34,6 +34,9 @@ def pack_parts(parts: list[MeshPart], origin: np.ndarray, prefix: str = "") -> d
         if part.texture is not None and part.uv is not None:
             out[key + "uv"] = part.uv.astype(np.float32)
             out[key + "tex"] = np.frombuffer(part.texture, dtype=np.uint8)
+        if part.face_objects is not None:
+            out[key + "objects"] = np.array(part.objects, dtype=str)
+            out[key + "fobj"] = part.face_objects
     return out
 
 
@@ -50,6 +53,8 @@ def unpack_parts(data, origin: np.ndarray, prefix: str = "") -> list[MeshPart]:
             colors=data[key + "colors"] if key + "colors" in names else None,
             uv=data[key + "uv"] if key + "uv" in names else None,
             texture=tex,
+            objects=tuple(str(k) for k in data[key + "objects"]) if key + "objects" in names else (),
+            face_objects=data[key + "fobj"] if key + "fobj" in names else None,
         ))
     return parts
 

@@ -53,9 +53,13 @@ def split_into_chunks(mesh: Mesh, chunk_size: float) -> dict[str, list[MeshPart]
 
 
 def _subset(part: MeshPart, face_index: np.ndarray) -> MeshPart:
-    """The part restricted to some faces, with unused vertices dropped."""
+    """The part restricted to some faces, with unused vertices (and objects) dropped."""
     faces = part.faces[face_index]
     used, new_faces = np.unique(faces, return_inverse=True)
+    objects, face_objects = part.objects, None
+    if part.face_objects is not None:          # only the objects its faces belong to, in input order
+        held, face_objects = np.unique(part.face_objects[face_index], return_inverse=True)
+        objects = tuple(part.objects[k] for k in held)
     return MeshPart(
         vertices=part.vertices[used],
         faces=new_faces.reshape(-1, 3),
@@ -63,6 +67,8 @@ def _subset(part: MeshPart, face_index: np.ndarray) -> MeshPart:
         uv=None if part.uv is None else part.uv[used],
         texture=part.texture,
         name=part.name,
+        objects=objects,
+        face_objects=face_objects,
     )
 
 

@@ -48,10 +48,15 @@ def _simplify(part: MeshPart, reduction: float) -> tuple[MeshPart, np.ndarray | 
     points, faces, collapses = fast_simplification.simplify(
         local, part.faces, target_reduction=reduction, return_collapses=True, preserve_border=True)
     _, _, mapping = fast_simplification.replay_simplification(local, part.faces, collapses)
+    objects = None
+    if part.face_objects is not None:      # the faces left are the originals that did not collapse, in order
+        moved = mapping[part.faces]
+        kept = (moved[:, 0] != moved[:, 1]) & (moved[:, 1] != moved[:, 2]) & (moved[:, 0] != moved[:, 2])
+        objects = part.face_objects[kept]
     return MeshPart(vertices=points + centre, faces=faces,
                     colors=_carry(part.colors, mapping, len(points), np.uint8),
                     uv=_carry(part.uv, mapping, len(points), np.float32),
-                    texture=part.texture, name=part.name), mapping
+                    texture=part.texture, name=part.name, objects=part.objects, face_objects=objects), mapping
 
 
 def _carry(values: np.ndarray | None, mapping: np.ndarray, n_new: int, dtype) -> np.ndarray | None:

@@ -1,0 +1,95 @@
+"""Object identity from the input to every LOD level (issue 30's first layer): each face of a chunk
+names the input object it was drawn from, checked against the objects' own vertices in the file."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline25d.core.mesh import MeshPart
+from pipeline25d.stages.ingest import ingest
+from pipeline25d.stages.lod import build_lod, load_chunk_level, lod_chunks, simplify_part
+
+DELFT = Path(__file__).resolve().parents[2] / "shared" / "data" / "delft" / "delft.json"
+CRS = "EPSG:28992"
+
+
+def object_vertices(path: Path) -> dict[str, np.ndarray]:
+    """Each CityObject's boundary vertices (transform applied), read from the JSON directly."""
+    doc = json.loads(path.read_text())
+    scale = np.asarray(doc["transform"]["scale"], dtype=np.float64)
+    translate = np.asarray(doc["transform"]["translate"], dtype=np.float64)
+    verts = np.asarray(doc["vertices"], dtype=np.float64) * scale + translate
+
+    def indices(b):
+        return [i for x in b for i in indices(x)] if isinstance(b, list) else [b]
+
+    return {key: verts[sorted(set(indices([g["boundaries"] for g in obj.get("geometry", [])])))]
+            for key, obj in doc["CityObjects"].items()}
+
+
+@pytest.fixture(scope="module")
+def delft(tmp_path_factory):
+    if not DELFT.is_file():
+        pytest.skip(f"{DELFT} not present")
+    out = tmp_path_factory.mktemp("ids")
+    ingest({"path": str(DELFT)}, "delft", CRS, 150.0, 0.5, out / "chunks" / "index.json")
+    build_lod(out / "chunks" / "index.json", out / "lod" / "index.json", 5.0, 3)
+    return out
+
+
+def test_every_face_of_every_chunk_names_the_object_whose_vertices_it_uses(delft):
+    truth = object_vertices(DELFT)
+    faces_seen, objects_seen = 0, set()
+    for chunk in lod_chunks([delft / "lod" / "index.json"]):
+        origin, parts = load_chunk_level(chunk.npz, 0)
+        for part in parts:
+            assert part.face_objects is not None and len(part.objects) == len(set(part.objects))
+            corners = part.vertices[part.faces]                           # float32 round trip: 1 mm
+            for k, key in enumerate(part.objects):
+                mine = corners[part.face_objects == k].reshape(-1, 3)
+                own = truth[key]
+                gap = np.min(np.linalg.norm(mine[:, None, :] - own[None, :, :], axis=2), axis=1)
+                assert gap.max() < 2e-3, (key, gap.max())
+                objects_seen.add(key)
+            faces_seen += part.n_triangles
+    assert faces_seen > 10_000 and len(objects_seen) > 0.9 * len(truth)
+
+
+def test_coarser_levels_keep_each_face_on_its_object(delft):
+    """A simplified face keeps the object of the original face it stands for: its centroid lies in
+    that object's box, grown by the level's error."""
+    truth = object_vertices(DELFT)
+    checked = 0
+    for chunk in lod_chunks([delft / "lod" / "index.json"]):
+        for level, error in enumerate(chunk.errors[1:], start=1):
+            _, parts = load_chunk_level(chunk.npz, level)
+            for part in parts:
+                centres = part.vertices[part.faces].mean(axis=1)
+                lo = np.array([truth[key].min(axis=0) for key in part.objects])[part.face_objects]
+                hi = np.array([truth[key].max(axis=0) for key in part.objects])[part.face_objects]
+                assert ((centres >= lo - error - 2e-3) & (centres <= hi + error + 2e-3)).all()
+                checked += part.n_triangles
+    assert checked > 1000
+
+
+def test_a_simplified_part_carries_the_objects_of_the_faces_that_survive():
+    """Two objects side by side on a grid: after simplification each face still lies on its
+    object's side of the seam (x < 10 for object a, x > 10 for b)."""
+    n = 21
+    x, y = np.meshgrid(np.linspace(0, 20, n), np.linspace(0, 20, n))
+    z = 0.05 * np.sin(x) * np.cos(y)
+    vertices = np.c_[x.ravel(), y.ravel(), z.ravel()]
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    faces = np.r_[np.c_[a, b, d], np.c_[a, d, c]]
+    side = (vertices[faces].mean(axis=1)[:, 0] > 10).astype(np.int32)
+    part = MeshPart(vertices, faces, objects=("a", "b"), face_objects=side)
+    coarse = simplify_part(part, 0.6)
+    assert coarse.n_triangles < 0.6 * part.n_triangles and coarse.objects == ("a", "b")
+    centres = coarse.vertices[coarse.faces].mean(axis=1)[:, 0]
+    assert (centres[coarse.face_objects == 0] <= 10.5).all() and (centres[coarse.face_objects == 1] >= 9.5).all()
+    assert set(coarse.face_objects) == {0, 1}
