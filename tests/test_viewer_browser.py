@@ -88,13 +88,13 @@ def world_px(lon: float, lat: float, zoom: float) -> np.ndarray:
     return np.array([(lon + 180) / 360 * n, (1 - math.asinh(math.tan(lat_r)) / math.pi) / 2 * n])
 
 
-def screen_px(xy: np.ndarray, centre: tuple[float, float], bearing: float = 0.0) -> np.ndarray:
-    """Where a scene point shows in the viewport of a view centred on ``centre`` (lon, lat) at ZOOM, the map
-    turned clockwise on screen by ``bearing`` degrees about the viewport's centre (Leaflet rounds its pixel
+def screen_px(xy: np.ndarray, centre: tuple[float, float], bearing: float = 0.0, zoom: float = ZOOM) -> np.ndarray:
+    """Where a scene point shows in the viewport of a view centred on ``centre`` (lon, lat) at ``zoom``, the
+    map turned clockwise on screen by ``bearing`` degrees about the viewport's centre (Leaflet rounds its pixel
     origin: a shift under 0.5 px, the same for every point, so differences are exact)."""
     b = math.radians(bearing)
     turn = np.array([[math.cos(b), -math.sin(b)], [math.sin(b), math.cos(b)]])    # clockwise, y down
-    offset = world_px(*lonlat(xy), ZOOM) - world_px(*centre, ZOOM)
+    offset = world_px(*lonlat(xy), zoom) - world_px(*centre, zoom)
     return turn @ offset + np.array([SIZE["width"], SIZE["height"]]) / 2
 
 
@@ -344,4 +344,205 @@ def test_pmtiles_archives_hold_the_pyramids_and_the_viewer_reads_them_by_range_r
     assert len(archive) >= 2 and set(archive) == {206}           # the header, then tiles, each a range
     assert tiles_of(responses, "az045_el45") == [] and failed == []
     assert [r for r in responses if r[1] >= 400] == []
+    page.close()
+
+
+def test_the_html_report_opens_in_chromium_with_every_picture_and_nothing_fetched(browser, served, tmp_path):
+    """report.html, served beside report.md: every picture (a thumbnail and a residual plot per map, the heights
+    scatter) decodes in the browser, and the page asks for nothing but itself (its pictures are embedded)."""
+    base_url, _, results = served
+    report = json.loads((results / "report" / "report.json").read_text())
+    requests: list = []
+    page = browser.new_page(viewport=SIZE)
+    page.on("request", lambda r: requests.append(r.url))
+    page.goto(f"{base_url}/report/report.html")
+    page.wait_for_load_state("networkidle")
+    images = page.evaluate("[...document.images].map(i => [i.alt, i.complete && i.naturalWidth > 0])")
+    pids = [p["id"] for p in report["perspectives"]]
+    assert sorted(alt for alt, _ in images) == sorted(
+        [f"map {pid}" for pid in pids] + [f"check-point residuals of {pid}" for pid in pids]
+        + ["measured heights against their reference"])
+    assert all(ok for _, ok in images), images
+    assert [u for u in requests if not u.startswith("data:")] == [f"{base_url}/report/report.html"]
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    page.screenshot(path=str(tmp_path / "report.png"), full_page=True)
+    shutil.copyfile(tmp_path / "report.png", SHOTS / "report.png")
+    page.close()
+
+
+OVERLAY_ZOOM = 19                  # ~0.2 m per screen pixel: Leaflet snaps vector vertices to whole pixels
+MAGENTA = "#ff00ff"
+
+
+@pytest.fixture(scope="module")
+def overlay_viewer(served):
+    """The small run's viewer written again (results/viewer-overlay/) with the demo's road centrelines from
+    truth.json as a config overlay (GeoJSON in the scene CRS, EPSG:25832) and one point of interest: the
+    tallest flat-roofed building's camera-side roof corner for az045_el45, given as its ground corner with a
+    "height" property (the roof's height above the terrain there). (base URL, workdir, results, building)."""
+    from pipeline25d.publish.viewer import write_viewer
+
+    base_url, workdir, results = served
+    truth = json.loads((workdir / "resources" / "demo" / "truth.json").read_text())
+    building = max((b for b in truth["buildings"] if b["roof"] == "flat"), key=lambda b: b["eave_z"])
+    base, _, height = vertical_edge(building, 45, 45)
+    features = [{"type": "Feature", "properties": {"id": r["id"]},
+                 "geometry": {"type": "LineString", "coordinates": r["centerline"]}} for r in truth["roads"]]
+    features.append({"type": "Feature", "properties": {"name": "roof corner", "height": height},
+                     "geometry": {"type": "Point", "coordinates": base.tolist()}})
+    path = workdir / "overlays" / "streets.geojson"
+    path.parent.mkdir(exist_ok=True)
+    path.write_text(json.dumps({"type": "FeatureCollection", "features": features}))
+    write_viewer(results / "report" / "report.json", results / "viewer-overlay" / "index.html",
+                 overlays=[{"path": str(path), "name": "streets", "color": MAGENTA, "crs": "EPSG:25832"}])
+    return base_url, workdir, results, building
+
+
+def sample(rgb: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """(n, 3) colours of a screenshot at screen points ``pts`` (n, 2), bilinear."""
+    from scipy.ndimage import map_coordinates
+
+    return np.stack([map_coordinates(rgb[..., k].astype(float), [pts[:, 1], pts[:, 0]], order=1) for k in range(3)], 1)
+
+
+def road_edges(col: np.ndarray, road: np.ndarray, grass: np.ndarray) -> tuple[float, float]:
+    """Across a road, sampled as colours ``col`` (n, 3): the fractional sample indices of the road's two edges,
+    where the brightness passes half way from the road's to the grass's (linear between samples); NaN where
+    the run of road around the middle does not end in grass 0.5-1.5 m out on both sides (20 samples a metre)."""
+    luma = np.array([0.299, 0.587, 0.114])      # brightness: WEBP tiles keep it at full resolution, colour at half
+    s = (col - road) @ luma / ((grass - road) @ luma)                      # 0 on road, 1 on grass
+    mid = len(s) // 2
+    if s[mid] > 0.5:
+        return math.nan, math.nan
+    lo = mid
+    while lo > 0 and s[lo - 1] <= 0.5:
+        lo -= 1
+    hi = mid
+    while hi < len(s) - 1 and s[hi + 1] <= 0.5:
+        hi += 1
+    if lo < 30 or hi > len(s) - 31 or min(np.median(s[lo - 30:lo - 10]), np.median(s[hi + 11:hi + 31])) < 0.8:
+        return math.nan, math.nan                  # occluded, or a crossing
+    return lo - (0.5 - s[lo]) / (s[lo - 1] - s[lo]), hi + (0.5 - s[hi]) / (s[hi + 1] - s[hi])
+
+
+def line_centre(col: np.ndarray) -> float:
+    """The fractional sample index of the magenta line's centre across a profile (weighted by magenta-ness)."""
+    w = np.clip(np.minimum(col[:, 0], col[:, 2]) - col[:, 1] - 60, 0, None)
+    return float((w * np.arange(len(w))).sum() / w.sum()) if w.sum() > 0 else math.nan
+
+
+def road_offsets(page, truth: dict, centre: tuple[float, float], bearing: float, gsd: float) -> list[tuple]:
+    """Per road station (every 5 m, away from crossings and district ends) where the road shows with grass on
+    both sides: (road id, the overlay's drawn centreline minus the road's rendered centre, the drawn centreline
+    minus the true centreline where screen_px puts it), across the road, in map pixels (gsd). The road is measured with the overlay switched off, the line with it on, in the same view; the
+    road's and the grass's colours are the medians over the stations at the centreline and 7 m off it."""
+    import io
+
+    from PIL import Image
+
+    def grab():
+        return np.asarray(Image.open(io.BytesIO(page.screenshot())).convert("RGB"))
+
+    toggle = page.locator('#layers label[data-overlay="streets"] input')
+    toggle.uncheck()
+    bare = grab()
+    toggle.check()
+    lined = grab()
+    step = 0.05                                          # m between profile samples
+    t = np.arange(-9, 9 + step / 2, step)
+    cuts = [(r["kind"], r["centerline"][0][1 if r["kind"] == "ew" else 0]) for r in truth["roads"]]
+    profiles = []
+    for road in truth["roads"]:
+        a, b = np.array(road["centerline"], dtype=float)
+        length = np.linalg.norm(b - a)
+        along, normal = (b - a) / length, np.array([-(b - a)[1], (b - a)[0]]) / length
+        axis = 1 if road["kind"] == "ns" else 0          # the coordinate that runs along the road
+        for s in np.arange(12, length - 12, 5.0):
+            station = a + s * along
+            if any(k != road["kind"] and abs(station[axis] - c) < 14 for k, c in cuts):
+                continue
+            pts = np.array([screen_px(station + ti * normal, centre, bearing, OVERLAY_ZOOM) for ti in t])
+            if (pts >= 2).all() and (pts < np.array([SIZE["width"], SIZE["height"]]) - 2).all():
+                profiles.append((road["id"], pts))
+    bare_cols = [sample(bare, pts) for _, pts in profiles]
+    road = np.median([c[len(t) // 2] for c in bare_cols], axis=0)
+    grass = np.median([c[i] for c in bare_cols for i in (40, len(t) - 41)], axis=0)
+    out = []
+    for (road_id, pts), col in zip(profiles, bare_cols):
+        left, right = road_edges(col, road, grass)
+        if abs((right - left) * step - 8.0) < 1.0:       # both edges seen, nothing over the road
+            line = line_centre(sample(lined, pts))
+            out.append((road_id, (line - (left + right) / 2) * step / gsd, (line - len(t) // 2) * step / gsd))
+    return out
+
+
+def test_a_street_overlay_lies_on_the_roads_of_every_perspective_turned_or_not(browser, overlay_viewer, tmp_path):
+    """The demo's road centrelines, given as a config overlay in the scene CRS, are drawn on every perspective
+    (north up and view direction up) within 1 map pixel of the road's centre as the map shows it (both edges
+    measured across the road in the screenshot); a point given with a height is drawn where that perspective
+    shows that height (h·cot φ along the view), within half a screen pixel."""
+    base_url, workdir, results, building = overlay_viewer
+    truth = json.loads((workdir / "resources" / "demo" / "truth.json").read_text())
+    report = json.loads((results / "report" / "report.json").read_text())
+    view = {p["id"]: p for p in report["perspectives"]}
+    b = np.array([p["lonlat_bounds"] for p in report["perspectives"]])
+    centre = ((b[:, 0].min() + b[:, 2].max()) / 2, (b[:, 1].min() + b[:, 3].max()) / 2)
+    assert (results / "viewer-overlay" / "overlays" / "streets.geojson").is_file()
+    offsets = {}
+    responses: list = []
+    for pid, turned in (("az000_el90", False), ("az045_el45", False), ("az045_el45", True), ("az200_el30", False),
+                        ("az200_el30", True)):
+        url = (f"{base_url}/viewer-overlay/index.html#{pid}/{OVERLAY_ZOOM}/{centre[1]:.7f}/{centre[0]:.7f}"
+               + ("/up" if turned else ""))
+        page = open_page(browser, url, responses)
+        page.wait_for_selector('#layers label.loaded[data-overlay="streets"]')
+        bearing = bearing_of(page)[0]
+        name = f"{pid}{'-up' if turned else ''}"
+        off = road_offsets(page, truth, centre, bearing, report["gsd"])
+        offsets[name] = off
+        shot(page, tmp_path, f"overlay-{name}.png")
+        if pid == "az045_el45":                          # the point with a height: at the roof corner
+            p = view[pid]
+            _, top, _ = vertical_edge(building, p["azimuth"], p["elevation"])
+            at = lonlat(top)                             # the view centred where the roof corner shows
+            page.evaluate(f"map.setView([{at[1]}, {at[0]}], {OVERLAY_ZOOM}, {{animate: false}})")
+            settle(page)
+            box = page.evaluate("(() => { const r = [...document.querySelectorAll('path.leaflet-interactive')]"
+                                ".filter(e => e.getAttribute('fill') === '#ff00ff')[0].getBoundingClientRect();"
+                                " return [r.x + r.width / 2, r.y + r.height / 2]; })()")
+            assert np.abs(np.array(box) - np.array([SIZE["width"], SIZE["height"]]) / 2).max() <= 1.0, (box, top)
+        page.close()
+    summary = {}
+    for name, rows in offsets.items():
+        to_road = np.array([r[1] for r in rows])
+        per_road = {rid: float(np.mean([r[1] for r in rows if r[0] == rid])) for rid in {r[0] for r in rows}}
+        summary[name] = {"stations": len(rows), "median_abs_px": round(float(np.median(np.abs(to_road))), 2),
+                         "max_abs_px": round(float(np.abs(to_road).max()), 2),
+                         "per_road_mean_px": {k: round(v, 2) for k, v in sorted(per_road.items())},
+                         "line_vs_truth_max_px": round(max(abs(r[2]) for r in rows), 2)}
+    print(json.dumps(summary))
+    for name, s in summary.items():
+        assert s["stations"] >= 3, (name, s)                  # roads seen with grass on both sides
+        assert s["line_vs_truth_max_px"] <= 0.5, (name, s)      # drawn where the centreline is
+        assert s["median_abs_px"] <= 1.0, (name, s)             # and on the road as the web tiles show it
+    assert [r for r in responses if r[1] >= 400 and not r[0].endswith("favicon.ico")] == []
+
+
+def test_an_overlay_given_in_the_address_is_drawn_and_no_basemap_is_fetched_unless_configured(
+        browser, overlay_viewer, tmp_path):
+    """?overlay=<url> adds a layer to the published viewer (one without config overlays) and draws it; the page
+    asks nothing of any host but its own (no basemap unless the config names one)."""
+    base_url, _, results, _ = overlay_viewer
+    requests: list = []
+    page = browser.new_page(viewport=SIZE)
+    page.on("request", lambda r: requests.append(r.url))
+    page.goto(f"{base_url}/viewer/index.html?overlay=../viewer-overlay/overlays/streets.geojson#az200_el30/17/"
+              f"48.1315/11.5685")
+    page.wait_for_selector('#layers label.loaded[data-overlay="streets.geojson"]')
+    settle(page)
+    drawn = page.evaluate("document.querySelectorAll('path.leaflet-interactive').length")
+    roads = len(json.loads((results / "viewer-overlay" / "overlays" / "streets.geojson").read_text())["features"])
+    assert drawn == roads                                # every road and the point
+    assert all(u.startswith(base_url) or u.startswith("data:") for u in requests), requests
+    shot(page, tmp_path, "overlay-url-az200_el30.png")
     page.close()

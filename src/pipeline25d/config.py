@@ -72,6 +72,13 @@ def check_semantics(config: dict[str, Any], base_dir: Path = Path(".")) -> None:
     if zoom != "auto" and "-" in zoom and int(zoom.split("-")[0]) > int(zoom.split("-")[1]):
         raise ConfigError(f"config key tms.zoom: {zoom} runs from a finer to a coarser level; write it low-high")
     check_sun_config(config.get("shadows", {}))
+    for k, overlay in enumerate((config.get("viewer") or {}).get("overlays") or []):
+        _check_readable(base_dir / overlay["path"], f"viewer.overlays.{k}.path")
+        if "crs" in overlay:
+            try:
+                parse_crs(overlay["crs"])
+            except CRSError as exc:
+                raise ConfigError(f"config key viewer.overlays.{k}.crs ({overlay['path']}): {exc}") from None
     heights = config.get("heights") or {}
     for key in ("footprints", "reference"):
         if heights.get(key, "auto") not in ("auto", "none"):

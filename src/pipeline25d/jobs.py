@@ -123,14 +123,17 @@ def heights_job(job: Job) -> None:
 
 def report_job(job: Job) -> None:
     from pipeline25d.publish.report import write_report
+    from pipeline25d.publish.report_html import write_html
 
-    write_report(dict(job.params.config), job.params.results, job.output.json, job.output.md)
+    rep = write_report(dict(job.params.config), job.params.results, job.output.json, job.output.md)
+    write_html(rep, job.params.results, job.output.html)
 
 
 def viewer_job(job: Job) -> None:
     from pipeline25d.publish.viewer import write_viewer
 
-    write_viewer(job.input.report, job.output[0], archives=job.input.pmtiles)
+    write_viewer(job.input.report, job.output[0], archives=job.input.pmtiles, overlays=job.params.viewer["overlays"],
+                 basemap=job.params.viewer.get("basemap"))
 
 
 def wms_job(job: Job) -> None:

@@ -10,10 +10,14 @@ rule report:
         tms_stats=expand(f"{RESULTS}/work/tms/{{pid}}.json", pid=PERSPECTIVE_IDS),
         scene=rules.scene.output.scene,
         heights=rules.heights.output.json,
+        heights_csv=rules.heights.output.csv,
+        gcps=expand(f"{RESULTS}/gcps/{{pid}}.csv", pid=PERSPECTIVE_IDS),
+        mosaics=expand(f"{RESULTS}/mosaic/{{pid}}.vrt", pid=PERSPECTIVE_IDS),
         chunks=expand(f"{RESULTS}/chunks/{{district}}/index.json", district=DISTRICTS),
     output:
         json=f"{RESULTS}/report/report.json",
         md=f"{RESULTS}/report/report.md",
+        html=f"{RESULTS}/report/report.html",
     params:
         config=config,
         results=RESULTS,
@@ -28,8 +32,11 @@ rule viewer:
         report=rules.report.output.json,
         tms=expand(f"{RESULTS}/tms/{{pid}}", pid=PERSPECTIVE_IDS),
         pmtiles=PMTILES,
+        overlays=[o["path"] for o in config["viewer"]["overlays"]],
     output:
         f"{RESULTS}/viewer/index.html",
+    params:
+        viewer=config["viewer"],
     log:
         f"{RESULTS}/logs/viewer.log",
     script:

@@ -141,6 +141,11 @@ def coarser_inputs(results: Path, districts: list[str]) -> list[dict]:
     return out
 
 
+def warp_label(p: dict) -> str:
+    """A report perspective's warp as people read it: "none", "tps", "polynomial 2"."""
+    return p["warp"]["method"] + (f" {p['warp']['order']}" if p["warp"]["method"] == "polynomial" else "")
+
+
 def fmt_measure(v: float | None, nd: int = 3, missing: str = "–") -> str:
     """A measured figure with ``nd`` decimals; smaller ones keep two significant digits, and
     one below 1e-6 reads "< 1e-06" (a measurement is never printed as a bare 0.000)."""
@@ -177,7 +182,7 @@ def render_markdown(rep: dict) -> str:
              "| perspective | tiles rendered | skipped | GCPs | checks | warp | RMSD m | RMSD px | max m | unwarped RMSD m |",
              "|---|---:|---:|---:|---:|---|---:|---:|---:|---:|"]
     for p in rep["perspectives"]:
-        warp = p["warp"]["method"] + (f" {p['warp']['order']}" if p["warp"]["method"] == "polynomial" else "")
+        warp = warp_label(p)
         na = p.get("check_note") or "n/a"
         unwarped = fmt(p["unwarped_rmsd_m"], missing=p.get("unwarped_note") or na)
         lines.append(f"| {p['id']} | {p['tiles_rendered']} | {p['tiles_skipped']} | {p['n_gcp']} | {p['n_check']} | "

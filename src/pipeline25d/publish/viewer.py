@@ -7,7 +7,8 @@ and from a plain static file server. The page is given, per perspective, its azi
 elevation and gsd (for measuring heights), the runs of tiles its pyramid holds (so the
 browser never asks for a tile that was not written: empty tiles are not cut) and, where the
 pyramid was also written as one PMTiles archive, that archive's path; per scene, a quadratic
-from web-mercator metres to the scene CRS (measurements are made there).
+from web-mercator metres to the scene CRS (measurements are made there), the overlays (converted
+beside the page by :mod:`pipeline25d.publish.overlays`) and the basemap, if any.
 """
 
 from __future__ import annotations
@@ -21,6 +22,8 @@ import numpy as np
 
 from pipeline25d.core.atomic import write_text
 from pipeline25d.core.errors import Pipeline25dError
+from pipeline25d.publish.overlays import write_overlays
+from pipeline25d.publish.report import warp_label
 
 TEMPLATE = Path(__file__).with_name("viewer") / "index.html.in"
 
@@ -95,9 +98,12 @@ def mercator_to_scene(crs: str, lonlat_bounds: list[float], n: int = 7) -> dict:
             "max_error_m": float(np.abs(terms @ coef - scene).max())}
 
 
-def write_viewer(report_json: str | Path, out_html: str | Path, archives: list[str | Path] | None = None) -> None:
+def write_viewer(report_json: str | Path, out_html: str | Path, archives: list[str | Path] | None = None,
+                 overlays: list[dict] | None = None, basemap: dict | None = None) -> None:
     """Write the viewer page ``out_html`` with its scripts beside it. ``archives``: PMTiles archives
-    named ``<id>.pmtiles``, one per perspective; the page then reads those instead of the XYZ folders."""
+    named ``<id>.pmtiles``, one per perspective; the page then reads those instead of the XYZ folders.
+    ``overlays`` (config ``viewer.overlays``): vector layers copied beside the page as GeoJSON and drawn
+    on every perspective; ``basemap`` (config ``viewer.basemap``): an XYZ layer under the maps."""
     report = json.loads(Path(report_json).read_text())
     results = Path(report_json).resolve().parents[1]
     out_html = Path(out_html)
@@ -110,7 +116,7 @@ def write_viewer(report_json: str | Path, out_html: str | Path, archives: list[s
         tms_dir = results / "tms" / p["id"]
         zmin, zmax = zoom_range(tms_dir)
         ext = tile_extension(tms_dir)
-        warp = p["warp"]["method"] + (f" {p['warp']['order']}" if p["warp"]["method"] == "polynomial" else "")
+        warp = warp_label(p)
         entries.append({"id": p["id"], "azimuth": p["azimuth"], "elevation": p["elevation"], "gsd": report["gsd"],
                         "rmsd_m": p["rmsd_m"], "rmsd_px": p["rmsd_px"], "warp": warp,
                         "lonlat_bounds": p["lonlat_bounds"], "min_zoom": zmin, "max_zoom": zmax,
@@ -125,8 +131,10 @@ def write_viewer(report_json: str | Path, out_html: str | Path, archives: list[s
                 shutil.copytree(src / name, dest / name, dirs_exist_ok=True)
             else:
                 shutil.copyfile(src / name, dest / name)
-    for name in ("viewer.js", "viewer.css"):
+    for name in ("viewer.js", "overlays.js", "viewer.css"):
         shutil.copyfile(TEMPLATE.with_name(name), out_html.parent / name)
     html = (TEMPLATE.read_text().replace("@SCENE@", report["scene"]).replace("@PERSPECTIVES@", json.dumps(entries))
-            .replace("@TO_SCENE@", json.dumps(to_scene)))
+            .replace("@TO_SCENE@", json.dumps(to_scene))
+            .replace("@OVERLAYS@", json.dumps(write_overlays(overlays or [], out_html.parent / "overlays")))
+            .replace("@BASEMAP@", json.dumps(basemap)))
     write_text(out_html, html)

@@ -6,6 +6,7 @@
 // elevation φ from azimuth θ, a vertical edge of height h runs h·cot φ along d = (sin θ, cos θ),
 // so h = (top − base)·d / cot φ, measured in the scene CRS (TO_SCENE). Clicks are turned into
 // map coordinates by the map itself, so measuring works the same on the rotated map.
+// Overlays and the basemap: overlays.js (told of each perspective shown by a 'perspective' event).
 'use strict';
 
 const EMPTY = 'data:image/gif;base64,R0lGODlhAQABAIAAAAAAAP///yH5BAEAAAAALAAAAAABAAEAAAIBRAA7';
@@ -92,6 +93,7 @@ function show(id) {
   if (current) map.removeLayer(layers[current]);
   current = id;
   layers[id].addTo(map);
+  map.fire('perspective', {p: byId[id]});       // overlays.js redraws its layers for it
   document.querySelector(`input[value="${id}"]`).checked = true;
   document.getElementById('status').textContent = `showing ${id}` + (byId[id].pmtiles ? ' (PMTiles archive)' : '');
   clearMeasure();
@@ -124,7 +126,9 @@ function applyHash() {
 const tool = {on: false, base: null, drawn: L.layerGroup().addTo(map)};
 
 function toScene(latlng) {
-  const P = L.CRS.EPSG3857.project(latlng);
+  return mercatorToScene(L.CRS.EPSG3857.project(latlng));
+}
+function mercatorToScene(P) {
   const u = (P.x - TO_SCENE.origin[0]) / TO_SCENE.scale, v = (P.y - TO_SCENE.origin[1]) / TO_SCENE.scale;
   const t = [1, u, v, u * u, u * v, v * v];
   const poly = c => c.reduce((s, k, i) => s + k * t[i], 0);
@@ -185,7 +189,7 @@ const choices = document.getElementById('choices');
 for (const p of PERSPECTIVES) {
   const b = p.lonlat_bounds;
   const options = {p, minZoom: 0, maxZoom: p.max_zoom + 3, maxNativeZoom: p.max_zoom, minNativeZoom: p.min_zoom,
-                   bounds: [[b[1], b[0]], [b[3], b[2]]], attribution: 'pipeline25d'};
+                   bounds: [[b[1], b[0]], [b[3], b[2]]], attribution: 'pipeline25d', zIndex: 2};
   layers[p.id] = p.pmtiles ? new Archive(options) : new Tiles(`../tms/${p.id}/{z}/{x}/{y}.${p.ext}`, options);
   const row = document.createElement('label');
   row.innerHTML = `<input type="radio" name="persp" value="${p.id}"> ${label(p)}`;
