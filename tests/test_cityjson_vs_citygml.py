@@ -210,3 +210,24 @@ def test_citygml_material_on_an_aggregate_colours_its_polygons(city, tmp_path):
     assert colours("ground", f"{truth['houses'][0]}_ground") == {PALETTE["ground"]}
     assert colours("roof", f"{house}_roof0") == {(255, 0, 0, 255)}
     assert colours("roof", f"{house}_roof1") == {snow}
+
+
+def _objects(mesh) -> dict[tuple, str]:
+    """{triangle (corners to the mm, smallest first, turn kept): the key of the object it belongs to}."""
+    out = {}
+    for part in mesh.parts:
+        tris = np.round(part.vertices[part.faces], 3)
+        for tri, k in zip(tris, part.face_objects):
+            pts = [tuple(p) for p in tri]
+            first = min(range(3), key=pts.__getitem__)
+            out[tuple(pts[(first + i) % 3] for i in range(3))] = part.objects[k]
+    return out
+
+
+def test_both_readers_name_the_same_object_for_every_triangle(city):
+    """Object identity (issue 30): each house's triangles carry its id in both formats, the CityObject
+    key in CityJSON and the Building's gml:id in CityGML, and the ids are the houses the city has."""
+    _, truth, meshes = city
+    ids = {fmt: _objects(meshes[fmt, tc.THEMES[0]]) for fmt in FILES}
+    assert ids["cityjson"] == ids["citygml"] and len(ids["cityjson"]) > 100
+    assert set(ids["cityjson"].values()) == {h["id"] for h in tc.houses(ORIGIN)}

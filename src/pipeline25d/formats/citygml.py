@@ -198,6 +198,7 @@ class _Reader:
         self.global_app = _Appearances()
         self.images: dict[str, bytes | None] = {}
         self.groups: dict[tuple[str, str], _Group] = {}
+        self.keys: list[str] = []                  # top-level city objects drawn: gml:id, else type#n
         self.types_drawn: set[str] = set()
         self.issues: Counter = Counter()
         self.version: str | None = None
@@ -385,7 +386,7 @@ class _Reader:
 
     def loaded(self, keep) -> Loaded:
         """The groups of the object types ``keep`` accepts as MeshParts."""
-        parts = [group.part(keep) for _, group in sorted(self.groups.items())]
+        parts = [group.part(keep, tuple(self.keys)) for _, group in sorted(self.groups.items())]
         return Loaded([p for p in parts if p is not None], self.crs)
 
     def group(self, kind: str, key: str) -> "_Group":
@@ -411,12 +412,14 @@ class _Group:
 
     def __init__(self, kind: str, key: str, texture: bytes | None):
         self.kind, self.key, self.texture = kind, key, texture
-        self.blocks: dict[str, list[list]] = {}   # object type -> [vertices, faces, colours/uvs] lists
+        # object type -> [vertices, faces, colours/uvs, face objects] lists
+        self.blocks: dict[str, list[list]] = {}
         self.pending: dict[str, list[list]] = {}
 
-    def add(self, obj_type: str, vertices: np.ndarray, faces: np.ndarray, extra: np.ndarray) -> None:
-        pend = self.pending.setdefault(obj_type, [[], [], []])
-        for lst, arr in zip(pend, (vertices, faces, extra)):
+    def add(self, obj_type: str, vertices: np.ndarray, faces: np.ndarray, extra: np.ndarray, obj: int) -> None:
+        """Triangles of the object ``obj`` (an index into the reader's keys)."""
+        pend = self.pending.setdefault(obj_type, [[], [], [], []])
+        for lst, arr in zip(pend, (vertices, faces, extra, np.full(len(faces), obj, dtype=np.int32))):
             lst.append(arr)
         if len(pend[0]) >= 256:
             self._compact(obj_type)
@@ -425,13 +428,13 @@ class _Group:
         pend = self.pending.pop(obj_type, None)
         if not pend or not pend[0]:
             return
-        verts, faces, extra = pend
+        verts, faces, extra, objects = pend
         sizes = np.cumsum([0] + [len(v) for v in verts[:-1]])
         block = [np.concatenate(verts), np.concatenate([f + o for f, o in zip(faces, sizes)]),
-                 np.concatenate(extra)]
+                 np.concatenate(extra), np.concatenate(objects)]
         self.blocks.setdefault(obj_type, []).append(block)
 
-    def part(self, keep) -> MeshPart | None:
+    def part(self, keep, keys: tuple[str, ...]) -> MeshPart | None:
         for obj_type in list(self.pending):
             self._compact(obj_type)
         blocks = [b for t, bl in sorted(self.blocks.items()) if keep(t) for b in bl]
@@ -441,9 +444,10 @@ class _Group:
         vertices = np.concatenate([b[0] for b in blocks])
         faces = np.concatenate([b[1] + o for b, o in zip(blocks, sizes)])
         extra = np.concatenate([b[2] for b in blocks])
+        ids = {"objects": keys, "face_objects": np.concatenate([b[3] for b in blocks])}
         if self.kind == "tex":
-            return MeshPart(vertices, faces, uv=extra, texture=self.texture, name=Path(self.key).name)
-        return MeshPart(vertices, faces, colors=extra, name=self.key)
+            return MeshPart(vertices, faces, uv=extra, texture=self.texture, name=Path(self.key).name, **ids)
+        return MeshPart(vertices, faces, colors=extra, name=self.key, **ids)
 
 
 @dataclass
@@ -459,6 +463,8 @@ class _Member:
     def __init__(self, reader: _Reader, root, local_app: _Appearances, keep):
         self.r, self.root, self.app, self.keep = reader, root, local_app, keep
         self.ids: dict[str, object] | None = None
+        self.obj = len(reader.keys)                # its faces' object: the member's gml:id, else type#n
+        reader.keys.append(root.get(GML_ID[0]) or root.get(GML_ID[1]) or f"{_local(root.tag)}#{self.obj}")
 
     def draw(self) -> None:
         objects, chosen = [self.root], []
@@ -653,10 +659,10 @@ class _Member:
         used, faces = np.unique(faces, return_inverse=True)
         faces = faces.reshape(-1, 3)
         if texture is not None:
-            self.r.group("tex", texture).add(obj_type, verts[used], faces, uv[used])
+            self.r.group("tex", texture).add(obj_type, verts[used], faces, uv[used], self.obj)
         else:
             colors = np.tile(np.asarray(rgba or PALETTE[cls], dtype=np.uint8), (len(used), 1))
-            self.r.group("col", cls).add(obj_type, verts[used], faces, colors)
+            self.r.group("col", cls).add(obj_type, verts[used], faces, colors, self.obj)
         self.r.types_drawn.add(obj_type)
 
     def _draw_tin(self, tin, flip: bool, cls: str, obj_type: str) -> None:
@@ -675,7 +681,7 @@ class _Member:
         up = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])[:, 2] < 0
         faces[up] = faces[up][:, ::-1]   # counter-clockwise seen from above
         colors = np.tile(np.asarray(PALETTE[cls], dtype=np.uint8), (len(verts), 1))
-        self.r.group("col", cls).add(obj_type, verts, faces[:, ::-1] if flip else faces, colors)
+        self.r.group("col", cls).add(obj_type, verts, faces[:, ::-1] if flip else faces, colors, self.obj)
         self.r.types_drawn.add(obj_type)
 
     def _xy(self, pts: np.ndarray) -> np.ndarray:
