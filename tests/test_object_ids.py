@@ -93,3 +93,42 @@ def test_a_simplified_part_carries_the_objects_of_the_faces_that_survive():
     centres = coarse.vertices[coarse.faces].mean(axis=1)[:, 0]
     assert (centres[coarse.face_objects == 0] <= 10.5).all() and (centres[coarse.face_objects == 1] >= 9.5).all()
     assert set(coarse.face_objects) == {0, 1}
+
+
+def test_numeric_ids_are_unique_stable_and_never_zero():
+    from pipeline25d.stages.objects import LOCAL_BITS, district_slots, object_ids
+
+    slots = district_slots(["north", "south", "d0"])
+    assert len(set(slots.values())) == 3 and district_slots(["north", "south", "d0", "east"])["north"] == slots["north"]
+    keys = [f"b{i}" for i in range(20_000)]
+    ids = object_ids(keys, slots["north"], "x.json")
+    assert len(set(ids.values())) == len(keys) and 0 not in ids.values()
+    assert {v >> LOCAL_BITS for v in ids.values()} == {slots["north"]}
+    more = object_ids(keys + ["new"], slots["north"], "x.json")
+    moved = [k for k in keys if more[k] != ids[k]]
+    assert len(moved) <= 1                           # only a newcomer taking a probed hash first moves one
+
+
+def test_ingest_gives_every_face_a_numeric_id_of_its_object(delft):
+    """objects.json maps each key to its id; every chunk part carries those ids at every level, and an
+    anonymous part (a mesh file's) becomes one object named after it."""
+    ids = json.loads((delft / "chunks" / "objects.json").read_text())
+    for chunk in lod_chunks([delft / "lod" / "index.json"]):
+        for level in range(len(chunk.errors)):
+            _, parts = load_chunk_level(chunk.npz, level)
+            for part in parts:
+                assert part.object_ids.tolist() == [ids[k] for k in part.objects]
+    assert len(ids) > 100 and len(set(ids.values())) == len(ids)
+
+
+def test_an_obj_part_is_one_object_named_after_it(tmp_path):
+    (tmp_path / "m.obj").write_text("v 0 0 0\nv 10 0 0\nv 10 10 0\nv 0 10 0\nusemtl grass\nf 1 2 3\nf 1 3 4\n")
+    index = ingest({"path": str(tmp_path / "m.obj")}, "d", "EPSG:25832", 100.0, 0.5, tmp_path / "c" / "index.json")
+    ids = json.loads((tmp_path / "c" / "objects.json").read_text())
+    (cid,) = index["chunks"]
+    from pipeline25d.stages.chunks import load_npz, unpack_parts
+
+    data = load_npz(tmp_path / "c" / f"{cid}.npz")
+    (part,) = unpack_parts(data, data["origin"])
+    assert len(ids) == 1 and part.objects == tuple(ids) and (part.face_objects == 0).all()
+    assert part.object_ids.tolist() == list(ids.values())

@@ -33,7 +33,7 @@ def ingest_job(job: Job) -> None:
 
     p = job.params
     ingest.ingest(dict(p.spec), job.wildcards.district, p.crs, p.chunk_size, p.max_error, job.output.index,
-                  gsd=p.gsd)
+                  gsd=p.gsd, slot=p.slot)
 
 
 def lod_job(job: Job) -> None:

@@ -11,6 +11,7 @@ from pipeline25d.analysis.height_sources import plan as heights_plan
 from pipeline25d.core.logsetup import stop_on_error
 from pipeline25d.geometry.perspectives import ID_PATTERN
 from pipeline25d.stages import budget
+from pipeline25d.stages.objects import district_slots
 from pipeline25d.stages.extent import cheap_extent
 from pipeline25d.stages.plan import block_spec_hash, plan_block, read_plan, read_plan_blocks
 
@@ -31,6 +32,7 @@ with stop_on_error(log=False):
     check_semantics(config)
     RESULTS = f"results/{config['scene']}"
     DISTRICTS = sorted(config["inputs"])
+    OBJECT_SLOTS = district_slots(DISTRICTS)       # each district's object ids (stages.objects)
     PERSPECTIVE_IDS = [p.id for p in perspectives(config)]
     # the web-tile pyramids as PMTiles archives too (tms.pmtiles), read by the viewer
     PMTILES = [f"{RESULTS}/pmtiles/{pid}.pmtiles" for pid in PERSPECTIVE_IDS] if config["tms"]["pmtiles"] else []

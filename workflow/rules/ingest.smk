@@ -1,4 +1,5 @@
-# Ingest: one district file -> chunks (float64 origin + float32 local), unchanged chunks untouched.
+# Ingest: one district file -> chunks (float64 origin + float32 local), unchanged chunks untouched;
+# its objects' numeric ids (objects.json beside the index) in the district's id slot.
 
 
 checkpoint ingest:
@@ -12,6 +13,7 @@ checkpoint ingest:
         chunk_size=chunk_size(config),
         max_error=MAX_LOD_ERROR,
         gsd=config["gsd"],
+        slot=lambda wc: OBJECT_SLOTS[wc.district],
     log:
         f"{RESULTS}/logs/ingest/{{district}}.log",
     benchmark:

@@ -26,6 +26,8 @@ class MeshPart:
     objects:  the keys of the input objects (CityJSON/CityGML ids ...) its faces belong to.
     face_objects: (m,) int32 index into ``objects`` of every face, or None (the faces carry
               no object identity).
+    object_ids: (len(objects),) uint32 numeric id of each object (see
+              :mod:`pipeline25d.stages.objects`), once ingest has given them; else None.
     """
 
     vertices: np.ndarray
@@ -36,6 +38,7 @@ class MeshPart:
     name: str = ""
     objects: tuple[str, ...] = ()
     face_objects: np.ndarray | None = None
+    object_ids: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float64).reshape(-1, 3)
@@ -50,6 +53,8 @@ class MeshPart:
             self.face_objects = np.ascontiguousarray(self.face_objects, dtype=np.int32).reshape(-1)
             if len(self.face_objects) != len(self.faces):
                 raise ValueError(f"{len(self.face_objects)} face objects for {len(self.faces)} faces")
+        if self.object_ids is not None:
+            self.object_ids = np.ascontiguousarray(self.object_ids, dtype=np.uint32).reshape(-1)
 
     @property
     def n_triangles(self) -> int:

@@ -37,6 +37,8 @@ def pack_parts(parts: list[MeshPart], origin: np.ndarray, prefix: str = "") -> d
         if part.face_objects is not None:
             out[key + "objects"] = np.array(part.objects, dtype=str)
             out[key + "fobj"] = part.face_objects
+        if part.object_ids is not None:
+            out[key + "oids"] = part.object_ids
     return out
 
 
@@ -55,6 +57,7 @@ def unpack_parts(data, origin: np.ndarray, prefix: str = "") -> list[MeshPart]:
             texture=tex,
             objects=tuple(str(k) for k in data[key + "objects"]) if key + "objects" in names else (),
             face_objects=data[key + "fobj"] if key + "fobj" in names else None,
+            object_ids=data[key + "oids"] if key + "oids" in names else None,
         ))
     return parts
 

@@ -20,6 +20,7 @@ import logging
 import pickle
 import tempfile
 from collections.abc import Iterable, Iterator
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +28,7 @@ import numpy as np
 from pipeline25d.core.atomic import write_json
 from pipeline25d.core.mesh import Mesh, MeshPart
 from pipeline25d.stages.chunks import chunk_origin, content_hash, pack_parts, save_npz
+from pipeline25d.stages.objects import named_objects, object_ids
 
 log = logging.getLogger(__name__)
 
@@ -73,9 +75,10 @@ def _subset(part: MeshPart, face_index: np.ndarray) -> MeshPart:
 
 
 def write_chunks(mesh: Mesh | Iterable[Mesh], district: str, chunk_size: float, out_dir: Path,
-                 index_path: Path) -> dict:
-    """Write the district's chunks into ``out_dir`` and its index JSON last; ``mesh`` whole or in
-    pieces (module docstring).
+                 index_path: Path, slot: int = 0) -> dict:
+    """Write the district's chunks into ``out_dir``, its objects' ids (``objects.json``: key -> id,
+    :mod:`pipeline25d.stages.objects`, district id ``slot``) and its index JSON last; ``mesh`` whole
+    or in pieces (module docstring). Every face belongs to an object (:func:`named_objects`).
 
     Returns the index: {district, source, n_triangles, chunk_size, [coarser,] chunks: {id: {...}}};
     ``coarser`` (the input tiles drawn coarser than asked, :class:`~pipeline25d.core.mesh.Coarser`
@@ -90,12 +93,14 @@ def write_chunks(mesh: Mesh | Iterable[Mesh], district: str, chunk_size: float, 
         for piece in pieces:
             source, n_triangles = piece.source, n_triangles + piece.n_triangles
             coarser += piece.coarser
-            spool.add(split_into_chunks(piece, chunk_size))
+            spool.add(split_into_chunks(Mesh([named_objects(p) for p in piece.parts], piece.source), chunk_size))
+        ids = object_ids(spool.keys, slot, source or district)
         index = {"district": district, "source": source, "chunk_size": chunk_size, "n_triangles": n_triangles,
                  # only when there are any: the index of a district drawn as asked stays as it was
                  **({"coarser": [c.to_json() for c in coarser]} if coarser else {}),
                  "chunks": {}}
         for cid, parts in spool.chunks():
+            parts = [replace(p, object_ids=np.array([ids[k] for k in p.objects], dtype=np.uint32)) for p in parts]
             bounds = Mesh(parts).bounds()
             origin = chunk_origin(bounds)
             arrays = pack_parts(parts, origin)
@@ -111,6 +116,7 @@ def write_chunks(mesh: Mesh | Iterable[Mesh], district: str, chunk_size: float, 
         if stale.stem not in index["chunks"]:
             stale.unlink()
     write_json(sidecar, {k: v["hash"] for k, v in index["chunks"].items()})
+    write_json(out_dir / "objects.json", dict(sorted(ids.items())))
     write_json(index_path, index)
     return index
 
@@ -125,6 +131,7 @@ class _Spool:
         self.held_bytes = 0
         self.folder: tempfile.TemporaryDirectory | None = None
         self.spooled: set[str] = set()
+        self.keys: set[str] = set()          # every object of every part added
 
     def __enter__(self) -> "_Spool":
         return self
@@ -136,6 +143,7 @@ class _Spool:
     def add(self, chunks: dict[str, list[MeshPart]]) -> None:
         for cid, parts in chunks.items():
             self.held.setdefault(cid, []).extend(parts)
+            self.keys.update(k for p in parts for k in p.objects)
             self.held_bytes += sum(_part_bytes(p) for p in parts)
         if self.held_bytes > SPOOL_BYTES:
             self._spill()
@@ -177,7 +185,7 @@ def _previous_hashes(sidecar: Path) -> dict[str, str]:
 
 
 def ingest(spec: dict, district: str, scene_crs: str, chunk_size: float, max_geometric_error: float,
-           index_path: str | Path, gsd: float | None = None) -> dict:
+           index_path: str | Path, gsd: float | None = None, slot: int = 0) -> dict:
     """Read one district and write its chunks beside ``index_path``."""
     from pipeline25d.formats import district_pieces
 
@@ -189,6 +197,6 @@ def ingest(spec: dict, district: str, scene_crs: str, chunk_size: float, max_geo
             yield piece
 
     index_path = Path(index_path)
-    index = write_chunks(pieces(), district, chunk_size, index_path.parent, index_path)
+    index = write_chunks(pieces(), district, chunk_size, index_path.parent, index_path, slot)
     log.info("%s: %d triangles from %s", district, index["n_triangles"], spec["path"])
     return index

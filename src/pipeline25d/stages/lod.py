@@ -56,7 +56,8 @@ def _simplify(part: MeshPart, reduction: float) -> tuple[MeshPart, np.ndarray | 
     return MeshPart(vertices=points + centre, faces=faces,
                     colors=_carry(part.colors, mapping, len(points), np.uint8),
                     uv=_carry(part.uv, mapping, len(points), np.float32),
-                    texture=part.texture, name=part.name, objects=part.objects, face_objects=objects), mapping
+                    texture=part.texture, name=part.name, objects=part.objects, face_objects=objects,
+                    object_ids=part.object_ids), mapping
 
 
 def _carry(values: np.ndarray | None, mapping: np.ndarray, n_new: int, dtype) -> np.ndarray | None:
