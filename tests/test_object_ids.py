@@ -132,3 +132,71 @@ def test_an_obj_part_is_one_object_named_after_it(tmp_path):
     (part,) = unpack_parts(data, data["origin"])
     assert len(ids) == 1 and part.objects == tuple(ids) and (part.face_objects == 0).all()
     assert part.object_ids.tolist() == list(ids.values())
+
+
+SAMPLES = DELFT.parents[1] / "3dtiles-samples"
+
+
+def test_b3dm_batch_ids_are_the_buildings_of_a_batched_tile():
+    """BatchedTextured: ten buildings in one b3dm, each a box of 12 triangles: each _BATCHID object is
+    one closed box, and no two boxes overlap in plan."""
+    from pipeline25d.formats import load_district
+
+    path = SAMPLES / "BatchedTextured" / "tileset.json"
+    if not path.is_file():
+        pytest.skip(f"{path} not present")
+    (part,) = load_district({"path": str(path)}, "EPSG:32618").parts        # UTM 18N: x, y in plan
+    assert part.objects == tuple(f"batchedTextured.b3dm#{k}" for k in range(10))
+    boxes = []
+    for k in range(10):
+        tris = part.faces[part.face_objects == k]
+        corners = np.unique(np.round(part.vertices[np.unique(tris)], 3), axis=0)
+        assert len(tris) == 12 and len(corners) == 8          # a box: 12 triangles on 8 corners
+        boxes.append((corners[:, :2].min(axis=0), corners[:, :2].max(axis=0)))
+    for i in range(10):
+        for j in range(i + 1, 10):
+            (lo_i, hi_i), (lo_j, hi_j) = boxes[i], boxes[j]
+            assert (hi_i <= lo_j + 1e-3).any() or (hi_j <= lo_i + 1e-3).any()     # apart in plan
+
+
+def test_ext_mesh_features_ids_follow_the_feature_id_attribute():
+    """FeatureIdAttribute: the ids of the _FEATURE_ID_0 accessor, read here from the glTF's own
+    buffer, at each face's first vertex."""
+    import base64
+
+    from pipeline25d.formats import load_district
+
+    path = SAMPLES / "FeatureIdAttribute" / "FeatureIdAttribute.gltf"
+    if not path.is_file():
+        pytest.skip(f"{path} not present")
+    doc = json.loads(path.read_text())
+    uri = doc["buffers"][0]["uri"]
+    data = base64.b64decode(uri.split(",", 1)[1]) if uri.startswith("data:") else (path.parent / uri).read_bytes()
+
+    def accessor(i):
+        acc = doc["accessors"][i]
+        view = doc["bufferViews"][acc["bufferView"]]
+        dtype = {5121: np.uint8, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}[acc["componentType"]]
+        width = {"SCALAR": 1, "VEC3": 3}[acc["type"]]
+        start = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
+        stride = view.get("byteStride", np.dtype(dtype).itemsize * width)      # the ids: 1 byte in 4
+        rows = [np.frombuffer(data, dtype, width, start + k * stride) for k in range(acc["count"])]
+        return np.array(rows)
+
+    prim = doc["meshes"][0]["primitives"][0]
+    indices = accessor(prim["indices"]).reshape(-1, 3)
+    ids = accessor(prim["attributes"]["_FEATURE_ID_0"]).reshape(-1)[indices[:, 0]]
+    (part,) = load_district({"path": str(path), "crs": "EPSG:4978"}, "EPSG:4978").parts
+    named = [part.objects[k] for k in part.face_objects]
+    assert named == [f"FeatureIdAttribute.gltf#{int(v)}" for v in ids] and len(set(named)) == 4
+
+
+def test_merged_parts_keep_each_face_on_its_object():
+    from pipeline25d.core.mesh import joined_objects
+
+    a = MeshPart(np.zeros((3, 3)), [[0, 1, 2]] * 3, objects=("x", "y"), face_objects=[1, 0, 1])
+    b = MeshPart(np.zeros((3, 3)), [[0, 1, 2]] * 2, name="roofs")
+    c = MeshPart(np.zeros((3, 3)), [[0, 1, 2]], objects=("y",), face_objects=[0])
+    objects, faces = joined_objects([a, b, c])
+    assert [objects[k] for k in faces] == ["y", "x", "y", "roofs", "roofs", "y"]
+    assert joined_objects([b, b]) == ((), None)

@@ -71,6 +71,13 @@ class MeshPart:
         objects = None if self.face_objects is None else self.face_objects[kept]
         return replace(self, faces=faces, face_objects=objects)
 
+    def named(self) -> "MeshPart":
+        """This part if its faces carry objects; else a copy whose faces all belong to the object
+        named after the part (its material, mesh or tile), ``"part"`` if it has no name."""
+        if self.face_objects is not None:
+            return self
+        return replace(self, objects=(self.name or "part",), face_objects=np.zeros(len(self.faces), np.int32))
+
     def transformed(self, fn) -> "MeshPart":
         """A copy whose vertices are ``fn(vertices)`` ((n, 3) float64 -> (n, 3) float64)."""
         return replace(self, vertices=np.asarray(fn(self.vertices), dtype=np.float64))
@@ -119,3 +126,18 @@ class Mesh:
 
     def transformed(self, fn) -> "Mesh":
         return Mesh([p.transformed(fn) for p in self.parts], self.source, self.coarser)
+
+
+def joined_objects(parts: list[MeshPart]) -> tuple[tuple[str, ...], np.ndarray | None]:
+    """(objects, face objects) of the faces of ``parts`` concatenated in order; (), None when no
+    part carries objects (else each part without them is its own object, :meth:`MeshPart.named`)."""
+    if all(p.face_objects is None for p in parts):
+        return (), None
+    named = [p.named() for p in parts]
+    keys: dict[str, int] = {}
+    for p in named:
+        for key in p.objects:
+            keys.setdefault(key, len(keys))
+    face_objects = np.concatenate([np.array([keys[k] for k in p.objects], dtype=np.int32)[p.face_objects]
+                                   for p in named])
+    return tuple(keys), face_objects

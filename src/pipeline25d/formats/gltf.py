@@ -349,9 +349,12 @@ def _primitive_attributes(doc: _Document, prim: dict) -> tuple[dict[str, np.ndar
     draco = prim.get("extensions", {}).get("KHR_draco_mesh_compression")
     if draco is not None:
         return _draco_attributes(doc, prim, draco)
+    feature = _feature_attribute(prim)
     attrs = {name: _as_float(doc.accessor(i), doc.item("accessors", i))
              for name, i in prim.get("attributes", {}).items()
              if name in ("POSITION", "COLOR_0") or name.startswith("TEXCOORD_")}
+    if feature is not None and feature in prim.get("attributes", {}):
+        attrs[FEATURE] = doc.accessor(prim["attributes"][feature]).reshape(-1).astype(np.float64)
     if "POSITION" not in attrs:
         raise InputFileError(doc.path, "primitive without POSITION attribute")
     if "indices" in prim:
@@ -370,14 +373,18 @@ def _draco_attributes(doc: _Document, prim: dict, draco: dict) -> tuple[dict[str
     except Exception as exc:  # DracoPy raises its own and ValueError types
         raise InputFileError(doc.path, f"Draco decoding failed: {exc}") from None
     attrs = {}
+    feature = _feature_attribute(prim)
     for name, uid in draco.get("attributes", {}).items():
-        if not (name in ("POSITION", "COLOR_0") or name.startswith("TEXCOORD_")):
+        if not (name in ("POSITION", "COLOR_0", feature) or name.startswith("TEXCOORD_")):
             continue
         attr = mesh.get_attribute_by_unique_id(int(uid))
         if attr is None:
             raise InputFileError(doc.path, f"Draco stream lacks attribute {name} (id {uid})")
         acc = doc.item("accessors", prim["attributes"][name]) if name in prim.get("attributes", {}) else {}
         data = np.asarray(attr["data"])
+        if name == feature:
+            attrs[FEATURE] = data.reshape(-1).astype(np.float64)
+            continue
         attrs[name] = _as_float(data.reshape(len(data), -1), acc)
     if "POSITION" not in attrs:
         raise InputFileError(doc.path, "Draco primitive without POSITION attribute")
@@ -393,6 +400,7 @@ def _primitive_part(doc: _Document, prim: dict, matrix: np.ndarray, name: str) -
     if faces.min() < 0 or faces.max() >= len(positions):
         raise InputFileError(doc.path, f"primitive {name}: index {faces.max()} out of range "
                                        f"({len(positions)} vertices)")
+    objects, face_objects = _face_features(doc, attrs.get(FEATURE), faces)
     used, faces = np.unique(faces, return_inverse=True)
     faces = faces.reshape(-1, 3)
     if np.linalg.det(matrix[:3, :3]) < 0:  # mirroring transform: keep front faces front
@@ -407,7 +415,36 @@ def _primitive_part(doc: _Document, prim: dict, matrix: np.ndarray, name: str) -
     else:
         uv = uv[used]
     return MeshPart(vertices, faces, colors=colors, uv=uv, texture=texture,
-                    name=material.get("name") or name)
+                    name=material.get("name") or name, objects=objects, face_objects=face_objects)
+
+
+#: the attrs key of a primitive's per-vertex feature ids (3D Tiles batch ids, EXT_mesh_features)
+FEATURE = "FEATURE_ID"
+
+
+def _feature_attribute(prim: dict) -> str | None:
+    """The primitive's feature-id attribute: EXT_mesh_features' first featureIds entry given by
+    attribute (``_FEATURE_ID_n``), else a b3dm's ``_BATCHID``; None when it has none."""
+    ids = prim.get("extensions", {}).get("EXT_mesh_features", {}).get("featureIds") or []
+    if ids and isinstance(ids[0], dict) and "attribute" in ids[0]:
+        return f"_FEATURE_ID_{int(ids[0]['attribute'])}"
+    attributes = prim.get("attributes", {})
+    return "_BATCHID" if "_BATCHID" in attributes else ("BATCHID" if "BATCHID" in attributes else None)
+
+
+def _face_features(doc: _Document, feature: np.ndarray | None,
+                   faces: np.ndarray) -> tuple[tuple[str, ...], np.ndarray | None]:
+    """(objects, face objects) of a primitive's faces from their first vertex's feature id: objects
+    named ``<file>#<feature id>`` (the file relative to the dataset's root); (), None without ids."""
+    if feature is None:
+        return (), None
+    values = np.rint(feature[faces[:, 0]]).astype(np.int64)
+    held, face_objects = np.unique(values, return_inverse=True)
+    try:
+        name = doc.path.resolve().relative_to(doc.root.resolve()).as_posix()
+    except ValueError:
+        name = doc.path.name
+    return tuple(f"{name}#{v}" for v in held), face_objects
 
 
 def _base_color_texture(doc: _Document, pbr: dict, attrs: dict) -> tuple[bytes | None, np.ndarray | None]:

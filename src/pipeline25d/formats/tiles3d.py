@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline25d.core.errors import InputFileError
-from pipeline25d.core.mesh import Mesh, MeshPart
+from pipeline25d.core.mesh import Mesh, MeshPart, joined_objects
 from pipeline25d.formats.common import Detail, Loaded, in_scene
 from pipeline25d.formats.gltf import parse_gltf_bytes
 from pipeline25d.formats.tileset_tree import read_json, resolve, select
@@ -254,8 +254,9 @@ def _instanced(part: MeshPart, matrices: np.ndarray) -> MeshPart:
     verts = np.einsum("kij,nj->kni", matrices[:, :3, :3], part.vertices) + matrices[:, None, :3, 3]
     faces = part.faces[None, :, :] + (np.arange(k) * n)[:, None, None]
     rep = (lambda a: None if a is None else np.tile(a, (k, 1)))
+    objects = None if part.face_objects is None else np.tile(part.face_objects, k)
     return MeshPart(verts.reshape(-1, 3), faces.reshape(-1, 3), rep(part.colors), rep(part.uv),
-                    part.texture, part.name)
+                    part.texture, part.name, objects=part.objects, face_objects=objects)
 
 
 def _parse_cmpt(data: bytes, path: Path, y_up: bool, root: Path) -> list[MeshPart]:
@@ -299,11 +300,12 @@ def _merge_untextured(parts: list[MeshPart]) -> list[MeshPart]:
         return textured + plain
     offsets = np.cumsum([0] + [len(p.vertices) for p in plain])
     grey = np.array([200, 200, 200, 255], dtype=np.uint8)
+    objects, face_objects = joined_objects(plain)
     merged = MeshPart(
         np.concatenate([p.vertices for p in plain]),
         np.concatenate([p.faces + o for p, o in zip(plain, offsets)]),
         colors=np.concatenate([p.colors if p.colors is not None else np.tile(grey, (len(p.vertices), 1))
                                for p in plain]),
-        name="untextured",
+        name="untextured", objects=objects, face_objects=face_objects,
     )
     return textured + [merged]

@@ -12,8 +12,6 @@ from __future__ import annotations
 import zlib
 from collections.abc import Iterable
 
-import numpy as np
-
 from pipeline25d.core.errors import InputFileError
 from pipeline25d.core.mesh import MeshPart
 
@@ -53,9 +51,5 @@ def object_ids(keys: Iterable[str], slot: int, where: str) -> dict[str, int]:
 
 
 def named_objects(part: MeshPart) -> MeshPart:
-    """``part`` itself if its faces carry objects; else a copy whose faces all belong to the object
-    named after the part (its material or tile), ``"part"`` if it has no name."""
-    if part.face_objects is not None:
-        return part
-    return MeshPart(part.vertices, part.faces, part.colors, part.uv, part.texture, part.name,
-                    objects=(part.name or "part",), face_objects=np.zeros(part.n_triangles, dtype=np.int32))
+    """:meth:`MeshPart.named`: every face of an anonymous part belongs to the object named after it."""
+    return part.named()
