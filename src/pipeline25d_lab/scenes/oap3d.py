@@ -25,6 +25,7 @@ import argparse
 import json
 import logging
 import os
+import re
 import sys
 import tempfile
 import time
@@ -42,7 +43,7 @@ from pipeline25d_lab.scenes.oap3d_nodes import Node, Spec, children, make_node
 
 log = logging.getLogger(__name__)
 
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2
 SRS = "EPSG:32650"
 ORIGIN = (226400.0, 3385600.0, 20.0)      # SRSOrigin, UTM 50N metres (Wuhan)
 SIZES = {
@@ -146,6 +147,30 @@ def _files(folder: Path) -> tuple[int, int]:
             n += 1
             size += os.stat(os.path.join(dirpath, name)).st_size
     return n, size
+
+
+def level_of_file(path: Path) -> str:
+    """The level a dataset file holds ("0".."n"), or "index" (metadata.xml, tileset JSONs)."""
+    m = re.search(r"_L(\d+)(?:_\d+)?\.(?:osgb|glb)$", path.name)
+    if m:
+        return m.group(1)
+    return "0" if re.fullmatch(r"Tile_[-+]\d+_[-+]\d+\.osgb", path.name) else "index"
+
+
+def levels_used(manifest: dict, fmt: str, gsd: float) -> dict:
+    """Bytes a reader must read at ``gsd``: the level drawn and, for OSGB, every file above it
+    (a PagedLOD tree is walked from its root), for 3D Tiles its tileset JSONs (REPLACE
+    refinement reads no coarser content); {"level", "bytes"}."""
+    spec = Spec(**{**manifest["spec"], "tiles": tuple(manifest["spec"]["tiles"])})
+    level = spec.level_for_gsd(gsd)
+    rows = manifest["levels"]
+    if fmt == "osgb":
+        used = sum(r["osgb_bytes"] for r in rows if r["level"] <= level)
+        used += manifest["formats"]["osgb"]["bytes"] - sum(r["osgb_bytes"] for r in rows)   # metadata.xml
+    else:
+        used = rows[level]["3dtiles_glb_bytes"]
+        used += manifest["formats"]["3dtiles"]["bytes"] - sum(r["3dtiles_glb_bytes"] for r in rows)   # JSONs
+    return {"level": level, "texel_m": spec.texel(level), "bytes": used}
 
 
 def existing_manifest(out: Path, size: str, seed: int) -> dict | None:

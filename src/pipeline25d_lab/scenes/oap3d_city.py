@@ -82,7 +82,7 @@ class City:
             _rect(img, xs, ys, texel, (x0 - SIDEWALK, y0 - SIDEWALK, x1 + SIDEWALK, y1 + SIDEWALK), SIDEWALK_RGB)
             _rect(img, xs, ys, texel, (x0, y0, x1, y1), GROUNDS[int(c)])
         lum, tint = self._noise(xs, ys, texel)
-        img *= (1.0 + 0.35 * lum)[..., None]
+        img *= np.maximum(0.25, 1.0 + 0.7 * lum)[..., None]
         img[..., 0] *= 1.0 + 0.06 * tint
         img[..., 2] *= 1.0 - 0.06 * tint
         self._markings(img, xs, ys, texel)

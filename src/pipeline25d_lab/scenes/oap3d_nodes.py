@@ -41,6 +41,10 @@ class Spec:
         """Metres per texel at ``level``."""
         return self.tile / 2 ** level / (self.charts * self.content)
 
+    def level_for_gsd(self, gsd: float) -> int:
+        """The level a map of ``gsd`` draws (both readers): the coarsest whose texel is below the gsd."""
+        return next((k for k in range(self.levels) if gsd > self.texel(k)), self.levels - 1)
+
     def triangles(self, level: int) -> int:
         """Triangles of the whole dataset at ``level``."""
         return self.tiles[0] * self.tiles[1] * 4 ** level * 2 * (self.charts * self.cells) ** 2
