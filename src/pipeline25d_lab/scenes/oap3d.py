@@ -43,7 +43,7 @@ from pipeline25d_lab.scenes.oap3d_nodes import Node, Spec, children, make_node
 
 log = logging.getLogger(__name__)
 
-GENERATOR_VERSION = 2
+GENERATOR_VERSION = 3
 SRS = "EPSG:32650"
 ORIGIN = (226400.0, 3385600.0, 20.0)      # SRSOrigin, UTM 50N metres (Wuhan)
 SIZES = {

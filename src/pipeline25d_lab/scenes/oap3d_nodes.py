@@ -6,7 +6,7 @@ textured by its own chart of the node's JPEG atlas: the chart's texels (``conten
 with a ``gutter`` of repeated edge texels around it, the charts placed in the atlas in a
 seeded order, as photogrammetry software packs them. Every level has the same cells and atlas
 per node, so a level has 4x the triangles and texels of the one above it and its texel is half
-as large (:meth:`Spec.texel`).
+as large (:meth:`Spec.texel`). Each texel carries a photograph's grain (:data:`GRAIN`, seeded per node).
 """
 
 from __future__ import annotations
@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline25d_lab.scenes.oap3d_city import City
+
+GRAIN = 5.0        # grey levels: a photograph's grain on every texel (and JPEG bytes like a photo's)
 
 
 @dataclass(frozen=True)
@@ -88,8 +90,11 @@ def make_node(city: City, spec: Spec, level: int, path: str, x0: float, y0: floa
     texel = spec.texel(level)
     n = spec.charts * spec.content
     xs, ys = x0 + (np.arange(n) + 0.5) * texel, y0 + (np.arange(n) + 0.5) * texel
+    rng = np.random.default_rng([seed, level, int(path or "0", 4), len(path)])
     picture = city.paint(xs, ys, texel)[::-1]            # row 0 = north edge
-    slots = np.random.default_rng([seed, level, int(path or "0", 4), len(path)]).permutation(spec.charts ** 2)
+    picture += (GRAIN * rng.standard_normal((n, n), dtype=np.float32))[..., None]
+    np.clip(picture, 0, 255, out=picture)
+    slots = rng.permutation(spec.charts ** 2)
     slot_px = spec.atlas // spec.charts
     atlas = np.zeros((spec.atlas, spec.atlas, 3), np.uint8)
     verts, faces, uvs = [], [], []
