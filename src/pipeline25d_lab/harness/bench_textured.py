@@ -8,9 +8,10 @@ from scratch with the dataset evicted from the page cache first. Written to
 rendered Mpx per job-second, peak RSS of a job (and of its largest child process), rchar and
 read_bytes summed over the stage's jobs, and the dataset bytes read (the ingest jobs' read_bytes:
 ingest is the stage that opens the dataset; the dataset's pages resident after the run check
-that no other job read it) against the dataset's size and against the levels the gsd uses (:func:`pipeline25d_lab.scenes.oap3d.levels_used`); how
-both are measured is :mod:`pipeline25d_lab.harness.dataset_io`. With several sizes a scaling
-table gives the wall seconds per rendered Mpx of each.
+that no other job read it) against the dataset's size and against the levels the gsd uses
+(:func:`pipeline25d_lab.scenes.oap3d.levels_used`); how both are measured is
+:mod:`pipeline25d_lab.harness.dataset_io`. With several sizes a scaling table gives the wall
+seconds per rendered Mpx of each.
 
 CLI::
 
@@ -21,6 +22,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import subprocess
 import sys
 from pathlib import Path
 
@@ -28,9 +31,24 @@ from pipeline25d.core.atomic import write_text
 from pipeline25d.core.errors import WorkflowRunError
 from pipeline25d_lab.harness.bench import REPO, collect, results_of, run_workflow
 from pipeline25d_lab.harness.dataset_io import evict, resident, stage_resources
-from pipeline25d_lab.scenes.oap3d import SRS, generate_oap3d, level_of_file, levels_used
+from pipeline25d_lab.scenes.oap3d import SRS, existing_manifest, level_of_file, levels_used
 
 MB = 1024 * 1024
+
+
+def generate(out: Path, size: str, seed: int) -> dict:
+    """The dataset (:func:`~pipeline25d_lab.scenes.oap3d.generate_oap3d`), generated in a process of
+    its own with single-threaded BLAS: its many small matrix products are several times slower
+    with OpenBLAS threads spinning on a busy machine."""
+    manifest = existing_manifest(out, size, seed)
+    if manifest is None:
+        env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+        subprocess.run([sys.executable, "-m", "pipeline25d_lab.scenes.oap3d", str(out), "--size", size,
+                        "--seed", str(seed)], env=env, check=True)
+        manifest = existing_manifest(out, size, seed)
+    if manifest is None:
+        raise SystemExit(f"bench-textured: generating {out} left no complete manifest")
+    return manifest
 
 
 def textured_config(name: str, dataset: Path, manifest: dict, fmt: str, gsd: float, perspectives: str) -> dict:
@@ -60,7 +78,8 @@ def summarise(result: dict, io: dict[str, dict], touched: dict, manifest: dict, 
         r = io.get(name, {})
         stages[name] = {**s, "mpx_per_job_s": round(mpx / s["seconds"], 2) if s["seconds"] else None,
                         "peak_rss_mb_job": r.get("peak_rss_mb"), "peak_rss_mb_child": r.get("child_peak_rss_mb"),
-                        "rchar_mb": round(r.get("rchar", 0) / MB, 1), "read_bytes_mb": round(r.get("read_bytes", 0) / MB, 1)}
+                        "rchar_mb": round(r.get("rchar", 0) / MB, 1),
+                        "read_bytes_mb": round(r.get("read_bytes", 0) / MB, 1)}
     size = manifest["formats"][fmt]["bytes"]
     used = levels_used(manifest, fmt, gsd)
     read = io.get("ingest", {}).get("read_bytes", 0)      # the stage that opens the dataset
@@ -69,7 +88,8 @@ def summarise(result: dict, io: dict[str, dict], touched: dict, manifest: dict, 
             "peak_rss_mb_job": max((s["peak_rss_mb_job"] or 0) for s in stages.values()),
             "dataset": {"bytes": size, "levels_used": used, "read_bytes": read,
                         "read_bytes_all_jobs": sum(r.get("read_bytes", 0) for r in io.values()),
-                        "read_over_dataset": round(read / size, 4), "read_over_levels_used": round(read / used["bytes"], 3),
+                        "read_over_dataset": round(read / size, 4),
+                        "read_over_levels_used": round(read / used["bytes"], 3),
                         "resident_after_run": touched,
                         "resident_over_levels_used": round(touched["bytes"] / used["bytes"], 3),
                         "rchar_all_jobs": sum(r.get("rchar", 0) for r in io.values())},
@@ -91,16 +111,19 @@ def markdown(report: dict) -> str:
         used = d["levels_used"]
         lines += ["", f"Dataset {d['bytes'] / MB:.1f} MB; levels used at this gsd (level {used['level']}, texel "
                       f"{used['texel_m']:.3f} m, and what a reader must open above it) {used['bytes'] / MB:.1f} MB; "
-                      f"read from storage by the ingest jobs {d['read_bytes'] / MB:.1f} MB = {d['read_over_dataset']:.3f} "
+                      f"read from storage by the ingest jobs {d['read_bytes'] / MB:.1f} MB = "
+                      f"{d['read_over_dataset']:.3f} "
                       f"of the dataset (all jobs: {d['read_bytes_all_jobs'] / MB:.1f} MB), "
                       f"{d['read_over_levels_used']} x the levels used; resident after the run "
                       f"{d['resident_after_run']['bytes'] / MB:.1f} MB ({d['resident_over_levels_used']} x), by level "
                       + ", ".join(f"{k}: {v / MB:.1f} MB" for k, v in d["resident_after_run"]["by_level"].items())
                       + f"; rchar of all jobs {d['rchar_all_jobs'] / MB:.1f} MB.", ""]
     if len({r["size"] for r in report["runs"]}) > 1:
-        lines += ["## Scaling", "", "| size | format | wall s | Mpx | wall s per Mpx | dataset MB | read MB |", "|---|---|---|---|---|---|---|"]
+        lines += ["## Scaling", "", "| size | format | wall s | Mpx | wall s per Mpx | dataset MB | read MB |",
+                  "|---|---|---|---|---|---|---|"]
         for r in report["runs"]:
-            lines.append(f"| {r['size']} | {r['format']} | {r['wall_s']} | {r['rendered_mpx']} | {r['wall_s_per_mpx']} | "
+            lines.append(f"| {r['size']} | {r['format']} | {r['wall_s']} | {r['rendered_mpx']} | "
+                         f"{r['wall_s_per_mpx']} | "
                          f"{r['dataset']['bytes'] / MB:.1f} | {r['dataset']['read_bytes'] / MB:.1f} |")
     return "\n".join(lines) + "\n"
 
@@ -120,7 +143,7 @@ def main(argv: list[str] | None = None) -> int:
     runs = []
     for size in sizes:
         work = REPO / "bench" / f"oap3d-{size}"
-        manifest = generate_oap3d(work / "dataset", size, args.seed, progress=print)
+        manifest = generate(work / "dataset", size, args.seed)
         print(json.dumps({"size": size, "generation_s": manifest["generation_s"], **manifest["totals"]}))  # noqa: T201
         if args.generate_only:
             continue

@@ -81,7 +81,8 @@ def resident_bytes(path: Path, libc=None) -> int:
 
 
 def resident(folder: Path, level_of=None) -> dict:
-    """{"bytes": resident bytes under ``folder``, "by_level": {level: bytes}} (``level_of(path)`` names a file's level)."""
+    """{"bytes": resident bytes under ``folder``, "by_level": {level: bytes}}; ``level_of(path)``
+    names a file's level."""
     libc, total, by_level = _libc(), 0, {}
     for path in dataset_files(folder):
         b = resident_bytes(path, libc)
@@ -112,7 +113,8 @@ def stage_resources(logs: Path) -> dict[str, dict]:
         if rec is None:
             continue
         stage = log.relative_to(logs).parts[0].removesuffix(".log")
-        s = out.setdefault(stage, {"jobs": 0, "rchar": 0, "read_bytes": 0, "peak_rss_mb": 0.0, "child_peak_rss_mb": 0.0})
+        s = out.setdefault(stage, {"jobs": 0, "rchar": 0, "read_bytes": 0, "peak_rss_mb": 0.0,
+                                   "child_peak_rss_mb": 0.0})
         s["jobs"] += 1
         s["rchar"] += rec["rchar"]
         s["read_bytes"] += rec["read_bytes"]

@@ -224,7 +224,8 @@ def build_city(width: float, depth: float, seed: int) -> City:
     lots, buildings, units = [], [], []
     for xa, xb in zip(streets[0][:-1], streets[0][1:]):
         for ya, yb in zip(streets[1][:-1], streets[1][1:]):
-            bx0, bx1, by0, by1 = xa + STREET / 2 + SIDEWALK, xb - STREET / 2 - SIDEWALK, ya + STREET / 2 + SIDEWALK, yb - STREET / 2 - SIDEWALK
+            inset = STREET / 2 + SIDEWALK
+            bx0, bx1, by0, by1 = xa + inset, xb - inset, ya + inset, yb - inset
             lots.append((bx0, by0, bx1, by1, rng.integers(len(GROUNDS))))
             rows = 2 if by1 - by0 > 50 else 1
             cuts = np.concatenate([[bx0], np.cumsum(rng.uniform(12, 30, 12)) + bx0])

@@ -110,7 +110,8 @@ def make_node(city: City, spec: Spec, level: int, path: str, x0: float, y0: floa
         ci, cj = k % spec.charts, k // spec.charts            # chart column (x) and row (y, south first)
         sx, sy = slots[k] % spec.charts, slots[k] // spec.charts   # slot column and row (top first)
         rows = slice((spec.charts - 1 - cj) * c, (spec.charts - cj) * c)
-        block = np.pad(picture[rows, ci * c:(ci + 1) * c], ((spec.gutter,) * 2, (spec.gutter,) * 2, (0, 0)), mode="edge")
+        pad = ((spec.gutter,) * 2, (spec.gutter,) * 2, (0, 0))
+        block = np.pad(picture[rows, ci * c:(ci + 1) * c], pad, mode="edge")
         atlas[sy * slot_px:(sy + 1) * slot_px, sx * slot_px:(sx + 1) * slot_px] = np.round(block)
         cx, cy = x0 + ci * chart_edge, y0 + cj * chart_edge
         x, y = cx + fu * chart_edge, cy + fv * chart_edge
