@@ -48,6 +48,22 @@ def test_evicted_files_are_read_from_storage_once(tmp_path):
     assert after["bytes"] == 2 * MB and after["by_level"] == {"L1": 2 * MB}
 
 
+def test_reading_a_dataset_at_a_gsd_reads_the_levels_it_uses(tmp_path):
+    from pipeline25d_lab.harness.bench_textured import read_probe
+    from pipeline25d_lab.scenes.oap3d import generate_oap3d
+
+    manifest = generate_oap3d(tmp_path / "tiny", "tiny", seed=5)
+    evict(tmp_path / "tiny")
+    if resident(tmp_path / "tiny")["bytes"] > 0:
+        pytest.skip("this file system keeps evicted pages (tmpfs?)")
+    for fmt, levels in (("osgb", {"0", "1", "index"}), ("3dtiles", {"1", "index"})):
+        probe = read_probe(tmp_path / "tiny", manifest, fmt, 0.25)
+        assert probe["triangles"] == 2 * 4 * 288                     # level 1 of both tiles
+        assert set(probe["resident_after"]["by_level"]) <= levels     # no finer level's file was read
+        assert probe["resident_after"]["bytes"] <= probe["levels_used"]["bytes"]
+        assert probe["read_bytes"] >= 0.9 * probe["resident_after"]["bytes"]
+
+
 def _log(path, rchar, read, rss, child):
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text("2026 INFO x: start\n2026 INFO pipeline25d.jobs: "

@@ -25,6 +25,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 from pipeline25d.core.atomic import write_text
@@ -49,6 +50,31 @@ def generate(out: Path, size: str, seed: int) -> dict:
     if manifest is None:
         raise SystemExit(f"bench-textured: generating {out} left no complete manifest")
     return manifest
+
+
+def read_probe(dataset: Path, manifest: dict, fmt: str, gsd: float) -> dict:
+    """What reading one format at ``gsd`` as the ingest job does costs, without the workflow: the
+    dataset evicted, :func:`pipeline25d.formats.load_district` in this process; its seconds,
+    triangles, read_bytes and rchar (children included), the levels used and the pages resident after."""
+    from pipeline25d.formats import load_district
+
+    folder = dataset / manifest["formats"][fmt]["path"]
+    evict(folder)
+    before, t0 = _proc_io(), time.monotonic()
+    mesh = load_district({"path": str(dataset / manifest["inputs"][fmt])}, SRS, max_geometric_error=gsd / 2, gsd=gsd)
+    seconds, after = time.monotonic() - t0, _proc_io()
+    used = levels_used(manifest, fmt, gsd)
+    read = after["read_bytes"] - before["read_bytes"]
+    return {"size": manifest["size"], "format": fmt, "gsd": gsd, "seconds": round(seconds, 1),
+            "triangles": sum(p.n_triangles for p in mesh.parts), "read_bytes": read,
+            "rchar": after["rchar"] - before["rchar"], "dataset_bytes": manifest["formats"][fmt]["bytes"],
+            "levels_used": used, "read_over_levels_used": round(read / used["bytes"], 3),
+            "resident_after": resident(folder, level_of_file)}
+
+
+def _proc_io() -> dict[str, int]:
+    with open("/proc/self/io") as fh:
+        return {k: int(v) for k, v in (line.split(": ") for line in fh.read().splitlines())}
 
 
 def textured_config(name: str, dataset: Path, manifest: dict, fmt: str, gsd: float, perspectives: str) -> dict:
@@ -138,6 +164,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cores", type=int, default=2)
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--generate-only", action="store_true", help="build the datasets and stop")
+    ap.add_argument("--read-only", action="store_true",
+                    help="only read each format at the gsd as ingest does (bytes read, seconds): "
+                         "bench/textured-read-<sizes>.json")
     args = ap.parse_args(argv)
     sizes, formats = args.size.split(","), args.formats.split(",")
     runs = []
@@ -147,12 +176,19 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps({"size": size, "generation_s": manifest["generation_s"], **manifest["totals"]}))  # noqa: T201
         if args.generate_only:
             continue
+        if args.read_only:
+            runs += [read_probe(work / "dataset", manifest, fmt, args.gsd) for fmt in formats]
+            print(json.dumps(runs[-len(formats):]))  # noqa: T201
+            continue
         for fmt in formats:
             try:
                 runs.append(run_format(work / fmt, work / "dataset", manifest, fmt, args))
             except WorkflowRunError as exc:
                 raise SystemExit(f"bench-textured: {exc}") from None
     if args.generate_only:
+        return 0
+    if args.read_only:
+        write_text(REPO / "bench" / f"textured-read-{'-'.join(sizes)}.json", json.dumps(runs, indent=1))
         return 0
     report = {"gsd": args.gsd, "perspectives": args.perspectives, "cores": args.cores, "runs": runs}
     name = f"textured-{'-'.join(sizes)}"
