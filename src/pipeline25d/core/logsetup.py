@@ -63,8 +63,9 @@ def log_job_resources() -> None:
     """One INFO line with this process's I/O counters (``/proc/self/io``; they include the children
     it has waited for, e.g. the converters it ran) and peak RSS of itself and of its largest child.
     ``rchar`` counts every byte read() returned (the job's own temporary files and imports too),
-    ``read_bytes`` only what had to come from storage (not the page cache). Nothing where the
-    system has no ``/proc/self/io``."""
+    ``read_bytes`` only what had to come from storage (not the page cache). A child's peak RSS
+    includes the parent's pages it shared from fork until exec (Linux keeps that high-water
+    mark), so it bounds the child from above. Nothing where the system has no ``/proc/self/io``."""
     try:
         with open("/proc/self/io") as fh:
             io = {k: int(v) for k, v in (line.split(": ") for line in fh.read().splitlines() if ": " in line)}
