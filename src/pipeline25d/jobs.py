@@ -2,8 +2,9 @@
 
 Every rule runs ``workflow/scripts/job.py``, which hands Snakemake's job object to :func:`run`.
 ``run`` logs the job to its rule's log file, makes it stop cleanly on SIGTERM and on a
-:class:`~pipeline25d.core.errors.Pipeline25dError` (its message, no traceback), and calls the
-rule's function here. Each function only unpacks the rule's named inputs, outputs and
+:class:`~pipeline25d.core.errors.Pipeline25dError` (its message, no traceback), calls the
+rule's function here and logs what the job read and its peak memory
+(:func:`~pipeline25d.core.logsetup.log_job_resources`). Each function only unpacks the rule's named inputs, outputs and
 parameters and calls its stage; the work itself lives in the stage modules. A function
 imports its stage when it runs, so a job pays only for the modules it uses.
 """
@@ -14,7 +15,7 @@ import logging
 from collections.abc import Callable
 from typing import Any
 
-from pipeline25d.core.logsetup import log_to, stop_on_error
+from pipeline25d.core.logsetup import log_job_resources, log_to, stop_on_error
 
 log = logging.getLogger(__name__)
 
@@ -155,3 +156,4 @@ def run(job: Job) -> None:
     log_to(job.log[0])
     with stop_on_error():
         RULES[job.rule](job)
+    log_job_resources()

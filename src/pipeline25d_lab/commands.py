@@ -3,7 +3,8 @@
 ``pipeline25d demo [OUT]`` writes the demo city (default ``resources/demo``, what
 ``config/config.yaml`` reads); ``pipeline25d sample KIND OUT`` writes another generated scene:
 ``rugged`` (steep terrain), ``citygml`` (a textured LOD2 city), ``themed`` (a small city with two
-appearance themes as CityJSON and CityGML), ``osgb`` (a ContextCapture-like dataset) or
+appearance themes as CityJSON and CityGML), ``osgb`` (a ContextCapture-like dataset), ``oap3d`` (a textured photogrammetry city
+as OSGB and 3D Tiles, up to the paper's Dataset 2 footprint) or
 ``badinputs`` (the hostile-input corpus).
 """
 
@@ -18,6 +19,7 @@ SAMPLES = {
     "citygml": "pipeline25d_lab.scenes.citygml_city",
     "themed": "pipeline25d_lab.scenes.themed_city",
     "osgb": "pipeline25d_lab.scenes.osgb_sample",
+    "oap3d": "pipeline25d_lab.scenes.oap3d",
     "badinputs": "pipeline25d_lab.scenes.badinputs",
 }
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import resource
 import signal
 import sys
 import warnings
@@ -52,3 +53,25 @@ def stop_on_error(log: bool = True) -> Iterator[None]:
             logging.getLogger("pipeline25d").error("%s", exc)
         print(f"pipeline25d: error: {exc}", file=sys.stderr)
         sys.exit(1)
+
+
+#: the line :func:`log_job_resources` writes (the benches parse it from job logs)
+RESOURCES_LINE = "job resources: rchar %d read_bytes %d wchar %d write_bytes %d max_rss_kb %d children_max_rss_kb %d"
+
+
+def log_job_resources() -> None:
+    """One INFO line with this process's I/O counters (``/proc/self/io``; they include the children
+    it has waited for, e.g. the converters it ran) and peak RSS of itself and of its largest child.
+    ``rchar`` counts every byte read() returned (the job's own temporary files and imports too),
+    ``read_bytes`` only what had to come from storage (not the page cache). A child's peak RSS
+    includes the parent's pages it shared from fork until exec (Linux keeps that high-water
+    mark), so it bounds the child from above. Nothing where the system has no ``/proc/self/io``."""
+    try:
+        with open("/proc/self/io") as fh:
+            io = {k: int(v) for k, v in (line.split(": ") for line in fh.read().splitlines() if ": " in line)}
+    except (OSError, ValueError):
+        return
+    own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    logging.getLogger("pipeline25d.jobs").info(RESOURCES_LINE, io.get("rchar", 0), io.get("read_bytes", 0),
+                                               io.get("wchar", 0), io.get("write_bytes", 0), own.ru_maxrss,
+                                               kids.ru_maxrss)

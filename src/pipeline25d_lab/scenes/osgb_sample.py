@@ -184,8 +184,8 @@ def geode_text(ids: Iterator[int], xyz: np.ndarray, faces: np.ndarray, uv: np.nd
     """osgt text of a Geode of one triangle Geometry (positions, indices, optional UVs and the
     image file they map; the image is embedded or referenced as osgconv's WriteImageHint says)."""
     ids = [next(ids) for _ in range(8)]
-    verts = "\n".join("     " + " ".join(repr(float(c)) for c in row) for row in xyz)
-    idx = "\n".join("     " + " ".join(str(int(i)) for i in tri) for tri in faces)
+    verts = _rows(np.asarray(xyz, np.float64), "%r")
+    idx = _rows(np.asarray(faces, np.int64), "%d")
     state = "" if image is None else (
         f"   StateSet TRUE {{\n    osg::StateSet {{\n     UniqueID {ids[2]}\n"
         "     TextureModeList 1 {\n      Data 1 {\n       GL_TEXTURE_2D ON\n      }\n     }\n"
@@ -196,7 +196,7 @@ def geode_text(ids: Iterator[int], xyz: np.ndarray, faces: np.ndarray, uv: np.nd
     uvs = "" if uv is None or image is None else (
         f"   TexCoordArrayList 1 {{\n    osg::Vec2Array {{\n     UniqueID {ids[7]}\n"
         f"     Binding BIND_PER_VERTEX\n     vector {len(uv)} {{\n"
-        + "\n".join(f"     {float(a)!r} {float(b)!r}" for a, b in uv) + "\n     }\n    }\n   }\n")
+        + _rows(np.asarray(uv, np.float64), "%r") + "\n     }\n    }\n   }\n")
     return (f"osg::Geode {{\n UniqueID {ids[0]}\n Drawables 1 {{\n  osg::Geometry {{\n   UniqueID {ids[1]}\n"
             + state +
             f"   PrimitiveSetList 1 {{\n    osg::DrawElementsUInt {{\n     UniqueID {ids[5]}\n     Mode TRIANGLES\n"
@@ -204,6 +204,14 @@ def geode_text(ids: Iterator[int], xyz: np.ndarray, faces: np.ndarray, uv: np.nd
             f"   VertexArray TRUE {{\n    osg::Vec3Array {{\n     UniqueID {ids[6]}\n     Binding BIND_PER_VERTEX\n"
             f"     vector {len(xyz)} {{\n{verts}\n     }}\n    }}\n   }}\n"
             + uvs + "  }\n }\n}")
+
+
+def _rows(array: np.ndarray, fmt: str) -> str:
+    """One indented line per row of a 2-D array, values formatted by ``fmt`` (one format call: fast)."""
+    if not len(array):
+        return ""
+    line = "     " + " ".join([fmt] * array.shape[1])
+    return "\n".join([line] * len(array)) % tuple(array.ravel().tolist())
 
 
 def _texture(level: int, x0: float, y0: float, edge: float) -> bytes:
