@@ -237,3 +237,14 @@ def test_a_side_folder_that_is_not_a_folder_is_refused_at_parse_time(tmp_path):
         with pytest.raises(ConfigError, match=rf"^config key inputs\.a\.side_folders\.{k}: "
                                               rf"{tmp_path / bad} is not a folder$"):
             check_semantics(cfg, tmp_path)
+
+
+def test_a_box_a_hair_short_of_a_cell_edge_does_not_reach_the_next_cell():
+    """The 3D Tiles copy of a dataset came back from ECEF 1 µm west of a tile edge (226399.9999991
+    for 226400): that must not add a column of tiles."""
+    from pipeline25d.stages.records import index_range
+
+    assert index_range(226399.9999991, 226655.5, 128.0) == index_range(226400.0, 226655.5, 128.0) == range(1768, 1771)
+    assert index_range(0.0, 256.0000001, 128.0) == range(0, 2)
+    assert index_range(-0.01, 256.01, 128.0) == range(-1, 3)          # a centimetre over is real
+    assert index_range(5.0, 5.0, 128.0) == range(0, 1)

@@ -170,11 +170,17 @@ def tile_span(pixel: float, tile_size: int) -> float:
     return pixel * tile_size
 
 
+#: overlaps shorter than this share of a cell do not count (a box 1 µm short of a cell edge,
+#: as an ECEF round trip leaves it, would otherwise get a column of empty tiles)
+EDGE_TOLERANCE = 1e-6
+
+
 def index_range(lo: float, hi: float, span: float) -> range:
-    """Cells of a grid of ``span`` (origin 0) that [lo, hi] overlaps with positive length (one for
-    lo == hi): a box ending on a cell edge does not reach the next cell, which would get an empty job."""
-    first = math.floor(lo / span)
-    return range(first, max(math.ceil(hi / span), first + 1))
+    """Cells of a grid of ``span`` (origin 0) that [lo, hi] overlaps by more than
+    :data:`EDGE_TOLERANCE` of a cell (one cell at least): a box ending on a cell edge, or a hair
+    past it, does not reach the next cell, which would get an empty job."""
+    first = math.floor(lo / span + EDGE_TOLERANCE)
+    return range(first, max(math.ceil(hi / span - EDGE_TOLERANCE), first + 1))
 
 
 def camera_of(projection: str | None) -> str:
