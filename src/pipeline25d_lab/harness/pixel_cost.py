@@ -8,9 +8,9 @@ it times, in this process and on this machine, with each step's median of ``--re
 - the map: the mosaic copied into the kept, tiled map with its overviews
   (:func:`pipeline25d.stages.maps.patch.patched_map`, no warp) and its COG encode;
 - the web-tile cut, by sub-step: the web-mercator blocks' warp (decode COG, warp, encode),
-  and for every base tile its read (decode of the blocks), the nearest upsampling to the
-  query, the average down to the tile, the tile's encode and its write, beside gdal2tiles'
-  own upsampled read of the same window; then the overview tiles (decode four children,
+  and for every base tile its read (decode of the blocks), the average down to the tile
+  (:func:`pipeline25d.stages.tiles.base.average_tile`), the tile's encode and its write, beside
+  what gdal2tiles' own did (upsampled read of the window into the 4x query, its average); then the overview tiles (decode four children,
   average, encode, write);
 - the whole cut (:func:`pipeline25d.stages.tiles.web.tms`) against ``gdal2tiles`` with its
   defaults on the same COG and zoom levels (a subprocess), and their ratio.
@@ -149,9 +149,9 @@ def tms_rows(cog: Path, work: Path, map_mpx: float, repeat: int, tile_format: st
     read_mpx, over_mpx = steps.pop("read_mpx"), n_over * 256 ** 2 / 1e6
     return [row("tms: blocks warp (decode COG, warp, ZSTD encode)", warp_s, block_mpx, map_mpx, "decode+copy+encode"),
             row("tms base: read (decode blocks, native size)", steps["read"], read_mpx, map_mpx, "decode"),
-            row("tms base: upsample to query (numpy nearest)", steps["upsample"], query_mpx, map_mpx, "copy"),
+            row("tms base: average window -> tile (numpy, no query)", steps["average"], tile_mpx * 16, map_mpx, "copy"),
             row("tms base: (was) GDAL upsampled read of the VRT", steps["vrt_read"], query_mpx, map_mpx, "decode+copy"),
-            row("tms base: average query -> tile", steps["average"], query_mpx, map_mpx, "copy"),
+            row("tms base: (was) query made, GDAL average -> tile", steps["query_average"], query_mpx, map_mpx, "copy"),
             row(f"tms base: encode {conf.tile_extension}", steps["encode"], tile_mpx, map_mpx, "encode"),
             row("tms base: write files", steps["write"], tile_mpx, map_mpx, "write"),
             row("tms overviews: decode 4 children, average, encode, write", over_s, over_mpx * 5, map_mpx,
@@ -163,7 +163,7 @@ def _base_tile_steps(conf, details, options, repeat: int) -> dict:
     that hold data; the tiles are written (the overviews read them)."""
     from osgeo_utils import gdal2tiles as g2t
 
-    from pipeline25d.stages.tiles.base import nearest_index
+    from pipeline25d.stages.tiles.base import average_tile, nearest_index
 
     g = gdal()
     mem, drv = g.GetDriverByName("MEM"), g.GetDriverByName(conf.tile_driver)
@@ -172,7 +172,7 @@ def _base_tile_steps(conf, details, options, repeat: int) -> dict:
     nb, size, creation = conf.nb_data_bands, conf.tile_size, g2t._get_creation_options(options)
     runs: list[dict] = []
     for _ in range(repeat):
-        t = dict.fromkeys(("read", "upsample", "vrt_read", "average", "encode", "write"), 0.0)
+        t = dict.fromkeys(("read", "average", "vrt_read", "query_average", "encode", "write"), 0.0)
         n = query = read = 0
         for d in details:
             if not (d.rxsize and d.rysize and d.wxsize and d.wysize):
@@ -183,17 +183,18 @@ def _base_tile_steps(conf, details, options, repeat: int) -> dict:
             alpha = np.frombuffer(alpha_band.ReadRaster(d.rx, d.ry, d.rxsize, d.rysize), np.uint8)
             c1 = time.perf_counter()
             rows, cols = nearest_index(d.rysize, d.wysize), nearest_index(d.rxsize, d.wxsize)
-            up = np.concatenate([data, alpha.reshape(1, d.rysize, d.rxsize)])[:, rows][:, :, cols]
+            window = np.concatenate([data, alpha.reshape(1, d.rysize, d.rxsize)])
+            if not window[nb][rows][:, cols].any():
+                continue
+            tile = mem.Create("", size, size, nb + 1)
+            tile.WriteRaster(0, 0, size, size, average_tile(window, rows, cols, d.wx, d.wy, d.querysize, size).tobytes())
             c2 = time.perf_counter()
             ds.ReadRaster(d.rx, d.ry, d.rxsize, d.rysize, d.wxsize, d.wysize, band_list=list(range(1, nb + 1)))
             alpha_band.ReadRaster(d.rx, d.ry, d.rxsize, d.rysize, d.wxsize, d.wysize)
             c3 = time.perf_counter()
-            if not up[nb].any():
-                continue
             q = mem.Create("", d.querysize, d.querysize, nb + 1)
-            q.WriteRaster(d.wx, d.wy, d.wxsize, d.wysize, np.ascontiguousarray(up).tobytes())
-            tile = mem.Create("", size, size, nb + 1)
-            g2t.scale_query_to_tile(q, tile, options)
+            q.WriteRaster(d.wx, d.wy, d.wxsize, d.wysize, np.ascontiguousarray(window[:, rows][:, :, cols]).tobytes())
+            g2t.scale_query_to_tile(q, mem.Create("", size, size, nb + 1), options)
             c4 = time.perf_counter()
             name = f"/vsimem/pixel_cost.{conf.tile_extension}"
             drv.CreateCopy(name, tile, strict=0, options=creation)
