@@ -25,6 +25,7 @@ pixels (``passes``: Mpx touched / map Mpx). ``--scale N`` cuts the map upsampled
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import shutil
 import statistics
@@ -100,12 +101,19 @@ def map_rows(mosaic: Path, work: Path, map_mpx: float, repeat: int, compression:
         return patched_map(mosaic, mosaic, {"method": "none", "order": 0}, wkt, gsd, kept_dir)
 
     kept_s = median_time(kept, repeat)
-    cog = [opt for c in cog_options(compression, quality) for opt in ("-co", c)]
-    cog_s = median_time(lambda: run_tool(["gdal_translate", "-q", "-of", "COG", *cog, str(kept_dir / "map.tif"),
-                                          str(work / "map_cog.tif")]), repeat)
-    over = 4 / 3                                        # a map with its overviews: 1 + 1/4 + 1/16 ...
-    return [row("map: mosaic decode + kept map encode + overviews", kept_s, map_mpx * over, map_mpx, "decode+encode"),
-            row("map: COG encode (decode kept, deflate)", cog_s, map_mpx * over, map_mpx, "decode+encode")]
+    rows = [row("map: mosaic decode + kept map encode + overviews", kept_s, map_mpx * 4 / 3, map_mpx, "decode+encode")]
+    digests = set()
+    for threads in (1, 2):                                 # the warp job's threads: the same bytes, sooner
+        cog = [opt for c in [*cog_options(compression, quality), f"NUM_THREADS={threads}"] for opt in ("-co", c)]
+        out = work / f"map_cog{threads}.tif"
+        cog_s = median_time(lambda: run_tool(["gdal_translate", "-q", "-of", "COG", *cog, str(kept_dir / "map.tif"),
+                                              str(out)]), repeat)
+        digests.add(hashlib.sha256(out.read_bytes()).hexdigest())
+        rows.append(row(f"map: COG encode (decode kept, {compression}), {threads} thread{'s' * (threads > 1)}", cog_s,
+                        map_mpx * 4 / 3, map_mpx, "decode+encode"))
+    if len(digests) != 1:
+        raise RuntimeError("the COG encoded with 1 and 2 threads differs")
+    return rows
 
 
 def tms_rows(cog: Path, work: Path, map_mpx: float, repeat: int, tile_format: str = "webp",
