@@ -96,7 +96,7 @@ def warp_job(job: Job) -> None:
 
     p = job.params
     warp.warp(job.input.mosaic, job.input.gcps, job.input.plan, dict(p.warp), job.output.cog, job.output.meta,
-              dict(p.maps), work_dir=p.work)
+              dict(p.maps), work_dir=p.work, threads=job.threads)
 
 
 def tms_job(job: Job) -> None:

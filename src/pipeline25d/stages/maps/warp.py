@@ -218,7 +218,7 @@ def cog_options(compression: str, quality: int) -> list[str]:
 def warp_to_cog(mosaic: str | Path, obs: Sequence[Observation], choice: dict, plan: Plan, out: str | Path,
                 compression: str = "deflate", quality: int = 85,
                 parts: list[tuple[int, int, int, int]] | None = None,
-                work_dir: str | Path | None = None) -> list[list[float]]:
+                work_dir: str | Path | None = None, threads: int = 1) -> list[list[float]]:
     """Write the north-up COG: the mosaic warped with the chosen GCP warp, or a plain copy for none.
 
     ``compression``: deflate (lossless RGBA), jpeg (RGB + the alpha as a mask, which the COG
@@ -227,11 +227,13 @@ def warp_to_cog(mosaic: str | Path, obs: Sequence[Observation], choice: dict, pl
     part (see :mod:`pipeline25d.stages.maps.parts`). Returns each part's bounds [xmin, ymin, xmax, ymax]
     on the map (one part: the whole map's). A dense map is kept in ``work_dir`` with its
     overviews and patched where the mosaic changed (:mod:`pipeline25d.stages.maps.patch`).
+    ``threads``: the job's threads, with which GDAL compresses the COG's blocks (same bytes).
     """
     from pipeline25d.core.crs import horizontal_wkt
 
     crs = horizontal_wkt(plan.crs)
-    cog = [opt for c in cog_options(compression, quality) for opt in ("-co", c)]
+    codec = [*cog_options(compression, quality), f"NUM_THREADS={int(threads)}"]
+    cog = [opt for c in codec for opt in ("-co", c)]
     with atomic_path(out) as tmp:
         gcp_vrt = Path(tmp).with_suffix(".gcps.vrt")
         try:
@@ -242,7 +244,7 @@ def warp_to_cog(mosaic: str | Path, obs: Sequence[Observation], choice: dict, pl
                                  outputSRS=crs)
                 source = gcp_vrt
             if parts and len(parts) > 1:
-                return _warp_parts(source, mosaic, choice, plan, crs, parts, tmp, compression, quality)
+                return _warp_parts(source, mosaic, choice, plan, crs, parts, tmp, codec)
             from pipeline25d.stages.maps.patch import patched_map
 
             kept_dir = Path(work_dir) if work_dir else Path(tmp).with_suffix(".blocks")
@@ -259,9 +261,9 @@ def warp_to_cog(mosaic: str | Path, obs: Sequence[Observation], choice: dict, pl
 
 
 def _warp_parts(source: Path, mosaic: str | Path, choice: dict, plan: Plan, crs: str,
-                parts: list[tuple[int, int, int, int]], out: Path, compression: str,
-                quality: int) -> list[list[float]]:
-    """A sparse COG: each part warped onto the map grid with its overviews, then assembled."""
+                parts: list[tuple[int, int, int, int]], out: Path, codec: list[str]) -> list[list[float]]:
+    """A sparse COG: each part warped onto the map grid with its overviews, then assembled
+    (``codec``: the COG driver's options, :func:`cog_options` and its threads)."""
     from pipeline25d.stages.maps.parts import (
         assemble_sparse_cog,
         map_grid,
@@ -299,7 +301,7 @@ def _warp_parts(source: Path, mosaic: str | Path, choice: dict, plan: Plan, crs:
             ds = None
         log.info("sparse map: %d parts, %d x %d px, %.1f%% of it in parts", len(windows), width, height,
                  100 * sum(w.width * w.height for w in windows) / (width * height))
-        assemble_sparse_cog(part_files, grid, crs, out, cog_options(compression, quality))
+        assemble_sparse_cog(part_files, grid, crs, out, codec)
     finally:
         for path, _ in part_files:
             path.unlink(missing_ok=True)
@@ -313,9 +315,9 @@ def raster_grid(path: str | Path) -> Grid:
 
 def warp(mosaic_vrt: str | Path, gcps_csv: str | Path, plan_path: str | Path, warp_cfg: dict,
          out_cog: str | Path, out_json: str | Path, maps_cfg: dict | None = None,
-         work_dir: str | Path | None = None) -> dict:
+         work_dir: str | Path | None = None, threads: int = 1) -> dict:
     """Choose the warp by cross-validation on the GCPs, write the COG, and record the check-point
-    scores. ``work_dir`` keeps the warped map for the next run to patch."""
+    scores. ``work_dir`` keeps the warped map for the next run to patch; ``threads`` encode the COG."""
     from pipeline25d.stages.maps.parts import tile_parts
 
     pl = read_plan(plan_path)
@@ -323,7 +325,8 @@ def warp(mosaic_vrt: str | Path, gcps_csv: str | Path, plan_path: str | Path, wa
     grid = raster_grid(mosaic_vrt)
     choice = choose(obs, pl, grid, warp_cfg["method"], warp_cfg["order"])
     parts = tile_parts((t.row, t.col) for t in pl.tiles)
-    bounds = warp_to_cog(mosaic_vrt, obs, choice, pl, out_cog, parts=parts, work_dir=work_dir, **(maps_cfg or {}))   # compression, quality
+    bounds = warp_to_cog(mosaic_vrt, obs, choice, pl, out_cog, parts=parts, work_dir=work_dir, threads=threads,
+                         **(maps_cfg or {}))   # compression, quality
     p = pl.perspective
     record = {"perspective": {"id": p.id, "azimuth": p.azimuth, "elevation": p.elevation}, **choice, "n_observed": len(obs), "parts": bounds,
               "paper_method": paper_method_on(obs, pl, grid) if pl.projection == "terrain" else None}

@@ -4,8 +4,8 @@ The map is reprojected to EPSG:3857 in *blocks*: squares of :data:`BLOCK_TILES` 
 :data:`BLOCK_TILES` web tiles of the highest zoom, each warped by gdalwarp in C onto the
 whole map's web-mercator grid, with the nearest-neighbour resampling of gdal2tiles' own
 warped VRT (transform exact to 0.01 px). gdal2tiles then cuts a VRT of the blocks with its
-own tile functions: base tiles by ``create_base_tile``, overview tiles from their children
-by ``create_overview_tile``. It reads plain windows instead of re-warping for every tile,
+own tile functions: base tiles by ``create_base_tile`` (its read made fast, same bytes: see
+:mod:`pipeline25d.stages.tiles.base`), overview tiles from their children by ``create_overview_tile``. It reads plain windows instead of re-warping for every tile,
 and only tiles that hold data are written, so a sparse map costs its districts, not its
 bounding box.
 
@@ -37,6 +37,7 @@ from pipeline25d.core.grid import Extent, Grid, Window
 from pipeline25d.core.journal import read_state, write_state
 from pipeline25d.core.raster import cells_grid_of, gdal, map_cells
 from pipeline25d.stages.maps.parts import box_outline
+from pipeline25d.stages.tiles.base import close_source, create_base_tile
 
 log = logging.getLogger(__name__)
 
@@ -249,7 +250,7 @@ def cut(blocks: list[Path], tiles: Path, grid: Grid, zooms: str, windows: list[W
         for z, cells in reach.items():
             for x, y in cells:
                 (tiles / str(z) / str(x) / f"{y}.{conf.tile_extension}").unlink(missing_ok=True)
-        workers.map(partial(g2t.create_base_tile, conf), base)
+        workers.map(partial(create_base_tile, conf), base)
         for base_z in range(conf.tmaxz, conf.tminz, -1):
             groups = [grp for grp in g2t.group_overview_base_tiles(base_z, str(tiles), conf)
                       if (grp[0][0] >> 1, g2t.GDAL2Tiles.getYTile(grp[0][1] >> 1, base_z - 1, options))
@@ -257,6 +258,7 @@ def cut(blocks: list[Path], tiles: Path, grid: Grid, zooms: str, windows: list[W
             workers.map(partial(g2t.create_overview_tile, base_z, output_folder=str(tiles), tile_job_info=conf,
                          options=options), groups)
     finally:
+        close_source()
         shutil.rmtree(os.path.dirname(conf.src_file), ignore_errors=True)
         vrt.unlink(missing_ok=True)
     return sum((tiles / str(z) / str(x) / f"{y}.{conf.tile_extension}").is_file()
