@@ -19,6 +19,7 @@ only lengthen a line, which the low percentile ignores.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -31,6 +32,7 @@ SAMPLE_PX = 0.25       # march step along d (px)
 LINE_PX = 0.5          # spacing of the far-outline points (px)
 MIN_LINES = 8          # fewer usable lines: not measured
 EAVE_PERCENTILE = 25.0
+NEIGHBOUR_M = 3.0      # lines running onto another footprint within this (m) are left out
 MIN_CONSISTENT = 0.4   # share of lines within CONSISTENT_PX of the eave estimate
 
 
@@ -148,10 +150,17 @@ class Lines:
 
 def silhouette_lines(fp: Footprint, grid, win, d: np.ndarray, d_px: np.ndarray, cot: float, u_max: float,
                      obl: tuple[np.ndarray, np.ndarray], obl_off: np.ndarray, nad: tuple[np.ndarray, np.ndarray],
-                     nad_off: np.ndarray, settings: MatchSettings) -> Lines | str:
+                     nad_off: np.ndarray, settings: MatchSettings,
+                     neighbours: Sequence[Footprint] = ()) -> Lines | str:
     """The lines of ``fp`` on one oblique view (``grid``/``win``: the nadir grid and the footprint's
-    window in it), or why there are too few."""
-    pts = far_outline(fp, np.asarray(d, np.float64), LINE_PX * grid.res)
+    window in it), or why there are too few. Lines that run onto a ``neighbours`` footprint within
+    NEIGHBOUR_M are left out: beyond a shared wall the nadir map shows the neighbour's roof, which
+    its own move on the oblique map may match, ending the line early."""
+    d = np.asarray(d, np.float64)
+    pts = far_outline(fp, d, LINE_PX * grid.res)
+    for o in neighbours:
+        for t in np.arange(0.25, NEIGHBOUR_M + 1e-9, 0.5):
+            pts = pts[~contains(o, pts[:, 0] + t * d[0], pts[:, 1] + t * d[1])]
     if len(pts) < MIN_LINES:
         return "silhouette_small"
     cols, rows = grid.colrow(pts[:, 0], pts[:, 1])

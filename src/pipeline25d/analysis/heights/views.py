@@ -47,6 +47,7 @@ def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint
     step_m = grid.res
     pad = s.ring_px + 4
     rows_out: list[HeightRow] = []
+    bounds = np.array([f.bounds for f in footprints], dtype=np.float64).reshape(-1, 4)
     for fp in footprints:
         win = grid.window_covering(Extent(*fp.bounds), pad)
         c0, r0, c1, r1 = win
@@ -84,14 +85,14 @@ def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint
             if not results[v.pid].reason and results[v.pid].u < s.min_colour_m * v.cot:
                 results[v.pid] = replace(results[v.pid], reason="low")
             pending[v.pid] = (v, u_max, (obl_rgb, obl_alpha), off, (sw_rgb, sw_alpha), sweep[2])
+        cot = {v.pid: v.cot for v in views}
+        resolved = _resolve(results, matchers, cot, s.agree_m + step_m / max(min(cot.values(), default=1.0), 1e-9))
         if s.silhouette and any(results[p].reason for p in pending):
             # every view's lines (their far outlines together show the ground's slope), for the failed views
             lines = {p: silhouette_lines(fp, grid, win, horizontal_direction(Perspective.from_id(p)), v.d_px, v.cot,
-                                         u_max, obl, off, nad_sw, nad_off, s)
+                                         u_max, obl, off, nad_sw, nad_off, s, _neighbours(fp, footprints, bounds))
                      for p, (v, u_max, obl, off, nad_sw, nad_off) in pending.items()}
-            _by_silhouette(fp, results, lines, {v.pid: v.cot for v in views}, s.outlier_m)
-        cot = {v.pid: v.cot for v in views}
-        resolved = _resolve(results, matchers, cot, s.agree_m + step_m / max(min(cot.values(), default=1.0), 1e-9))
+            _by_silhouette(fp, results, lines, cot, 2 * s.agree_m)
         measurements = {}
         for pid, r in results.items():
             reason = r.reason
@@ -105,12 +106,20 @@ def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint
     return rows_out
 
 
+def _neighbours(fp: Footprint, footprints: list[Footprint], bounds: np.ndarray, margin: float = 4.0) -> list[Footprint]:
+    """The other footprints whose bounding boxes come within ``margin`` m of ``fp``'s."""
+    b = np.asarray(fp.bounds)
+    near = ((bounds[:, 0] <= b[2] + margin) & (bounds[:, 2] >= b[0] - margin)
+            & (bounds[:, 1] <= b[3] + margin) & (bounds[:, 3] >= b[1] - margin))
+    return [footprints[i] for i in np.flatnonzero(near) if footprints[i] is not fp]
+
+
 def _by_silhouette(fp: Footprint, results: dict[str, MatchResult], lines: dict[str, "Lines | str"],
                    cot: dict[str, float], outlier_m: float) -> None:
     """Where the colours give no height (or one below ``min_colour_m``: a roof matched on its own
     wall of the same tint), the silhouette's (:mod:`.silhouette`); in place. Such a view takes its
-    silhouette's height, unless colour matches of other views exist and it lies more than
-    ``outlier_m`` from their median ("silhouette_disagrees": a hidden roof's lines end where its
+    silhouette's height, unless colour matches of other views (ambiguous ones settled first) exist
+    and it lies more than ``outlier_m`` (the caller: 2 × agree_m) from their median ("silhouette_disagrees": a hidden roof's lines end where its
     occluder ends). A lone colour match that its own view's silhouette and another view's both
     put more than ``outlier_m`` elsewhere is rejected ("contradicted"); one that another view's
     silhouette alone disagrees with is rejected with it ("inconsistent"). A view neither measures
