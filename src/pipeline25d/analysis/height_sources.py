@@ -324,11 +324,14 @@ def reference_heights(p: dict, config: dict, fps: list[Footprint], model: dict[s
 
 
 def run_stage(config: dict, maps: dict[str, str], scene_json: str | Path, dsm_path: str | Path | None,
-              out_csv: str | Path, out_json: str | Path) -> dict[str, Any]:
-    """The workflow's heights step: measure every footprint on the maps, compare with the model's
-    heights (on the maps' basis, see the module docstring), write the CSV and the statistics JSON."""
+              out_csv: str | Path, out_json: str | Path, workers: int = 1) -> dict[str, Any]:
+    """The workflow's heights step: measure every footprint on the maps (on ``workers`` processes),
+    compare with the model's heights (on the maps' basis, see the module docstring), write the CSV
+    and the statistics JSON."""
+    import time
+
     from pipeline25d.analysis.heights.results import NADIR_ID, MatchSettings, write_csv
-    from pipeline25d.analysis.heights.views import measure_heights
+    from pipeline25d.analysis.heights.views import measure_parallel
     from pipeline25d.core.atomic import write_json, write_text
 
     p = plan(config)
@@ -346,7 +349,9 @@ def run_stage(config: dict, maps: dict[str, str], scene_json: str | Path, dsm_pa
     ground = ground_sampler(scene, config["crs"])
     gsd = float(config["gsd"])
     s = MatchSettings(max_height=float(h.get("max_height", MatchSettings.max_height)))
-    rows = measure_heights(maps, fps, settings=s) if fps else []
+    t0 = time.perf_counter()
+    rows = measure_parallel(maps, fps, settings=s, workers=workers) if fps else []
+    seconds = time.perf_counter() - t0
     views = sorted({k for r in rows for k in r.heights})
     refs, ref_source, ref_kind = reference_heights(p, config, fps, model, ground, dsm_path, gsd)
 
@@ -392,6 +397,9 @@ def run_stage(config: dict, maps: dict[str, str], scene_json: str | Path, dsm_pa
         "own_ground": own_stats,
         "own_ground_source": OWN_GROUND.get(ref_kind) if own_stats else None,
         "settings": dict(s.__dict__),
+        "cost": {"workers": workers, "seconds": round(seconds, 2),
+                 "job_seconds_per_1000_building_views": (round(1000 * seconds * workers / (len(fps) * len(views)), 1)
+                                                         if fps and views else None)},
     }
     write_json(out_json, stats)
     return stats

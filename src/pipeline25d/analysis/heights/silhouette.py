@@ -4,16 +4,21 @@ On a terrain-relative oblique map the ground shows as on the nadir map; a buildi
 its footprint swept along d by up to its roof's move (walls, then the roof). Beyond the roof's far
 edge the ground shows again. So from each point e of the footprint's far outline (outward normal
 along d) the oblique map differs from the nadir map along e + s·d for 0 ≤ s ≤ E and agrees beyond:
-E = z·cot φ of the building point that projects furthest along that line. For a flat roof E is the
-roof height × cot φ on every line; for a pitched roof E ≥ eave × cot φ, equal on the lines whose
-far eave is seen, so a low percentile of the lines gives the eave. Colours of roof and walls never
-enter: the roof may be tinted like its walls, shaded differently from view to view, or pitched.
+E / cot φ is the roof's height above the ground the map drew under e. Colours of roof and walls
+never enter: the roof may be tinted like its walls, shaded differently from view to view, pitched.
 
-Difference D = |oblique − nadir| (RGB, both lightly smoothed). A line's end is the first s after
+On sloped ground that height varies along the outline (the map subtracts the DTM under each
+vertex), so one robust plane through the lines of every view (their far outlines differ, so
+together they show the slope both ways) gives the roof above a planar ground, and its value at the
+footprint's area centroid the roof above the MEAN ground under the footprint: the stage's
+definition of a height. A pitched roof's lines give its eave where its far eave is seen and more
+at gable and hip ends; the robust fit follows the majority.
+
+Difference D = |oblique − nadir| (RGB, lightly smoothed). A line's end is the first pixel after
 which D stays below ``tol`` for ``SETTLE_PX`` pixels, refined to where D crosses half the contrast
-between the run and the ground after it. Lines that start on unchanged ground (a nadir pixel there
-is not ground: another building), or that never end, are left out; other buildings behind the roof
-only lengthen a line, which the low percentile ignores.
+between the run and the ground after it. Lines that start on unchanged ground, never end, or run
+onto a neighbouring footprint (a shared wall) are left out; other buildings behind the roof
+lengthen a line, which the robust fit drops.
 """
 
 from __future__ import annotations
@@ -31,9 +36,9 @@ SETTLE_PX = 3.0        # D below tol this long (px) ends a line
 SAMPLE_PX = 0.25       # march step along d (px)
 LINE_PX = 0.5          # spacing of the far-outline points (px)
 MIN_LINES = 8          # fewer usable lines: not measured
-EAVE_PERCENTILE = 25.0
 NEIGHBOUR_M = 3.0      # lines running onto another footprint within this (m) are left out
-MIN_CONSISTENT = 0.4   # share of lines within CONSISTENT_PX of the eave estimate
+INLIER_PX = 1.5        # a line agrees with a fit within this many pixels of move (at least 0.25 m)
+MIN_CONSISTENT = 0.4   # share of a view's lines within its inlier distance of the fitted plane
 
 
 def far_outline(fp: Footprint, d: np.ndarray, step_m: float, min_cos: float = 0.25) -> np.ndarray:
@@ -173,7 +178,7 @@ def silhouette_lines(fp: Footprint, grid, win, d: np.ndarray, d_px: np.ndarray, 
     if np.count_nonzero(ok) < max(MIN_LINES, 0.3 * len(ends)):
         return "silhouette_lines"
     px_m = 1.0 / float(np.hypot(*d_px)) / cot         # metres of height per pixel of move
-    return Lines(pts[ok], ends[ok] / cot, max(1.5 * px_m, 0.25))
+    return Lines(pts[ok], ends[ok] / cot, max(INLIER_PX * px_m, 0.25))
 
 
 def roof_heights(fp: Footprint, lines: dict[str, Lines]) -> dict[str, tuple[float, float, str]]:

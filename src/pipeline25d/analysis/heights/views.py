@@ -24,15 +24,38 @@ from pipeline25d.geometry.perspectives import Perspective
 log = logging.getLogger(__name__)
 
 
+def measure_parallel(map_paths: dict[str, str | Path], footprints: list[Footprint], settings: MatchSettings | None = None,
+                     workers: int = 1, block: int = 64) -> list[HeightRow]:
+    """:func:`measure_heights` over blocks of ``block`` footprints (in west-to-east order, so a
+    block's maps are read from nearby windows) on ``workers`` processes; the same rows, in input
+    order. Every footprint is measured alone, so the cost is footprints × views ÷ workers."""
+    if workers <= 1 or len(footprints) <= block:
+        return measure_heights(map_paths, footprints, settings=settings)
+    from concurrent.futures import ProcessPoolExecutor
+
+    order = sorted(range(len(footprints)), key=lambda i: footprints[i].bounds[0])
+    blocks = [order[k:k + block] for k in range(0, len(order), block)]
+    rows: list[HeightRow | None] = [None] * len(footprints)
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        futures = [pool.submit(measure_heights, map_paths, [footprints[i] for i in b], NADIR_ID, settings,
+                               footprints) for b in blocks]
+        for b, f in zip(blocks, futures):
+            for i, row in zip(b, f.result()):
+                rows[i] = row
+    return [r for r in rows if r is not None]
+
+
 def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint], nadir_id: str = NADIR_ID,
-                    settings: MatchSettings | None = None) -> list[HeightRow]:
+                    settings: MatchSettings | None = None,
+                    context: list[Footprint] | None = None) -> list[HeightRow]:
     """Height of every footprint in every oblique map of ``map_paths`` ({perspective id: GeoTIFF}).
 
     The maps must share the nadir map's CRS (CRSError naming them otherwise); footprints are
     in that CRS. A view left ambiguous (rival peaks) is settled by the others when exactly one
     of its rivals lies within ``agree_m`` of the height they give (the accepted views' median,
     or else the one height that rivals of two or more views share); such a view is marked
-    ``resolved``. Returns one row per footprint, in input order.
+    ``resolved``. ``context``: every footprint of the scene, for the silhouette's neighbours
+    (default ``footprints``). Returns one row per footprint, in input order.
     """
     s = settings or MatchSettings()
     if nadir_id not in map_paths:
@@ -47,7 +70,8 @@ def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint
     step_m = grid.res
     pad = s.ring_px + 4
     rows_out: list[HeightRow] = []
-    bounds = np.array([f.bounds for f in footprints], dtype=np.float64).reshape(-1, 4)
+    context = footprints if context is None else context
+    bounds = np.array([f.bounds for f in context], dtype=np.float64).reshape(-1, 4)
     for fp in footprints:
         win = grid.window_covering(Extent(*fp.bounds), pad)
         c0, r0, c1, r1 = win
@@ -90,7 +114,7 @@ def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint
         if s.silhouette and any(results[p].reason for p in pending):
             # every view's lines (their far outlines together show the ground's slope), for the failed views
             lines = {p: silhouette_lines(fp, grid, win, horizontal_direction(Perspective.from_id(p)), v.d_px, v.cot,
-                                         u_max, obl, off, nad_sw, nad_off, s, _neighbours(fp, footprints, bounds))
+                                         u_max, obl, off, nad_sw, nad_off, s, _neighbours(fp, context, bounds))
                      for p, (v, u_max, obl, off, nad_sw, nad_off) in pending.items()}
             _by_silhouette(fp, results, lines, cot, 2 * s.agree_m)
         measurements = {}
