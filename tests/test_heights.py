@@ -423,3 +423,17 @@ def test_a_view_far_from_the_others_is_rejected_as_inconsistent():
     v = views(10.0, 11.5)                                               # two that agree are kept
     _drop_inconsistent(v, 2.0)
     assert all(m.reason == "" for m in v.values())
+
+
+def test_blocks_on_two_processes_give_the_serial_rows(scene):
+    """measure_parallel: blocks of footprints on two processes, the rows measure_heights gives."""
+    from pipeline25d.analysis.heights.views import measure_parallel
+
+    fps = read_footprints(scene["gpkg"], id_field="ident")
+    maps = {k: str(v) for k, v in scene["maps"].items()}
+    serial = measure_heights(maps, fps)
+    parallel = measure_parallel(maps, fps, workers=2, block=3)
+    assert [r.id for r in parallel] == [r.id for r in serial]
+    for a, b in zip(serial, parallel):
+        assert a.reasons == b.reasons
+        np.testing.assert_array_equal([a.height, *a.heights.values()], [b.height, *b.heights.values()])

@@ -119,7 +119,7 @@ def heights_job(job: Job) -> None:
     from pipeline25d.analysis.height_sources import run_stage as measure_heights
 
     measure_heights(dict(job.params.config), dict(zip(job.params.pids, job.input.maps)), job.input.scene,
-                    job.input.dsm, job.output.csv, job.output.json)
+                    job.input.dsm, job.output.csv, job.output.json, workers=max(int(job.threads), 1))
 
 
 def report_job(job: Job) -> None:

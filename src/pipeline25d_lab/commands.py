@@ -2,9 +2,10 @@
 
 ``pipeline25d demo [OUT]`` writes the demo city (default ``resources/demo``, what
 ``config/config.yaml`` reads); ``pipeline25d sample KIND OUT`` writes another generated scene:
-``rugged`` (steep terrain), ``citygml`` (a textured LOD2 city), ``themed`` (a small city with two
-appearance themes as CityJSON and CityGML), ``osgb`` (a ContextCapture-like dataset), ``oap3d`` (a textured photogrammetry city
-as OSGB and 3D Tiles, up to the paper's Dataset 2 footprint) or
+``rugged`` (steep terrain), ``roofs`` (steep terrain, flat, gabled and hipped roofs), ``citygml`` (a
+textured LOD2 city), ``themed`` (a small city with two appearance themes as CityJSON and CityGML),
+``osgb`` (a ContextCapture-like dataset), ``oap3d`` (a textured photogrammetry city as OSGB and 3D
+Tiles, up to the paper's Dataset 2 footprint) or
 ``badinputs`` (the hostile-input corpus).
 """
 
@@ -16,6 +17,7 @@ from importlib import import_module
 
 SAMPLES = {
     "rugged": "pipeline25d_lab.scenes.rugged",
+    "roofs": "pipeline25d_lab.scenes.roofs_city",
     "citygml": "pipeline25d_lab.scenes.citygml_city",
     "themed": "pipeline25d_lab.scenes.themed_city",
     "osgb": "pipeline25d_lab.scenes.osgb_sample",

@@ -15,6 +15,7 @@ rule heights:
         # only what the step reads: a change elsewhere (web tiles, shadows ...) must not re-run it
         config={k: config[k] for k in ("crs", "gsd", "inputs", "perspectives", "heights") if k in config},
         pids=PERSPECTIVE_IDS,
+    threads: workflow.cores   # footprints in blocks on this many processes (views.measure_parallel)
     log:
         f"{RESULTS}/logs/heights.log",
     benchmark:

@@ -194,6 +194,12 @@ def dtm_under(fp: Footprint, sample: Sampler, step: float) -> float:
     return float(z.mean()) if len(z) else math.nan
 
 
+def ground_range_under(fp: Footprint, sample: Sampler, step: float) -> tuple[float, float]:
+    """(lowest, highest) ground ``sample(x, y)`` on a ``step`` grid inside the footprint (NaN where none)."""
+    z = _inside_values(fp, sample, step)
+    return (float(z.min()), float(z.max())) if len(z) else (math.nan, math.nan)
+
+
 def dsm_roof(fp: Footprint, sample: Sampler, cell: float) -> float:
     """Median of the model's DSM over its cells inside the footprint, one cell in from the outline."""
     z = _inside_values(fp, sample, cell, margin=cell)
@@ -234,6 +240,13 @@ def group_stats(rows: list, reference: dict[str, float], views: list[str]) -> di
 
 
 # --------------------------------------------------------------------------- the stage
+
+#: roof kinds with an eave and a ridge (compared with both)
+PITCHED = ("gabled", "hipped")
+#: the one definition of a building's height on sloped ground, in the CSV, the JSON and the report
+BASIS = ("roof z (flat roofs; the eave of pitched roofs) minus the MEAN of the ground the maps used under "
+         "the footprint; beside it, in the CSV, the same roof above the lowest and above the highest "
+         "ground under the footprint (the downhill and the uphill wall height)")
 
 #: what "the model's own ground" is, by the kind of reference
 OWN_GROUND = {"truth": "the generator's exact terrain averaged under the outline (truth.json own_ground_z)",
@@ -311,11 +324,14 @@ def reference_heights(p: dict, config: dict, fps: list[Footprint], model: dict[s
 
 
 def run_stage(config: dict, maps: dict[str, str], scene_json: str | Path, dsm_path: str | Path | None,
-              out_csv: str | Path, out_json: str | Path) -> dict[str, Any]:
-    """The workflow's heights step: measure every footprint on the maps, compare with the model's
-    heights (on the maps' basis, see the module docstring), write the CSV and the statistics JSON."""
+              out_csv: str | Path, out_json: str | Path, workers: int = 1) -> dict[str, Any]:
+    """The workflow's heights step: measure every footprint on the maps (on ``workers`` processes),
+    compare with the model's heights (on the maps' basis, see the module docstring), write the CSV
+    and the statistics JSON."""
+    import time
+
     from pipeline25d.analysis.heights.results import NADIR_ID, MatchSettings, write_csv
-    from pipeline25d.analysis.heights.views import measure_heights
+    from pipeline25d.analysis.heights.views import measure_parallel
     from pipeline25d.core.atomic import write_json, write_text
 
     p = plan(config)
@@ -333,17 +349,20 @@ def run_stage(config: dict, maps: dict[str, str], scene_json: str | Path, dsm_pa
     ground = ground_sampler(scene, config["crs"])
     gsd = float(config["gsd"])
     s = MatchSettings(max_height=float(h.get("max_height", MatchSettings.max_height)))
-    rows = measure_heights(maps, fps, settings=s) if fps else []
+    t0 = time.perf_counter()
+    rows = measure_parallel(maps, fps, settings=s, workers=workers) if fps else []
+    seconds = time.perf_counter() - t0
     views = sorted({k for r in rows for k in r.heights})
     refs, ref_source, ref_kind = reference_heights(p, config, fps, model, ground, dsm_path, gsd)
 
     fp_by = {f.id: f for f in fps}
     base = {k: dtm_under(fp_by[k], ground, gsd) for k in refs if k in fp_by}
     eave = {k: refs[k].roof_z - base[k] for k in base}
-    ridge = {k: refs[k].ridge_z - base[k] for k in base if refs[k].kind == "gabled"}
+    ridge = {k: refs[k].ridge_z - base[k] for k in base if refs[k].kind in PITCHED}
+    span = {k: ground_range_under(fp_by[k], ground, gsd) for k in base}
     own = {k: refs[k].roof_z - refs[k].own_ground_z for k in base if np.isfinite(refs[k].own_ground_z)}
     kinds = {k: refs[k].kind for k in base}
-    gabled = {k for k, v in kinds.items() if v == "gabled"}
+    gabled = {k for k, v in kinds.items() if v in PITCHED}
     groups: dict[str, Any] = {}
     if gabled:
         groups["flat"] = group_stats(rows, {k: v for k, v in eave.items() if k not in gabled}, views)
@@ -363,6 +382,8 @@ def run_stage(config: dict, maps: dict[str, str], scene_json: str | Path, dsm_pa
     extra = {"reference": {k: fmt(v) for k, v in eave.items()},
              "reference_ridge": {k: fmt(v) for k, v in ridge.items()},
              "roof": {k: v for k, v in kinds.items()},
+             "reference_above_lowest": {k: fmt(refs[k].roof_z - span[k][0]) for k in base},
+             "reference_above_highest": {k: fmt(refs[k].roof_z - span[k][1]) for k in base},
              "ground_under": {k: fmt(v) for k, v in base.items()}}
     write_csv(out_csv, rows, extra)
     stats = {
@@ -370,12 +391,15 @@ def run_stage(config: dict, maps: dict[str, str], scene_json: str | Path, dsm_pa
         "n_measured": sum(1 for r in rows if np.isfinite(r.height)),
         "views": views, "reasons": reasons,
         "reference": {"source": ref_source, "kind": ref_kind, "n": len(base), "main_group": main if main in groups else None,
-                      "basis": ("roof z minus the mean of the ground the maps used under the outline: "
+                      "basis": (BASIS + ": "
                                 + (f"DTM {scene.dtm}" if scene.dtm else f"the plane z0 = {scene.z0} m"))},
         "groups": groups,
         "own_ground": own_stats,
         "own_ground_source": OWN_GROUND.get(ref_kind) if own_stats else None,
         "settings": dict(s.__dict__),
+        "cost": {"workers": workers, "seconds": round(seconds, 2),
+                 "job_seconds_per_1000_building_views": (round(1000 * seconds * workers / (len(fps) * len(views)), 1)
+                                                         if fps and views else None)},
     }
     write_json(out_json, stats)
     return stats

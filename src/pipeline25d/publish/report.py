@@ -242,8 +242,8 @@ def coarser_section(coarser: list[dict]) -> list[str]:
 
 
 HEIGHT_GROUPS = {"all": "All buildings", "flat": "Flat roofs",
-                 "gabled_eave": "Gabled roofs against their eave",
-                 "gabled_ridge": "Gabled roofs against their ridge"}
+                 "gabled_eave": "Pitched (gabled, hipped) roofs against their eave",
+                 "gabled_ridge": "Pitched (gabled, hipped) roofs against their ridge"}
 
 
 def _height_table(group: dict) -> list[str]:
@@ -283,16 +283,20 @@ def heights_section(h: dict) -> list[str]:
     lines += ["", "Why not: hidden = under half the roof matches anywhere; flat = the match score does not drop"
               " on both sides (the roof could slide along a row of like roofs); ambiguous = rival peaks the other"
               " views did not settle; inconsistent = far from the other views; unstable = no sub-pixel fit;"
-              " too_small, nadir_nodata, no_peak, out_of_range as named.", ""]
+              " too_small, nadir_nodata, no_peak, out_of_range as named. Where the roof's colours give no height"
+              " (e.g. walls tinted like the roof, a sloped ground under the roof), where the building's"
+              " silhouette ends gives it; a+b names both reasons when neither did (silhouette_spread: its lines"
+              " do not agree, silhouette_lines: too few end on ground, silhouette_disagrees: far from the views"
+              " the colours measured).", ""]
     if not h.get("groups"):
         return lines + ["No reference heights: the measured heights are not compared."]
     for g, group in h["groups"].items():
         n = group["combined"]["n_footprints"]
         lines += [f"### {HEIGHT_GROUPS.get(g, g)} ({n})", ""]
         if g == "gabled_eave":
-            lines += ["The matcher assumes a flat roof: a gabled roof has no single height for it (its outline"
-                      " moves by the eave height, its gable ends by up to the ridge's), so gabled roofs are kept out"
-                      " of the flat-roof figures and compared with both their eave and their ridge.", ""]
+            lines += ["A pitched roof has no single height: its outline moves by the eave height, its gable or"
+                      " hip ends by up to the ridge's. Pitched roofs are kept out of the flat-roof figures and their"
+                      " one measured height is compared with both their eave and their ridge.", ""]
         lines += [*_height_table(group), ""]
     if h.get("own_ground"):
         lines += ["### Against the model's own ground",

@@ -42,8 +42,13 @@ rejected (no majority says which matched); the accepted views are combined by th
 ``n_agree`` counts those within ``agree_m`` of it. Heights are relative to the ground that the
 maps used (the DTM under the roof's outline).
 
+Where the colours give no height (walls tinted like the roof, a roof sheared by the slope under
+it), ``silhouette`` measures where the building's silhouette ends instead (see that module): the
+roof above the mean ground under the footprint.
+
 Modules: ``results`` (settings, per-view and per-building records, CSV), ``template``
-(the nadir map's roof and its ring), ``matcher`` (one footprint on one oblique map), ``views``
+(the nadir map's roof and its ring), ``matcher`` (one footprint on one oblique map),
+``silhouette`` (where the building ends, every view), ``views``
 (every footprint on every view, views combined), ``reference`` (model heights to compare
 with, error statistics), ``cli`` (``pipeline25d heights``).
 """

@@ -83,6 +83,7 @@ class MatchResult:
     second: float
     reason: str
     rivals: list[float] = field(default_factory=list)
+    method: str = "colour"        # colour (the roof's template) or silhouette (where the building ends)
 
 
 class _Matcher:

@@ -37,6 +37,8 @@ class MatchSettings:
     agree_m: float = 0.5          # views within this of the combined height agree
     outlier_m: float = 2.0        # with 3+ accepted views, one this far from the others' median is rejected
     checked_peaks: int = 8        # the best peaks checked against the ground their walls would hide
+    silhouette: bool = True       # where the roof's colours give no height, where the building ends does
+    min_colour_m: float = 1.0     # a colour match lower than this is taken for the roof's own wall ("low")
 
 
 @dataclass
@@ -50,6 +52,7 @@ class ViewMeasurement:
     second: float                 # second-peak ratio
     reason: str                   # '' (accepted) or why not
     resolved: bool = False        # ambiguous alone, settled by the other views
+    method: str = "colour"        # how: colour (the roof template) or silhouette (where the building ends)
 
 
 @dataclass
@@ -70,7 +73,8 @@ class HeightRow:
 def write_csv(path: str | Path, rows: list[HeightRow], extra: dict[str, dict[str, str]] | None = None) -> None:
     """One line per building: id, height, n_views, n_agree, quality, the ``extra`` columns
     ({column: {id: text}}, e.g. a reference), then per view height, quality, reason ('' =
-    accepted) and resolved (1 = settled by the other views); unmeasured heights empty."""
+    accepted) and resolved (1 = settled by the other views) and method (colour: the roof's template,
+    silhouette: where the building ends); unmeasured heights empty."""
     from pipeline25d.core.atomic import write_text
 
     extra = extra or {}
@@ -78,14 +82,15 @@ def write_csv(path: str | Path, rows: list[HeightRow], extra: dict[str, dict[str
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(["id", "height", "n_views", "n_agree", "quality", *extra]
-               + [f"{p}_{v}" for v in views for p in ("height", "quality", "reason", "resolved")])
+               + [f"{p}_{v}" for v in views for p in ("height", "quality", "reason", "resolved", "method")])
     fmt = lambda x: "" if not np.isfinite(x) else f"{x:.3f}"  # noqa: E731
     for r in rows:
         w.writerow([r.id, fmt(r.height), r.n_views, r.n_agree, f"{r.quality:.3f}",
                     *(c.get(r.id, "") for c in extra.values())]
                    + [x for v in views for x in (fmt(r.heights.get(v, math.nan)), f"{r.qualities.get(v, 0.0):.3f}",
-                                                 r.reasons.get(v, "missing"), int(r.views[v].resolved) if v in r.views
-                                                 else 0)])
+                                                 r.reasons.get(v, "missing"),
+                                                 int(r.views[v].resolved) if v in r.views else 0,
+                                                 r.views[v].method if v in r.views else "")])
     write_text(path, buf.getvalue())
 
 

@@ -12,25 +12,50 @@ import numpy as np
 from pipeline25d.analysis.evaluate.rasters import _open
 from pipeline25d.analysis.heights.matcher import MatchResult, _Matcher
 from pipeline25d.analysis.heights.results import NADIR_ID, HeightRow, MatchSettings, ViewMeasurement
+from pipeline25d.analysis.heights.silhouette import Lines, roof_heights, silhouette_lines
 from pipeline25d.analysis.heights.template import _PAD, Template, _prepare_view, build_template
 from pipeline25d.core.errors import InputFileError
 from pipeline25d.core.grid import Extent, Grid
 from pipeline25d.core.raster import read_rgba_block
 from pipeline25d.formats.footprints import Footprint
+from pipeline25d.geometry.camera import horizontal_direction
 from pipeline25d.geometry.perspectives import Perspective
 
 log = logging.getLogger(__name__)
 
 
+def measure_parallel(map_paths: dict[str, str | Path], footprints: list[Footprint], settings: MatchSettings | None = None,
+                     workers: int = 1, block: int = 64) -> list[HeightRow]:
+    """:func:`measure_heights` over blocks of ``block`` footprints (in west-to-east order, so a
+    block's maps are read from nearby windows) on ``workers`` processes; the same rows, in input
+    order. Every footprint is measured alone, so the cost is footprints × views ÷ workers."""
+    if workers <= 1 or len(footprints) <= block:
+        return measure_heights(map_paths, footprints, settings=settings)
+    from concurrent.futures import ProcessPoolExecutor
+
+    order = sorted(range(len(footprints)), key=lambda i: footprints[i].bounds[0])
+    blocks = [order[k:k + block] for k in range(0, len(order), block)]
+    rows: list[HeightRow | None] = [None] * len(footprints)
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        futures = [pool.submit(measure_heights, map_paths, [footprints[i] for i in b], NADIR_ID, settings,
+                               footprints) for b in blocks]
+        for b, f in zip(blocks, futures):
+            for i, row in zip(b, f.result()):
+                rows[i] = row
+    return [r for r in rows if r is not None]
+
+
 def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint], nadir_id: str = NADIR_ID,
-                    settings: MatchSettings | None = None) -> list[HeightRow]:
+                    settings: MatchSettings | None = None,
+                    context: list[Footprint] | None = None) -> list[HeightRow]:
     """Height of every footprint in every oblique map of ``map_paths`` ({perspective id: GeoTIFF}).
 
     The maps must share the nadir map's CRS (CRSError naming them otherwise); footprints are
     in that CRS. A view left ambiguous (rival peaks) is settled by the others when exactly one
     of its rivals lies within ``agree_m`` of the height they give (the accepted views' median,
     or else the one height that rivals of two or more views share); such a view is marked
-    ``resolved``. Returns one row per footprint, in input order.
+    ``resolved``. ``context``: every footprint of the scene, for the silhouette's neighbours
+    (default ``footprints``). Returns one row per footprint, in input order.
     """
     s = settings or MatchSettings()
     if nadir_id not in map_paths:
@@ -45,6 +70,8 @@ def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint
     step_m = grid.res
     pad = s.ring_px + 4
     rows_out: list[HeightRow] = []
+    context = footprints if context is None else context
+    bounds = np.array([f.bounds for f in context], dtype=np.float64).reshape(-1, 4)
     for fp in footprints:
         win = grid.window_covering(Extent(*fp.bounds), pad)
         c0, r0, c1, r1 = win
@@ -55,6 +82,7 @@ def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint
             tmpl = build_template(fp, grid, win, nad_rgb, nad_alpha, s)
         results: dict[str, MatchResult] = {}
         matchers: dict[str, _Matcher] = {}
+        pending: dict[str, tuple] = {}
         for v in views:
             if isinstance(tmpl, str):
                 results[v.pid] = MatchResult(math.nan, 0.0, 1.0, tmpl)
@@ -78,8 +106,17 @@ def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint
             sweep = (sw_rgb, sw_alpha, np.array([r0 - n_r0, c0 - n_c0], dtype=np.float64))
             matchers[v.pid] = _Matcher(tmpl, obl_rgb, obl_alpha, off, v.d_px, u_max, step_m, s, sweep)
             results[v.pid] = matchers[v.pid].result()
+            if not results[v.pid].reason and results[v.pid].u < s.min_colour_m * v.cot:
+                results[v.pid] = replace(results[v.pid], reason="low")
+            pending[v.pid] = (v, u_max, (obl_rgb, obl_alpha), off, (sw_rgb, sw_alpha), sweep[2])
         cot = {v.pid: v.cot for v in views}
         resolved = _resolve(results, matchers, cot, s.agree_m + step_m / max(min(cot.values(), default=1.0), 1e-9))
+        if s.silhouette and any(results[p].reason for p in pending):
+            # every view's lines (their far outlines together show the ground's slope), for the failed views
+            lines = {p: silhouette_lines(fp, grid, win, horizontal_direction(Perspective.from_id(p)), v.d_px, v.cot,
+                                         u_max, obl, off, nad_sw, nad_off, s, _neighbours(fp, context, bounds))
+                     for p, (v, u_max, obl, off, nad_sw, nad_off) in pending.items()}
+            _by_silhouette(fp, results, lines, cot, 2 * s.agree_m)
         measurements = {}
         for pid, r in results.items():
             reason = r.reason
@@ -87,16 +124,62 @@ def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint
                 reason = "out_of_range"
             h = r.u / cot[pid] if not reason else math.nan
             measurements[pid] = ViewMeasurement(h, r.u, r.match * (1.0 - r.second), r.match, r.second, reason,
-                                                pid in resolved)
+                                                pid in resolved, r.method)
         _drop_inconsistent(measurements, s.outlier_m)
         rows_out.append(_combine(fp.id, measurements, s))
     return rows_out
 
 
+def _neighbours(fp: Footprint, footprints: list[Footprint], bounds: np.ndarray, margin: float = 4.0) -> list[Footprint]:
+    """The other footprints whose bounding boxes come within ``margin`` m of ``fp``'s."""
+    b = np.asarray(fp.bounds)
+    near = ((bounds[:, 0] <= b[2] + margin) & (bounds[:, 2] >= b[0] - margin)
+            & (bounds[:, 1] <= b[3] + margin) & (bounds[:, 3] >= b[1] - margin))
+    return [footprints[i] for i in np.flatnonzero(near) if footprints[i] is not fp]
+
+
+def _by_silhouette(fp: Footprint, results: dict[str, MatchResult], lines: dict[str, "Lines | str"],
+                   cot: dict[str, float], outlier_m: float) -> None:
+    """Where the colours give no height (or one below ``min_colour_m``: a roof matched on its own
+    wall of the same tint), the silhouette's (:mod:`.silhouette`); in place. Such a view takes its
+    silhouette's height, unless colour matches of other views (ambiguous ones settled first) exist
+    and it lies more than ``outlier_m`` (the caller: 2 × agree_m) from their median ("silhouette_disagrees": a hidden roof's lines end where its
+    occluder ends). A lone colour match that its own view's silhouette and another view's both
+    put more than ``outlier_m`` elsewhere is rejected ("contradicted"); one that another view's
+    silhouette alone disagrees with is rejected with it ("inconsistent"). A view neither measures
+    keeps both reasons (colour+silhouette)."""
+    usable = {p: v for p, v in lines.items() if not isinstance(v, str)}
+    found = roof_heights(fp, usable) if usable else {}
+    sil = {p: found.get(p, (math.nan, 0.0, v if isinstance(v, str) else "")) for p, v in lines.items()}
+    colour = {p: r.u / cot[p] for p, r in results.items() if not r.reason}
+    if len(colour) == 1:
+        # one colour match alone, and its own view's silhouette, backed by another view's, puts the
+        # roof elsewhere: the colours matched a like roof further along the view
+        (p, h_c), = colour.items()
+        h_s, _, why = sil.get(p, (math.nan, 0.0, "none"))
+        if (not why and abs(h_c - h_s) > outlier_m
+                and any(not w and q != p and abs(h - h_s) <= outlier_m for q, (h, _, w) in sil.items())):
+            results[p] = replace(results[p], reason="contradicted")
+            colour = {}
+    ref = float(np.median(list(colour.values()))) if colour else math.nan
+    for p, (h, share, why) in sil.items():
+        if not results[p].reason or results[p].reason in ("too_small", "nadir_nodata", "outside_map"):
+            continue
+        if not why and np.isfinite(ref) and abs(h - ref) > outlier_m:
+            why = "silhouette_disagrees"
+            if len(colour) == 1:          # two views, two heights: no telling which one is right
+                (q, _), = colour.items()
+                results[q] = replace(results[q], reason="inconsistent")
+        if why:
+            results[p] = replace(results[p], reason=f"{results[p].reason}+{why}")
+        else:
+            results[p] = MatchResult(h * cot[p], share, 0.0, "", method="silhouette")
+
+
 def _resolve(results: dict[str, MatchResult], matchers: dict[str, "_Matcher"], cot: dict[str, float],
              tol_h: float) -> set[str]:
     """Settle ambiguous views by the height the others give (in place); returns the settled views."""
-    amb = [p for p, r in results.items() if r.reason == "ambiguous" and p in matchers]
+    amb = [p for p, r in results.items() if r.reason.startswith("ambiguous") and p in matchers]
     if not amb:
         return set()
     accepted = [r.u / cot[p] for p, r in results.items() if not r.reason]
