@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline25d.analysis.height_sources import demo_truths, dsm_roof, dtm_under, group_stats, plan, truth_buildings
+from pipeline25d.analysis.ground_under import dsm_roof, dtm_under
+from pipeline25d.analysis.height_sources import demo_truths, group_stats, plan, truth_buildings
 from pipeline25d.analysis.heights.results import HeightRow
 from pipeline25d.formats.footprints import Footprint
 
