@@ -34,9 +34,10 @@ def pack_parts(parts: list[MeshPart], origin: np.ndarray, prefix: str = "") -> d
         if part.texture is not None and part.uv is not None:
             out[key + "uv"] = part.uv.astype(np.float32)
             out[key + "tex"] = np.frombuffer(part.texture, dtype=np.uint8)
-        if part.face_objects is not None:
+        if part.face_objects is not None:                 # a part of one object needs no per-face index
             out[key + "objects"] = np.array(part.objects, dtype=str)
-            out[key + "fobj"] = part.face_objects
+            if len(part.objects) > 1:
+                out[key + "fobj"] = part.face_objects
         if part.object_ids is not None:
             out[key + "oids"] = part.object_ids
     return out
@@ -56,10 +57,19 @@ def unpack_parts(data, origin: np.ndarray, prefix: str = "") -> list[MeshPart]:
             uv=data[key + "uv"] if key + "uv" in names else None,
             texture=tex,
             objects=tuple(str(k) for k in data[key + "objects"]) if key + "objects" in names else (),
-            face_objects=data[key + "fobj"] if key + "fobj" in names else None,
+            face_objects=_face_objects(data, key, names),
             object_ids=data[key + "oids"] if key + "oids" in names else None,
         ))
     return parts
+
+
+def _face_objects(data, key: str, names: set[str]) -> np.ndarray | None:
+    """A packed part's face objects: stored, all 0 for a part of one object, None without objects."""
+    if key + "fobj" in names:
+        return data[key + "fobj"]
+    if key + "objects" in names:
+        return np.zeros(len(data[key + "faces"]), dtype=np.int32)
+    return None
 
 
 def content_hash(arrays: dict[str, np.ndarray]) -> str:
