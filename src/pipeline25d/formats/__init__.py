@@ -162,10 +162,8 @@ def load_district(spec: dict, scene_crs: str, max_geometric_error: float | None 
     side_folders (see config/schema.yaml). A texture that is missing or not an image is an InputFileError
     unless ``missing_textures`` is ``untextured`` (then its parts are drawn without it).
     """
-    pieces = list(district_pieces(spec, scene_crs, max_geometric_error, base_dir, gsd, whole=True))
-    if len(pieces) == 1:
-        return pieces[0]
-    return Mesh([p for m in pieces for p in m.parts], pieces[0].source, tuple(c for m in pieces for c in m.coarser))
+    (mesh,) = district_pieces(spec, scene_crs, max_geometric_error, base_dir, gsd, whole=True)
+    return mesh
 
 
 def district_pieces(spec: dict, scene_crs: str, max_geometric_error: float | None = None,

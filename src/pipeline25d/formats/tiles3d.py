@@ -56,7 +56,8 @@ def read_tileset(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
     their descendants. ``None`` is full detail (every leaf plus ADD ancestors).
     Content tileset JSONs (external tilesets) are always entered, as CesiumJS does.
     """
-    return next(read_tileset_pieces(path, spec, detail, piece_bytes=float("inf")))
+    (loaded,) = read_tileset_pieces(path, spec, detail, piece_bytes=float("inf"))
+    return loaded
 
 
 def read_tileset_pieces(path: Path, spec: dict, detail: Detail = Detail(),

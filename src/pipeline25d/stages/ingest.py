@@ -28,7 +28,7 @@ import numpy as np
 from pipeline25d.core.atomic import write_json
 from pipeline25d.core.mesh import Mesh, MeshPart
 from pipeline25d.stages.chunks import chunk_origin, content_hash, pack_parts, save_npz
-from pipeline25d.stages.objects import named_objects, object_ids
+from pipeline25d.stages.objects import object_ids
 
 log = logging.getLogger(__name__)
 
@@ -78,7 +78,7 @@ def write_chunks(mesh: Mesh | Iterable[Mesh], district: str, chunk_size: float, 
                  index_path: Path, slot: int = 0) -> dict:
     """Write the district's chunks into ``out_dir``, its objects' ids (``objects.json``: key -> id,
     :mod:`pipeline25d.stages.objects`, district id ``slot``) and its index JSON last; ``mesh`` whole
-    or in pieces (module docstring). Every face belongs to an object (:func:`named_objects`).
+    or in pieces (module docstring). Every face belongs to an object (:meth:`~pipeline25d.core.mesh.MeshPart.named`).
 
     Returns the index: {district, source, n_triangles, chunk_size, [coarser,] chunks: {id: {...}}};
     ``coarser`` (the input tiles drawn coarser than asked, :class:`~pipeline25d.core.mesh.Coarser`
@@ -93,7 +93,7 @@ def write_chunks(mesh: Mesh | Iterable[Mesh], district: str, chunk_size: float, 
         for piece in pieces:
             source, n_triangles = piece.source, n_triangles + piece.n_triangles
             coarser += piece.coarser
-            spool.add(split_into_chunks(Mesh([named_objects(p) for p in piece.parts], piece.source), chunk_size))
+            spool.add(split_into_chunks(Mesh([p.named() for p in piece.parts], piece.source), chunk_size))
         ids = object_ids(spool.keys, slot, source or district)
         index = {"district": district, "source": source, "chunk_size": chunk_size, "n_triangles": n_triangles,
                  # only when there are any: the index of a district drawn as asked stays as it was

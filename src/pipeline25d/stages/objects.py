@@ -4,7 +4,8 @@ An id is a uint32 ``slot << LOCAL_BITS | local``: ``slot`` is the district's (of
 ``local`` the object's within its district, both from the CRC-32 of their names with linear probing
 in sorted order, so that an id changes only when its own district or object does (or, rarely,
 when a newcomer takes its hash first). 0 is no object. Faces that carry no input object (a mesh
-file's parts, an OSGB tile's) belong to the object their part is named after: ground is an object too.
+file's parts, an OSGB tile's) belong to the object their part is named after
+(:meth:`pipeline25d.core.mesh.MeshPart.named`): ground is an object too.
 """
 
 from __future__ import annotations
@@ -13,7 +14,6 @@ import zlib
 from collections.abc import Iterable
 
 from pipeline25d.core.errors import InputFileError
-from pipeline25d.core.mesh import MeshPart
 
 LOCAL_BITS = 22
 SLOTS = 1 << (32 - LOCAL_BITS)          # 1024 districts
@@ -49,7 +49,3 @@ def object_ids(keys: Iterable[str], slot: int, where: str) -> dict[str, int]:
                                     "(split it into several inputs)")
     return {key: slot << LOCAL_BITS | local for key, local in _probe(keys, LOCAL + 1, skip_zero=True).items()}
 
-
-def named_objects(part: MeshPart) -> MeshPart:
-    """:meth:`MeshPart.named`: every face of an anonymous part belongs to the object named after it."""
-    return part.named()
