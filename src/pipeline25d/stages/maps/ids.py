@@ -95,9 +95,11 @@ def id_map(ids_vrt: str | Path, mosaic_vrt: str | Path, gcps_csv: str | Path, ma
     stats = {**stats, **agreement(map_cog, out), "ids_bytes": Path(out).stat().st_size,
              "map_bytes": Path(map_cog).stat().st_size}
     write_json(stats_json, stats)
-    log.info("id map %s: %d opaque px without an id, %d transparent px with one (%d filled, %d cleared at "
-             "edges); %d bytes, the map %d", Path(out).name, stats["opaque_without_id"], stats["transparent_with_id"],
-             stats["filled"], stats["cleared"], stats["ids_bytes"], stats["map_bytes"])
+    disagree = stats["opaque_without_id"] or stats["transparent_with_id"] or stats["filled"] or stats["cleared"]
+    (log.warning if disagree else log.info)(
+        "id map %s: %d opaque px without an id, %d transparent px with one (%d filled, %d cleared at "
+        "edges to hold it to the map); %d bytes, the map %d", Path(out).name, stats["opaque_without_id"],
+        stats["transparent_with_id"], stats["filled"], stats["cleared"], stats["ids_bytes"], stats["map_bytes"])
     return stats
 
 
