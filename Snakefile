@@ -29,6 +29,7 @@ include: "workflow/rules/wms.smk"
 rule all:
     input:
         expand(f"{RESULTS}/maps/{{pid}}.tif", pid=PERSPECTIVE_IDS),
+        ID_MAPS,
         expand(f"{RESULTS}/tms/{{pid}}", pid=PERSPECTIVE_IDS),
         f"{RESULTS}/report/report.json",
         f"{RESULTS}/viewer/index.html",

@@ -29,6 +29,7 @@ def test_three_keys_run_with_every_default_filled():
     assert cfg["ground"] == {"resolution": "auto", "max_object_size": 100, "cloth_resolution": "auto",
                              "rigidness": 2, "class_threshold": 0.5}
     assert cfg["warp"] == {"method": "auto", "order": 3}
+    assert cfg["objects"] == {"enabled": True}
 
 
 @pytest.mark.parametrize("changes, key", [
@@ -40,6 +41,7 @@ def test_three_keys_run_with_every_default_filled():
     ({"perspectives": [{"azimuth": 0, "elevation": 4}]}, "perspectives.0.elevation"),
     ({"perspectives": "sideways"}, "perspectives"),
     ({"warp": {"method": "magic"}}, "warp.method"),
+    ({"objects": {"enabled": "yes"}}, "objects.enabled"),
     ({"shadows": {"enabled": True, "azimuth": 360, "elevation": 30}}, "shadows.azimuth"),
     ({"shadows": {"enabled": True, "azimuth": 100, "elevation": 0}}, "shadows.elevation"),
     ({"shadows": {"enabled": True, "azimuth": 100, "elevation": 91}}, "shadows.elevation"),
@@ -196,7 +198,10 @@ def test_the_bytes_estimate_is_every_rendered_and_published_pixel_at_four_bytes(
     work = _work()
     found = budget.estimate(work, box, "a test box")
     rendered = sum(found.tiles.values()) * work["tile_size"] ** 2
-    assert found.output_bytes == pytest.approx(4 * (rendered + found.total_pixels * (1 + 4 / 3)))
+    # colour and object ids (both 4 bytes a pixel) of every tile and map, and the web pyramid
+    assert found.output_bytes == pytest.approx(4 * (2 * rendered + found.total_pixels * (2 + 4 / 3)))
+    colour_only = budget.estimate(_work(objects={"enabled": False}), box, "a test box")
+    assert colour_only.output_bytes == pytest.approx(4 * (rendered + found.total_pixels * (1 + 4 / 3)))
     assert f"at most {found.output_bytes / 1e9:.3g} GB written" in found.summary()
     tight = _work(limits={"max_output_bytes": found.output_bytes / 2})
     with pytest.raises(ConfigError, match=r"limits\.max_output_bytes: gsd 0\.5 m on a 100 × 120 m scene writes up to"):

@@ -119,3 +119,26 @@ def test_terrain_relative_ids_follow_the_colour_render(gl_ctx):
     rgba = TileRenderer(gl_ctx, samples=4).render_color(scene(), v)
     ids = IdRenderer(gl_ctx, samples=4).render_ids(scene(), v, object_face_ids(IDS))
     assert np.array_equal(ids > 0, rgba[..., 3] > 0) and (ids > 0).sum() > 10_000
+
+
+@pytest.mark.parametrize("terrain", [False, True])
+def test_ids_drawn_from_the_colour_pass_upload_equal_ids_drawn_from_the_parts(gl_ctx, terrain):
+    """The render job draws the ids from the geometry the colour pass uploaded (its buffers, this
+    pass's program): the same pixels as the ids drawn from the parts, and ingested parts' own
+    object ids (part_face_ids) give what a key -> id table gives."""
+    from dataclasses import replace
+
+    from pipeline25d.stages.render_ids import part_face_ids
+
+    v = view(Perspective(135, 35))
+    if terrain:
+        v = replace(v, ground=lambda x, y: Z0 + 0.3 * (x - E0) - 0.2 * (y - N0))
+    chunks = [(origin, [replace(p, object_ids=np.array([IDS[k] for k in p.objects], np.uint32)) for p in parts])
+              for origin, parts in scene()]
+    colour, ids = TileRenderer(gl_ctx, samples=4), IdRenderer(gl_ctx, samples=4)
+    direct = ids.render_ids(scene(), v, object_face_ids(IDS))
+    with colour.upload(chunks, v) as geometry:
+        rgba = colour.render_color(geometry, v)
+        shared = ids.render_ids(geometry, v, part_face_ids)
+    assert np.array_equal(shared, direct) and np.array_equal(shared > 0, rgba[..., 3] > 0)
+    assert set(np.unique(shared)) == {0, *IDS.values()}

@@ -57,8 +57,13 @@ def test_dry_run_of_the_default_config_counts_jobs_per_rule(tmp_path):
     make_scene(tmp_path, config)
     out = snakemake(tmp_path, "-n").stdout
     assert job_counts(out) == {"ingest": 4, "lod": 4, "terrain": 1, "scene": 1, "plan": 9, "gcps": 9, "mosaic": 9,
-                               "warp": 9, "tms": 9, "heights": 1, "report": 1, "viewer": 1, "wms": 1, "all": 1,
-                               "total": 60}
+                               "mosaic_ids": 9, "warp": 9, "id_map": 9, "tms": 9, "heights": 1, "report": 1,
+                               "viewer": 1, "wms": 1, "all": 1, "total": 78}
+    # objects off: no id mosaics, no id maps
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump({**config, "objects": {"enabled": False}}))
+    off = job_counts(snakemake(tmp_path, "-n").stdout)
+    assert "mosaic_ids" not in off and "id_map" not in off and off["total"] == 60
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(config))
     # Once the plans exist the tile jobs are known: one per non-empty tile, none for empty ones.
     pids = [f"az{a:03d}_el45" for a in range(0, 360, 45)] + ["az000_el90"]
     snakemake(tmp_path, *[f"results/demo/plans/{pid}.json" for pid in pids])
@@ -274,8 +279,58 @@ def test_warped_map_puts_check_points_on_the_ground(small_run):
     assert min(inside) == 255   # every check point lands on rendered (opaque) map
 
 
-def _tile_mtimes(results: Path) -> dict[str, int]:
-    return {str(p.relative_to(results / "tiles")): p.stat().st_mtime_ns for p in (results / "tiles").rglob("*.tif")}
+def _tile_mtimes(results: Path, suffix: str = ".tif") -> dict[str, int]:
+    """Each render tile's mtime by "<pid>/<row>_<col>.tif": of its colour (``.tif``) or its object ids (``.ids.tif``)."""
+    return {str(p.relative_to(results / "tiles")).replace(".ids.tif", ".tif"): p.stat().st_mtime_ns
+            for p in (results / "tiles").rglob(f"*{suffix}") if (suffix == ".ids.tif") == p.name.endswith(".ids.tif")}
+
+
+def test_every_map_has_an_id_map_that_agrees_with_it_and_names_the_roofs(small_run):
+    """Counted here, apart from the id-map job: every opaque map pixel has an id and no transparent
+    one has; every render tile's ids are where its alpha is not 0; a flat roof's centre, where each
+    map shows it (displaced by its height above the DTM along the view), carries the id of its
+    district's roof group (chunks/<district>/objects.json, the OBJ group of truth's roof_material).
+    The report gives the same counts and the id maps' bytes."""
+    from osgeo import gdal
+
+    from pipeline25d.core.grid import Grid
+    from pipeline25d.core.raster import DTM
+    from pipeline25d.geometry.camera import project_above_ground
+    from pipeline25d.geometry.perspectives import Perspective
+
+    workdir, results = small_run
+    report = {p["id"]: p for p in json.loads((results / "report" / "report.json").read_text())["perspectives"]}
+    for tile in (results / "tiles").rglob("*_*.ids.tif"):
+        ids = gdal.Open(str(tile)).ReadAsArray()
+        colour = gdal.Open(str(tile).replace(".ids.tif", ".tif"))
+        alpha = colour.GetRasterBand(4).ReadAsArray()
+        assert np.array_equal(ids > 0, alpha > 0), tile
+    truth = json.loads((workdir / "resources" / "demo" / "truth.json").read_text())["buildings"]
+    flat = [b for b in truth if b["roof"] == "flat"]
+    objects = {d: json.loads((results / "chunks" / d / "objects.json").read_text()) for d in SMALL_CONFIG["inputs"]}
+    centres = np.array([[*np.mean(b["footprint"], axis=0), b["eave_z"]] for b in flat])
+    dtm = DTM(str(results / "terrain" / "dtm.tif"), "EPSG:25832", continuous=True)
+    ground = dtm.sample(centres[:, 0], centres[:, 1])
+    for pid, p in report.items():
+        m, i = gdal.Open(str(results / "maps" / f"{pid}.tif")), gdal.Open(str(results / "maps" / f"{pid}.ids.tif"))
+        grid = Grid.of_dataset(m)
+        assert Grid.of_dataset(i) == grid and i.GetRasterBand(1).DataType == gdal.GDT_UInt32
+        assert i.GetRasterBand(1).GetNoDataValue() == 0 and i.GetMetadata("IMAGE_STRUCTURE").get("LAYOUT") == "COG"
+        alpha, ids = m.GetRasterBand(4).ReadAsArray(), i.ReadAsArray()
+        counts = {"opaque_px": int((alpha > 0).sum()), "opaque_without_id": int(((alpha > 0) & (ids == 0)).sum()),
+                  "transparent_with_id": int(((alpha == 0) & (ids != 0)).sum())}
+        assert counts["opaque_without_id"] == counts["transparent_with_id"] == 0 < counts["opaque_px"], (pid, counts)
+        assert {k: p["ids"][k] for k in counts} == counts
+        assert p["ids"]["ids_bytes"] == (results / "maps" / f"{pid}.ids.tif").stat().st_size
+        xy = project_above_ground(centres, ground, Perspective.from_id(pid))[:, :2]
+        col, row = grid.colrow(xy[:, 0], xy[:, 1])
+        got = ids[row.astype(int), col.astype(int)]
+        want = np.array([objects[b["district"]][b["roof_material"]] for b in flat])
+        # a roof may hide behind a taller building in an oblique view, never on the nadir map
+        share = float(np.mean(got == want))
+        assert share == 1.0 if pid == "az000_el90" else share >= 0.8, (pid, share, len(flat))
+    md = (results / "report" / "report.md").read_text()
+    assert "## Object ids" in md and "- id maps:" in md
 
 
 def _web_tiles(results: Path) -> dict[str, tuple[int, str]]:
@@ -312,9 +367,10 @@ def test_rerun_does_nothing_and_a_changed_district_rerenders_only_its_tiles(plan
 
     # Touching a district re-ingests it, but its chunks are unchanged: nothing re-renders.
     obj = workdir / "resources" / "demo" / "d3.obj"
+    ids_before = _tile_mtimes(results, ".ids.tif")
     os.utime(obj)
     snakemake(workdir)
-    assert _tile_mtimes(results) == before
+    assert _tile_mtimes(results) == before and _tile_mtimes(results, ".ids.tif") == ids_before
     assert {p: p.stat().st_mtime_ns for p in (results / "lod").rglob("*.npz")} == lod_before
 
     # A real change to one chunk of d3 re-renders the tiles that draw that chunk, and besides
@@ -340,6 +396,14 @@ def test_rerun_does_nothing_and_a_changed_district_rerenders_only_its_tiles(plan
     respecified = {k for k in specs_after if specs_after[k] != specs_before.get(k)}
     assert changed == draws_chunk | respecified, (changed - draws_chunk, respecified)
     assert 0 < len(changed) < len(after)
+    # the id tiles: rendered again with their colour tiles, and no others
+    ids_after = _tile_mtimes(results, ".ids.tif")
+    assert set(ids_after) == set(after) and {k for k in ids_after if ids_after[k] != ids_before[k]} == changed
+    for pid, warp in warps_before.items():   # an id map is made again in full only where its map's warp changed
+        stats = json.loads((results / "work" / "ids" / f"{pid}.json").read_text())
+        assert stats["opaque_without_id"] == stats["transparent_with_id"] == 0, (pid, stats)
+        if stats["full"]:
+            assert _warp_of(results, pid) != warp, pid
     # the web tiles: a pyramid is cut again in full only where its map's GCP warp changed (the
     # re-rendered tiles observe their GCPs again); elsewhere only the tiles over the change are
     # written, and a tile written again keeps its bytes where its pixels did not change

@@ -76,7 +76,8 @@ def render_block_job(job: Job) -> None:
     from pipeline25d.stages import render_block
 
     p = job.params
-    render_block.render_block(p.plan, job.wildcards.block, p.block, p.lod_dir, p.tiles_dir, job.output[0])
+    render_block.render_block(p.plan, job.wildcards.block, p.block, p.lod_dir, p.tiles_dir, job.output[0],
+                              objects=p.objects)
 
 
 def gcps_job(job: Job) -> None:
@@ -97,6 +98,14 @@ def warp_job(job: Job) -> None:
     p = job.params
     warp.warp(job.input.mosaic, job.input.gcps, job.input.plan, dict(p.warp), job.output.cog, job.output.meta,
               dict(p.maps), work_dir=p.work, threads=job.threads)
+
+
+def id_map_job(job: Job) -> None:
+    from pipeline25d.stages.maps.ids import id_map
+
+    i = job.input
+    id_map(i.ids, i.mosaic, i.gcps, i.meta, i.cog, job.output.ids, job.output.stats, work_dir=job.params.work,
+           threads=job.threads)
 
 
 def tms_job(job: Job) -> None:
@@ -146,7 +155,8 @@ def wms_job(job: Job) -> None:
 #: rule name -> its function, in the order data moves through the workflow
 RULES: dict[str, Callable[[Job], None]] = {
     "ingest": ingest_job, "lod": lod_job, "terrain": terrain_job, "scene": scene_job, "plan": plan_job,
-    "render_block": render_block_job, "gcps": gcps_job, "mosaic": mosaic_job, "warp": warp_job, "tms": tms_job,
+    "render_block": render_block_job, "gcps": gcps_job, "mosaic": mosaic_job, "mosaic_ids": mosaic_job,
+    "warp": warp_job, "id_map": id_map_job, "tms": tms_job,
     "pmtiles": pmtiles_job, "heights": heights_job, "report": report_job, "viewer": viewer_job, "wms": wms_job,
 }
 

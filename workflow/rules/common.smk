@@ -34,6 +34,10 @@ with stop_on_error(log=False):
     DISTRICTS = sorted(config["inputs"])
     OBJECT_SLOTS = district_slots(DISTRICTS)       # each district's object ids (stages.objects)
     PERSPECTIVE_IDS = [p.id for p in perspectives(config)]
+    # which object each map pixel shows: id tiles beside the render tiles, an id map beside each map
+    OBJECTS = config["objects"]["enabled"]
+    ID_MAPS = [f"{RESULTS}/maps/{pid}.ids.tif" for pid in PERSPECTIVE_IDS] if OBJECTS else []
+    ID_STATS = [f"{RESULTS}/work/ids/{pid}.json" for pid in PERSPECTIVE_IDS] if OBJECTS else []
     # the web-tile pyramids as PMTiles archives too (tms.pmtiles), read by the viewer
     PMTILES = [f"{RESULTS}/pmtiles/{pid}.pmtiles" for pid in PERSPECTIVE_IDS] if config["tms"]["pmtiles"] else []
     MAX_LOD_ERROR = config["gsd"] * config["lod"]["max_error_px"]

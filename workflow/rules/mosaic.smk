@@ -14,3 +14,19 @@ rule mosaic:
         f"{RESULTS}/benchmarks/mosaic/{{pid}}.tsv"
     script:
         "../scripts/job.py"
+
+
+# The same over the tiles' object ids (objects.enabled).
+
+
+rule mosaic_ids:
+    input:
+        perspective_blocks,
+    params:
+        tiles=lambda wc: perspective_tiles(wc, ".ids.tif"),
+    output:
+        f"{RESULTS}/mosaic/{{pid}}.ids.vrt",
+    log:
+        f"{RESULTS}/logs/mosaic/{{pid}}.ids.log",
+    script:
+        "../scripts/job.py"

@@ -1,6 +1,7 @@
 # One job per render block (a quadtree node of a perspective's tiles that costs at most render.block
 # x render.block whole tiles, see plan.plan_blocks; one process and GL context): each non-empty tile
-# gets an RGBA GeoTIFF, the GCPs seen in it and its spec hash.
+# gets an RGBA GeoTIFF, its object ids (objects.enabled: <row>_<col>.ids.tif), the GCPs seen in it
+# and its spec hash.
 # Inputs are the block's chunk LODs; the block's hash (its tiles' spec hashes) re-runs the job
 # when a tile's plan entry changes, and the job then re-renders only the tiles whose spec changed.
 
@@ -16,6 +17,7 @@ rule render_block:
         tiles_dir=f"{RESULTS}/tiles/{{pid}}",
         block=RENDER_BLOCK,
         spec_hash=block_hash,
+        objects=OBJECTS,
     log:
         f"{RESULTS}/logs/render/{{pid}}/block_{{block}}.log",
     benchmark:

@@ -13,6 +13,7 @@ rule report:
         heights_csv=rules.heights.output.csv,
         gcps=expand(f"{RESULTS}/gcps/{{pid}}.csv", pid=PERSPECTIVE_IDS),
         mosaics=expand(f"{RESULTS}/mosaic/{{pid}}.vrt", pid=PERSPECTIVE_IDS),
+        id_stats=ID_STATS,
         chunks=expand(f"{RESULTS}/chunks/{{district}}/index.json", district=DISTRICTS),
     output:
         json=f"{RESULTS}/report/report.json",

@@ -1,4 +1,4 @@
-"""Report: per perspective accuracy at check points, tiles rendered/skipped, sizes, timings."""
+"""Report: per perspective accuracy at check points, tiles rendered/skipped, id maps, sizes, timings."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ from pathlib import Path
 from pipeline25d.core.atomic import write_json, write_text
 from pipeline25d.core.raster import dataset_bounds, gdal
 from pipeline25d.geometry.perspectives import Perspective
+from pipeline25d.publish.report_ids import id_layer, ids_section
 from pipeline25d.stages.plan import plan_blocks, read_plan
 from pipeline25d.stages.records import Scene, coarser_tiles
 
@@ -108,7 +109,7 @@ def build_report(config: dict, results: str | Path) -> dict:
             "unwarped_note": warp["candidates"][0].get("check_note"),
             "paper_method": warp.get("paper_method"),
             "candidates": warp["candidates"],
-            "map_bytes": _size(cog), "tms_bytes": _size(results / "tms" / pid),
+            "map_bytes": _size(cog), "tms_bytes": _size(results / "tms" / pid), "ids": id_layer(results, pid),
             "lonlat_bounds": lonlat_bounds(cog),
         })
     heights_json = results / "heights.json"
@@ -124,6 +125,7 @@ def build_report(config: dict, results: str | Path) -> dict:
         "perspectives": persp,
         "heights": heights,
         "sizes": {"model_bytes": model, "maps_bytes": maps, "tms_bytes": tms,
+                  "ids_bytes": sum(p["ids"]["ids_bytes"] for p in persp if p["ids"]),
                   "model_to_maps": model / maps if maps else None},
         "timings": stage_timings(results, current_jobs(set(config["inputs"]), blocks)),
         **({"coarser": coarser} if coarser else {}),
@@ -202,6 +204,7 @@ def render_markdown(rep: dict) -> str:
             na = pm.get("check_note") or "n/a"
             lines.append(f"| {p['id']} | polynomial {pm['order']} | {fmt(pm['rmsd_m'], missing=na)} | "
                          f"{fmt(pm['rmsd_px'], 2, missing=na)} | {fmt(pm['max_m'], missing=na)} |")
+    lines += ids_section(rep["perspectives"])
     if rep.get("heights"):
         lines += heights_section(rep["heights"])
     s = rep["sizes"]
@@ -211,6 +214,8 @@ def render_markdown(rep: dict) -> str:
               + (f" (model : maps = {_ratio(s['model_to_maps'])})" if s["model_to_maps"] else ""),
               f"- web tiles: {s['tms_bytes'] / 1e6:.2f} MB"
               + (f" (model : tiles = {_ratio(s['model_bytes'] / s['tms_bytes'])})" if s["tms_bytes"] else ""),
+              *([f"- id maps: {s['ids_bytes'] / 1e6:.2f} MB (ids : maps = {_ratio(s['ids_bytes'] / s['maps_bytes'])})"]
+                if s.get("ids_bytes") and s["maps_bytes"] else []),
               "", "## Stage timings", "",
               "| stage | jobs | seconds (sum) | max RSS MB |", "|---|---:|---:|---:|"]
     for stage, t in rep["timings"].items():

@@ -12,7 +12,8 @@ scene's extent (x, y, z bounds in the scene CRS) and the config alone, in O(pers
 * chunks: the cells of the chunk grid over the extent (an upper bound of the chunks ingest makes);
 * terrain cells: the DSM/DTM grid at ``ground.resolution`` (or the cloth grid, if finer);
 * bytes written, at most: every render tile, every map and the web pyramid over it (4/3 of the
-  maps' pixels, all zoom levels) at 4 bytes (RGBA) a pixel before compression. Compression makes
+  maps' pixels, all zoom levels) at 4 bytes (RGBA) a pixel, and with ``objects.enabled`` every
+  render tile's and map's object ids at 4 bytes (uint32) more, before compression. Compression makes
   the real figure smaller (zstd render tiles and COGs, webp tiles: about 2 to 3 times on a
   textured city); the bound is what a disk must be ready for.
 
@@ -56,6 +57,7 @@ class Work:
     chunks: int
     terrain_cells: int
     tile_size: int
+    ids: bool = False                                         # object ids beside tiles and maps
 
     @property
     def total_pixels(self) -> float:
@@ -63,9 +65,9 @@ class Work:
 
     @property
     def output_bytes(self) -> float:
-        """At most this many bytes written: render tiles, maps and web pyramid (module docstring)."""
+        """At most this many bytes written: render tiles, maps, web pyramid and object ids (module docstring)."""
         rendered = sum(self.tiles.values()) * self.tile_size ** 2
-        return BYTES_PER_PIXEL * (rendered + (1 + PYRAMID) * self.total_pixels)
+        return BYTES_PER_PIXEL * ((1 + self.ids) * rendered + (1 + self.ids + PYRAMID) * self.total_pixels)
 
     def summary(self) -> str:
         """``9 maps, 2.3e+08 px, 1350 tiles (about 90 render jobs), 36 chunks, 5.2e+05 terrain cells,
@@ -82,6 +84,7 @@ def settings(config: dict[str, Any]) -> dict[str, Any]:
     return {"gsd": config["gsd"], "tile_size": config["tile_size"], "perspectives": config["perspectives"],
             "projection": config["projection"], "block": config["render"]["block"], "chunk_size": chunk_size(config),
             "ground": {k: config["ground"][k] for k in ("resolution", "cloth_resolution")},
+            "objects": config["objects"]["enabled"],
             "limits": dict(config["limits"])}
 
 
@@ -121,7 +124,8 @@ def estimate(work: dict[str, Any], extent: np.ndarray, source: str) -> Work:
     cells = grid.width * grid.height
     size = float(work["chunk_size"])
     chunks = len(index_range(x0, x1, size)) * len(index_range(y0, y1, size))
-    return Work((x0, y0, z0, x1, y1, z1), source, pixels, tiles, render_jobs, chunks, cells, work["tile_size"])
+    return Work((x0, y0, z0, x1, y1, z1), source, pixels, tiles, render_jobs, chunks, cells, work["tile_size"],
+                bool(work.get("objects", False)))
 
 
 def check(work: dict[str, Any], found: Work) -> None:

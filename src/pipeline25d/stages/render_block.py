@@ -1,7 +1,8 @@
 """The render job: one block of a perspective's tiles in one process and GL context.
 
-A tile's files (GeoTIFF, GCPs seen, spec hash) are written atomically, spec hash last: a tile
-whose ``.spec`` matches its plan entry is complete and kept, so a changed district re-renders
+A tile's files (GeoTIFF, its object ids where ``objects.enabled``, GCPs seen, spec hash) are
+written atomically, spec hash last: a tile whose ``.spec`` matches its plan entry (and which has
+its ids tile where ids are asked for) is complete and kept, so a changed district re-renders
 only its own tiles.
 """
 
@@ -25,32 +26,42 @@ from pipeline25d.stages.records import ChunkRef, Observation, Plan, Tile
 log = logging.getLogger(__name__)
 
 
+ID_OPTIONS = ("COMPRESS=DEFLATE", "PREDICTOR=2", "TILED=YES")   # an id tile: uint32, nodata 0
+
+
 def tile_files(tiles_dir: str | Path, row: int, col: int) -> dict[str, Path]:
-    """A tile's files: its RGBA GeoTIFF, the GCPs seen in it, and the spec hash it was rendered for."""
+    """A tile's files: its RGBA GeoTIFF, its object ids (uint32 GeoTIFF on the same grid, 0: none),
+    the GCPs seen in it, and the spec hash it was rendered for."""
     base = Path(tiles_dir) / f"{row}_{col}"
-    return {"gcps": Path(f"{base}.gcps.csv"), "tif": Path(f"{base}.tif"), "spec": Path(f"{base}.spec")}
+    return {"gcps": Path(f"{base}.gcps.csv"), "tif": Path(f"{base}.tif"), "ids": Path(f"{base}.ids.tif"),
+            "spec": Path(f"{base}.spec")}
 
 
-def _tile_current(tiles_dir: str | Path, tile: Tile) -> bool:
-    """True if the tile's files exist and were rendered for its current spec hash."""
+def _tile_current(tiles_dir: str | Path, tile: Tile, objects: bool) -> bool:
+    """True if the tile's files exist (its ids tile where ``objects``) and were rendered for its
+    current spec hash."""
     files = tile_files(tiles_dir, tile.row, tile.col)
-    return all(f.exists() for f in files.values()) and files["spec"].read_text().strip() == tile.spec_hash
+    needed = [f for k, f in files.items() if k != "ids" or objects]
+    return all(f.exists() for f in needed) and files["spec"].read_text().strip() == tile.spec_hash
 
 
 def render_block(plan_path: str | Path, block_id: str, block: int, lod_dir: str | Path, tiles_dir: str | Path,
-                 out_manifest: str | Path) -> dict:
+                 out_manifest: str | Path, objects: bool = True) -> dict:
     """Render the tiles of one render block (:func:`~pipeline25d.stages.plan.plan_blocks`) in one process and GL context.
 
     Each tile gets its own files (:func:`tile_files`), written GCPs, GeoTIFF, then spec hash,
     each atomically: a tile whose ``.spec`` matches its plan entry is complete and is kept as
     it is, so a changed district re-renders only its own tiles even though its block job runs
-    again. The manifest (written last) lists the block's tiles and which were rendered.
+    again. ``objects``: each tile also gets its object ids (:mod:`.render_ids`), drawn from the
+    colour pass's uploaded geometry. The manifest (written last) lists the block's tiles and which
+    were rendered.
     """
     from pipeline25d.stages.render import TileRenderer, create_context
+    from pipeline25d.stages.render_ids import IdRenderer
 
     pl = read_plan(plan_path)
     tiles = plan_block(read_plan_blocks(plan_path, block), block_id, pl.id)
-    todo = [t for t in tiles if not _tile_current(tiles_dir, t)]
+    todo = [t for t in tiles if not _tile_current(tiles_dir, t, objects)]
     if todo:
         chunks = _ChunkCache(lod_dir, todo)
         ground = _block_ground(pl, todo)
@@ -58,10 +69,12 @@ def render_block(plan_path: str | Path, block_id: str, block: int, lod_dir: str 
         try:
             renderer = TileRenderer(ctx, ambient=todo[0].render["ambient"], samples=todo[0].render["samples"],
                                     shadows=pl.shadows is not None)
+            id_renderer = IdRenderer(ctx, samples=todo[0].render["samples"]) if objects else None
             for k, tile in enumerate(todo, 1):
                 casters = chunks.take(tile.casters) if pl.shadows is not None else None
-                rgba, seen = render_plan_tile(renderer, pl, tile, chunks.take(tile.chunks), ground, casters)
-                _write_tile(pl, tile, rgba, seen, tiles_dir)
+                rgba, seen, ids = render_plan_tile(renderer, pl, tile, chunks.take(tile.chunks), ground, casters,
+                                                   id_renderer)
+                _write_tile(pl, tile, rgba, seen, tiles_dir, ids)
                 log.info("%s tile %d_%d (%d of %d): coverage %.1f%%, GCPs seen %d of %d", pl.id,
                          tile.row, tile.col, k, len(todo), 100 * float((rgba[..., 3] > 0).mean()),
                          len(seen), len(tile.gcps))
@@ -69,7 +82,7 @@ def render_block(plan_path: str | Path, block_id: str, block: int, lod_dir: str 
             ctx.release()
     manifest = {"perspective": pl.id, "block": block_id,
                 "tiles": [{"row": t.row, "col": t.col, "spec_hash": t.spec_hash} for t in tiles],
-                "rendered": len(todo), "kept": len(tiles) - len(todo)}
+                "rendered": len(todo), "kept": len(tiles) - len(todo), "objects": bool(objects)}
     write_json(out_manifest, manifest)
     log.info("block %s: %d tiles rendered, %d unchanged kept", block_id, len(todo),
              len(tiles) - len(todo))
@@ -117,11 +130,14 @@ def _block_ground(pl: Plan, tiles: Sequence[Tile]):
     return DTM(pl.dtm, pl.crs, continuous=True, window=Extent(*xy.min(axis=0), *xy.max(axis=0))).sample
 
 
-def render_plan_tile(renderer, pl: Plan, tile: Tile, chunks: list, ground,
-                     casters: list | None = None) -> tuple[np.ndarray, list[Observation]]:
-    """(RGBA image, GCP observations) of one plan tile from its loaded chunks; ``ground`` = DTM(x, y)
-    in terrain-relative mode, else None; ``casters``: its loaded shadow casters (plans with shadows)."""
+def render_plan_tile(renderer, pl: Plan, tile: Tile, chunks: list, ground, casters: list | None = None,
+                     id_renderer=None) -> tuple[np.ndarray, list[Observation], np.ndarray | None]:
+    """(RGBA image, GCP observations, object ids or None) of one plan tile from its loaded chunks;
+    ``ground`` = DTM(x, y) in terrain-relative mode, else None; ``casters``: its loaded shadow
+    casters (plans with shadows); ``id_renderer``: an :class:`~.render_ids.IdRenderer` for the
+    tile's ids (None: none), drawn from the geometry the colour pass uploaded."""
     from pipeline25d.stages.render import TileView
+    from pipeline25d.stages.render_ids import part_face_ids
 
     persp, t, gsd, cfg = pl.perspective, pl.tile_size, pl.gsd, tile.render
     depth = tuple(tile.depth_range)
@@ -130,6 +146,7 @@ def render_plan_tile(renderer, pl: Plan, tile: Tile, chunks: list, ground,
     view = TileView(persp, pl.z0, content, depth, size, ground, camera)
     with renderer.upload(chunks, view) as geometry:          # once for both passes
         rgba = renderer.render_color(geometry, view, shadow_view(pl, tile), casters)
+        ids = None if id_renderer is None else id_renderer.render_ids(geometry, view, part_face_ids)
         seen = []
         if tile.gcps:
             margin = int(np.ceil(cfg["marker_px"])) + 2
@@ -141,7 +158,7 @@ def render_plan_tile(renderer, pl: Plan, tile: Tile, chunks: list, ground,
                                                  cfg["depth_bias"],
                                                  marker_depth_tolerance(persp, gsd, cfg["max_float_px"]))
             seen = observations(tile.gcps, full, sums, (extent.xmin, extent.ymax), pixel)
-    return rgba, seen
+    return rgba, seen, ids
 
 
 def shadow_view(pl: Plan, tile: Tile):
@@ -156,11 +173,13 @@ def shadow_view(pl: Plan, tile: Tile):
     return ShadowView(frame, tuple(tile.shadow.window), tuple(tile.shadow.depth), s["ambient"], s["bias"], s["radius"])
 
 
-def _write_tile(pl: Plan, tile: Tile, rgba: np.ndarray, seen: list[Observation], tiles_dir: str | Path) -> None:
-    """GCPs, GeoTIFF, then the spec hash that marks the tile complete (see :func:`render_block`)."""
+def _write_tile(pl: Plan, tile: Tile, rgba: np.ndarray, seen: list[Observation], tiles_dir: str | Path,
+                ids: np.ndarray | None = None) -> None:
+    """GCPs, GeoTIFF, its ids (or none: a stale ids tile removed), then the spec hash that marks
+    the tile complete (see :func:`render_block`)."""
     from pipeline25d.core.atomic import write_text
     from pipeline25d.core.crs import horizontal_wkt
-    from pipeline25d.core.geotiff import write_rgba_geotiff
+    from pipeline25d.core.geotiff import write_geotiff, write_rgba_geotiff
 
     files = tile_files(tiles_dir, tile.row, tile.col)
     files["spec"].unlink(missing_ok=True)
@@ -168,6 +187,10 @@ def _write_tile(pl: Plan, tile: Tile, rgba: np.ndarray, seen: list[Observation],
     wkt = "" if pl.camera == "paper" else horizontal_wkt(pl.crs)
     write_csv(files["gcps"], seen, OBSERVATION_FIELDS)
     write_rgba_geotiff(files["tif"], rgba, pl.tile_grid(tile), wkt)
+    if ids is None:
+        files["ids"].unlink(missing_ok=True)
+    else:
+        write_geotiff(files["ids"], ids, pl.tile_grid(tile), wkt, "UInt32", ID_OPTIONS, nodata=0)
     write_text(files["spec"], tile.spec_hash + "\n")
 
 

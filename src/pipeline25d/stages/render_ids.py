@@ -10,12 +10,15 @@ transparent, and an edge pixel has the object that covers most of it. Id 0 means
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Sequence
 
 import numpy as np
 
 from pipeline25d.core.mesh import MeshPart
-from pipeline25d.stages.render import VERTEX_SHADER, TileView
+from pipeline25d.stages.render import VERTEX_SHADER, TileGeometry, TileView
+
+log = logging.getLogger(__name__)
 
 FACE_TEXTURE_WIDTH = 4096      # face ids per row of a mesh's id texture
 
@@ -68,6 +71,16 @@ def object_face_ids(ids: dict[str, int]) -> FaceIds:
     return face_ids
 
 
+def part_face_ids(part: MeshPart) -> np.ndarray:
+    """Face ids of an ingested part (its ``object_ids`` given by ingest); 0 for a part without
+    them (a chunk written before object ids: its faces are drawn as no object)."""
+    if part.object_ids is None or part.face_objects is None:
+        log.warning("a part of %d faces carries no object ids (a chunk ingested before them): "
+                    "its pixels have no id; ingest its district again", part.n_triangles)
+        return np.zeros(part.n_triangles, dtype=np.uint32)
+    return part.object_ids[part.face_objects]
+
+
 class IdRenderer:
     """Renders tiles of object ids; one instance per GL context (programs compiled once)."""
 
@@ -77,11 +90,12 @@ class IdRenderer:
         self.prog = ctx.program(vertex_shader=VERTEX_SHADER, fragment_shader=ID_FRAGMENT)
         self.resolve = ctx.program(vertex_shader=RESOLVE_VERTEX, fragment_shader=RESOLVE_FRAGMENT)
 
-    def render_ids(self, chunks: Sequence[tuple[np.ndarray, list[MeshPart]]], view: TileView,
+    def render_ids(self, chunks: Sequence[tuple[np.ndarray, list[MeshPart]]] | TileGeometry, view: TileView,
                    face_ids: FaceIds) -> np.ndarray:
         """(h, w) uint32 object id per pixel, row 0 = north edge, 0 where no object is drawn.
 
-        ``chunks``: (float64 origin, parts) as the colour render takes them; ``face_ids(part)``:
+        ``chunks``: (float64 origin, parts) as the colour render takes them, or the colour pass's
+        :class:`~pipeline25d.stages.render.TileGeometry` (uploaded once for both); ``face_ids(part)``:
         the (m,) uint32 id of each of the part's faces (0: drawn as no object)."""
         import moderngl
 
@@ -96,17 +110,23 @@ class IdRenderer:
         ctx.enable(moderngl.DEPTH_TEST)
         ctx.disable(moderngl.CULL_FACE)
         released = [fbo, depth]
+        uploaded = isinstance(chunks, TileGeometry)
         try:
-            for origin, parts in chunks:
+            for origin, items in (chunks.chunks if uploaded else chunks):
                 matrix = view.matrix(origin)
                 self.prog["u_mvp"].write(matrix.T.astype("f4").tobytes())
                 if "u_shear" in self.prog:
                     self.prog["u_shear"].value = view.shear(matrix)
                 if "u_zbias" in self.prog:
                     self.prog["u_zbias"].value = 0.0
-                for part in parts:
-                    if part.n_triangles:
-                        released += self._draw(part, origin, view, face_ids(part))
+                for item in items:
+                    if uploaded:        # the colour pass's buffers, drawn by this pass's program
+                        inputs = [i for i in item.inputs if i[2] in ("in_pos", "in_ground")]
+                        released += self._draw(inputs, item.ibo, face_ids(item.part))
+                    elif item.n_triangles:
+                        inputs, ibo = self._upload(item, origin, view)
+                        released += [b for b, _, _ in inputs] + [ibo]
+                        released += self._draw(inputs, ibo, face_ids(item))
             out = self._resolved(ids, w, h, samples) if self.samples else \
                 np.frombuffer(ids.read(), dtype=np.uint32).reshape(h, w)
         finally:
@@ -114,8 +134,18 @@ class IdRenderer:
                 obj.release()
         return out[::-1].copy()
 
-    def _draw(self, part: MeshPart, origin: np.ndarray, view: TileView, faces: np.ndarray) -> list:
-        """Draw one part with its face ids; returns the GL objects to release."""
+    def _upload(self, part: MeshPart, origin: np.ndarray, view: TileView) -> tuple[list, object]:
+        """A part's vertex inputs (positions, ground offsets in terrain mode) and index buffer."""
+        ctx = self.ctx
+        inputs = [(ctx.buffer(np.ascontiguousarray(part.vertices - origin, dtype="f4")), "3f", "in_pos")]
+        ground = view.ground_offsets(part.vertices, origin)
+        if ground is not None and "in_ground" in self.prog:
+            inputs.append((ctx.buffer(np.ascontiguousarray(ground, dtype="f4")), "1f", "in_ground"))
+        return inputs, ctx.buffer(np.ascontiguousarray(part.faces, dtype="u4"))
+
+    def _draw(self, inputs: list, ibo, faces: np.ndarray) -> list:
+        """Draw one mesh (its vertex ``inputs`` and index buffer) with its face ids; returns the
+        GL objects this made (to release)."""
         import moderngl
 
         ctx = self.ctx
@@ -126,14 +156,10 @@ class IdRenderer:
         texture.filter = (moderngl.NEAREST, moderngl.NEAREST)
         texture.use(0)
         self.prog["u_faces"].value = 0
-        content = [(ctx.buffer(np.ascontiguousarray(part.vertices - origin, dtype="f4")), "3f", "in_pos")]
-        ground = view.ground_offsets(part.vertices, origin)
-        if ground is not None and "in_ground" in self.prog:
-            content.append((ctx.buffer(np.ascontiguousarray(ground, dtype="f4")), "1f", "in_ground"))
-        ibo = ctx.buffer(np.ascontiguousarray(part.faces, dtype="u4"))
-        vao = ctx.vertex_array(self.prog, content, index_buffer=ibo, index_element_size=4)
+        inputs = [i for i in inputs if i[2] in self.prog]
+        vao = ctx.vertex_array(self.prog, inputs, index_buffer=ibo, index_element_size=4)
         vao.render()
-        return [vao, ibo, texture] + [b for b, _, _ in content]
+        return [vao, texture]
 
     def _resolved(self, ids, w: int, h: int, samples: int) -> np.ndarray:
         """The per-pixel majority id of the multisample ``ids`` texture, (h, w) with GL's row 0 first."""

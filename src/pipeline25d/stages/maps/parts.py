@@ -143,10 +143,11 @@ def map_grid(bounds: list[Extent], gsd: float, margin_px: int = 2) -> tuple[Grid
 
 
 def assemble_sparse_cog(parts: list[tuple[Path, Window]], grid: Grid, wkt: str, out: str | Path,
-                        cog_options: list[str], rows_per_copy: int = 1024) -> None:
+                        cog_options: list[str], rows_per_copy: int = 1024, ids: bool = False) -> None:
     """Write the parts' pixels and overviews into a COG on ``grid`` at ``out``.
 
-    Each part raster (RGBA, on the map grid, with the map's overview factors already built)
+    Each part raster (RGBA, or with ``ids`` one UInt32 band of object ids, nodata 0; on the map
+    grid, with the map's overview factors already built)
     is copied into an intermediate sparse GeoTIFF, level by level, ``rows_per_copy`` rows at a
     time (memory O(part width)); the COG driver then keeps those overviews and skips the
     unstored blocks. ``cog_options``: the COG driver's compression and overview options
@@ -156,24 +157,26 @@ def assemble_sparse_cog(parts: list[tuple[Path, Window]], grid: Grid, wkt: str, 
     factors = overview_factors(grid.width, grid.height)
     tmp = Path(out).with_suffix(".parts.tif")
     options = ["TILED=YES", f"BLOCKXSIZE={COG_BLOCK}", f"BLOCKYSIZE={COG_BLOCK}", "SPARSE_OK=TRUE", "COMPRESS=ZSTD",
-               "ZSTD_LEVEL=1", "ALPHA=YES", "PHOTOMETRIC=RGB", "BIGTIFF=IF_SAFER"]
+               "ZSTD_LEVEL=1", "BIGTIFF=IF_SAFER", *([] if ids else ["ALPHA=YES", "PHOTOMETRIC=RGB"])]
+    bands, dtype, nodata = (1, "UInt32", 0) if ids else (4, "Byte", None)
     try:
-        with geotiff_dataset(tmp, grid, wkt, 4, "Byte", options, overviews=factors) as dst:  # levels filled below
-            _copy_parts(parts, dst, factors, rows_per_copy)
+        with geotiff_dataset(tmp, grid, wkt, bands, dtype, options, nodata=nodata,
+                             overviews=factors) as dst:  # levels filled below
+            _copy_parts(parts, dst, factors, rows_per_copy, bands)
         g.Translate(str(out), str(tmp), format="COG",
                     creationOptions=[*cog_options, "SPARSE_OK=TRUE", "BIGTIFF=IF_SAFER"])
     finally:
         tmp.unlink(missing_ok=True)
 
 
-def _copy_parts(parts: list[tuple[Path, Window]], dst, factors: list[int], rows_per_copy: int) -> None:
+def _copy_parts(parts: list[tuple[Path, Window]], dst, factors: list[int], rows_per_copy: int, bands: int) -> None:
     """Each part's levels into the same levels of ``dst`` (a :class:`pipeline25d.core.geotiff.GeoTiffOut`)."""
     g = gdal()
     for path, win in parts:
         src = g.Open(str(path))
         for level, f in enumerate([1, *factors]):
-            src_bands = [src.GetRasterBand(b + 1) for b in range(4)]
-            dst_bands = [dst.band(b + 1) for b in range(4)]
+            src_bands = [src.GetRasterBand(b + 1) for b in range(bands)]
+            dst_bands = [dst.band(b + 1) for b in range(bands)]
             if level:
                 src_bands = [b.GetOverview(level - 1) for b in src_bands]
                 dst_bands = [b.GetOverview(level - 1) for b in dst_bands]

@@ -88,7 +88,7 @@ def patched_map(mosaic: str | Path, source: str | Path, choice: dict, crs: str, 
     factors = overview_factors(width, height)
     size = max(BLOCK_PX, factors[-1] if factors else 1)      # a block holds whole pixels of every overview
     key = {"version": STATE_VERSION, "method": choice["method"], "order": choice.get("order"), "crs": crs,
-           "gcps": _gcps_digest(source) if warped else None, "grid": [*grid.geotransform, width, height], "block": size,
+           "gcps": gcps_digest(source) if warped else None, "grid": [*grid.geotransform, width, height], "block": size,
            "overviews": factors}
     mosaic_grid, cells = map_cells(mosaic)
     key["mosaic"] = mosaic_grid
@@ -104,7 +104,7 @@ def patched_map(mosaic: str | Path, source: str | Path, choice: dict, crs: str, 
     else:
         old = state["cells"]
         changed = sorted(c for c in cells.keys() | old.keys() if cells.get(c) != old.get(c))
-        to_map = source_to_map(source, choice) if warped else _pixel_to_map(mosaic_grid)
+        to_map = source_to_map(source, choice) if warped else pixel_to_map(mosaic_grid)
         todo = {tuple(b) for b in state["dirty"]} | blocks_reached(changed, mosaic_grid, to_map, grid, size,
                                                                    MARGIN_PX if warped else 0)
     todo = sorted(todo)
@@ -118,7 +118,7 @@ def patched_map(mosaic: str | Path, source: str | Path, choice: dict, crs: str, 
                            height=win.height, **opts)
         else:
             block = g.Translate("", str(mosaic), format="MEM", srcWin=[win.col0, win.row0, win.width, win.height])
-        _write_block(kept, block, win, factors)
+        write_block(kept, block, win, factors)
     kept.FlushCache()
     kept = None
     write_state(work, {"key": key, "cells": cells, "dirty": []})
@@ -128,15 +128,16 @@ def patched_map(mosaic: str | Path, source: str | Path, choice: dict, crs: str, 
     return work / KEPT, stats
 
 
-def _write_block(kept, block, win: Window, factors: list[int]) -> None:
+def write_block(kept, block, win: Window, factors: list[int], resampling: str = "AVERAGE") -> None:
     """A block's pixels and its own overviews (its footprint holds whole overview pixels, so they
     are the map's) into the kept GeoTIFF. The overviews are built by the GeoTIFF driver, all bands
     at once with the alpha as their mask, as for a sparse map's parts (the in-memory driver's
-    per-band path weights partly transparent pixels otherwise)."""
+    per-band path weights partly transparent pixels otherwise); ``resampling``: GDAL's overview
+    method (NEAREST for object ids)."""
     if factors:
         path = f"/vsimem/map_patch_{id(block)}.tif"
         block = gdal().GetDriverByName("GTiff").CreateCopy(path, block)
-        block.BuildOverviews("AVERAGE", factors)
+        block.BuildOverviews(resampling, factors)
     try:
         _copy_levels(kept, block, win, factors)
     finally:
@@ -154,13 +155,13 @@ def _copy_levels(kept, block, win: Window, factors: list[int]) -> None:
             dst.GetOverview(level).WriteRaster(win.col0 // f, win.row0 // f, o.XSize, o.YSize, o.ReadRaster())
 
 
-def _gcps_digest(source: str | Path) -> str:
+def gcps_digest(source: str | Path) -> str:
     src = gdal().Open(str(source))
     gcps = [(p.GCPPixel, p.GCPLine, p.GCPX, p.GCPY, p.GCPZ) for p in src.GetGCPs()]
     return hashlib.sha256(json.dumps(gcps).encode()).hexdigest()[:16]
 
 
-def _pixel_to_map(mosaic_grid: list):
+def pixel_to_map(mosaic_grid: list):
     return cells_grid_of(mosaic_grid).xy
 
 

@@ -193,6 +193,13 @@ def run_tool(args: list[str]) -> None:
         raise GdalToolError(f"{args[0]} failed ({proc.returncode}): {proc.stderr.strip()[-2000:]}")
 
 
+def gcp_source(mosaic: str | Path, obs: Sequence[Observation], crs: str, out_vrt: str | Path) -> Path:
+    """A VRT of ``mosaic`` carrying the GCPs (role gcp) of ``obs`` in ``crs``: what a GCP warp reads."""
+    train = [r for r in obs if r.role == "gcp"]
+    gdal().Translate(str(out_vrt), str(mosaic), format="VRT", GCPs=gdal_gcps(train, raster_grid(mosaic)), outputSRS=crs)
+    return Path(out_vrt)
+
+
 def build_mosaic(tiles: list[str], out_vrt: str | Path) -> None:
     """gdalbuildvrt over the tile GeoTIFFs (they share one pixel grid)."""
     with atomic_path(out_vrt) as tmp:
@@ -239,10 +246,7 @@ def warp_to_cog(mosaic: str | Path, obs: Sequence[Observation], choice: dict, pl
         try:
             source = Path(mosaic)
             if choice["method"] != "none":
-                train = [r for r in obs if r.role == "gcp"]
-                gdal().Translate(str(gcp_vrt), str(mosaic), format="VRT", GCPs=gdal_gcps(train, raster_grid(mosaic)),
-                                 outputSRS=crs)
-                source = gcp_vrt
+                source = gcp_source(mosaic, obs, crs, gcp_vrt)
             if parts and len(parts) > 1:
                 return _warp_parts(source, mosaic, choice, plan, crs, parts, tmp, codec)
             from pipeline25d.stages.maps.patch import patched_map
