@@ -142,3 +142,22 @@ def test_ids_drawn_from_the_colour_pass_upload_equal_ids_drawn_from_the_parts(gl
         shared = ids.render_ids(geometry, v, part_face_ids)
     assert np.array_equal(shared, direct) and np.array_equal(shared > 0, rgba[..., 3] > 0)
     assert set(np.unique(shared)) == {0, *IDS.values()}
+
+
+@pytest.mark.parametrize("p, samples", [(Perspective(0, 90), 4), (Perspective(45, 45), 4), (Perspective(200, 30), 4),
+                                        (Perspective(45, 45), 0)])
+def test_ids_drawn_beside_the_colours_equal_the_separate_id_pass(gl_ctx, p, samples):
+    """One pass with two render targets (the colour program writes each fragment's face id too)
+    against the id pass's own program: the same ids, and the colour tile byte-identical to a renderer
+    without ids."""
+    v = view(p)
+    plain = TileRenderer(gl_ctx, samples=samples).render_color(scene(), v)
+    ids_alone = IdRenderer(gl_ctx, samples=samples).render_ids(scene(), v, object_face_ids(IDS))
+    renderer = TileRenderer(gl_ctx, samples=samples, ids=True)
+    with renderer.upload(scene(), v) as geometry:
+        rgba, ids = IdRenderer(gl_ctx, samples=samples).with_colour(renderer, geometry, v, object_face_ids(IDS))
+        again = renderer.render_color(geometry, v)          # the ids program without ids: same colours
+    assert np.array_equal(rgba, plain) and np.array_equal(again, plain)
+    assert np.array_equal(ids, ids_alone)
+    assert np.array_equal(ids > 0, rgba[..., 3] > 0)
+    assert set(np.unique(ids)) == {0, *IDS.values()}

@@ -36,6 +36,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
@@ -59,6 +60,9 @@ def _shader(name: str) -> str:
 
 
 VERTEX_SHADER = _shader("tile.vert")
+
+FACE_WIDTH = 4096    # face ids per row of a mesh's face-id texture (the ids render target's lookup)
+FACE_UNIT = 2        # its texture unit (0: the model's texture, 1: the shadow map)
 
 FRAGMENT_SHADER = _shader("tile.frag")
 
@@ -120,6 +124,15 @@ class ShadowView:
     @property
     def size(self) -> tuple[int, int]:
         return self.window[2] - self.window[0], self.window[3] - self.window[1]
+
+
+class IdPass(Protocol):
+    """What the colour pass needs to write object ids beside its colours
+    (:class:`pipeline25d.stages.render_ids.ColourIds`)."""
+
+    def target(self, size: tuple[int, int], samples: int): ...
+    def bind(self, mesh: "_GpuMesh", unit: int) -> None: ...
+    def resolve(self, target, size: tuple[int, int], samples: int) -> np.ndarray: ...
 
 
 class _GpuMesh:
@@ -186,14 +199,16 @@ class TileRenderer:
     """Renders chunks into tiles; one instance per GL context (programs compiled once)."""
 
     def __init__(self, ctx, ambient: float = 0.45, samples: int = 4, shadows: bool = False,
-                 anisotropy: float | None = None):
+                 anisotropy: float | None = None, ids: bool = False):
         self.ctx = ctx
         self.anisotropy = texture_anisotropy(ctx) if anisotropy is None else anisotropy
         self.ambient = ambient
         self.samples = min(samples, ctx.max_samples) if samples else 0
-        self.shadows = shadows
-        self.prog = ctx.program(vertex_shader=_variant(VERTEX_SHADER, shadows),
-                                fragment_shader=_variant(FRAGMENT_SHADER, shadows))
+        self.shadows, self.ids = shadows, ids
+        defines = (["SHADOWS"] if shadows else []) + ([f"IDS\n#define FACE_WIDTH {FACE_WIDTH}"] if ids else [])
+        self.prog = ctx.program(vertex_shader=_variant(VERTEX_SHADER, *defines),
+                                fragment_shader=_variant(FRAGMENT_SHADER, *defines))
+        self._set(u_faces=FACE_UNIT)     # its own unit: never a colour texture's (sampler types differ)
         self._textures: dict[bytes, object] = {}
 
     # -- resources -----------------------------------------------------------
@@ -257,7 +272,7 @@ class TileRenderer:
 
     # -- drawing ---------------------------------------------------------------
     def _draw_chunks(self, geometry: "TileGeometry", view: TileView, black: bool = False,
-                     shadow: ShadowView | None = None) -> None:
+                     shadow: ShadowView | None = None, ids: "IdPass | None" = None) -> None:
         from pipeline25d.geometry.camera import view_direction
 
         self._set(u_light=tuple(LIGHT_DIRECTION), u_view=tuple(view_direction(view.perspective)),
@@ -278,6 +293,8 @@ class TileRenderer:
                     self._set(u_mode=0, u_shade=True)
                 else:
                     self._set(u_mode=2, u_color=(0.7, 0.7, 0.7, 1.0), u_shade=True)
+                if ids is not None:
+                    ids.bind(mesh, FACE_UNIT)
                 mesh.vao.render()
 
     def _write(self, name: str, matrix: np.ndarray) -> None:
@@ -291,6 +308,19 @@ class TileRenderer:
 
         ``shadow``: sun shadows (a renderer made with ``shadows=True``), cast by ``chunks`` and
         ``casters`` (further chunks that are drawn only into the shadow map)."""
+        return self._colour(chunks, view, shadow, casters, None)[0]
+
+    def render_color_ids(self, chunks: "Chunks", view: TileView, ids: "IdPass", shadow: ShadowView | None = None,
+                         casters: "Chunks | None" = None) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`render_color` and, from the same fragments (a second render target of the same
+        samples), the (h, w) uint32 object id of every pixel that ``ids`` resolves (a renderer made
+        with ``ids=True``; :class:`pipeline25d.stages.render_ids.ColourIds`)."""
+        if not self.ids:
+            raise RenderError("object ids beside the colours need a TileRenderer made with ids=True")
+        return self._colour(chunks, view, shadow, casters, ids)
+
+    def _colour(self, chunks: "Chunks", view: TileView, shadow: ShadowView | None, casters: "Chunks | None",
+                ids: "IdPass | None") -> tuple[np.ndarray, np.ndarray | None]:
         import moderngl
 
         if shadow is not None and not self.shadows:
@@ -303,20 +333,23 @@ class TileRenderer:
                     shadow_map = self._shadow_map([geometry, cast], shadow)
                 shadow_map.use(location=1)
                 self._set(u_shadow_map=1, **_shadow_uniforms(shadow))
-            fbo_ms = ctx.framebuffer(color_attachments=[ctx.renderbuffer((w, h), 4, samples=self.samples)],
+            colour = ctx.renderbuffer((w, h), 4, samples=self.samples)
+            id_target = None if ids is None else ids.target((w, h), self.samples)
+            fbo_ms = ctx.framebuffer(color_attachments=[colour] + ([id_target] if id_target else []),
                                      depth_attachment=ctx.depth_renderbuffer((w, h), samples=self.samples))
+            colour_only = ctx.framebuffer(color_attachments=[colour]) if id_target else fbo_ms
             fbo = ctx.simple_framebuffer((w, h), components=4)
             fbo_ms.use()
-            ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+            fbo_ms.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)     # each attachment by its type (ids: 0)
             ctx.enable(moderngl.DEPTH_TEST)
             ctx.disable(moderngl.CULL_FACE)
-            self._draw_chunks(geometry, view, shadow=shadow)
-        ctx.copy_framebuffer(fbo, fbo_ms)
+            self._draw_chunks(geometry, view, shadow=shadow, ids=ids)
+        ctx.copy_framebuffer(fbo, colour_only)
         rgba = _read_rgba(fbo, w, h)
-        for obj in (fbo_ms, fbo, shadow_map):
-            if obj is not None:
-                obj.release()
-        return unpremultiply(rgba)
+        out_ids = None if ids is None else ids.resolve(id_target, (w, h), self.samples)
+        for obj in {id(o): o for o in (colour_only, fbo_ms, fbo, shadow_map, id_target) if o is not None}.values():
+            obj.release()
+        return unpremultiply(rgba), out_ids
 
     def _shadow_map(self, geometries: list["TileGeometry"], shadow: ShadowView):
         """A depth texture of ``geometries`` seen from the sun over the shadow view's window
@@ -433,12 +466,12 @@ class TileRenderer:
         return full, sums
 
 
-def _variant(source: str, shadows: bool) -> str:
-    """A shader's source with ``#define SHADOWS`` after its #version line when ``shadows``; else unchanged."""
-    if not shadows:
+def _variant(source: str, *defines: str) -> str:
+    """A shader's source with a ``#define`` of each of ``defines`` after its #version line."""
+    if not defines:
         return source
     head, rest = source.split("#version 330\n", 1)
-    return head + "#version 330\n#define SHADOWS\n" + rest
+    return head + "#version 330\n" + "".join(f"#define {d}\n" for d in defines) + rest
 
 
 def _shadow_uniforms(shadow: ShadowView) -> dict:

@@ -52,9 +52,9 @@ def render_block(plan_path: str | Path, block_id: str, block: int, lod_dir: str 
     Each tile gets its own files (:func:`tile_files`), written GCPs, GeoTIFF, then spec hash,
     each atomically: a tile whose ``.spec`` matches its plan entry is complete and is kept as
     it is, so a changed district re-renders only its own tiles even though its block job runs
-    again. ``objects``: each tile also gets its object ids (:mod:`.render_ids`), drawn from the
-    colour pass's uploaded geometry. The manifest (written last) lists the block's tiles and which
-    were rendered.
+    again. ``objects``: each tile also gets its object ids (:mod:`.render_ids`), drawn by the
+    colour pass itself (a second render target). The manifest (written last) lists the block's
+    tiles and which were rendered.
     """
     from pipeline25d.stages.render import TileRenderer, create_context
     from pipeline25d.stages.render_ids import IdRenderer
@@ -68,7 +68,7 @@ def render_block(plan_path: str | Path, block_id: str, block: int, lod_dir: str 
         ctx = create_context()
         try:
             renderer = TileRenderer(ctx, ambient=todo[0].render["ambient"], samples=todo[0].render["samples"],
-                                    shadows=pl.shadows is not None)
+                                    shadows=pl.shadows is not None, ids=objects)
             id_renderer = IdRenderer(ctx, samples=todo[0].render["samples"]) if objects else None
             for k, tile in enumerate(todo, 1):
                 casters = chunks.take(tile.casters) if pl.shadows is not None else None
@@ -135,7 +135,7 @@ def render_plan_tile(renderer, pl: Plan, tile: Tile, chunks: list, ground, caste
     """(RGBA image, GCP observations, object ids or None) of one plan tile from its loaded chunks;
     ``ground`` = DTM(x, y) in terrain-relative mode, else None; ``casters``: its loaded shadow
     casters (plans with shadows); ``id_renderer``: an :class:`~.render_ids.IdRenderer` for the
-    tile's ids (None: none), drawn from the geometry the colour pass uploaded."""
+    tile's ids (None: none), drawn by the colour pass as a second render target."""
     from pipeline25d.stages.render import TileView
     from pipeline25d.stages.render_ids import part_face_ids
 
@@ -145,8 +145,10 @@ def render_plan_tile(renderer, pl: Plan, tile: Tile, chunks: list, ground, caste
     content, size = pl.content(tile)          # where its chunks can draw: the tile or less
     view = TileView(persp, pl.z0, content, depth, size, ground, camera)
     with renderer.upload(chunks, view) as geometry:          # once for both passes
-        rgba = renderer.render_color(geometry, view, shadow_view(pl, tile), casters)
-        ids = None if id_renderer is None else id_renderer.render_ids(geometry, view, part_face_ids)
+        if id_renderer is None:
+            rgba, ids = renderer.render_color(geometry, view, shadow_view(pl, tile), casters), None
+        else:     # one pass: the ids are a second render target of the colour pass
+            rgba, ids = id_renderer.with_colour(renderer, geometry, view, part_face_ids, shadow_view(pl, tile), casters)
         seen = []
         if tile.gcps:
             margin = int(np.ceil(cfg["marker_px"])) + 2

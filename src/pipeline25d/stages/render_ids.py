@@ -16,11 +16,11 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from pipeline25d.core.mesh import MeshPart
-from pipeline25d.stages.render import VERTEX_SHADER, TileGeometry, TileView
+from pipeline25d.stages.render import FACE_WIDTH, VERTEX_SHADER, TileGeometry, TileRenderer, TileView
 
 log = logging.getLogger(__name__)
 
-FACE_TEXTURE_WIDTH = 4096      # face ids per row of a mesh's id texture
+FACE_TEXTURE_WIDTH = FACE_WIDTH      # face ids per row of a mesh's id texture
 
 ID_FRAGMENT = """
 #version 330
@@ -146,20 +146,25 @@ class IdRenderer:
     def _draw(self, inputs: list, ibo, faces: np.ndarray) -> list:
         """Draw one mesh (its vertex ``inputs`` and index buffer) with its face ids; returns the
         GL objects this made (to release)."""
-        import moderngl
-
         ctx = self.ctx
-        rows = -(-len(faces) // FACE_TEXTURE_WIDTH)
-        table = np.zeros(rows * FACE_TEXTURE_WIDTH, dtype=np.uint32)
-        table[:len(faces)] = faces
-        texture = ctx.texture((FACE_TEXTURE_WIDTH, rows), 1, table.tobytes(), dtype="u4")
-        texture.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        texture = face_texture(ctx, faces)
         texture.use(0)
         self.prog["u_faces"].value = 0
         inputs = [i for i in inputs if i[2] in self.prog]
         vao = ctx.vertex_array(self.prog, inputs, index_buffer=ibo, index_element_size=4)
         vao.render()
         return [vao, texture]
+
+    def with_colour(self, renderer: TileRenderer, geometry: TileGeometry, view: TileView, face_ids: FaceIds,
+                    shadow=None, casters=None) -> tuple[np.ndarray, np.ndarray]:
+        """The colour tile and its ids from ONE pass: ``renderer`` (made with ``ids=True``) draws the
+        ids as a second render target of its colour pass (the same fragments, so the same pixels as
+        :meth:`render_ids` at the cost of a lookup a fragment). Returns (RGBA, ids), row 0 north."""
+        ids = ColourIds(self, face_ids)
+        try:
+            return renderer.render_color_ids(geometry, view, ids, shadow, casters)
+        finally:
+            ids.release()
 
     def _resolved(self, ids, w: int, h: int, samples: int) -> np.ndarray:
         """The per-pixel majority id of the multisample ``ids`` texture, (h, w) with GL's row 0 first."""
@@ -181,3 +186,43 @@ class IdRenderer:
             for obj in (vao, fbo, out):
                 obj.release()
 
+
+
+def face_texture(ctx, faces: np.ndarray):
+    """A mesh's face ids as an integer texture, FACE_TEXTURE_WIDTH a row (read with texelFetch)."""
+    import moderngl
+
+    rows = max(1, -(-len(faces) // FACE_TEXTURE_WIDTH))
+    table = np.zeros(rows * FACE_TEXTURE_WIDTH, dtype=np.uint32)
+    table[:len(faces)] = faces
+    texture = ctx.texture((FACE_TEXTURE_WIDTH, rows), 1, table.tobytes(), dtype="u4")
+    texture.filter = (moderngl.NEAREST, moderngl.NEAREST)
+    return texture
+
+
+class ColourIds:
+    """The ids render target of a colour pass (:meth:`TileRenderer.render_color_ids`): a uint32
+    texture of the pass's samples, each mesh's face ids bound as it is drawn, resolved by majority."""
+
+    def __init__(self, renderer: IdRenderer, face_ids: FaceIds):
+        self.renderer, self.face_ids = renderer, face_ids
+        self._textures: list = []
+
+    def target(self, size: tuple[int, int], samples: int):
+        return self.renderer.ctx.texture(size, 1, samples=samples, dtype="u4")
+
+    def bind(self, mesh, unit: int) -> None:
+        texture = face_texture(self.renderer.ctx, self.face_ids(mesh.part))
+        self._textures.append(texture)
+        texture.use(unit)
+
+    def resolve(self, target, size: tuple[int, int], samples: int) -> np.ndarray:
+        w, h = size
+        out = self.renderer._resolved(target, w, h, samples) if samples else \
+            np.frombuffer(target.read(), dtype=np.uint32).reshape(h, w)
+        return out[::-1].copy()
+
+    def release(self) -> None:
+        for texture in self._textures:
+            texture.release()
+        self._textures = []

@@ -10,7 +10,11 @@ uniform float u_ambient;
 in vec3 v_pos;
 in vec4 v_color;
 in vec2 v_uv;
-out vec4 f_color;
+layout(location = 0) out vec4 f_color;
+#ifdef IDS
+uniform usampler2D u_faces;       // the object id of every face, FACE_WIDTH a row (render_ids.py)
+layout(location = 1) out uint f_id;
+#endif
 #ifdef SHADOWS
 uniform bool u_sunlit;            // this pass is lit by the sun (the colour pass)
 uniform sampler2D u_shadow_map;   // depth seen from the sun, window depth in [0, 1]
@@ -66,4 +70,7 @@ void main() {
         shade = u_ambient + (1.0 - u_ambient) * max(dot(n, -u_light), 0.0);
     }
     f_color = vec4(base.rgb * shade, 1.0);
+#ifdef IDS
+    f_id = texelFetch(u_faces, ivec2(gl_PrimitiveID % FACE_WIDTH, gl_PrimitiveID / FACE_WIDTH), 0).r;
+#endif
 }
