@@ -1,5 +1,5 @@
 """The render-throughput harness (pipeline25d_lab.harness.gpu_render) on a small block: it renders every
-view, and the colour pass's coverage and the id pass agree pixel for pixel (two GL programs)."""
+view, and the colour coverage and the object ids drawn beside it agree pixel for pixel."""
 
 from __future__ import annotations
 

@@ -3,7 +3,7 @@
 A generated textured city block (a heightfield of box buildings on rolling ground, one JPEG atlas
 with detail at every scale, ``--triangles`` triangles) is uploaded once and rendered as the render
 jobs do: nadir plus eight azimuths at 45°, ``--tiles`` tiles a view of ``--tile`` pixels, colour
-(with readback) and the object-id pass. Prints one JSON line and writes it (and one tile of each
+alone and colour with the object ids as a second render target (both with readback). Prints one JSON line and writes it (and one tile of each
 view as PNG, to compare drivers) to ``--out``. Run it on two machines; compare the tiles with
 ``--compare DIR_A DIR_B``.
 
@@ -83,7 +83,7 @@ def run(args) -> dict:
     made = time.perf_counter() - t0
     ctx = create_context()
     info = renderer_info(ctx)
-    renderer, ids = TileRenderer(ctx), IdRenderer(ctx)
+    renderer, with_ids, ids = TileRenderer(ctx), TileRenderer(ctx, ids=True), IdRenderer(ctx)
     chunks = [(ORIGIN.copy(), [part])]
     plan = views(part, args.tile, args.tiles, args.gsd)
     first = plan[0][1][0]
@@ -92,6 +92,7 @@ def run(args) -> dict:
     renderer.render_color(geometry, first)             # texture upload + shader warm-up
     ctx.finish()
     upload = time.perf_counter() - t0
+    geometry_ids = with_ids.upload(chunks, first)      # the render job's path: ids beside the colours
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     per_view, colour_s, id_s, pixels = [], 0.0, 0.0, 0
@@ -102,8 +103,9 @@ def run(args) -> dict:
         tiles = [renderer.render_color(geometry, v) for v in row]
         tc = time.perf_counter() - t0
         t0 = time.perf_counter()
-        id_tiles = [ids.render_ids(chunks, v, lambda _part: face_ids) for v in row]
+        both = [ids.with_colour(with_ids, geometry_ids, v, lambda _part: face_ids) for v in row]
         ti = time.perf_counter() - t0
+        id_tiles = [i for _, i in both]
         covered = sum(int((t[..., 3] > 0).sum()) for t in tiles)
         agree = sum(int(((t[..., 3] > 0) == (i > 0)).sum()) for t, i in zip(tiles, id_tiles))
         Image.fromarray(tiles[len(tiles) // 2]).save(out / f"{p.id}.png")
@@ -111,13 +113,14 @@ def run(args) -> dict:
         pixels += px
         colour_s += tc
         id_s += ti
-        per_view.append({"view": p.id, "colour_s": round(tc, 4), "ids_s": round(ti, 4),
+        per_view.append({"view": p.id, "colour_s": round(tc, 4), "colour_ids_s": round(ti, 4),
                          "covered": covered, "alpha_id_agree": agree / px})
     geometry.release()
+    geometry_ids.release()
     result = {"renderer": info, "triangles": part.n_triangles, "texture": args.texture, "tile": args.tile,
               "tiles": pixels // (args.tile * args.tile), "scene_s": round(made, 2), "upload_s": round(upload, 3),
-              "colour_s": round(colour_s, 3), "ids_s": round(id_s, 3),
-              "colour_mpx_s": round(pixels / colour_s / 1e6, 2), "ids_mpx_s": round(pixels / id_s / 1e6, 2),
+              "colour_s": round(colour_s, 3), "colour_ids_s": round(id_s, 3),
+              "colour_mpx_s": round(pixels / colour_s / 1e6, 2), "colour_ids_mpx_s": round(pixels / id_s / 1e6, 2),
               "views": per_view}
     (out / "gpu_render.json").write_text(json.dumps(result, indent=1))
     return result
