@@ -70,7 +70,7 @@ def average_tile(data: np.ndarray, rows: np.ndarray, cols: np.ndarray, wx: int, 
     return ((total + f * f // 2) // (f * f)).astype(np.uint8)
 
 
-def _source(path: str):
+def source_dataset(path: str):
     """The tiles' source dataset, opened once per worker process and thread (as gdal2tiles keeps it)."""
     key = (path, os.getpid())
     if getattr(_local, "key", None) != key:
@@ -96,7 +96,7 @@ def create_base_tile(tile_job_info, tile_detail) -> None:
         return
     g = gdal()
     bands, size = tile_job_info.nb_data_bands, tile_job_info.tile_size
-    ds = _source(tile_job_info.src_file)
+    ds = source_dataset(tile_job_info.src_file)
     mem = g.GetDriverByName("MEM")
     tile = mem.Create("", size, size, bands + 1)
     if d.rxsize and d.rysize and d.wxsize and d.wysize:

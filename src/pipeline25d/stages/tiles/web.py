@@ -15,6 +15,10 @@ warped again; the base tiles whose read window meets that reach and every tile a
 deleted and cut again. As every block is always warped on its own window, an update gives
 the same tiles, byte for byte, as a cut from scratch. A state file journals the reach being
 redone, so a killed update is finished by the next one.
+
+An object-id raster (``maps/<id>.ids.tif``) is cut the same way with ``tile_format="ids"``:
+the same blocks and tile positions, each tile the ids of its pixels
+(:mod:`pipeline25d.stages.tiles.ids`).
 """
 
 from __future__ import annotations
@@ -37,6 +41,7 @@ from pipeline25d.core.grid import Extent, Grid, Window
 from pipeline25d.core.journal import read_state, write_state
 from pipeline25d.core.raster import cells_grid_of, gdal, map_cells
 from pipeline25d.stages.maps.parts import box_outline
+from pipeline25d.stages.tiles import ids as id_tiles
 from pipeline25d.stages.tiles.base import close_source, create_base_tile
 
 log = logging.getLogger(__name__)
@@ -53,7 +58,8 @@ def tms(cog: str | Path, zoom: str, out_dir: str | Path, processes: int = 1, til
         quality: int = 85, work_dir: str | Path | None = None) -> dict:
     """The gdal2tiles XYZ pyramid (web mercator) of a map at ``out_dir``, published atomically.
 
-    ``tile_format`` png or webp (lossy at ``quality``, with alpha). ``work_dir`` keeps the
+    ``tile_format`` png or webp (lossy at ``quality``, with alpha), or ids (``cog`` is then an
+    object-id raster: :mod:`pipeline25d.stages.tiles.ids`). ``work_dir`` keeps the
     pyramid, its blocks and its state between runs, so that the next call redoes only what
     changed in the map; without it the pyramid is cut from scratch. Returns the cut's
     figures: web tiles in all, web tiles redone, blocks warped, and whether it was a full cut.
@@ -141,7 +147,7 @@ def update_pyramid(cog: str | Path, zoom: str, work: Path, processes: int = 1, t
     todo = sorted({b for w in reach for b in blocks_meeting(w, grid, max_zoom)})
     jobs = [(b, w) for b, w in ((b, block_window(b, grid, max_zoom)) for b in todo) if w is not None]
     with Workers(processes) as workers:
-        workers.map(partial(_warp_block, str(cog), str(work / "blocks"), grid), jobs)
+        workers.map(partial(_warp_block, str(cog), str(work / "blocks"), grid, tile_format == "ids"), jobs)
         redone = cut(sorted((work / "blocks").glob("*.tif")), work / "tiles", grid, zooms, reach,
                      workers, tile_format, quality)
     write_state(work, {"key": key, "cells": cells, "dirty": []})
@@ -212,13 +218,14 @@ def block_window(block: tuple[int, int], grid: Grid, max_zoom: int) -> Window | 
     return Window(c0, r0, c1, r1) if c1 > c0 and r1 > r0 else None
 
 
-def _warp_block(cog: str, blocks_dir: str, grid: Grid, job: tuple[tuple[int, int], Window]) -> None:
-    """Warp the map onto one block's window of its web-mercator grid (written atomically)."""
+def _warp_block(cog: str, blocks_dir: str, grid: Grid, ids: bool, job: tuple[tuple[int, int], Window]) -> None:
+    """Warp the map (``ids``: its id raster) onto one block's window of its web-mercator grid
+    (written atomically)."""
     block, window = job
     bounds = grid.window_bounds(Window(*window))
     extra = ["-tr", repr(grid.transform.a), repr(-grid.transform.e), "-te", *map(repr, bounds)]
     with atomic_path(Path(blocks_dir) / f"{block[0]}_{block[1]}.tif") as tmp:
-        gdal().Warp(str(tmp), cog, options=_mercator_args(1, extra))
+        gdal().Warp(str(tmp), cog, options=_mercator_args(1, extra, alpha=not ids))
 
 
 def cut(blocks: list[Path], tiles: Path, grid: Grid, zooms: str, windows: list[Window], workers: Workers,
@@ -235,9 +242,14 @@ def cut(blocks: list[Path], tiles: Path, grid: Grid, zooms: str, windows: list[W
     vrt = tiles.parent / "blocks.vrt"
     gdal().BuildVRT(str(vrt), [str(b) for b in blocks], outputBounds=grid.bounds, xRes=grid.transform.a,
                     yRes=-grid.transform.e)
+    ids = tile_format == "ids"
+    layout = vrt
+    if ids:         # gdal2tiles lays out only 8-bit rasters: its tiles' windows from a Byte view of the ids
+        layout = tiles.parent / "blocks.byte.vrt"
+        gdal().Translate(str(layout), str(vrt), format="VRT", outputType=gdal().GDT_Byte)
     _, _, options = g2t.process_args([*_gdal2tiles_args(zooms, workers.processes, tile_format, quality, True),
-                                      str(vrt), str(tiles)])
-    conf, details = g2t.worker_tile_details(str(vrt), str(tiles), options)
+                                      str(layout), str(tiles)])
+    conf, details = g2t.worker_tile_details(str(layout), str(tiles), options)
     try:
         reads = np.array([[d.rx, d.ry, d.rx + d.rxsize, d.ry + d.rysize] for d in details]).reshape(-1, 1, 4)
         win = np.asarray(windows).reshape(1, -1, 4)
@@ -247,9 +259,13 @@ def cut(blocks: list[Path], tiles: Path, grid: Grid, zooms: str, windows: list[W
         reach = {conf.tmaxz: {(d.tx, d.ty) for d in base}}          # xyz positions, as on disk
         for z in range(conf.tmaxz - 1, conf.tminz - 1, -1):
             reach[z] = {(x >> 1, y >> 1) for x, y in reach[z + 1]}
+        ext = id_tiles.EXT if ids else conf.tile_extension
         for z, cells in reach.items():
             for x, y in cells:
-                (tiles / str(z) / str(x) / f"{y}.{conf.tile_extension}").unlink(missing_ok=True)
+                (tiles / str(z) / str(x) / f"{y}.{ext}").unlink(missing_ok=True)
+        if ids:
+            _cut_ids(str(vrt), tiles, base, reach, conf, workers)
+            return sum(id_tiles.tile_path(tiles, z, x, y).is_file() for z, cells in reach.items() for x, y in cells)
         workers.map(partial(create_base_tile, conf), base)
         for base_z in range(conf.tmaxz, conf.tminz, -1):
             groups = [grp for grp in g2t.group_overview_base_tiles(base_z, str(tiles), conf)
@@ -261,8 +277,19 @@ def cut(blocks: list[Path], tiles: Path, grid: Grid, zooms: str, windows: list[W
         close_source()
         shutil.rmtree(os.path.dirname(conf.src_file), ignore_errors=True)
         vrt.unlink(missing_ok=True)
+        layout.unlink(missing_ok=True)
     return sum((tiles / str(z) / str(x) / f"{y}.{conf.tile_extension}").is_file()
                for z, cells in reach.items() for x, y in cells)
+
+
+def _cut_ids(vrt: str, tiles: Path, base: list, reach: dict[int, set], conf, workers: Workers) -> None:
+    """The id tiles of a cut: base tiles of ``base`` (gdal2tiles' tile details) from the VRT, then
+    every tile of ``reach`` above them, zoom by zoom, from its children."""
+    for d in base:                      # gdal2tiles makes the folders of its own tiles
+        (tiles / str(d.tz) / str(d.tx)).mkdir(parents=True, exist_ok=True)
+    workers.map(partial(id_tiles.base_tile, vrt, str(tiles)), base)
+    for z in range(conf.tmaxz - 1, conf.tminz - 1, -1):
+        workers.map(partial(id_tiles.overview_tile, str(tiles)), sorted((z, x, y) for x, y in reach[z]))
 
 
 class Workers:
@@ -310,14 +337,16 @@ class Workers:
             pass
 
 
-def _mercator_args(threads: int, extra: list[str] | None = None) -> list[str]:
-    return ["-q", "-overwrite", "-t_srs", WEB_MERCATOR, "-r", "near", "-et", "0.01", "-dstalpha", "-multi",
+def _mercator_args(threads: int, extra: list[str] | None = None, alpha: bool = True) -> list[str]:
+    """gdalwarp's arguments; ``alpha`` False (an id raster): its nodata 0 kept instead of an alpha band."""
+    return ["-q", "-overwrite", "-t_srs", WEB_MERCATOR, "-r", "near", "-et", "0.01",
+            *(["-dstalpha"] if alpha else ["-srcnodata", "0", "-dstnodata", "0"]), "-multi",
             "-wo", f"NUM_THREADS={threads}", "-co", "TILED=YES", "-co", "COMPRESS=ZSTD", "-co", "ZSTD_LEVEL=1",
             *(extra or [])]
 
 
 def _gdal2tiles_args(zoom: str, processes: int, tile_format: str, quality: int, exclude_empty: bool) -> list[str]:
-    args = ["-q", "--xyz", "-w", "none", "-r", "average", f"--processes={processes}",
+    args = ["-q", "--xyz", "-w", "none", "-r", "near" if tile_format == "ids" else "average", f"--processes={processes}",
             *(["--exclude"] if exclude_empty else [])]
     if tile_format == "webp":
         args += ["--tiledriver=WEBP", f"--webp-quality={int(quality)}"]
