@@ -24,6 +24,7 @@ include: "workflow/rules/tms.smk"
 include: "workflow/rules/heights.smk"
 include: "workflow/rules/report.smk"
 include: "workflow/rules/wms.smk"
+include: "workflow/rules/ids.smk"
 
 
 rule all:

@@ -124,6 +124,19 @@ def pmtiles_job(job: Job) -> None:
     write_pmtiles(job.input.tiles, job.output[0], name=job.wildcards.pid)
 
 
+def objects_job(job: Job) -> None:
+    from pathlib import Path
+
+    from pipeline25d.analysis.height_sources import cityjson_inputs
+    from pipeline25d.core.crs import horizontal_wkt
+    from pipeline25d.publish.objects import scene_objects, write_objects
+
+    config = dict(job.params.config)
+    cityjson = {d: config["inputs"][d]["path"] for d in cityjson_inputs(config)}
+    rows = scene_objects(Path(job.input.chunks[0]).parents[1], list(job.params.districts), cityjson, job.input.heights)
+    write_objects(rows, Path(job.output.gpkg).parent, horizontal_wkt(config["crs"]))
+
+
 def heights_job(job: Job) -> None:
     from pipeline25d.analysis.height_sources import run_stage as measure_heights
 
@@ -143,21 +156,23 @@ def viewer_job(job: Job) -> None:
     from pipeline25d.publish.viewer import write_viewer
 
     write_viewer(job.input.report, job.output[0], archives=job.input.pmtiles, overlays=job.params.viewer["overlays"],
-                 basemap=job.params.viewer.get("basemap"))
+                 basemap=job.params.viewer.get("basemap"),
+                 ids=job.params.results if job.input.ids else None)
 
 
 def wms_job(job: Job) -> None:
     from pipeline25d.publish.wms import write_mapfile
 
-    write_mapfile(job.params.scene, list(job.input.maps), job.output.mapfile)
+    objects = [f for f in job.input.ids if str(f).endswith(".csv")]
+    write_mapfile(job.params.scene, list(job.input.maps), job.output.mapfile, objects=_first(objects))
 
 
 #: rule name -> its function, in the order data moves through the workflow
 RULES: dict[str, Callable[[Job], None]] = {
     "ingest": ingest_job, "lod": lod_job, "terrain": terrain_job, "scene": scene_job, "plan": plan_job,
     "render_block": render_block_job, "gcps": gcps_job, "mosaic": mosaic_job, "mosaic_ids": mosaic_job,
-    "warp": warp_job, "id_map": id_map_job, "tms": tms_job,
-    "pmtiles": pmtiles_job, "heights": heights_job, "report": report_job, "viewer": viewer_job, "wms": wms_job,
+    "warp": warp_job, "id_map": id_map_job, "tms": tms_job, "pmtiles": pmtiles_job, "id_tiles": tms_job,
+    "objects": objects_job, "heights": heights_job, "report": report_job, "viewer": viewer_job, "wms": wms_job,
 }
 
 

@@ -34,10 +34,12 @@ rule viewer:
         tms=expand(f"{RESULTS}/tms/{{pid}}", pid=PERSPECTIVE_IDS),
         pmtiles=PMTILES,
         overlays=[o["path"] for o in config["viewer"]["overlays"]],
+        ids=lambda wc: id_layer_inputs("tiles"),
     output:
         f"{RESULTS}/viewer/index.html",
     params:
         viewer=config["viewer"],
+        results=RESULTS,
     log:
         f"{RESULTS}/logs/viewer.log",
     script:

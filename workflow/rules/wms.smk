@@ -5,6 +5,7 @@
 rule wms:
     input:
         maps=expand(rules.warp.output.cog, pid=PERSPECTIVE_IDS),
+        ids=lambda wc: id_layer_inputs("maps"),
     output:
         mapfile=f"{RESULTS}/wms/{config['scene']}.map",
     params:

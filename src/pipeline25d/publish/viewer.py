@@ -8,7 +8,10 @@ elevation and gsd (for measuring heights), the runs of tiles its pyramid holds (
 browser never asks for a tile that was not written: empty tiles are not cut) and, where the
 pyramid was also written as one PMTiles archive, that archive's path; per scene, a quadratic
 from web-mercator metres to the scene CRS (measurements are made there), the overlays (converted
-beside the page by :mod:`pipeline25d.publish.overlays`) and the basemap, if any.
+beside the page by :mod:`pipeline25d.publish.overlays`) and the basemap, if any. With the id
+layer (``ids``: the folder holding ``idtiles/<id>/`` and ``objects/shards/``, the results folder in a
+run), each perspective also gets its id tiles' folder and runs, from which identify.js tells the
+object under the pointer, its row read from the objects' shards.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from pipeline25d.core.atomic import write_text
 from pipeline25d.core.errors import Pipeline25dError
 from pipeline25d.publish.overlays import write_overlays
 from pipeline25d.publish.report import warp_label
+from pipeline25d.stages.tiles import ids as id_tiles
 
 TEMPLATE = Path(__file__).with_name("viewer") / "index.html.in"
 
@@ -78,6 +82,15 @@ def tile_runs(tms_dir: Path, ext: str) -> dict[str, dict[str, list[list[int]]]]:
     return runs
 
 
+def id_entry(id_dir: Path, rel) -> dict | None:
+    """A perspective's id pyramid for the page: its folder (``rel``: as the page reaches it), tile runs
+    and finest zoom (None: no id tiles)."""
+    if not id_dir.is_dir() or not any(id_dir.rglob(f"*.{id_tiles.EXT}")):
+        return None
+    return {"url": rel(id_dir), "tiles": tile_runs(id_dir, id_tiles.EXT), "max_zoom": zoom_range(id_dir)[1],
+            "ext": id_tiles.EXT}
+
+
 def mercator_to_scene(crs: str, lonlat_bounds: list[float], n: int = 7) -> dict:
     """Quadratic least-squares fit of scene CRS (x, y) over web-mercator metres (X, Y) on an n × n grid
     over [west, south, east, north]: x = Σ coef·[1, u, v, u², uv, v²] with u, v = ((X, Y) − origin) / scale.
@@ -99,14 +112,21 @@ def mercator_to_scene(crs: str, lonlat_bounds: list[float], n: int = 7) -> dict:
 
 
 def write_viewer(report_json: str | Path, out_html: str | Path, archives: list[str | Path] | None = None,
-                 overlays: list[dict] | None = None, basemap: dict | None = None) -> None:
+                 overlays: list[dict] | None = None, basemap: dict | None = None,
+                 ids: str | Path | None = None) -> None:
     """Write the viewer page ``out_html`` with its scripts beside it. ``archives``: PMTiles archives
     named ``<id>.pmtiles``, one per perspective; the page then reads those instead of the XYZ folders.
     ``overlays`` (config ``viewer.overlays``): vector layers copied beside the page as GeoJSON and drawn
-    on every perspective; ``basemap`` (config ``viewer.basemap``): an XYZ layer under the maps."""
+    on every perspective; ``basemap`` (config ``viewer.basemap``): an XYZ layer under the maps; ``ids``:
+    the folder of the id layer (``idtiles/<id>/``, ``objects/shards/``): hovering and clicking then
+    identify objects."""
     report = json.loads(Path(report_json).read_text())
     results = Path(report_json).resolve().parents[1]
     out_html = Path(out_html)
+
+    def rel(path: Path) -> str:
+        return Path(os.path.relpath(path.resolve(), out_html.parent.resolve())).as_posix()
+
     archive = {Path(a).stem: Path(os.path.relpath(Path(a).resolve(), out_html.parent.resolve())).as_posix()
                for a in archives or []}
     if archive and set(archive) != {p["id"] for p in report["perspectives"]}:
@@ -120,7 +140,8 @@ def write_viewer(report_json: str | Path, out_html: str | Path, archives: list[s
         entries.append({"id": p["id"], "azimuth": p["azimuth"], "elevation": p["elevation"], "gsd": report["gsd"],
                         "rmsd_m": p["rmsd_m"], "rmsd_px": p["rmsd_px"], "warp": warp,
                         "lonlat_bounds": p["lonlat_bounds"], "min_zoom": zmin, "max_zoom": zmax,
-                        "ext": ext, "tiles": tile_runs(tms_dir, ext), "pmtiles": archive.get(p["id"])})
+                        "ext": ext, "tiles": tile_runs(tms_dir, ext), "pmtiles": archive.get(p["id"]),
+                        "ids": id_entry(Path(ids) / "idtiles" / p["id"], rel) if ids else None})
     bounds = np.array([p["lonlat_bounds"] for p in entries])
     to_scene = mercator_to_scene(report["crs"], [*bounds[:, :2].min(axis=0), *bounds[:, 2:].max(axis=0)])
     for package, names in NODE_FILES.items():
@@ -131,10 +152,11 @@ def write_viewer(report_json: str | Path, out_html: str | Path, archives: list[s
                 shutil.copytree(src / name, dest / name, dirs_exist_ok=True)
             else:
                 shutil.copyfile(src / name, dest / name)
-    for name in ("viewer.js", "overlays.js", "viewer.css"):
+    for name in ("viewer.js", "overlays.js", "identify.js", "viewer.css"):
         shutil.copyfile(TEMPLATE.with_name(name), out_html.parent / name)
     html = (TEMPLATE.read_text().replace("@SCENE@", report["scene"]).replace("@PERSPECTIVES@", json.dumps(entries))
             .replace("@TO_SCENE@", json.dumps(to_scene))
             .replace("@OVERLAYS@", json.dumps(write_overlays(overlays or [], out_html.parent / "overlays")))
-            .replace("@BASEMAP@", json.dumps(basemap)))
+            .replace("@BASEMAP@", json.dumps(basemap))
+            .replace("@OBJECTS@", json.dumps(rel(Path(ids) / "objects" / "shards") if ids else None)))
     write_text(out_html, html)

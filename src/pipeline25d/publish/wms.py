@@ -7,6 +7,10 @@ results folder can be moved. The syntax is MapServer 8's (Debian 12: ``cgi-mapse
 
 :func:`serve` runs Debian's ``mapserv`` as a CGI program behind a local HTTP server, for a
 look at the service without Apache: ``python -m pipeline25d.publish.wms serve <mapfile>``.
+
+With the id layer, each map also has a layer ``<pid>_ids`` that only GetFeatureInfo uses: asked at
+a pixel (``INFO_FORMAT=text/html``) it answers the object there, its id, name, heights and
+attributes; text/plain and GML answer its row number in the objects table (``value_0``).
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ from pipeline25d.core.errors import InputFileError, MapServiceError
 from pipeline25d.core.grid import Grid
 from pipeline25d.core.raster import dataset_bounds, gdal
 from pipeline25d.geometry.perspectives import ID_PATTERN, Perspective
+from pipeline25d.publish.wms_ids import id_layer, id_path, row_raster, table_ids, write_join_table
 from pipeline25d.publish.serve import serve_until_interrupted
 
 log = logging.getLogger(__name__)
@@ -106,8 +111,9 @@ def _extent(ext: Sequence[float]) -> str:
     return " ".join(repr(float(v)) for v in ext)
 
 
-def mapfile_text(scene: str, layers: Sequence[MapLayer], folder: Path) -> str:
-    """The mapfile of ``layers`` (one CRS) with data paths relative to ``folder``, the mapfile's own."""
+def mapfile_text(scene: str, layers: Sequence[MapLayer], folder: Path, objects: Path | None = None) -> str:
+    """The mapfile of ``layers`` (one CRS) with data paths relative to ``folder``, the mapfile's own;
+    with ``objects`` (the objects table as CSV), each map's id raster beside it as a queryable layer too."""
     srs = layers[0].srs
     union = (min(lr.extent[0] for lr in layers), min(lr.extent[1] for lr in layers),
              max(lr.extent[2] for lr in layers), max(lr.extent[3] for lr in layers))
@@ -138,6 +144,7 @@ def mapfile_text(scene: str, layers: Sequence[MapLayer], folder: Path) -> str:
         '      "wms_enable_request" "*"',
         '      "wms_getmap_formatlist" "image/png"',
         '      "wms_bbox_extended" "true"',
+        *(['      "wms_feature_info_mime_type" "text/html"'] if objects is not None else []),
         "    END",
         "  END",
     ]
@@ -155,11 +162,15 @@ def mapfile_text(scene: str, layers: Sequence[MapLayer], folder: Path) -> str:
             "    END",
             "  END",
         ]
+        if objects is not None:
+            out += id_layer(lr.pid, _extent(lr.extent), epsg)
     return "\n".join([*out, "END", ""])
 
 
-def write_mapfile(scene: str, maps: Sequence[str | Path], mapfile: str | Path) -> list[MapLayer]:
-    """Write the mapfile publishing ``maps`` (COGs named ``<pid>.tif``, one CRS) atomically.
+def write_mapfile(scene: str, maps: Sequence[str | Path], mapfile: str | Path, objects: str | Path | None = None
+                  ) -> list[MapLayer]:
+    """Write the mapfile publishing ``maps`` (COGs named ``<pid>.tif``, one CRS) atomically; with
+    ``objects`` (the objects table's CSV), also each map's id raster (:func:`id_layer`).
 
     Raises :class:`InputFileError` naming the map that cannot be served (see :func:`read_layer`)
     or whose CRS differs from the first map's, and :class:`MapServiceError` for no maps or a
@@ -176,7 +187,15 @@ def write_mapfile(scene: str, maps: Sequence[str | Path], mapfile: str | Path) -
         seen[lr.pid] = lr.path
         if lr.srs != layers[0].srs:
             raise InputFileError(lr.path, f"CRS {lr.srs} differs from {layers[0].srs} of {layers[0].path}")
-    write_text(mapfile, mapfile_text(scene, layers, mapfile.resolve().parent))
+    if objects is not None:
+        rows = table_ids(Path(objects))
+        for lr in layers:
+            if not id_path(lr.path).is_file():
+                raise InputFileError(id_path(lr.path), f"no id raster beside the map {lr.path}")
+            row_raster(id_path(lr.path), rows, mapfile.parent / f"{lr.pid}.rows.tif")
+        write_join_table(Path(objects), mapfile.parent)
+    write_text(mapfile, mapfile_text(scene, layers, mapfile.resolve().parent,
+                                     None if objects is None else Path(objects).resolve()))
     log.info("%s: %d WMS layers in %s", mapfile, len(layers), layers[0].srs)
     return layers
 

@@ -135,7 +135,7 @@ def tms_rows(cog: Path, work: Path, map_mpx: float, repeat: int, tile_format: st
         shutil.rmtree(blocks, ignore_errors=True)
         blocks.mkdir(parents=True)
         for job in jobs:
-            web._warp_block(str(cog), str(blocks), grid, job)
+            web._warp_block(str(cog), str(blocks), grid, False, job)
 
     warp_s = median_time(warp_blocks, repeat)
     block_mpx = sum(w.width * w.height for _, w in jobs) / 1e6

@@ -1,0 +1,73 @@
+"""WMS GetFeatureInfo through MapServer (pipeline25d.publish.wms_ids): a map and its id raster of known
+rectangles published with their objects table; a query at each rectangle answers its id, name, heights
+and attributes (a comma in one included), a query on the transparent corner answers no object, and the
+GetMap of the map layer is untouched by the id layer."""
+
+from __future__ import annotations
+
+import html
+import re
+import shutil
+
+import pytest
+from test_id_tiles import GRID, RECTS, scene
+from test_wms import mapserv, request, start  # noqa: F401 (a fixture)
+
+from pipeline25d.core.crs import horizontal_wkt
+from pipeline25d.publish.objects import SceneObject, write_objects
+from pipeline25d.publish.wms import write_mapfile
+
+NAMES = {RECTS[0][4]: "ground", RECTS[1][4]: "hall", RECTS[2][4]: "tower", RECTS[3][4]: "shed"}
+
+
+@pytest.fixture(scope="module")
+def id_wms(tmp_path_factory, mapserv):  # noqa: F811 (the fixture)
+    where = tmp_path_factory.mktemp("idwms") / "results"
+    (where / "maps").mkdir(parents=True)
+    cog, ids_tif, _ = scene(where / "maps")
+    shutil.move(cog, where / "maps" / "az045_el45.tif")
+    shutil.move(ids_tif, where / "maps" / "az045_el45.ids.tif")
+    rows = [SceneObject(oid, f"d{oid >> 22}", name, "Building", 10.0 + k, 9.5 + k,
+                        {"use": "office, shop" if name == "hall" else "none", "floors": k})
+            for k, (oid, name) in enumerate(sorted(NAMES.items()))]
+    write_objects(rows, where / "objects", horizontal_wkt("EPSG:25832"))
+    write_mapfile("ids", [where / "maps" / "az045_el45.tif"], where / "wms" / "ids.map",
+                  objects=where / "objects" / "objects.csv")
+    server = start(where / "wms" / "ids.map", mapserv)
+    yield server, {oid: (k, name) for k, (oid, name) in enumerate(sorted(NAMES.items()))}
+    server.shutdown()
+    server.server_close()
+
+
+def feature_info(server, col: float, row: float) -> list[str]:
+    """The cells of the HTML GetFeatureInfo answer at pixel (col, row) of the id raster, asked a little off
+    its centre (MapServer takes a point on a pixel's edge to hold no pixel, and a WMS client's I, J for the
+    corner or the centre of its pixel)."""
+    x, y = (float(v) + 0.1 for v in GRID.xy(col + 0.5, row + 0.5))
+    kind, body = request(server, REQUEST="GetFeatureInfo", LAYERS="az045_el45_ids", QUERY_LAYERS="az045_el45_ids",
+                         STYLES="", CRS="EPSG:25832", BBOX=f"{x - 5.5},{y - 5.5},{x + 5.5},{y + 5.5}", WIDTH=11, HEIGHT=11,
+                         I=5, J=5, INFO_FORMAT="text/html", FORMAT="image/png")
+    assert kind.startswith("text/html"), body
+    return [html.unescape(c) for c in re.findall(r"<td>(.*?)</td>", body.decode())]
+
+
+def test_getfeatureinfo_at_each_object_answers_its_id_name_heights_and_attributes(id_wms):
+    server, table = id_wms
+    for r0, c0, r1, c1, oid in RECTS[1:]:
+        cells = feature_info(server, (c0 + c1) // 2, (r0 + r1) // 2)
+        k, name = table[oid]
+        assert cells[:4] == [str(oid), f"d{oid >> 22}", name, "Building"], cells
+        assert float(cells[4]) == 10.0 + k and float(cells[5]) == 9.5 + k
+        assert f'"floors": {k}' in cells[6]
+        if name == "hall":                       # MapServer's CSV join splits at commas: shown as ;
+            assert '"use": "office; shop"' in cells[6]
+    # the ground between the buildings is the ground object; the transparent corner is nothing
+    assert feature_info(server, 50, 300)[:3] == [str(RECTS[0][4]), f"d{RECTS[0][4] >> 22}", "ground"]
+    assert feature_info(server, 5, 5) == []
+
+
+def test_the_map_layer_is_still_drawn_and_the_id_layer_is_listed(id_wms):
+    server, _ = id_wms
+    kind, body = request(server, REQUEST="GetCapabilities")
+    assert b"<Name>az045_el45</Name>" in body and b"<Name>az045_el45_ids</Name>" in body
+    assert b"text/html" in body
