@@ -93,6 +93,14 @@ def test_id_tiles_hold_the_id_under_every_pixel_centre_and_lie_where_the_map_til
         {0} | {r[4] for r in RECTS}
 
 
+def test_a_tile_of_any_number_of_ids_decodes_to_itself():
+    rng = np.random.default_rng(0)
+    for n in (1, 2, 256, 257, 65536):                  # uint8 indices up to 256 ids, uint16 beyond
+        tile = np.resize(rng.choice(2**32, n, replace=False).astype(np.uint32), (256, 256))
+        rng.shuffle(tile.reshape(-1))
+        assert np.array_equal(id_tiles.decode(id_tiles.encode(tile)), tile), n
+
+
 def test_mode_keeps_the_majority_and_breaks_ties_at_the_bottom_right():
     quad = np.array([[1, 1, 5, 6], [1, 2, 7, 8], [3, 4, 9, 9], [3, 4, 0, 0]], np.uint32)
     assert id_tiles.mode2x2(quad).tolist() == [[1, 8], [4, 0]]

@@ -1,7 +1,7 @@
 // Identify: which object a pixel of the shown map is (loaded after viewer.js, whose map, byId, current,
 // hasTile and tool it uses). Each perspective with an id layer (p.ids) has, beside its map tiles, id tiles
-// at the same XYZ positions (p.ids.url/{z}/{x}/{y}.bin, results/idtiles/<id>/ in a run: zlib of 256 × 256
-// little-endian uint32 ids,
+// at the same XYZ positions (p.ids.url/{z}/{x}/{y}.bin, results/idtiles/<id>/ in a run: zlib of the tile's
+// n distinct uint32 ids and each of its 256 × 256 pixels' index into them, little-endian,
 // pipeline25d.stages.tiles.ids; 0 where the map is transparent), decoded here by DecompressionStream.
 // The pointer's position is taken to the pixel of the finest id tile under it through the map's own
 // projection, so it works the same on the map turned by leaflet-rotate. Hover highlights the object (its
@@ -23,9 +23,23 @@ const identify = (() => {
       tiles.set(url, fetch(url).then(r => {
         if (!r.ok) throw new Error(`${url}: HTTP ${r.status}`);
         return new Response(r.body.pipeThrough(new DecompressionStream('deflate'))).arrayBuffer();
-      }).then(buf => new Uint32Array(buf)));     // little-endian, as every browser's platform is
+      }).then(decode));
     }
     return tiles.get(url);
+  }
+
+  // A tile's ids (Uint32Array, 256 × 256) from its inflated bytes: n, n ids, n ≤ 256 ? uint8 : uint16 indices.
+  function decode(buf) {
+    const view = new DataView(buf), n = view.getUint32(0, true), ids = new Uint32Array(TILE * TILE);
+    const palette = Array.from({length: n}, (_, k) => view.getUint32(4 + 4 * k, true));
+    const at = 4 + 4 * n;
+    if (n <= 256) {
+      const index = new Uint8Array(buf, at, TILE * TILE);
+      for (let k = 0; k < ids.length; k++) ids[k] = palette[index[k]];
+    } else {
+      for (let k = 0; k < ids.length; k++) ids[k] = palette[view.getUint16(at + 2 * k, true)];
+    }
+    return ids;
   }
 
   // {p, z, x, y, i, j}: the finest id tile and its pixel under latlng.
@@ -151,5 +165,5 @@ const identify = (() => {
       highlight.clearLayers();
     }
   });
-  return {idAt};
+  return {idAt, decode};
 })();

