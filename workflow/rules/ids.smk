@@ -29,6 +29,7 @@ rule objects:
     input:
         chunks=expand(f"{RESULTS}/chunks/{{district}}/index.json", district=DISTRICTS),
         heights=rules.heights.output.csv,
+        sources=[config["inputs"][d]["path"] for d in DISTRICTS],      # their attributes
     output:
         gpkg=f"{RESULTS}/objects/objects.gpkg",
         csv=f"{RESULTS}/objects/objects.csv",
