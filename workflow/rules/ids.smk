@@ -2,7 +2,7 @@
 # cut into the same XYZ tiles as its map (pipeline25d.stages.tiles.ids, updated where the ids changed),
 # and one table of the scene's objects (pipeline25d.publish.objects): objects/objects.gpkg, objects.csv
 # (MapServer's GetFeatureInfo join) and the viewer's JSON shards. The viewer and the WMS take them
-# wherever a rule writes the id rasters (ID_LAYER).
+# where the id maps are made (objects.enabled: ID_LAYER).
 
 ID_MAP = f"{RESULTS}/maps/{{pid}}.ids.tif"
 
@@ -43,8 +43,8 @@ rule objects:
         "../scripts/job.py"
 
 
-# the id layer exists where some rule writes the id rasters (the renderer's id pass)
-ID_LAYER = any(str(o) == ID_MAP for r in workflow.rules for o in r.output if r.name != "id_tiles")
+# the id layer exists where the id maps are made (objects.enabled)
+ID_LAYER = OBJECTS
 
 
 def id_layer_inputs(kind):
