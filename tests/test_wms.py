@@ -322,7 +322,8 @@ def test_maps_that_cannot_be_served_are_named_with_the_problem(tmp_path):
 @pytest.mark.slow
 def test_the_workflow_maps_are_served_as_they_are(tmp_path, mapserv):
     """A small demo city through the workflow up to its wms rule; each whole map served in its
-    own CRS equals the COG (rendered maps have antialiased, partly transparent edges)."""
+    own CRS equals the COG (rendered maps have antialiased, partly transparent edges); each map's id
+    layer is listed beside it."""
     from pipeline25d_lab.harness.bench import run_workflow
     from pipeline25d_lab.harness.killtest import demo_config
 
@@ -336,7 +337,8 @@ def test_the_workflow_maps_are_served_as_they_are(tmp_path, mapserv):
     server = start(Path(moved) / "wms" / "wmsdemo.map", mapserv)
     try:
         root = ET.fromstring(request(server, REQUEST="GetCapabilities")[1]).find(f"{WMS}Capability/{WMS}Layer")
-        assert {e.findtext(f"{WMS}Name") for e in root.findall(f"{WMS}Layer")} == {"az045_el45", "az000_el90"}
+        assert {e.findtext(f"{WMS}Name") for e in root.findall(f"{WMS}Layer")} == \
+            {"az045_el45", "az000_el90", "az045_el45_ids", "az000_el90_ids"}     # objects.enabled: the id layers
         partial = transparent = 0
         for pid in ("az045_el45", "az000_el90"):
             cog = Path(moved) / "maps" / f"{pid}.tif"

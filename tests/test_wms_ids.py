@@ -1,7 +1,8 @@
 """WMS GetFeatureInfo through MapServer (pipeline25d.publish.wms_ids): a map and its id raster of known
 rectangles published with their objects table; a query at each rectangle answers its id, name, heights
-and attributes (a comma in one included), a query on the transparent corner answers no object, and the
-GetMap of the map layer is untouched by the id layer."""
+and attributes (a comma in one included), a query on the transparent corner answers no object, and both
+layers are listed. Then the small demo run's own mapfile: a query at each flat roof, where each map
+shows it, answers the id of that roof's OBJ group (chunks/<district>/objects.json)."""
 
 from __future__ import annotations
 
@@ -44,7 +45,12 @@ def feature_info(server, col: float, row: float) -> list[str]:
     its centre (MapServer takes a point on a pixel's edge to hold no pixel, and a WMS client's I, J for the
     corner or the centre of its pixel)."""
     x, y = (float(v) + 0.1 for v in GRID.xy(col + 0.5, row + 0.5))
-    kind, body = request(server, REQUEST="GetFeatureInfo", LAYERS="az045_el45_ids", QUERY_LAYERS="az045_el45_ids",
+    return feature_info_at(server, "az045_el45", x, y)
+
+
+def feature_info_at(server, pid: str, x: float, y: float) -> list[str]:
+    """The cells of the HTML GetFeatureInfo answer of layer ``<pid>_ids`` at scene point (x, y)."""
+    kind, body = request(server, REQUEST="GetFeatureInfo", LAYERS=f"{pid}_ids", QUERY_LAYERS=f"{pid}_ids",
                          STYLES="", CRS="EPSG:25832", BBOX=f"{x - 5.5},{y - 5.5},{x + 5.5},{y + 5.5}", WIDTH=11, HEIGHT=11,
                          I=5, J=5, INFO_FORMAT="text/html", FORMAT="image/png")
     assert kind.startswith("text/html"), body
@@ -71,3 +77,36 @@ def test_the_map_layer_is_still_drawn_and_the_id_layer_is_listed(id_wms):
     kind, body = request(server, REQUEST="GetCapabilities")
     assert b"<Name>az045_el45</Name>" in body and b"<Name>az045_el45_ids</Name>" in body
     assert b"text/html" in body
+
+
+def test_the_workflow_wms_answers_each_flat_roof_with_its_roof_group(small_run, mapserv):  # noqa: F811
+    """Where each map shows a flat roof's centre (its eave height above the DTM, along the view), the run's
+    own mapfile answers the id and name of the roof's OBJ group: on the nadir map every roof, on the obliques
+    all but roofs hidden behind taller buildings."""
+    import json
+
+    import numpy as np
+
+    from pipeline25d.core.raster import DTM
+    from pipeline25d.geometry.camera import project_above_ground
+    from pipeline25d.geometry.perspectives import Perspective
+
+    workdir, results = small_run
+    truth = json.loads((workdir / "resources" / "demo" / "truth.json").read_text())["buildings"]
+    flat = [b for b in truth if b["roof"] == "flat"]
+    objects = {b["district"]: json.loads((results / "chunks" / b["district"] / "objects.json").read_text()) for b in flat}
+    centres = np.array([[*np.mean(b["footprint"], axis=0), b["eave_z"]] for b in flat])
+    ground = DTM(str(results / "terrain" / "dtm.tif"), "EPSG:25832", continuous=True).sample(centres[:, 0], centres[:, 1])
+    server = start(results / "wms" / "small.map", mapserv)
+    try:
+        shares = {}
+        for pid in ("az000_el90", "az045_el45", "az200_el30"):
+            xy = project_above_ground(centres, ground, Perspective.from_id(pid))[:, :2]
+            got = [feature_info_at(server, pid, float(x) + 0.1, float(y) + 0.1)[:3] for x, y in xy]
+            want = [[str(objects[b["district"]][b["roof_material"]]), b["district"], b["roof_material"]] for b in flat]
+            shares[pid] = float(np.mean([g == w for g, w in zip(got, want)]))
+    finally:
+        server.shutdown()
+        server.server_close()
+    print(shares)
+    assert shares["az000_el90"] == 1.0 and min(shares.values()) >= 0.9, shares
