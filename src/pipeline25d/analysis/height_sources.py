@@ -25,6 +25,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -312,7 +313,8 @@ def run_stage(config: dict, maps: dict[str, str], scene_json: str | Path, dsm_pa
     gsd = float(config["gsd"])
     s = MatchSettings(max_height=float(h.get("max_height", MatchSettings.max_height)))
     t0 = time.perf_counter()
-    rows = measure_parallel(maps, fps, settings=s, workers=workers) if fps else []
+    rows = (measure_parallel(maps, fps, settings=s, workers=workers,
+                             ground=partial(ground_sampler, scene, config["crs"])) if fps else [])
     seconds = time.perf_counter() - t0
     views = sorted({k for r in rows for k in r.heights})
     refs, ref_source, ref_kind = reference_heights(p, config, fps, model, ground, dsm_path, gsd)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import replace
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +13,8 @@ import numpy as np
 from pipeline25d.analysis.evaluate.rasters import _open
 from pipeline25d.analysis.heights.matcher import MatchResult, _Matcher
 from pipeline25d.analysis.heights.results import NADIR_ID, HeightRow, MatchSettings, ViewMeasurement
-from pipeline25d.analysis.heights.silhouette import Lines, roof_heights, silhouette_lines
+from pipeline25d.analysis.ground_under import Sampler, dtm_under
+from pipeline25d.analysis.heights.silhouette import Lines, levelled, roof_heights, silhouette_lines
 from pipeline25d.analysis.heights.template import _PAD, Template, _prepare_view, build_template
 from pipeline25d.core.errors import InputFileError
 from pipeline25d.core.grid import Extent, Grid
@@ -25,12 +27,13 @@ log = logging.getLogger(__name__)
 
 
 def measure_parallel(map_paths: dict[str, str | Path], footprints: list[Footprint], settings: MatchSettings | None = None,
-                     workers: int = 1, block: int = 64) -> list[HeightRow]:
+                     workers: int = 1, block: int = 64, ground: Callable[[], Sampler] | None = None) -> list[HeightRow]:
     """:func:`measure_heights` over blocks of ``block`` footprints (in west-to-east order, so a
     block's maps are read from nearby windows) on ``workers`` processes; the same rows, in input
-    order. Every footprint is measured alone, so the cost is footprints × views ÷ workers."""
+    order. Every footprint is measured alone, so the cost is footprints × views ÷ workers.
+    ``ground``: as for :func:`measure_heights` (a picklable factory, called in each process)."""
     if workers <= 1 or len(footprints) <= block:
-        return measure_heights(map_paths, footprints, settings=settings)
+        return measure_heights(map_paths, footprints, settings=settings, ground=ground)
     from concurrent.futures import ProcessPoolExecutor
 
     order = sorted(range(len(footprints)), key=lambda i: footprints[i].bounds[0])
@@ -38,7 +41,7 @@ def measure_parallel(map_paths: dict[str, str | Path], footprints: list[Footprin
     rows: list[HeightRow | None] = [None] * len(footprints)
     with ProcessPoolExecutor(max_workers=workers) as pool:
         futures = [pool.submit(measure_heights, map_paths, [footprints[i] for i in b], NADIR_ID, settings,
-                               footprints) for b in blocks]
+                               footprints, ground) for b in blocks]
         for b, f in zip(blocks, futures):
             for i, row in zip(b, f.result()):
                 rows[i] = row
@@ -47,7 +50,8 @@ def measure_parallel(map_paths: dict[str, str | Path], footprints: list[Footprin
 
 def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint], nadir_id: str = NADIR_ID,
                     settings: MatchSettings | None = None,
-                    context: list[Footprint] | None = None) -> list[HeightRow]:
+                    context: list[Footprint] | None = None,
+                    ground: Callable[[], Sampler] | None = None) -> list[HeightRow]:
     """Height of every footprint in every oblique map of ``map_paths`` ({perspective id: GeoTIFF}).
 
     The maps must share the nadir map's CRS (CRSError naming them otherwise); footprints are
@@ -55,7 +59,10 @@ def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint
     of its rivals lies within ``agree_m`` of the height they give (the accepted views' median,
     or else the one height that rivals of two or more views share); such a view is marked
     ``resolved``. ``context``: every footprint of the scene, for the silhouette's neighbours
-    (default ``footprints``). Returns one row per footprint, in input order.
+    (default ``footprints``). ``ground``: makes the sampler of the ground the maps were drawn
+    over (the scene's DTM); with it the silhouette's lines are levelled exactly
+    (:func:`.silhouette.levelled`), without it a plane through them estimates the slope.
+    Returns one row per footprint, in input order.
     """
     s = settings or MatchSettings()
     if nadir_id not in map_paths:
@@ -68,6 +75,7 @@ def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint
     views = [_prepare_view(pid, path, nad, nad_path) for pid, path in sorted(map_paths.items())
              if pid != nadir_id and Perspective.from_id(pid).elevation != 90]
     step_m = grid.res
+    sample = ground() if ground is not None else None
     pad = s.ring_px + 4
     rows_out: list[HeightRow] = []
     context = footprints if context is None else context
@@ -116,7 +124,11 @@ def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint
             lines = {p: silhouette_lines(fp, grid, win, horizontal_direction(Perspective.from_id(p)), v.d_px, v.cot,
                                          u_max, obl, off, nad_sw, nad_off, s, _neighbours(fp, context, bounds))
                      for p, (v, u_max, obl, off, nad_sw, nad_off) in pending.items()}
-            _by_silhouette(fp, results, lines, cot, 2 * s.agree_m)
+            if sample is not None:
+                base = dtm_under(fp, sample, step_m)
+                lines = {p: levelled(fp, v, sample, base) if isinstance(v, Lines) and np.isfinite(base) else v
+                         for p, v in lines.items()}
+            _by_silhouette(fp, results, lines, cot, 2 * s.agree_m, slope=sample is None)
         measurements = {}
         for pid, r in results.items():
             reason = r.reason
@@ -139,7 +151,7 @@ def _neighbours(fp: Footprint, footprints: list[Footprint], bounds: np.ndarray, 
 
 
 def _by_silhouette(fp: Footprint, results: dict[str, MatchResult], lines: dict[str, "Lines | str"],
-                   cot: dict[str, float], outlier_m: float) -> None:
+                   cot: dict[str, float], outlier_m: float, slope: bool = True) -> None:
     """Where the colours give no height (or one below ``min_colour_m``: a roof matched on its own
     wall of the same tint), the silhouette's (:mod:`.silhouette`); in place. Such a view takes its
     silhouette's height, unless colour matches of other views (ambiguous ones settled first) exist
@@ -149,7 +161,7 @@ def _by_silhouette(fp: Footprint, results: dict[str, MatchResult], lines: dict[s
     silhouette alone disagrees with is rejected with it ("inconsistent"). A view neither measures
     keeps both reasons (colour+silhouette)."""
     usable = {p: v for p, v in lines.items() if not isinstance(v, str)}
-    found = roof_heights(fp, usable) if usable else {}
+    found = roof_heights(fp, usable, slope) if usable else {}
     sil = {p: found.get(p, (math.nan, 0.0, v if isinstance(v, str) else "")) for p, v in lines.items()}
     colour = {p: r.u / cot[p] for p, r in results.items() if not r.reason}
     if len(colour) == 1:
