@@ -181,10 +181,11 @@ def obj_roofs(path: str | Path, offset_z: float = 0.0) -> dict[str, RefBuilding]
 
 # --------------------------------------------------------------------------- statistics
 
-def group_stats(rows: list, reference: dict[str, float], views: list[str]) -> dict[str, Any]:
+def group_stats(rows: list, reference: dict[str, float], views: list[str], ridge: bool = False) -> dict[str, Any]:
     """Per view and combined: n measured / n footprints of the group, and the error statistics
     (:func:`heights.error_stats`) over the buildings measured in it. ``reference``: {id: height}
-    of the group's buildings (NaN: no reference; they count as footprints, not in the errors)."""
+    of the group's buildings (NaN: no reference; they count as footprints, not in the errors).
+    ``ridge``: the measured ridges (``HeightRow.ridge``, ``ridges``) instead of the heights."""
     from pipeline25d.analysis.heights.reference import error_stats
 
     by_id = {r.id: r for r in rows}
@@ -196,9 +197,9 @@ def group_stats(rows: list, reference: dict[str, float], views: list[str]) -> di
         return {"n_footprints": len(ids), "n_measured": int(np.count_nonzero(np.isfinite(h))),
                 **error_stats(h, ref)}
 
-    out = {"combined": one(lambda r: r.height)}
+    out = {"combined": one(lambda r: r.ridge if ridge else r.height)}
     for v in views:
-        out[v] = one(lambda r, v=v: r.heights.get(v, math.nan))
+        out[v] = one(lambda r, v=v: (r.ridges if ridge else r.heights).get(v, math.nan))
     return out
 
 
@@ -330,8 +331,11 @@ def run_stage(config: dict, maps: dict[str, str], scene_json: str | Path, dsm_pa
     groups: dict[str, Any] = {}
     if gabled:
         groups["flat"] = group_stats(rows, {k: v for k, v in eave.items() if k not in gabled}, views)
-        groups["gabled_eave"] = group_stats(rows, {k: eave[k] for k in gabled}, views)
-        groups["gabled_ridge"] = group_stats(rows, {k: ridge[k] for k in gabled}, views)
+        for kind in PITCHED:
+            ids = [k for k in gabled if kinds[k] == kind]
+            if ids:
+                groups[f"{kind}_eave"] = group_stats(rows, {k: eave[k] for k in ids}, views)
+                groups[f"{kind}_ridge"] = group_stats(rows, {k: ridge[k] for k in ids}, views, ridge=True)
     elif eave:
         groups["all"] = group_stats(rows, eave, views)
     main = "flat" if gabled else "all"
@@ -346,6 +350,8 @@ def run_stage(config: dict, maps: dict[str, str], scene_json: str | Path, dsm_pa
     extra = {"reference": {k: fmt(v) for k, v in eave.items()},
              "reference_ridge": {k: fmt(v) for k, v in ridge.items()},
              "roof": {k: v for k, v in kinds.items()},
+             "ridge": {r.id: fmt(r.ridge) for r in rows},
+             "roof_measured": {r.id: r.roof for r in rows},
              "reference_above_lowest": {k: fmt(refs[k].roof_z - span[k][0]) for k in base},
              "reference_above_highest": {k: fmt(refs[k].roof_z - span[k][1]) for k in base},
              "ground_under": {k: fmt(v) for k, v in base.items()}}

@@ -229,19 +229,24 @@ def roof_heights(fp: Footprint, lines: dict[str, Lines], slope: bool = True) -> 
         cx, cy = area_centroid(fp.rings[0])
     out = {}
     for p, v in lines.items():
-        level = v.h - gx * (v.xy[:, 0] - centre[0]) - gy * (v.xy[:, 1] - centre[1])
-        own = float(np.median(level))
-        for _ in range(3):
-            near = np.abs(level - own) <= v.inlier
-            if not near.any():
-                break
-            own = float(np.mean(level[near]))
-        share = float(np.mean(np.abs(level - own) <= v.inlier))
+        own, share = robust_level(v.h - gx * (v.xy[:, 0] - centre[0]) - gy * (v.xy[:, 1] - centre[1]), v.inlier)
         if share < MIN_CONSISTENT:
             out[p] = (math.nan, share, "silhouette_spread")
         else:
             out[p] = (own + gx * (cx - centre[0]) + gy * (cy - centre[1]), share, "")
     return out
+
+
+def robust_level(level: np.ndarray, inlier: float) -> tuple[float, float]:
+    """(level, share of the values within ``inlier`` of it): the median, then three times the mean
+    of the values within ``inlier``."""
+    own = float(np.median(level))
+    for _ in range(3):
+        near = np.abs(level - own) <= inlier
+        if not near.any():
+            break
+        own = float(np.mean(level[near]))
+    return own, float(np.mean(np.abs(level - own) <= inlier))
 
 
 def area_centroid(ring: np.ndarray) -> tuple[float, float]:

@@ -14,7 +14,8 @@ from pipeline25d.analysis.evaluate.rasters import _open
 from pipeline25d.analysis.heights.matcher import MatchResult, _Matcher
 from pipeline25d.analysis.heights.results import NADIR_ID, HeightRow, MatchSettings, ViewMeasurement
 from pipeline25d.analysis.ground_under import Sampler, dtm_under
-from pipeline25d.analysis.heights.silhouette import Lines, levelled, roof_heights, silhouette_lines
+from pipeline25d.analysis.heights.pitched import KINDS, MAX_LOSS, fit_eave, ridge_height, silhouette_roof, view_rise
+from pipeline25d.analysis.heights.silhouette import MIN_CONSISTENT, Lines, levelled, roof_heights, silhouette_lines
 from pipeline25d.analysis.heights.template import _PAD, Template, _prepare_view, build_template
 from pipeline25d.core.errors import InputFileError
 from pipeline25d.core.grid import Extent, Grid
@@ -119,16 +120,22 @@ def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint
             pending[v.pid] = (v, u_max, (obl_rgb, obl_alpha), off, (sw_rgb, sw_alpha), sweep[2])
         cot = {v.pid: v.cot for v in views}
         resolved = _resolve(results, matchers, cot, s.agree_m + step_m / max(min(cot.values(), default=1.0), 1e-9))
+        base = dtm_under(fp, sample, step_m) if sample is not None else math.nan
+
+        def all_lines() -> dict[str, Lines | str]:
+            """Every view's silhouette lines (levelled where the DTM is known)."""
+            out = {p: silhouette_lines(fp, grid, win, horizontal_direction(Perspective.from_id(p)), v.d_px, v.cot,
+                                       u_max, obl, off, nad_sw, nad_off, s, _neighbours(fp, context, bounds))
+                   for p, (v, u_max, obl, off, nad_sw, nad_off) in pending.items()}
+            if np.isfinite(base):
+                out = {p: levelled(fp, v, sample, base) if isinstance(v, Lines) else v for p, v in out.items()}
+            return out
+
+        lines: dict[str, Lines | str] = {}
         if s.silhouette and any(results[p].reason for p in pending):
             # every view's lines (their far outlines together show the ground's slope), for the failed views
-            lines = {p: silhouette_lines(fp, grid, win, horizontal_direction(Perspective.from_id(p)), v.d_px, v.cot,
-                                         u_max, obl, off, nad_sw, nad_off, s, _neighbours(fp, context, bounds))
-                     for p, (v, u_max, obl, off, nad_sw, nad_off) in pending.items()}
-            if sample is not None:
-                base = dtm_under(fp, sample, step_m)
-                lines = {p: levelled(fp, v, sample, base) if isinstance(v, Lines) and np.isfinite(base) else v
-                         for p, v in lines.items()}
-            _by_silhouette(fp, results, lines, cot, 2 * s.agree_m, slope=sample is None)
+            lines = all_lines()
+            _by_silhouette(fp, results, lines, cot, 2 * s.agree_m, slope=not np.isfinite(base))
         measurements = {}
         for pid, r in results.items():
             reason = r.reason
@@ -138,8 +145,91 @@ def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint
             measurements[pid] = ViewMeasurement(h, r.u, r.match * (1.0 - r.second), r.match, r.second, reason,
                                                 pid in resolved, r.method)
         _drop_inconsistent(measurements, s.outlier_m)
-        rows_out.append(_combine(fp.id, measurements, s))
+        row = _combine(fp.id, measurements, s)
+        if np.isfinite(row.height) and isinstance(tmpl, Template):
+            around = {p: (v, obl[0], off) for p, (v, _, obl, off, _, _) in pending.items()}
+            row = _roof(fp, row, measurements, cot, s,
+                        lambda r: _with_ridge(r, fp, tmpl, grid, win, around, sample, step_m, s.tol),
+                        (lambda: lines or lines.update(all_lines()) or lines) if np.isfinite(base) and s.silhouette
+                        else None)
+        rows_out.append(row)
     return rows_out
+
+
+def _roof(fp: Footprint, row: HeightRow, measurements: dict[str, ViewMeasurement], cot: dict[str, float],
+          s: MatchSettings, ridge_fit: Callable[[HeightRow], HeightRow],
+          get_lines: Callable[[], dict[str, "Lines | str"]] | None) -> HeightRow:
+    """``row`` with its roof: the ridge and kind from the colours (``ridge_fit``), else from the
+    silhouette's gable and hip ends; a pitched roof's eave then from the silhouette's lines with that
+    ridge (its colours move by more than the eave's height, its gable ends' lines end above it),
+    ``measurements`` updated in place. ``get_lines``: the levelled lines (None: no DTM, colours only)."""
+    row = ridge_fit(row)
+    if get_lines is None:
+        return row
+    from_lines = False
+    if row.roof == "flat":
+        # colours alike on both faces (the ridge along the light): the gable ends' silhouette
+        row = _silhouette_ridge(fp, row, get_lines(), cot)
+        from_lines = row.roof in KINDS
+    if row.roof not in KINDS or not _eaves(fp, row, measurements, get_lines(), cot):
+        return row
+    _drop_inconsistent(measurements, s.outlier_m)
+    new = _combine(fp.id, measurements, s)
+    if not np.isfinite(new.height):
+        return row
+    kept = replace(new, ridge=row.ridge, roof=row.roof, ridges=row.ridges)
+    if from_lines:
+        return kept
+    again = ridge_fit(new)
+    return again if again.roof in KINDS else kept
+
+
+def _silhouette_ridge(fp: Footprint, row: HeightRow, lines: dict[str, "Lines | str"], cot: dict[str, float]) -> HeightRow:
+    """``row`` with the ridge and kind of :func:`.pitched.silhouette_roof` where it finds a rise."""
+    usable = [(lv.xy, lv.h, horizontal_direction(Perspective.from_id(p)), cot[p], lv.inlier)
+              for p, lv in lines.items() if isinstance(lv, Lines)]
+    if not usable:
+        return row
+    kind, rise, eave, _ = silhouette_roof(fp, [u[:4] for u in usable], max(u[4] for u in usable))
+    if kind == "flat":
+        return row
+    return replace(row, ridge=eave + rise, roof=kind, ridges={p: math.nan for p in row.ridges})
+
+
+def _eaves(fp: Footprint, row: HeightRow, measurements: dict[str, ViewMeasurement], lines: dict[str, "Lines | str"],
+           cot: dict[str, float]) -> bool:
+    """Each view's eave of a pitched roof (``row.roof`` up to ``row.ridge``) from its silhouette lines
+    (:func:`.pitched.fit_eave`), where enough of them agree (in place); whether any changed."""
+    changed = False
+    for p, m in measurements.items():
+        lv = lines.get(p)
+        if not isinstance(lv, Lines) or m.reason in ("too_small", "nadir_nodata", "outside_map"):
+            continue
+        d = horizontal_direction(Perspective.from_id(p))
+        eave, share = fit_eave(fp, row.roof, row.ridge, lv.xy, lv.h, d, cot[p], lv.inlier)
+        if share < MIN_CONSISTENT:
+            continue
+        measurements[p] = replace(m, height=eave, shift_m=eave * cot[p], reason="", method="silhouette")
+        changed = True
+    return changed
+
+
+def _with_ridge(row: HeightRow, fp: Footprint, tmpl: Template, grid: Grid, win, views: dict, sample: Sampler | None,
+                step_m: float, tol: float) -> HeightRow:
+    """``row`` with its ridge and roof kind (:mod:`.pitched`), from every view that has the map
+    around the roof (``views``: {pid: (view, oblique RGB window, offset)}), the eave at its height."""
+    x, y = grid.xy(win.col0 + tmpl.cols + 0.5, win.row0 + tmpl.rows + 0.5)
+    xy = np.column_stack([x, y])
+    excess = np.zeros(len(xy))
+    if sample is not None:
+        g = sample(xy[:, 0], xy[:, 1])
+        base = dtm_under(fp, sample, step_m)
+        if np.isfinite(base) and np.isfinite(g).all():
+            excess = g - base
+    fits = {p: view_rise(fp, tmpl, xy, rgb, off, v.d_px, v.cot, row.height, excess, tol) for p, (v, rgb, off) in views.items()}
+    ridge, kind = ridge_height(fits, row.height)
+    per_view = {p: row.height + f.rise if f.loss <= MAX_LOSS else math.nan for p, f in fits.items()}
+    return replace(row, ridge=ridge, roof=kind, ridges=per_view)
 
 
 def _neighbours(fp: Footprint, footprints: list[Footprint], bounds: np.ndarray, margin: float = 4.0) -> list[Footprint]:
