@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline25d.analysis.heights.silhouette import robust_level
-from pipeline25d.analysis.heights.template import Template, _sample
+from pipeline25d.analysis.heights.template import Template
 from pipeline25d.formats.footprints import Footprint
 
 KINDS = ("gabled", "hipped")
@@ -218,12 +218,25 @@ def view_rise(fp: Footprint, tmpl: Template, xy: np.ndarray, obl_rgb: np.ndarray
     if len(deep) < 16:
         return NO_FIT
     deep = deep[::-(-len(deep) // MAX_FIT_PX)]           # an even subset: the cost stays per building
+    from scipy import ndimage
+
     rows, cols, colour = tmpl.rows[deep] + off[0], tmpl.cols[deep] + off[1], tmpl.colour[deep]
+    move = (eave - ground_excess[deep]) * cot
+    # the part of the window the moves reach (eave .. eave + MAX_RISE_M), as float64 once
+    ends = [(rows + u * d_px[0], cols + u * d_px[1]) for u in (move, move + MAX_RISE_M * cot)]
+    r0 = max(int(min(e[0].min() for e in ends)) - 2, 0)
+    c0 = max(int(min(e[1].min() for e in ends)) - 2, 0)
+    r1 = min(int(max(e[0].max() for e in ends)) + 3, obl_rgb.shape[0])
+    c1 = min(int(max(e[1].max() for e in ends)) + 3, obl_rgb.shape[1])
+    if r1 <= r0 or c1 <= c0:
+        return NO_FIT
+    bands = [obl_rgb[r0:r1, c0:c1, ch].astype(np.float64) for ch in range(3)]
 
     def sample(u: np.ndarray) -> np.ndarray:
-        return _sample(obl_rgb, rows + u * d_px[0], cols + u * d_px[1])
+        at = [rows + u * d_px[0] - r0, cols + u * d_px[1] - c0]
+        return np.stack([ndimage.map_coordinates(b, at, order=1, mode="nearest") for b in bands], axis=-1)
 
-    return fit_rise(fp, xy[deep], colour, sample, (eave - ground_excess[deep]) * cot, cot, tol)
+    return fit_rise(fp, xy[deep], colour, sample, move, cot, tol)
 
 
 def ridge_height(fits: dict[str, RiseFit], eave: float) -> tuple[float, str]:

@@ -4,18 +4,19 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import replace
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from pipeline25d.analysis.evaluate.rasters import _open
-from pipeline25d.analysis.heights.matcher import MatchResult, _Matcher
-from pipeline25d.analysis.heights.results import NADIR_ID, HeightRow, MatchSettings, ViewMeasurement
 from pipeline25d.analysis.ground_under import Sampler, dtm_under
+from pipeline25d.analysis.heights.matcher import MatchResult, _Matcher
 from pipeline25d.analysis.heights.pitched import KINDS, MAX_LOSS, fit_eave, ridge_height, silhouette_roof, view_rise
-from pipeline25d.analysis.heights.silhouette import MIN_CONSISTENT, Lines, levelled, roof_heights, silhouette_lines
+from pipeline25d.analysis.heights.results import NADIR_ID, HeightRow, MatchSettings, ViewMeasurement
+from pipeline25d.analysis.heights.silhouette import (MIN_CONSISTENT, Lines, levelled, robust_level, roof_heights,
+                                                     silhouette_lines)
 from pipeline25d.analysis.heights.template import _PAD, Template, _prepare_view, build_template
 from pipeline25d.core.errors import InputFileError
 from pipeline25d.core.grid import Extent, Grid
@@ -25,6 +26,9 @@ from pipeline25d.geometry.camera import horizontal_direction
 from pipeline25d.geometry.perspectives import Perspective
 
 log = logging.getLogger(__name__)
+
+#: a colour height this far above the silhouette's level: the ridge is fitted from that level too
+PITCHED_GAP_M = 1.0
 
 
 def measure_parallel(map_paths: dict[str, str | Path], footprints: list[Footprint], settings: MatchSettings | None = None,
@@ -168,6 +172,14 @@ def _roof(fp: Footprint, row: HeightRow, measurements: dict[str, ViewMeasurement
         return row
     from_lines = False
     if row.roof == "flat":
+        low = _silhouette_level(get_lines())
+        if low < row.height - PITCHED_GAP_M:
+            # the colours moved the roof by more than its silhouette's level: a pitched roof's faces
+            # rise above the eave; the ridge fitted from that level instead
+            lower = ridge_fit(replace(row, height=low))
+            if lower.roof in KINDS:
+                row = replace(row, ridge=lower.ridge, roof=lower.roof, ridges=lower.ridges)
+    if row.roof == "flat":
         # colours alike on both faces (the ridge along the light): the gable ends' silhouette
         row = _silhouette_ridge(fp, row, get_lines(), cot)
         from_lines = row.roof in KINDS
@@ -182,6 +194,14 @@ def _roof(fp: Footprint, row: HeightRow, measurements: dict[str, ViewMeasurement
         return kept
     again = ridge_fit(new)
     return again if again.roof in KINDS else kept
+
+
+def _silhouette_level(lines: dict[str, "Lines | str"]) -> float:
+    """The level of every view's levelled lines together (NaN without any)."""
+    usable = [lv for lv in lines.values() if isinstance(lv, Lines)]
+    if not usable:
+        return math.nan
+    return robust_level(np.concatenate([lv.h for lv in usable]), max(lv.inlier for lv in usable))[0]
 
 
 def _silhouette_ridge(fp: Footprint, row: HeightRow, lines: dict[str, "Lines | str"], cot: dict[str, float]) -> HeightRow:
