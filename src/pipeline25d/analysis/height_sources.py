@@ -12,9 +12,9 @@ Every reference is therefore put on that basis: roof z minus the mean of that DT
 outline (:func:`dtm_under`). Where the model has its own ground (the demo's analytic terrain,
 3dfier's terrain where the walls meet it) the figures against it are reported as well.
 
-Reference (``heights.reference``): ``auto`` = the demo's truth (flat roofs: eave; a flat-roof
-matcher gives no single height for a gabled roof, so gabled roofs are a group of their own,
-compared with eave and ridge), else the roofs of an OBJ input with 3dfier materials (roof
+Reference (``heights.reference``): ``auto`` = the demo's truth (flat roofs: the roof; pitched
+roofs: the measured height against the eave and the measured ridge against the ridge, a group per
+roof kind), else the roofs of an OBJ input with 3dfier materials (roof
 material ``Building``), else the roofs of CityJSON buildings (RoofSurface), else the model's
 DSM median inside the footprint; a path = a CSV ``id,height`` (taken to be on the maps' basis)
 or a 3dfier OBJ; ``none`` = no comparison.
