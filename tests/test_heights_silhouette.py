@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from pipeline25d.analysis.heights.results import MatchSettings
-from pipeline25d.analysis.heights.silhouette import area_centroid, plane_fit, roof_heights, silhouette_lines
+from pipeline25d.analysis.heights.silhouette import (area_centroid, levelled, outline_ground, plane_fit, roof_heights,
+                                                     silhouette_lines)
 from pipeline25d.core.grid import Extent, Grid
 from pipeline25d.formats.footprints import Footprint, contains
 from pipeline25d.geometry.camera import horizontal_direction, relief_factor
@@ -76,15 +77,15 @@ def test_plane_fit_and_centroid_are_exact_on_clean_data():
     assert area_centroid(tri) == pytest.approx((1.0, 1.0))
 
 
-def test_tinted_roof_on_sloped_ground_measured_at_the_mean_ground():
+def _scene_lines(fp: Footprint):
+    """{view: its silhouette lines (or why none)} of ``fp`` on the synthetic maps, and each view's cot φ."""
     rng = np.random.default_rng(4)
     grid = Grid.north_up(-SIZE * GSD / 2, SIZE * GSD / 2, GSD, SIZE, SIZE)
     ground = _ground(rng)
     alpha = np.full((SIZE, SIZE), 255, np.uint8)
-    fp = _footprint()
     win = grid.window_covering(Extent(*fp.bounds), 6)
     s = MatchSettings(max_height=60.0)
-    lines = {}
+    lines, cots = {}, {}
     for pid in VIEWS:
         p = Perspective.from_id(pid)
         d, cot = horizontal_direction(p), relief_factor(p)
@@ -92,8 +93,16 @@ def test_tinted_roof_on_sloped_ground_measured_at_the_mean_ground():
         d_px = np.array([d[1] / t.e, d[0] / t.a])
         obl = _oblique(ground, fp, grid, pid)
         off = np.array([win.row0, win.col0], np.float64)            # both maps share the grid
-        u_max = 60.0 * cot
-        lines[pid] = silhouette_lines(fp, grid, win, d, d_px, cot, u_max, (obl, alpha), off, (ground, alpha), off, s)
+        lines[pid] = silhouette_lines(fp, grid, win, d, d_px, cot, 60.0 * cot, (obl, alpha), off, (ground, alpha), off, s)
+        cots[pid] = cot
+    return lines, cots
+
+
+def test_tinted_roof_on_sloped_ground_measured_at_the_mean_ground():
+    fp = _footprint()
+    lines, cots = _scene_lines(fp)
+    for pid in VIEWS:
+        cot = cots[pid]
         assert not isinstance(lines[pid], str), lines[pid]
         # each line: the roof above the ground at its outline point, within a quarter pixel of move
         expect = ROOF_Z - (GX * lines[pid].xy[:, 0] + GY * lines[pid].xy[:, 1])
@@ -108,3 +117,33 @@ def test_tinted_roof_on_sloped_ground_measured_at_the_mean_ground():
     # one view alone sees a single far edge: the slope across it is unknown, the height less sure
     alone = roof_heights(fp, {VIEWS[0]: lines[VIEWS[0]]})[VIEWS[0]]
     assert alone[2] == "" and abs(alone[0] - truth) > abs(got[VIEWS[0]][0] - truth)
+
+
+def test_outline_ground_is_the_corners_ground_interpolated_along_each_edge():
+    """The renderer subtracts the DTM per vertex: along an edge the ground is linear between its
+    corners' DTM, not the DTM itself (here a curved one)."""
+    fp = Footprint("q", (np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 4.0], [0.0, 4.0]]),))
+    dtm = lambda x, y: 0.05 * x ** 2 + 3.0 * y  # noqa: E731
+    xy = np.array([[2.5, 0.0], [10.0, 1.0], [7.0, 4.0], [0.0, 3.0]])
+    want = [0.75 * dtm(0, 0) + 0.25 * dtm(10, 0), 0.75 * dtm(10, 0) + 0.25 * dtm(10, 4),
+            0.7 * dtm(10, 4) + 0.3 * dtm(0, 4), 0.75 * dtm(0, 4) + 0.25 * dtm(0, 0)]
+    assert outline_ground(fp, xy, dtm) == pytest.approx(want, abs=1e-12)
+
+
+def test_levelled_lines_give_the_height_from_one_view_alone():
+    """With the DTM the maps were drawn over, each line's height becomes roof − mean ground: one
+    view's single far edge then gives the height as exactly as two views' plane does."""
+    fp = _footprint()
+    lines, cots = _scene_lines(fp)
+    dtm = lambda x, y: GX * np.asarray(x) + GY * np.asarray(y)  # noqa: E731
+    cx, cy = area_centroid(fp.rings[0])
+    truth = ROOF_Z - (GX * cx + GY * cy)
+    for pid in VIEWS:
+        raw, cot = lines[pid], cots[pid]
+        flat = levelled(fp, raw, dtm, float(dtm(cx, cy)))          # the mean of a linear ground: at the centroid
+        assert np.median(np.abs(flat.h - truth)) < 0.5 * GSD / cot
+        h, share, why = roof_heights(fp, {pid: flat}, slope=False)[pid]
+        assert why == "" and share > 0.8
+        assert h == pytest.approx(truth, abs=0.1)
+        unlevelled = roof_heights(fp, {pid: raw})[pid][0]         # the same lines without the DTM: off by the slope
+        assert abs(unlevelled - truth) > 2 * abs(h - truth)

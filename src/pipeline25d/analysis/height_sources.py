@@ -12,9 +12,9 @@ Every reference is therefore put on that basis: roof z minus the mean of that DT
 outline (:func:`dtm_under`). Where the model has its own ground (the demo's analytic terrain,
 3dfier's terrain where the walls meet it) the figures against it are reported as well.
 
-Reference (``heights.reference``): ``auto`` = the demo's truth (flat roofs: eave; a flat-roof
-matcher gives no single height for a gabled roof, so gabled roofs are a group of their own,
-compared with eave and ridge), else the roofs of an OBJ input with 3dfier materials (roof
+Reference (``heights.reference``): ``auto`` = the demo's truth (flat roofs: the roof; pitched
+roofs: the measured height against the eave and the measured ridge against the ridge, a group per
+roof kind), else the roofs of an OBJ input with 3dfier materials (roof
 material ``Building``), else the roofs of CityJSON buildings (RoofSurface), else the model's
 DSM median inside the footprint; a path = a CSV ``id,height`` (taken to be on the maps' basis)
 or a 3dfier OBJ; ``none`` = no comparison.
@@ -25,6 +25,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -180,10 +181,11 @@ def obj_roofs(path: str | Path, offset_z: float = 0.0) -> dict[str, RefBuilding]
 
 # --------------------------------------------------------------------------- statistics
 
-def group_stats(rows: list, reference: dict[str, float], views: list[str]) -> dict[str, Any]:
+def group_stats(rows: list, reference: dict[str, float], views: list[str], ridge: bool = False) -> dict[str, Any]:
     """Per view and combined: n measured / n footprints of the group, and the error statistics
     (:func:`heights.error_stats`) over the buildings measured in it. ``reference``: {id: height}
-    of the group's buildings (NaN: no reference; they count as footprints, not in the errors)."""
+    of the group's buildings (NaN: no reference; they count as footprints, not in the errors).
+    ``ridge``: the measured ridges (``HeightRow.ridge``, ``ridges``) instead of the heights."""
     from pipeline25d.analysis.heights.reference import error_stats
 
     by_id = {r.id: r for r in rows}
@@ -195,9 +197,9 @@ def group_stats(rows: list, reference: dict[str, float], views: list[str]) -> di
         return {"n_footprints": len(ids), "n_measured": int(np.count_nonzero(np.isfinite(h))),
                 **error_stats(h, ref)}
 
-    out = {"combined": one(lambda r: r.height)}
+    out = {"combined": one(lambda r: r.ridge if ridge else r.height)}
     for v in views:
-        out[v] = one(lambda r, v=v: r.heights.get(v, math.nan))
+        out[v] = one(lambda r, v=v: (r.ridges if ridge else r.heights).get(v, math.nan))
     return out
 
 
@@ -312,7 +314,8 @@ def run_stage(config: dict, maps: dict[str, str], scene_json: str | Path, dsm_pa
     gsd = float(config["gsd"])
     s = MatchSettings(max_height=float(h.get("max_height", MatchSettings.max_height)))
     t0 = time.perf_counter()
-    rows = measure_parallel(maps, fps, settings=s, workers=workers) if fps else []
+    rows = (measure_parallel(maps, fps, settings=s, workers=workers,
+                             ground=partial(ground_sampler, scene, config["crs"])) if fps else [])
     seconds = time.perf_counter() - t0
     views = sorted({k for r in rows for k in r.heights})
     refs, ref_source, ref_kind = reference_heights(p, config, fps, model, ground, dsm_path, gsd)
@@ -328,8 +331,11 @@ def run_stage(config: dict, maps: dict[str, str], scene_json: str | Path, dsm_pa
     groups: dict[str, Any] = {}
     if gabled:
         groups["flat"] = group_stats(rows, {k: v for k, v in eave.items() if k not in gabled}, views)
-        groups["gabled_eave"] = group_stats(rows, {k: eave[k] for k in gabled}, views)
-        groups["gabled_ridge"] = group_stats(rows, {k: ridge[k] for k in gabled}, views)
+        for kind in PITCHED:
+            ids = [k for k in gabled if kinds[k] == kind]
+            if ids:
+                groups[f"{kind}_eave"] = group_stats(rows, {k: eave[k] for k in ids}, views)
+                groups[f"{kind}_ridge"] = group_stats(rows, {k: ridge[k] for k in ids}, views, ridge=True)
     elif eave:
         groups["all"] = group_stats(rows, eave, views)
     main = "flat" if gabled else "all"
@@ -344,6 +350,8 @@ def run_stage(config: dict, maps: dict[str, str], scene_json: str | Path, dsm_pa
     extra = {"reference": {k: fmt(v) for k, v in eave.items()},
              "reference_ridge": {k: fmt(v) for k, v in ridge.items()},
              "roof": {k: v for k, v in kinds.items()},
+             "ridge": {r.id: fmt(r.ridge) for r in rows},
+             "roof_measured": {r.id: r.roof for r in rows},
              "reference_above_lowest": {k: fmt(refs[k].roof_z - span[k][0]) for k in base},
              "reference_above_highest": {k: fmt(refs[k].roof_z - span[k][1]) for k in base},
              "ground_under": {k: fmt(v) for k, v in base.items()}}

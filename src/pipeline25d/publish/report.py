@@ -247,8 +247,10 @@ def coarser_section(coarser: list[dict]) -> list[str]:
 
 
 HEIGHT_GROUPS = {"all": "All buildings", "flat": "Flat roofs",
-                 "gabled_eave": "Pitched (gabled, hipped) roofs against their eave",
-                 "gabled_ridge": "Pitched (gabled, hipped) roofs against their ridge"}
+                 "gabled_eave": "Gabled roofs: the height against their eave",
+                 "gabled_ridge": "Gabled roofs: the measured ridge against their ridge",
+                 "hipped_eave": "Hipped roofs: the height against their eave",
+                 "hipped_ridge": "Hipped roofs: the measured ridge against their ridge"}
 
 
 def _height_table(group: dict) -> list[str]:
@@ -298,10 +300,11 @@ def heights_section(h: dict) -> list[str]:
     for g, group in h["groups"].items():
         n = group["combined"]["n_footprints"]
         lines += [f"### {HEIGHT_GROUPS.get(g, g)} ({n})", ""]
-        if g == "gabled_eave":
-            lines += ["A pitched roof has no single height: its outline moves by the eave height, its gable or"
-                      " hip ends by up to the ridge's. Pitched roofs are kept out of the flat-roof figures and their"
-                      " one measured height is compared with both their eave and their ridge.", ""]
+        if g == next((k for k in h["groups"] if k.endswith("_eave")), None):
+            lines += ["A pitched roof has two heights: its eave (the height, CSV `height`) and its ridge (CSV"
+                      " `ridge`: the eave plus the rise that lands the roof's faces on their colours in the oblique"
+                      " views, else that the silhouette's gable ends show; `roof_measured` the kind found). Each is"
+                      " compared with its own truth, per roof kind.", ""]
         lines += [*_height_table(group), ""]
     if h.get("own_ground"):
         lines += ["### Against the model's own ground",

@@ -68,6 +68,9 @@ class HeightRow:
     height: float                 # median of the accepted views (NaN if none)
     quality: float                # median quality of accepted views × n_agree / n_views (0 if none)
     views: dict[str, ViewMeasurement] = field(default_factory=dict, repr=False)
+    ridge: float = math.nan       # ridge height (pitched roofs; the height itself on flat ones), NaN unmeasured
+    roof: str = ""                # the roof kind the ridge's fit chose: flat, gabled, hipped ('' unmeasured)
+    ridges: dict[str, float] = field(default_factory=dict, repr=False)   # per view: eave + that view's rise
 
 
 def write_csv(path: str | Path, rows: list[HeightRow], extra: dict[str, dict[str, str]] | None = None) -> None:

@@ -8,7 +8,9 @@ E / cot φ is the roof's height above the ground the map drew under e. Colours o
 never enter: the roof may be tinted like its walls, shaded differently from view to view, pitched.
 
 On sloped ground that height varies along the outline (the map subtracts the DTM under each
-vertex), so one robust plane through the lines of every view (their far outlines differ, so
+vertex). With that DTM (the stage has it) each line is :func:`levelled` exactly: its height plus
+the ground the map subtracted at its point, minus the mean ground under the footprint. Without
+it, one robust plane through the lines of every view (their far outlines differ, so
 together they show the slope both ways) gives the roof above a planar ground, and its value at the
 footprint's area centroid the roof above the MEAN ground under the footprint: the stage's
 definition of a height. A pitched roof's lines give its eave where its far eave is seen and more
@@ -24,7 +26,7 @@ lengthen a line, which the robust fit drops.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -181,37 +183,70 @@ def silhouette_lines(fp: Footprint, grid, win, d: np.ndarray, d_px: np.ndarray, 
     return Lines(pts[ok], ends[ok] / cot, max(INLIER_PX * px_m, 0.25))
 
 
-def roof_heights(fp: Footprint, lines: dict[str, Lines]) -> dict[str, tuple[float, float, str]]:
+def outline_ground(fp: Footprint, xy: np.ndarray, sample: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> np.ndarray:
+    """The ground a terrain-relative map subtracted at outline points ``xy`` (n, 2): the renderer
+    takes the DTM at each vertex, so along an outline edge it is ``sample`` at the edge's two
+    corners, linearly interpolated (each point on its nearest edge)."""
+    ring = fp.rings[0]
+    a, b = ring, np.roll(ring, -1, axis=0)
+    za, zb = sample(a[:, 0], a[:, 1]), sample(b[:, 0], b[:, 1])
+    e = b - a
+    ee = np.maximum(np.einsum("ij,ij->i", e, e), 1e-12)
+    t = np.clip(np.einsum("kij,ij->ki", xy[:, None, :] - a[None], e) / ee, 0.0, 1.0)
+    gap = np.linalg.norm(xy[:, None, :] - (a[None] + t[..., None] * e[None]), axis=-1)
+    k = np.argmin(gap, axis=1)
+    tk = t[np.arange(len(xy)), k]
+    return (1.0 - tk) * za[k] + tk * zb[k]
+
+
+def levelled(fp: Footprint, lines: Lines, sample: Callable[[np.ndarray, np.ndarray], np.ndarray],
+             base: float) -> Lines:
+    """``lines`` with each height moved onto one basis: the roof z it gives (its height plus the
+    ground the map subtracted there, :func:`outline_ground`) minus ``base`` (the mean ground under
+    the footprint). On sloped ground every line of a flat roof then gives the same height, whichever
+    edge it starts from (without the DTM a single view's lines show the slope along one edge only)."""
+    return Lines(lines.xy, lines.h + outline_ground(fp, lines.xy, sample) - base, lines.inlier)
+
+
+def roof_heights(fp: Footprint, lines: dict[str, Lines], slope: bool = True) -> dict[str, tuple[float, float, str]]:
     """Per view: (height at the footprint's area centroid, share of its lines on the fit, reason).
 
-    One plane through the lines of every view (their far outlines differ, so together they show how
-    the ground slopes under the roof), then each view's own level with that slope: the roof above
-    the mean of a planar ground under the footprint, the basis a terrain-relative map encodes.
+    ``slope``: one plane through the lines of every view (their far outlines differ, so together
+    they show how the ground slopes under the roof), then each view's own level with that slope:
+    the roof above the mean of a planar ground under the footprint, the basis a terrain-relative map
+    encodes. Without ``slope`` the lines are already :func:`levelled` and each view's level is its
+    height (a slope fitted to them would only follow the lines that occluders lengthen).
     """
     xy = np.concatenate([v.xy for v in lines.values()])
-    h = np.concatenate([v.h for v in lines.values()])
-    inlier = max(v.inlier for v in lines.values())
-    fit = plane_fit(xy, h, inlier)
-    if fit is None:
-        return {p: (math.nan, 0.0, "silhouette_spread") for p in lines}
-    (h0, gx, gy), _ = fit
+    gx = gy = 0.0
     centre = xy.mean(axis=0)
-    cx, cy = area_centroid(fp.rings[0])
+    cx, cy = centre
+    if slope:
+        fit = plane_fit(xy, np.concatenate([v.h for v in lines.values()]), max(v.inlier for v in lines.values()))
+        if fit is None:
+            return {p: (math.nan, 0.0, "silhouette_spread") for p in lines}
+        (_, gx, gy), _ = fit
+        cx, cy = area_centroid(fp.rings[0])
     out = {}
     for p, v in lines.items():
-        level = v.h - gx * (v.xy[:, 0] - centre[0]) - gy * (v.xy[:, 1] - centre[1])
-        own = float(np.median(level))
-        for _ in range(3):
-            near = np.abs(level - own) <= v.inlier
-            if not near.any():
-                break
-            own = float(np.mean(level[near]))
-        share = float(np.mean(np.abs(level - own) <= v.inlier))
+        own, share = robust_level(v.h - gx * (v.xy[:, 0] - centre[0]) - gy * (v.xy[:, 1] - centre[1]), v.inlier)
         if share < MIN_CONSISTENT:
             out[p] = (math.nan, share, "silhouette_spread")
         else:
             out[p] = (own + gx * (cx - centre[0]) + gy * (cy - centre[1]), share, "")
     return out
+
+
+def robust_level(level: np.ndarray, inlier: float) -> tuple[float, float]:
+    """(level, share of the values within ``inlier`` of it): the median, then three times the mean
+    of the values within ``inlier``."""
+    own = float(np.median(level))
+    for _ in range(3):
+        near = np.abs(level - own) <= inlier
+        if not near.any():
+            break
+        own = float(np.mean(level[near]))
+    return own, float(np.mean(np.abs(level - own) <= inlier))
 
 
 def area_centroid(ring: np.ndarray) -> tuple[float, float]:

@@ -4,15 +4,19 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from pipeline25d.analysis.evaluate.rasters import _open
+from pipeline25d.analysis.ground_under import Sampler, dtm_under
 from pipeline25d.analysis.heights.matcher import MatchResult, _Matcher
+from pipeline25d.analysis.heights.pitched import KINDS, MAX_LOSS, fit_eave, ridge_height, silhouette_roof, view_rise
 from pipeline25d.analysis.heights.results import NADIR_ID, HeightRow, MatchSettings, ViewMeasurement
-from pipeline25d.analysis.heights.silhouette import Lines, roof_heights, silhouette_lines
+from pipeline25d.analysis.heights.silhouette import (MIN_CONSISTENT, Lines, levelled, robust_level, roof_heights,
+                                                     silhouette_lines)
 from pipeline25d.analysis.heights.template import _PAD, Template, _prepare_view, build_template
 from pipeline25d.core.errors import InputFileError
 from pipeline25d.core.grid import Extent, Grid
@@ -23,14 +27,18 @@ from pipeline25d.geometry.perspectives import Perspective
 
 log = logging.getLogger(__name__)
 
+#: a colour height this far above the silhouette's level: the ridge is fitted from that level too
+PITCHED_GAP_M = 1.0
+
 
 def measure_parallel(map_paths: dict[str, str | Path], footprints: list[Footprint], settings: MatchSettings | None = None,
-                     workers: int = 1, block: int = 64) -> list[HeightRow]:
+                     workers: int = 1, block: int = 64, ground: Callable[[], Sampler] | None = None) -> list[HeightRow]:
     """:func:`measure_heights` over blocks of ``block`` footprints (in west-to-east order, so a
     block's maps are read from nearby windows) on ``workers`` processes; the same rows, in input
-    order. Every footprint is measured alone, so the cost is footprints × views ÷ workers."""
+    order. Every footprint is measured alone, so the cost is footprints × views ÷ workers.
+    ``ground``: as for :func:`measure_heights` (a picklable factory, called in each process)."""
     if workers <= 1 or len(footprints) <= block:
-        return measure_heights(map_paths, footprints, settings=settings)
+        return measure_heights(map_paths, footprints, settings=settings, ground=ground)
     from concurrent.futures import ProcessPoolExecutor
 
     order = sorted(range(len(footprints)), key=lambda i: footprints[i].bounds[0])
@@ -38,7 +46,7 @@ def measure_parallel(map_paths: dict[str, str | Path], footprints: list[Footprin
     rows: list[HeightRow | None] = [None] * len(footprints)
     with ProcessPoolExecutor(max_workers=workers) as pool:
         futures = [pool.submit(measure_heights, map_paths, [footprints[i] for i in b], NADIR_ID, settings,
-                               footprints) for b in blocks]
+                               footprints, ground) for b in blocks]
         for b, f in zip(blocks, futures):
             for i, row in zip(b, f.result()):
                 rows[i] = row
@@ -47,7 +55,8 @@ def measure_parallel(map_paths: dict[str, str | Path], footprints: list[Footprin
 
 def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint], nadir_id: str = NADIR_ID,
                     settings: MatchSettings | None = None,
-                    context: list[Footprint] | None = None) -> list[HeightRow]:
+                    context: list[Footprint] | None = None,
+                    ground: Callable[[], Sampler] | None = None) -> list[HeightRow]:
     """Height of every footprint in every oblique map of ``map_paths`` ({perspective id: GeoTIFF}).
 
     The maps must share the nadir map's CRS (CRSError naming them otherwise); footprints are
@@ -55,7 +64,10 @@ def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint
     of its rivals lies within ``agree_m`` of the height they give (the accepted views' median,
     or else the one height that rivals of two or more views share); such a view is marked
     ``resolved``. ``context``: every footprint of the scene, for the silhouette's neighbours
-    (default ``footprints``). Returns one row per footprint, in input order.
+    (default ``footprints``). ``ground``: makes the sampler of the ground the maps were drawn
+    over (the scene's DTM); with it the silhouette's lines are levelled exactly
+    (:func:`.silhouette.levelled`), without it a plane through them estimates the slope.
+    Returns one row per footprint, in input order.
     """
     s = settings or MatchSettings()
     if nadir_id not in map_paths:
@@ -68,6 +80,7 @@ def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint
     views = [_prepare_view(pid, path, nad, nad_path) for pid, path in sorted(map_paths.items())
              if pid != nadir_id and Perspective.from_id(pid).elevation != 90]
     step_m = grid.res
+    sample = ground() if ground is not None else None
     pad = s.ring_px + 4
     rows_out: list[HeightRow] = []
     context = footprints if context is None else context
@@ -111,12 +124,22 @@ def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint
             pending[v.pid] = (v, u_max, (obl_rgb, obl_alpha), off, (sw_rgb, sw_alpha), sweep[2])
         cot = {v.pid: v.cot for v in views}
         resolved = _resolve(results, matchers, cot, s.agree_m + step_m / max(min(cot.values(), default=1.0), 1e-9))
+        base = dtm_under(fp, sample, step_m) if sample is not None else math.nan
+
+        def all_lines() -> dict[str, Lines | str]:
+            """Every view's silhouette lines (levelled where the DTM is known)."""
+            out = {p: silhouette_lines(fp, grid, win, horizontal_direction(Perspective.from_id(p)), v.d_px, v.cot,
+                                       u_max, obl, off, nad_sw, nad_off, s, _neighbours(fp, context, bounds))
+                   for p, (v, u_max, obl, off, nad_sw, nad_off) in pending.items()}
+            if np.isfinite(base):
+                out = {p: levelled(fp, v, sample, base) if isinstance(v, Lines) else v for p, v in out.items()}
+            return out
+
+        lines: dict[str, Lines | str] = {}
         if s.silhouette and any(results[p].reason for p in pending):
             # every view's lines (their far outlines together show the ground's slope), for the failed views
-            lines = {p: silhouette_lines(fp, grid, win, horizontal_direction(Perspective.from_id(p)), v.d_px, v.cot,
-                                         u_max, obl, off, nad_sw, nad_off, s, _neighbours(fp, context, bounds))
-                     for p, (v, u_max, obl, off, nad_sw, nad_off) in pending.items()}
-            _by_silhouette(fp, results, lines, cot, 2 * s.agree_m)
+            lines = all_lines()
+            _by_silhouette(fp, results, lines, cot, 2 * s.agree_m, slope=not np.isfinite(base))
         measurements = {}
         for pid, r in results.items():
             reason = r.reason
@@ -126,8 +149,107 @@ def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint
             measurements[pid] = ViewMeasurement(h, r.u, r.match * (1.0 - r.second), r.match, r.second, reason,
                                                 pid in resolved, r.method)
         _drop_inconsistent(measurements, s.outlier_m)
-        rows_out.append(_combine(fp.id, measurements, s))
+        row = _combine(fp.id, measurements, s)
+        if np.isfinite(row.height) and isinstance(tmpl, Template):
+            around = {p: (v, obl[0], off) for p, (v, _, obl, off, _, _) in pending.items()}
+            row = _roof(fp, row, measurements, cot, s,
+                        lambda r: _with_ridge(r, fp, tmpl, grid, win, around, sample, step_m, s.tol),
+                        (lambda: lines or lines.update(all_lines()) or lines) if np.isfinite(base) and s.silhouette
+                        else None)
+        rows_out.append(row)
     return rows_out
+
+
+def _roof(fp: Footprint, row: HeightRow, measurements: dict[str, ViewMeasurement], cot: dict[str, float],
+          s: MatchSettings, ridge_fit: Callable[[HeightRow], HeightRow],
+          get_lines: Callable[[], dict[str, "Lines | str"]] | None) -> HeightRow:
+    """``row`` with its roof: the ridge and kind from the colours (``ridge_fit``), else from the
+    silhouette's gable and hip ends; a pitched roof's eave then from the silhouette's lines with that
+    ridge (its colours move by more than the eave's height, its gable ends' lines end above it),
+    ``measurements`` updated in place. ``get_lines``: the levelled lines (None: no DTM, colours only)."""
+    row = ridge_fit(row)
+    if get_lines is None:
+        return row
+    from_lines = False
+    if row.roof == "flat":
+        low = _silhouette_level(get_lines())
+        if low < row.height - PITCHED_GAP_M:
+            # the colours moved the roof by more than its silhouette's level: a pitched roof's faces
+            # rise above the eave; the ridge fitted from that level instead
+            lower = ridge_fit(replace(row, height=low))
+            if lower.roof in KINDS:
+                row = replace(row, ridge=lower.ridge, roof=lower.roof, ridges=lower.ridges)
+    if row.roof == "flat":
+        # colours alike on both faces (the ridge along the light): the gable ends' silhouette
+        row = _silhouette_ridge(fp, row, get_lines(), cot)
+        from_lines = row.roof in KINDS
+    if row.roof not in KINDS or not _eaves(fp, row, measurements, get_lines(), cot):
+        return row
+    _drop_inconsistent(measurements, s.outlier_m)
+    new = _combine(fp.id, measurements, s)
+    if not np.isfinite(new.height):
+        return row
+    kept = replace(new, ridge=row.ridge, roof=row.roof, ridges=row.ridges)
+    if from_lines:
+        return kept
+    again = ridge_fit(new)
+    return again if again.roof in KINDS else kept
+
+
+def _silhouette_level(lines: dict[str, "Lines | str"]) -> float:
+    """The level of every view's levelled lines together (NaN without any)."""
+    usable = [lv for lv in lines.values() if isinstance(lv, Lines)]
+    if not usable:
+        return math.nan
+    return robust_level(np.concatenate([lv.h for lv in usable]), max(lv.inlier for lv in usable))[0]
+
+
+def _silhouette_ridge(fp: Footprint, row: HeightRow, lines: dict[str, "Lines | str"], cot: dict[str, float]) -> HeightRow:
+    """``row`` with the ridge and kind of :func:`.pitched.silhouette_roof` where it finds a rise."""
+    usable = [(lv.xy, lv.h, horizontal_direction(Perspective.from_id(p)), cot[p], lv.inlier)
+              for p, lv in lines.items() if isinstance(lv, Lines)]
+    if not usable:
+        return row
+    kind, rise, eave, _ = silhouette_roof(fp, [u[:4] for u in usable], max(u[4] for u in usable))
+    if kind == "flat":
+        return row
+    return replace(row, ridge=eave + rise, roof=kind, ridges={p: math.nan for p in row.ridges})
+
+
+def _eaves(fp: Footprint, row: HeightRow, measurements: dict[str, ViewMeasurement], lines: dict[str, "Lines | str"],
+           cot: dict[str, float]) -> bool:
+    """Each view's eave of a pitched roof (``row.roof`` up to ``row.ridge``) from its silhouette lines
+    (:func:`.pitched.fit_eave`), where enough of them agree (in place); whether any changed."""
+    changed = False
+    for p, m in measurements.items():
+        lv = lines.get(p)
+        if not isinstance(lv, Lines) or m.reason in ("too_small", "nadir_nodata", "outside_map"):
+            continue
+        d = horizontal_direction(Perspective.from_id(p))
+        eave, share = fit_eave(fp, row.roof, row.ridge, lv.xy, lv.h, d, cot[p], lv.inlier)
+        if share < MIN_CONSISTENT:
+            continue
+        measurements[p] = replace(m, height=eave, shift_m=eave * cot[p], reason="", method="silhouette")
+        changed = True
+    return changed
+
+
+def _with_ridge(row: HeightRow, fp: Footprint, tmpl: Template, grid: Grid, win, views: dict, sample: Sampler | None,
+                step_m: float, tol: float) -> HeightRow:
+    """``row`` with its ridge and roof kind (:mod:`.pitched`), from every view that has the map
+    around the roof (``views``: {pid: (view, oblique RGB window, offset)}), the eave at its height."""
+    x, y = grid.xy(win.col0 + tmpl.cols + 0.5, win.row0 + tmpl.rows + 0.5)
+    xy = np.column_stack([x, y])
+    excess = np.zeros(len(xy))
+    if sample is not None:
+        g = sample(xy[:, 0], xy[:, 1])
+        base = dtm_under(fp, sample, step_m)
+        if np.isfinite(base) and np.isfinite(g).all():
+            excess = g - base
+    fits = {p: view_rise(fp, tmpl, xy, rgb, off, v.d_px, v.cot, row.height, excess, tol) for p, (v, rgb, off) in views.items()}
+    ridge, kind = ridge_height(fits, row.height)
+    per_view = {p: row.height + f.rise if f.loss <= MAX_LOSS else math.nan for p, f in fits.items()}
+    return replace(row, ridge=ridge, roof=kind, ridges=per_view)
 
 
 def _neighbours(fp: Footprint, footprints: list[Footprint], bounds: np.ndarray, margin: float = 4.0) -> list[Footprint]:
@@ -139,7 +261,7 @@ def _neighbours(fp: Footprint, footprints: list[Footprint], bounds: np.ndarray, 
 
 
 def _by_silhouette(fp: Footprint, results: dict[str, MatchResult], lines: dict[str, "Lines | str"],
-                   cot: dict[str, float], outlier_m: float) -> None:
+                   cot: dict[str, float], outlier_m: float, slope: bool = True) -> None:
     """Where the colours give no height (or one below ``min_colour_m``: a roof matched on its own
     wall of the same tint), the silhouette's (:mod:`.silhouette`); in place. Such a view takes its
     silhouette's height, unless colour matches of other views (ambiguous ones settled first) exist
@@ -149,7 +271,7 @@ def _by_silhouette(fp: Footprint, results: dict[str, MatchResult], lines: dict[s
     silhouette alone disagrees with is rejected with it ("inconsistent"). A view neither measures
     keeps both reasons (colour+silhouette)."""
     usable = {p: v for p, v in lines.items() if not isinstance(v, str)}
-    found = roof_heights(fp, usable) if usable else {}
+    found = roof_heights(fp, usable, slope) if usable else {}
     sil = {p: found.get(p, (math.nan, 0.0, v if isinstance(v, str) else "")) for p, v in lines.items()}
     colour = {p: r.u / cot[p] for p, r in results.items() if not r.reason}
     if len(colour) == 1:

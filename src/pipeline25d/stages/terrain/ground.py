@@ -47,8 +47,9 @@ def csf_ground(dsm: np.ndarray, grid: Grid, max_object_m: float, cloth_resolutio
         return np.zeros(dsm.shape, dtype=bool)
     residual = dsm - lower_envelope(dsm, grid.res, max_object_m)
     whole = (slice(0, grid.height), slice(0, grid.width))
-    return _cloth_ground(residual, grid, whole, cloth_resolution, rigidness, class_threshold,
-                         island_gap(max_object_m, grid.res))
+    ground = _cloth_ground(residual, grid, whole, cloth_resolution, rigidness, class_threshold,
+                           island_gap(max_object_m, grid.res))
+    return restore_smooth_ground(ground, dsm, grid.res)
 
 
 def island_gap(max_object_m: float, res: float) -> int:
@@ -152,8 +153,63 @@ def ground_blocks(read: Callable[[slice, slice], np.ndarray], grid: Grid, max_ob
         ground = _cloth_ground(residual, grid, block.window, cloth_resolution, rigidness, class_threshold,
                                island_gap(max_object_m, grid.res))
         del residual
-        ground = trim_object_edges(ground, dsm)
+        ground = trim_object_edges(restore_smooth_ground(ground, dsm, grid.res), dsm)
         yield block, dsm[block.inner], ground[block.inner]
+
+
+#: the steepest terrain (tan of 60°): a step between neighbouring cells up to res x this + SMOOTH_STEP_M is smooth
+SMOOTH_SLOPE = math.tan(math.radians(60.0))
+SMOOTH_STEP_M = 0.5
+
+
+def restore_smooth_ground(ground: np.ndarray, dsm: np.ndarray, res: float, share: float = 0.5,
+                          min_area_m2: float = 100.0) -> np.ndarray:
+    """The ground mask with the terrain the cloth missed put back: rounded hilltops and ridges.
+
+    The lower envelope (a flat opening) shaves a curved hilltop, so the cloth sees it as an object
+    (on the roofs city a hill's top lay 31 m above the DTM made without it). Objects stand on walls;
+    terrain does not. The non-ground cells are split into smooth pieces (4-neighbours whose DSM
+    step is at most ``res`` x :data:`SMOOTH_SLOPE` + :data:`SMOOTH_STEP_M`); a piece of at least
+    ``min_area_m2`` whose border with ground cells is smooth along at least ``share`` of it is
+    ground: a roof meets the ground beside it through a wall, a hillside does not.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    valid = np.isfinite(dsm)
+    off = valid & ~ground
+    n_off = int(off.sum())
+    if not n_off or not ground.any():
+        return ground
+    step = res * SMOOTH_SLOPE + SMOOTH_STEP_M
+    index = np.full(dsm.shape, -1, dtype=np.int64)
+    index[off] = np.arange(n_off)
+    a_list, b_list, border, smooth = [], [], [], []
+    for axis in (0, 1):
+        lo = tuple(slice(0, -1) if k == axis else slice(None) for k in (0, 1))
+        hi = tuple(slice(1, None) if k == axis else slice(None) for k in (0, 1))
+        flat = np.abs(dsm[hi] - dsm[lo]) <= step                    # NaN compares False
+        both = off[lo] & off[hi] & flat
+        a_list.append(index[lo][both])
+        b_list.append(index[hi][both])
+        for here, there in ((lo, hi), (hi, lo)):                     # off cell beside a ground cell
+            pair = off[here] & ground[there]
+            border.append(index[here][pair])
+            smooth.append(index[here][pair & flat])
+    a, b = np.concatenate(a_list), np.concatenate(b_list)
+    graph = coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(n_off, n_off))
+    n, label = connected_components(graph, directed=False)
+    size = np.bincount(label, minlength=n)
+    n_border = np.bincount(label[np.concatenate(border)], minlength=n)
+    n_smooth = np.bincount(label[np.concatenate(smooth)], minlength=n)
+    terrain = (size * res * res >= min_area_m2) & (n_border > 0) & (n_smooth >= share * n_border)
+    if not terrain.any():
+        return ground
+    out = ground.copy()
+    out[off] = terrain[label]
+    log.debug("ground: %d smooth pieces (%d cells) the cloth left out put back", int(terrain.sum()),
+              int(size[terrain].sum()))
+    return out
 
 
 def trim_object_edges(ground: np.ndarray, dsm: np.ndarray | None = None, tol: float = 0.1,

@@ -1,0 +1,91 @@
+"""Pitched roofs (analysis.heights.pitched): the roof frame, the gable's silhouette excess, and the
+rise found from two faces' colours on a synthetic oblique map drawn here by forward projection."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from pipeline25d.analysis.heights.pitched import fit_rise, line_excess, rise_share, roof_frame
+from pipeline25d.formats.footprints import Footprint
+
+ANGLE = math.radians(30)
+ALONG = np.array([math.cos(ANGLE), math.sin(ANGLE)])
+ACROSS = np.array([-ALONG[1], ALONG[0]])
+HALF_L, HALF_W = 9.0, 5.0
+
+
+def _house() -> Footprint:
+    corners = [s * HALF_L * ALONG + t * HALF_W * ACROSS for s, t in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+    return Footprint("h", (np.array(corners) + [100.0, 200.0],))
+
+
+def test_frame_and_shares_of_a_rotated_house():
+    fp = _house()
+    f = roof_frame(fp)
+    assert f.centre == pytest.approx([100.0, 200.0]) and (f.half_length, f.half_width) == pytest.approx((HALF_L, HALF_W))
+    assert abs(f.along @ ALONG) == pytest.approx(1.0)
+    c = np.array([100.0, 200.0])
+    pts = np.array([c, c + 2.5 * ACROSS, c + 5 * ACROSS, c + 8 * ALONG, c + 10 * ALONG])
+    assert rise_share(f, "gabled", pts[:, 0], pts[:, 1]) == pytest.approx([1.0, 0.5, 0.0, 1.0, 0.0])
+    # hipped: the ridge ends half the width in from the ends, the ends slope like the sides
+    assert rise_share(f, "hipped", pts[:, 0], pts[:, 1]) == pytest.approx([1.0, 0.5, 0.0, 0.2, 0.0])
+
+
+@pytest.mark.parametrize("rise", [2.0, 4.0, 7.0])
+def test_gable_and_eave_lines_end_where_the_geometry_says(rise):
+    fp = _house()
+    c = np.array([100.0, 200.0])
+    cot = 1.0                                            # elevation 45°
+    # a line from the gable end's middle, the view along the ridge: the gable's apex, the rise
+    gable = c + HALF_L * ALONG
+    assert line_excess(fp, "gabled", rise, gable[None], ALONG, cot)[0] == pytest.approx(rise)
+    # a line from the middle of an eave, the view across: the far face hides the ridge unless it is
+    # steeper than the view (rise / half width > tan 45°), then the ridge ends it
+    eave = c + HALF_W * ACROSS
+    want = max(0.0, rise - HALF_W / cot)
+    assert line_excess(fp, "gabled", rise, eave[None], ACROSS, cot)[0] == pytest.approx(want, abs=0.06)
+
+
+def test_two_faces_colours_give_the_rise_and_the_kind():
+    """Roof faces of two colours, drawn at q + (eave + rise·share(q))·cot·d on a fine grid; the fit
+    finds the rise it was drawn with, and a flat roof of one colour stays flat."""
+    fp = _house()
+    f = roof_frame(fp)
+    cot, d = 1 / math.tan(math.radians(45)), np.array([math.sin(math.radians(200)), math.cos(math.radians(200))])
+    eave, rise = 12.0, 3.4
+    cell = 0.05
+    x0, y0, n = 60.0, 160.0, 1600                        # a 80 m square of 5 cm cells
+    ground, light, dark = np.array([60.0, 140, 50]), np.array([200.0, 90, 70]), np.array([120.0, 50, 40])
+
+    def face(q: np.ndarray) -> np.ndarray:
+        return np.where(((q - f.centre) @ f.across > 0)[:, None], light, dark)
+
+    def draw(r: float, two_faces: bool) -> np.ndarray:
+        img = np.tile(ground, (n, n, 1))
+        g = np.arange(-HALF_L, HALF_L, cell / 2)
+        h = np.arange(-HALF_W, HALF_W, cell / 2)
+        q = (f.centre + g[:, None, None] * f.along + h[None, :, None] * f.across).reshape(-1, 2)
+        share = rise_share(f, "gabled", q[:, 0], q[:, 1])
+        order = np.argsort(share)                        # higher roof drawn last (over lower)
+        p = q[order] + ((eave + r * share[order]) * cot)[:, None] * d
+        col = face(q[order]) if two_faces else np.tile(light, (len(order), 1))
+        ci, ri = ((p[:, 0] - x0) / cell).astype(int), ((p[:, 1] - y0) / cell).astype(int)
+        img[ri, ci] = col
+        return img
+
+    rng = np.random.default_rng(1)
+    q = f.centre + rng.uniform(-0.9, 0.9, (400, 1)) * HALF_L * f.along + rng.uniform(-0.9, 0.9, (400, 1)) * HALF_W * f.across
+    for two, want_kind, want_rise in ((True, "gabled", rise), (False, "flat", 0.0)):
+        img = draw(rise if two else 0.0, two)
+        colour = face(q) if two else np.tile(light, (len(q), 1))
+
+        def sample(u: np.ndarray, img=img) -> np.ndarray:
+            p = q + u[:, None] * d
+            return img[((p[:, 1] - y0) / cell).astype(int), ((p[:, 0] - x0) / cell).astype(int)]
+
+        got = fit_rise(fp, q, colour, sample, np.full(len(q), eave * cot), cot, 30.0)
+        assert got.kind == want_kind
+        assert got.rise == pytest.approx(want_rise, abs=0.15)
