@@ -134,6 +134,45 @@ def test_an_obj_part_is_one_object_named_after_it(tmp_path):
     assert part.object_ids.tolist() == list(ids.values())
 
 
+
+def obj_object_triangles(path: Path) -> dict[str, list[tuple]]:
+    """Each ``o`` object's triangles (fans of its ``f`` polygons) as sorted vertex triples, read from
+    the OBJ's lines directly."""
+    verts, out, current = [], {}, ""
+    for line in path.read_text().splitlines():
+        words = line.split()
+        if not words:
+            continue
+        if words[0] == "v":
+            verts.append(tuple(float(w) for w in words[1:4]))
+        elif words[0] == "o":
+            current = " ".join(words[1:])
+        elif words[0] == "f":
+            idx = [int(w.split("/")[0]) for w in words[1:]]
+            idx = [i - 1 if i > 0 else len(verts) + i for i in idx]
+            for k in range(1, len(idx) - 1):
+                out.setdefault(current, []).append(tuple(sorted((verts[idx[0]], verts[idx[k]], verts[idx[k + 1]]))))
+    return out
+
+
+def test_an_obj_face_keeps_its_o_object_and_parts_stay_one_per_material():
+    """3dfier's Delft OBJ: one ``o`` per building, road, terrain patch ..., materials across them."""
+    from pipeline25d.formats.meshfile import load_mesh_file
+
+    path = DELFT.parent / "obj" / "testarea.obj"
+    mesh = load_mesh_file(path)
+    truth = obj_object_triangles(path)
+    materials = {w.split()[1] for w in path.read_text().splitlines() if w.startswith("usemtl ")}
+    assert sorted(p.name for p in mesh.parts) == sorted(materials)
+    got: dict[str, list[tuple]] = {}
+    for part in mesh.parts:
+        assert part.face_objects is not None          # the file names an object for every face
+        for face, obj in zip(part.faces, part.face_objects):
+            got.setdefault(part.objects[obj], []).append(tuple(sorted(map(tuple, part.vertices[face]))))
+    assert len(got) == len(truth) >= 500
+    assert all(sorted(got[key]) == sorted(truth[key]) for key in truth)
+
+
 SAMPLES = DELFT.parents[1] / "3dtiles-samples"
 
 

@@ -1,4 +1,4 @@
-"""OBJ, PLY and DAE model files through trimesh, one MeshPart per material/geometry.
+"""OBJ, PLY and DAE model files through trimesh: one MeshPart per material/geometry, an OBJ's faces on their `o`.
 
 trimesh keeps OBJ/glTF UVs with v = 0 at the image bottom (our convention); textures are
 re-encoded as PNG once per image; vertex colours and material colours become RGBA per
@@ -10,6 +10,7 @@ from __future__ import annotations
 import io
 import re
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -29,8 +30,9 @@ def load_mesh_file(path: str | Path) -> Mesh:
     repaired = {"OBJ": _check_obj, "DAE": _check_dae}.get(kind, lambda p: None)(path)
     files = _Files(str(path))
     source = {"file_obj": str(path)} if repaired is None else {"file_obj": io.BytesIO(repaired), "file_type": "dae"}
+    split = {"split_objects": True} if kind == "OBJ" else {}      # an OBJ's `o` objects (see _objects_joined)
     try:
-        scene = trimesh.load(**source, force="scene", process=False, resolver=files)
+        scene = trimesh.load(**source, force="scene", process=False, resolver=files, **split)
     except IndexError as exc:
         raise InputFileError(path, f"cannot read it as {model}: an index is out of range ({exc})") from None
     except Exception as exc:  # trimesh raises many exception types for bad files
@@ -49,7 +51,38 @@ def load_mesh_file(path: str | Path) -> Mesh:
         parts.append(_part(geom, vertices, str(name), encoded))
     if not parts:
         raise InputFileError(path, "contains no triangles")
-    return Mesh(parts, source=str(path))
+    return Mesh(_objects_joined(parts, path) if split else parts, source=str(path))
+
+
+def _objects_joined(parts: list[MeshPart], path: Path) -> list[MeshPart]:
+    """An OBJ read object by object (trimesh names each piece ``<object>_<usemtl>``, or ``<object>``
+    with one material) as one part per material again (few draw calls), each face keeping its ``o``
+    object (3dfier writes one per building, road, terrain patch). An OBJ with fewer than two ``o``
+    objects is one part per material, as trimesh reads it without splitting."""
+    names = set(re.findall(r"^o[ \t]+(.*?)[ \t]*$", path.read_text(errors="replace"), re.M))
+    groups: dict[tuple, list[tuple[str | None, MeshPart]]] = {}
+    for part in parts:
+        obj = max((n for n in names if part.name == n or part.name.startswith(n + "_")), key=len, default=None)
+        material = part.name[len(obj) + 1:] if obj and part.name != obj else (part.name if obj is None else "")
+        key = (material, part.texture, part.colors is None, part.uv is None)
+        groups.setdefault(key, []).append((obj, part))
+    out = []
+    for (material, *_), pieces in groups.items():
+        name = material or pieces[0][1].name
+        if len(names) < 2 or any(obj is None for obj, _ in pieces):
+            out += [replace(p, name=name if len(pieces) == 1 else p.name) for _, p in pieces]
+            continue
+        keys = {k: i for i, k in enumerate(dict.fromkeys(obj for obj, _ in pieces))}
+        offsets = np.cumsum([0] + [len(p.vertices) for _, p in pieces])
+        first = pieces[0][1]
+        out.append(MeshPart(
+            np.concatenate([p.vertices for _, p in pieces]),
+            np.concatenate([p.faces + o for (_, p), o in zip(pieces, offsets)]),
+            colors=None if first.colors is None else np.concatenate([p.colors for _, p in pieces]),
+            uv=None if first.uv is None else np.concatenate([p.uv for _, p in pieces]),
+            texture=first.texture, name=name, objects=tuple(keys),
+            face_objects=np.concatenate([np.full(p.n_triangles, keys[obj], np.int32) for obj, p in pieces])))
+    return out
 
 
 #: OBJ statements and the fewest values each takes; a last line with fewer was cut short.
