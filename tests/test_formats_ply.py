@@ -75,3 +75,35 @@ def test_textured_ply_is_left_to_trimesh(tmp_path):
     rows = "".join(line + " 0.5 0.5\n" for line in VERTICES.splitlines())
     path.write_text(header + rows + "3 0 1 2\n3 0 2 3\n")
     _same(load_ply(path), load_mesh_file(path))
+
+
+def _binary(path, faces, cut=0):
+    """The HEADER's vertices as a little-endian binary PLY with ``faces`` (lists of any length),
+    its last ``cut`` bytes left off."""
+    import struct
+
+    body = b"".join(struct.pack("<3d3B", *map(float, row.split()[:3]), *map(int, row.split()[3:]))
+                    for row in VERTICES.splitlines())
+    body += b"".join(struct.pack(f"<B{len(f)}i", len(f), *f) for f in faces)
+    header = HEADER.replace("format ascii", "format binary_little_endian").replace("face 2", f"face {len(faces)}")
+    path.write_bytes((header.encode() + body)[:len(header.encode() + body) - cut])
+    return path
+
+
+@pytest.mark.parametrize("faces", [[[0, 1, 2], [3, 2, 4]], [[0, 1, 2, 3], [3, 2, 4]], [[3, 2, 4], [0, 1, 2, 3]]])
+def test_binary_faces_of_any_length_read_as_in_the_ascii_file(tmp_path, faces):
+    """Triangles are memory-mapped in one piece; a polygon anywhere makes the reader go row by row."""
+    ascii_path = tmp_path / "a.ply"
+    ascii_path.write_text(HEADER.replace("face 2", f"face {len(faces)}") + VERTICES
+                          + "".join(f"{len(f)} {' '.join(map(str, f))}\n" for f in faces))
+    binary, text = load_ply(_binary(tmp_path / "b.ply", faces)).parts[0], load_ply(ascii_path).parts[0]
+    np.testing.assert_array_equal(binary.faces, text.faces)
+    np.testing.assert_array_equal(binary.vertices, text.vertices)
+    np.testing.assert_array_equal(binary.colors, text.colors)
+    expected = [[a, b, c] for f in faces for a, b, c in zip([f[0]] * (len(f) - 2), f[1:-1], f[2:])]
+    assert binary.faces.tolist() == expected
+
+
+def test_a_truncated_binary_file_is_named(tmp_path):
+    with pytest.raises(InputFileError, match=r"cut.ply.*truncated"):
+        load_ply(_binary(tmp_path / "cut.ply", [[0, 1, 2], [3, 2, 4]], cut=5))

@@ -12,10 +12,11 @@ imports its stage when it runs, so a job pays only for the modules it uses.
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Callable
 from typing import Any
 
-from pipeline25d.core.logsetup import log_job_resources, log_to, stop_on_error
+from pipeline25d.core.logsetup import log_job_resources, log_to, process_age, stop_on_error
 
 log = logging.getLogger(__name__)
 
@@ -177,8 +178,10 @@ RULES: dict[str, Callable[[Job], None]] = {
 
 
 def run(job: Job) -> None:
-    """Run the rule's function of a Snakemake script job, logged to its log file."""
+    """Run the rule's function of a Snakemake script job, logged to its log file with its resources
+    and times (start-up before the function, the function, CPU)."""
+    startup, t0 = process_age(), time.monotonic()
     log_to(job.log[0])
     with stop_on_error():
         RULES[job.rule](job)
-    log_job_resources()
+    log_job_resources(startup, time.monotonic() - t0)

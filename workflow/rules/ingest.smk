@@ -1,8 +1,10 @@
 # Ingest: one district file -> chunks (float64 origin + float32 local), unchanged chunks untouched;
-# its objects' numeric ids (objects.json beside the index) in the district's id slot.
+# its objects' numeric ids (objects.json beside the index) in the district's id slot. A plain rule,
+# no checkpoint: nothing downstream asks for its chunks by name (the lod job reads them from the
+# index), and each finished checkpoint made Snakemake re-evaluate the DAG.
 
 
-checkpoint ingest:
+rule ingest:
     input:
         district_inputs,
     output:

