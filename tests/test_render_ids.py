@@ -122,10 +122,10 @@ def test_terrain_relative_ids_follow_the_colour_render(gl_ctx):
 
 
 @pytest.mark.parametrize("terrain", [False, True])
-def test_ids_drawn_from_the_colour_pass_upload_equal_ids_drawn_from_the_parts(gl_ctx, terrain):
-    """The render job draws the ids from the geometry the colour pass uploaded (its buffers, this
-    pass's program): the same pixels as the ids drawn from the parts, and ingested parts' own
-    object ids (part_face_ids) give what a key -> id table gives."""
+def test_ids_drawn_in_the_colour_pass_from_ingested_parts_equal_ids_drawn_from_the_parts(gl_ctx, terrain):
+    """The render job draws the ids in its colour pass from the geometry it uploaded, in plane and
+    terrain mode: the same pixels as the ids drawn from the parts, and ingested parts' own object
+    ids (part_face_ids) give what a key -> id table gives."""
     from dataclasses import replace
 
     from pipeline25d.stages.render_ids import part_face_ids
@@ -135,11 +135,10 @@ def test_ids_drawn_from_the_colour_pass_upload_equal_ids_drawn_from_the_parts(gl
         v = replace(v, ground=lambda x, y: Z0 + 0.3 * (x - E0) - 0.2 * (y - N0))
     chunks = [(origin, [replace(p, object_ids=np.array([IDS[k] for k in p.objects], np.uint32)) for p in parts])
               for origin, parts in scene()]
-    colour, ids = TileRenderer(gl_ctx, samples=4), IdRenderer(gl_ctx, samples=4)
+    colour, ids = TileRenderer(gl_ctx, samples=4, ids=True), IdRenderer(gl_ctx, samples=4)
     direct = ids.render_ids(scene(), v, object_face_ids(IDS))
     with colour.upload(chunks, v) as geometry:
-        rgba = colour.render_color(geometry, v)
-        shared = ids.render_ids(geometry, v, part_face_ids)
+        rgba, shared = ids.with_colour(colour, geometry, v, part_face_ids)
     assert np.array_equal(shared, direct) and np.array_equal(shared > 0, rgba[..., 3] > 0)
     assert set(np.unique(shared)) == {0, *IDS.values()}
 

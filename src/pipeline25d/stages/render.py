@@ -136,15 +136,11 @@ class IdPass(Protocol):
 
 
 class _GpuMesh:
-    """A vertex array and the buffers it reads (``vao.release()`` alone leaves them allocated).
+    """A vertex array and the buffers it reads (``vao.release()`` alone leaves them allocated);
+    ``part``: the mesh part it was uploaded from (its face ids, :mod:`.render_ids`)."""
 
-    ``inputs``: its (buffer, format, attribute) triples and ``ibo`` its index buffer, from which
-    another program's pass (the object ids, :mod:`.render_ids`) makes its own vertex array;
-    ``part``: the mesh part it was uploaded from."""
-
-    def __init__(self, vao, inputs: list, ibo):
-        self.vao, self.inputs, self.ibo = vao, inputs, ibo
-        self.buffers = [b for b, _, _ in inputs] + [ibo]
+    def __init__(self, vao, buffers: list):
+        self.vao, self.buffers = vao, buffers
         self.texture: bytes | None = None
         self.coloured = False
         self.part: MeshPart | None = None
@@ -231,7 +227,7 @@ class TileRenderer:
             content.append((ctx.buffer(np.ascontiguousarray(uv, dtype="f4")), "2f", "in_uv"))
         ibo = ctx.buffer(np.ascontiguousarray(faces, dtype="u4"))
         vao = ctx.vertex_array(self.prog, content, index_buffer=ibo, index_element_size=4)
-        return _GpuMesh(vao, content, ibo)
+        return _GpuMesh(vao, [b for b, _, _ in content] + [ibo])
 
     def upload(self, chunks: list[tuple[np.ndarray, list[MeshPart]]], view: TileView | None) -> "TileGeometry":
         """The chunks on the GPU, once for every pass of a tile (they share the view's ground).

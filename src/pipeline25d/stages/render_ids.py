@@ -90,19 +90,17 @@ class IdRenderer:
         self.prog = ctx.program(vertex_shader=VERTEX_SHADER, fragment_shader=ID_FRAGMENT)
         self.resolve = ctx.program(vertex_shader=RESOLVE_VERTEX, fragment_shader=RESOLVE_FRAGMENT)
 
-    def render_ids(self, chunks: Sequence[tuple[np.ndarray, list[MeshPart]]] | TileGeometry, view: TileView,
+    def render_ids(self, chunks: Sequence[tuple[np.ndarray, list[MeshPart]]], view: TileView,
                    face_ids: FaceIds) -> np.ndarray:
-        """(h, w) uint32 object id per pixel, row 0 = north edge, 0 where no object is drawn.
+        """(h, w) uint32 object id per pixel, row 0 = north edge, 0 where no object is drawn: a pass
+        of its own (the render job draws the ids in its colour pass instead, :meth:`with_colour`).
 
-        ``chunks``: (float64 origin, parts) as the colour render takes them, or the colour pass's
-        :class:`~pipeline25d.stages.render.TileGeometry` (uploaded once for both); ``face_ids(part)``:
+        ``chunks``: (float64 origin, parts) as the colour render takes them; ``face_ids(part)``:
         the (m,) uint32 id of each of the part's faces (0: drawn as no object)."""
         import moderngl
 
         ctx, (w, h) = self.ctx, view.size
-        samples = max(self.samples, 1)
-        ids = ctx.texture((w, h), 1, samples=self.samples, dtype="u4") if self.samples else \
-            ctx.texture((w, h), 1, dtype="u4")
+        ids = ctx.texture((w, h), 1, samples=self.samples, dtype="u4")
         depth = ctx.depth_renderbuffer((w, h), samples=self.samples)
         fbo = ctx.framebuffer(color_attachments=[ids], depth_attachment=depth)
         fbo.use()
@@ -110,29 +108,23 @@ class IdRenderer:
         ctx.enable(moderngl.DEPTH_TEST)
         ctx.disable(moderngl.CULL_FACE)
         released = [fbo, depth]
-        uploaded = isinstance(chunks, TileGeometry)
         try:
-            for origin, items in (chunks.chunks if uploaded else chunks):
+            for origin, parts in chunks:
                 matrix = view.matrix(origin)
                 self.prog["u_mvp"].write(matrix.T.astype("f4").tobytes())
                 if "u_shear" in self.prog:
                     self.prog["u_shear"].value = view.shear(matrix)
                 if "u_zbias" in self.prog:
                     self.prog["u_zbias"].value = 0.0
-                for item in items:
-                    if uploaded:        # the colour pass's buffers, drawn by this pass's program
-                        inputs = [i for i in item.inputs if i[2] in ("in_pos", "in_ground")]
-                        released += self._draw(inputs, item.ibo, face_ids(item.part))
-                    elif item.n_triangles:
-                        inputs, ibo = self._upload(item, origin, view)
+                for part in parts:
+                    if part.n_triangles:
+                        inputs, ibo = self._upload(part, origin, view)
                         released += [b for b, _, _ in inputs] + [ibo]
-                        released += self._draw(inputs, ibo, face_ids(item))
-            out = self._resolved(ids, w, h, samples) if self.samples else \
-                np.frombuffer(ids.read(), dtype=np.uint32).reshape(h, w)
+                        released += self._draw(inputs, ibo, face_ids(part))
+            return self.read_ids(ids, (w, h), self.samples)
         finally:
             for obj in released + [ids]:
                 obj.release()
-        return out[::-1].copy()
 
     def _upload(self, part: MeshPart, origin: np.ndarray, view: TileView) -> tuple[list, object]:
         """A part's vertex inputs (positions, ground offsets in terrain mode) and index buffer."""
@@ -150,7 +142,6 @@ class IdRenderer:
         texture = face_texture(ctx, faces)
         texture.use(0)
         self.prog["u_faces"].value = 0
-        inputs = [i for i in inputs if i[2] in self.prog]
         vao = ctx.vertex_array(self.prog, inputs, index_buffer=ibo, index_element_size=4)
         vao.render()
         return [vao, texture]
@@ -165,6 +156,14 @@ class IdRenderer:
             return renderer.render_color_ids(geometry, view, ids, shadow, casters)
         finally:
             ids.release()
+
+    def read_ids(self, ids, size: tuple[int, int], samples: int) -> np.ndarray:
+        """An ids texture of ``samples`` samples (0: one) as (h, w) uint32, row 0 north: with several,
+        the per-pixel majority (:data:`RESOLVE_FRAGMENT`)."""
+        w, h = size
+        out = self._resolved(ids, w, h, samples) if samples else \
+            np.frombuffer(ids.read(), dtype=np.uint32).reshape(h, w)
+        return out[::-1].copy()
 
     def _resolved(self, ids, w: int, h: int, samples: int) -> np.ndarray:
         """The per-pixel majority id of the multisample ``ids`` texture, (h, w) with GL's row 0 first."""
@@ -185,7 +184,6 @@ class IdRenderer:
         finally:
             for obj in (vao, fbo, out):
                 obj.release()
-
 
 
 def face_texture(ctx, faces: np.ndarray):
@@ -217,10 +215,7 @@ class ColourIds:
         texture.use(unit)
 
     def resolve(self, target, size: tuple[int, int], samples: int) -> np.ndarray:
-        w, h = size
-        out = self.renderer._resolved(target, w, h, samples) if samples else \
-            np.frombuffer(target.read(), dtype=np.uint32).reshape(h, w)
-        return out[::-1].copy()
+        return self.renderer.read_ids(target, size, samples)
 
     def release(self) -> None:
         for texture in self._textures:
