@@ -128,6 +128,19 @@ class Mesh:
         return Mesh([p.transformed(fn) for p in self.parts], self.source, self.coarser)
 
 
+def joined(parts: list[MeshPart], name: str) -> MeshPart:
+    """``parts`` of one appearance (all with vertex colours or none, all with uv or none, the first's
+    texture) as one part, their faces in order, each on its object (:func:`joined_objects`)."""
+    offsets = np.cumsum([0] + [len(p.vertices) for p in parts])
+    objects, face_objects = joined_objects(parts)
+    first = parts[0]
+    return MeshPart(np.concatenate([p.vertices for p in parts]),
+                    np.concatenate([p.faces + o for p, o in zip(parts, offsets)]),
+                    colors=None if first.colors is None else np.concatenate([p.colors for p in parts]),
+                    uv=None if first.uv is None else np.concatenate([p.uv for p in parts]),
+                    texture=first.texture, name=name, objects=objects, face_objects=face_objects)
+
+
 def joined_objects(parts: list[MeshPart]) -> tuple[tuple[str, ...], np.ndarray | None]:
     """(objects, face objects) of the faces of ``parts`` concatenated in order; (), None when no
     part carries objects (else each part without them is its own object, :meth:`MeshPart.named`)."""

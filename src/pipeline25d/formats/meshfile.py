@@ -17,7 +17,7 @@ import numpy as np
 import trimesh
 
 from pipeline25d.core.errors import InputFileError, MissingTextureWarning
-from pipeline25d.core.mesh import Mesh, MeshPart
+from pipeline25d.core.mesh import Mesh, MeshPart, joined
 from pipeline25d.formats.common import side_file
 
 
@@ -72,16 +72,8 @@ def _objects_joined(parts: list[MeshPart], path: Path) -> list[MeshPart]:
         if len(names) < 2 or any(obj is None for obj, _ in pieces):
             out += [replace(p, name=name if len(pieces) == 1 else p.name) for _, p in pieces]
             continue
-        keys = {k: i for i, k in enumerate(dict.fromkeys(obj for obj, _ in pieces))}
-        offsets = np.cumsum([0] + [len(p.vertices) for _, p in pieces])
-        first = pieces[0][1]
-        out.append(MeshPart(
-            np.concatenate([p.vertices for _, p in pieces]),
-            np.concatenate([p.faces + o for (_, p), o in zip(pieces, offsets)]),
-            colors=None if first.colors is None else np.concatenate([p.colors for _, p in pieces]),
-            uv=None if first.uv is None else np.concatenate([p.uv for _, p in pieces]),
-            texture=first.texture, name=name, objects=tuple(keys),
-            face_objects=np.concatenate([np.full(p.n_triangles, keys[obj], np.int32) for obj, p in pieces])))
+        out.append(joined([replace(p, objects=(obj,), face_objects=np.zeros(p.n_triangles, np.int32))
+                           for obj, p in pieces], name))
     return out
 
 

@@ -27,12 +27,13 @@ import json
 import struct
 import warnings
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from pipeline25d.core.errors import InputFileError
-from pipeline25d.core.mesh import Mesh, MeshPart, joined_objects
+from pipeline25d.core.mesh import Mesh, MeshPart, joined
 from pipeline25d.formats.common import Detail, Loaded, in_scene
 from pipeline25d.formats.gltf import parse_gltf_bytes
 from pipeline25d.formats.tileset_tree import read_json, resolve, select
@@ -299,14 +300,7 @@ def _merge_untextured(parts: list[MeshPart]) -> list[MeshPart]:
     textured = [p for p in parts if p.texture is not None and p.n_triangles]
     if len(plain) <= 1:
         return textured + plain
-    offsets = np.cumsum([0] + [len(p.vertices) for p in plain])
     grey = np.array([200, 200, 200, 255], dtype=np.uint8)
-    objects, face_objects = joined_objects(plain)
-    merged = MeshPart(
-        np.concatenate([p.vertices for p in plain]),
-        np.concatenate([p.faces + o for p, o in zip(plain, offsets)]),
-        colors=np.concatenate([p.colors if p.colors is not None else np.tile(grey, (len(p.vertices), 1))
-                               for p in plain]),
-        name="untextured", objects=objects, face_objects=face_objects,
-    )
-    return textured + [merged]
+    plain = [replace(p, uv=None, colors=p.colors if p.colors is not None else np.tile(grey, (len(p.vertices), 1)))
+             for p in plain]
+    return textured + [joined(plain, "untextured")]
