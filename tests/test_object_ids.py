@@ -173,6 +173,24 @@ def test_an_obj_face_keeps_its_o_object_and_parts_stay_one_per_material():
     assert all(sorted(got[key]) == sorted(truth[key]) for key in truth)
 
 
+
+def test_obj_quirks_faces_before_any_o_an_object_named_twice_and_underscores(tmp_path):
+    """Faces before the first ``o`` are an object named after the file; an ``o`` that comes back
+    (trimesh names its second piece ``a_b_1``) is still ``a_b``; no MTL, so no material in the names."""
+    from pipeline25d.formats.meshfile import load_mesh_file
+
+    path = tmp_path / "quirks.obj"
+    path.write_text("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3\no a_b\nf 1 3 4\no c\nusemtl m1\nf 1 2 4\n"
+                    "o a_b\nf 2 3 4\n")
+    got = {}
+    for part in load_mesh_file(path).parts:
+        for face, obj in zip(part.faces, part.face_objects):
+            got.setdefault(part.objects[obj], []).append(tuple(sorted(map(tuple, part.vertices[face]))))
+    truth = obj_object_triangles(path)
+    truth["quirks.obj"] = truth.pop("")
+    assert {k: sorted(v) for k, v in got.items()} == {k: sorted(v) for k, v in truth.items()}
+
+
 SAMPLES = DELFT.parents[1] / "3dtiles-samples"
 
 

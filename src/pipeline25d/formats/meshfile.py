@@ -59,21 +59,24 @@ def _objects_joined(parts: list[MeshPart], path: Path) -> list[MeshPart]:
     with one material) as one part per material again (few draw calls), each face keeping its ``o``
     object (3dfier writes one per building, road, terrain patch). An OBJ with fewer than two ``o``
     objects is one part per material, as trimesh reads it without splitting."""
-    names = set(re.findall(r"^o[ \t]+(.*?)[ \t]*$", path.read_text(errors="replace"), re.M))
+    statements = re.findall(r"^(o|usemtl)[ \t]+(.*?)[ \t]*$", path.read_text(errors="replace"), re.M)
+    names = {v for k, v in statements if k == "o"}
+    usemtl = {v for k, v in statements if k == "usemtl"}
     groups: dict[tuple, list[tuple[str | None, MeshPart]]] = {}
     for part in parts:
         obj = max((n for n in names if part.name == n or part.name.startswith(n + "_")), key=len, default=None)
-        material = part.name[len(obj) + 1:] if obj and part.name != obj else (part.name if obj is None else "")
+        material = part.name if obj is None else part.name[len(obj) + 1:]
+        material = material if material in usemtl else ""     # else trimesh's "_1" making a name unique
         key = (material, part.texture, part.colors is None, part.uv is None)
         groups.setdefault(key, []).append((obj, part))
     out = []
     for (material, *_), pieces in groups.items():
-        name = material or pieces[0][1].name
-        if len(names) < 2 or any(obj is None for obj, _ in pieces):
-            out += [replace(p, name=name if len(pieces) == 1 else p.name) for _, p in pieces]
+        if len(names) < 2:
+            out += [replace(p, name=material or p.name) if len(pieces) == 1 else p for _, p in pieces]
             continue
-        out.append(joined([replace(p, objects=(obj,), face_objects=np.zeros(p.n_triangles, np.int32))
-                           for obj, p in pieces], name))
+        # faces before the first `o` are an object of their own, named as trimesh names them
+        out.append(joined([replace(p, objects=(obj or p.name,), face_objects=np.zeros(p.n_triangles, np.int32))
+                           for obj, p in pieces], material or path.name))
     return out
 
 
