@@ -51,6 +51,37 @@ def test_csf_on_the_detrended_dsm_finds_the_ground_of_steep_relief():
     assert rms["missed ground"] < 2.5 and rms["under objects"] < 1.5, rms
 
 
+_CSF_IN_A_PROCESS = """
+import sys, numpy as np
+sys.path.insert(0, sys.argv[1])
+from test_terrain import rugged_scene
+from pipeline25d.stages.terrain.ground import csf_ground
+grid, dsm, _, _ = rugged_scene(seed=3)
+mask = csf_ground(dsm, grid, max_object_m=60, cloth_resolution=2.0, rigidness=2, class_threshold=0.5)
+np.save(sys.argv[2], mask)
+"""
+
+
+def test_csf_ground_is_the_same_whatever_the_openmp_thread_count(tmp_path):
+    """CSF's parallel spring pass races between threads; run with 1, 4 and 4 threads again (in fresh
+    processes, as OMP_NUM_THREADS is read when OpenMP starts), the ground masks are identical."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    masks = []
+    for k, threads in enumerate((1, 4, 4)):
+        out = tmp_path / f"mask{k}.npy"
+        env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
+        subprocess.run([sys.executable, "-c", _CSF_IN_A_PROCESS, str(Path(__file__).parent), str(out)],
+                       env=env, check=True, capture_output=True)
+        masks.append(np.load(out))
+    assert masks[0].sum() > 0.5 * masks[0].size                # a real ground mask, most of the scene
+    for other in masks[1:]:
+        assert np.array_equal(masks[0], other), int((masks[0] != other).sum())
+
+
 def test_sites_are_exposed_clear_of_objects_and_of_their_lines_of_sight():
     """Flat ground with one 30 m tower; a camera in the south at 30° cannot see the ground
     north of the tower up to 30·cot 30° = 52 m: no site there is clear for that view, and with

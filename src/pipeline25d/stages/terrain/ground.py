@@ -100,8 +100,14 @@ def _cloth_ground(residual: np.ndarray, grid: Grid, window: tuple[slice, slice],
 
 def _cloth_of(residual: np.ndarray, valid: np.ndarray, xs: np.ndarray, ys: np.ndarray, cloth_resolution: float,
               rigidness: int, class_threshold: float) -> np.ndarray:
-    """CSF ground mask of one island: cells ``valid`` at (``xs``, ``ys``) with heights ``residual``."""
+    """CSF ground mask of one island: cells ``valid`` at (``xs``, ``ys``) with heights ``residual``.
+
+    The cloth runs on one OpenMP thread: CSF's parallel spring pass writes shared particles from
+    several threads, so with more than one its ground depends on the thread count and even
+    varies run to run, and the same scene gave different maps on machines of different sizes.
+    """
     import CSF
+    from threadpoolctl import threadpool_limits
 
     pts = np.empty((int(valid.sum()), 3))
     pts[:, 0] = np.broadcast_to(xs, valid.shape)[valid]
@@ -117,7 +123,8 @@ def _cloth_of(residual: np.ndarray, valid: np.ndarray, xs: np.ndarray, ys: np.nd
     csf.setPointCloud(pts)
     del pts                                          # the CSF holds its own copy
     ground, off = CSF.VecInt(), CSF.VecInt()
-    csf.do_filtering(ground, off, exportCloth=False)
+    with threadpool_limits(limits=1, user_api="openmp"):
+        csf.do_filtering(ground, off, exportCloth=False)
     del off
     flat = np.zeros(int(valid.sum()), dtype=bool)
     flat[np.asarray(ground, dtype=np.int64)] = True
