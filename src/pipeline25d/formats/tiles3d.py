@@ -35,6 +35,8 @@ import numpy as np
 from pipeline25d.core.errors import InputFileError
 from pipeline25d.core.mesh import Mesh, MeshPart, joined
 from pipeline25d.formats.common import Detail, Loaded, in_scene
+from pipeline25d.formats.batch_table import batch_table_rows
+from pipeline25d.formats.feature_info import feature_prefix, with_feature_info
 from pipeline25d.formats.gltf import parse_gltf_bytes
 from pipeline25d.formats.tileset_tree import read_json, resolve, select
 
@@ -179,21 +181,28 @@ def _feature_array(table: dict, body: bytes, name: str, count: int, n: int, dtyp
 
 
 def _parse_b3dm(data: bytes, path: Path, y_up: bool, root: Path) -> list[MeshPart]:
-    """Batched 3D model: header, feature table (RTC_CENTER), batch table (skipped), GLB."""
+    """Batched 3D model: header, feature table (RTC_CENTER, BATCH_LENGTH), batch table (the batch
+    ids' attributes, :mod:`pipeline25d.formats.batch_table`), GLB."""
     length = _check_length(data, path, _B3DM_HEADER)
     ft_json, ft_bin, bt_json, bt_bin = struct.unpack_from("<4I", data, 12)
-    header = _B3DM_HEADER
+    header, batch_length = _B3DM_HEADER, None
     if bt_json >= _LEGACY_LIMIT:  # legacy: [batchLength, batchTableByteLength]
-        header, ft_json, ft_bin, bt_json, bt_bin = 20, 0, 0, ft_bin, 0
+        header, ft_json, ft_bin, bt_json, bt_bin, batch_length = 20, 0, 0, ft_bin, 0, ft_json
     elif bt_bin >= _LEGACY_LIMIT:  # legacy: [batchTableJsonByteLength, batchTableBinaryByteLength, batchLength]
-        header, ft_json, ft_bin, bt_json, bt_bin = 24, 0, 0, ft_json, ft_bin
+        header, ft_json, ft_bin, bt_json, bt_bin, batch_length = 24, 0, 0, ft_json, ft_bin, bt_json
     glb_start = header + ft_json + ft_bin + bt_json + bt_bin
     if glb_start > length:
         raise InputFileError(path, "b3dm table lengths exceed the tile's byteLength (corrupt)")
     table, body = _feature_table(data, header, ft_json, ft_bin, path)
     parts = parse_gltf_bytes(data[glb_start:length], path, y_up, root)
     rtc = _feature_array(table, body, "RTC_CENTER", 1, 3, "float32", path)
-    return parts if rtc is None else [p.transformed(lambda v, t=rtc[0]: v + t) for p in parts]
+    parts = parts if rtc is None else [p.transformed(lambda v, t=rtc[0]: v + t) for p in parts]
+    batch_start = header + ft_json + ft_bin
+    count = table.get("BATCH_LENGTH", batch_length)
+    rows = batch_table_rows(data[batch_start:batch_start + bt_json],
+                            data[batch_start + bt_json:batch_start + bt_json + bt_bin],
+                            count if isinstance(count, int) and count >= 0 else None, path)
+    return with_feature_info(parts, rows, feature_prefix(path, root), path)
 
 
 def _parse_i3dm(data: bytes, path: Path, y_up: bool, root: Path) -> list[MeshPart]:
@@ -258,7 +267,8 @@ def _instanced(part: MeshPart, matrices: np.ndarray) -> MeshPart:
     rep = (lambda a: None if a is None else np.tile(a, (k, 1)))
     objects = None if part.face_objects is None else np.tile(part.face_objects, k)
     return MeshPart(verts.reshape(-1, 3), faces.reshape(-1, 3), rep(part.colors), rep(part.uv),
-                    part.texture, part.name, objects=part.objects, face_objects=objects)
+                    part.texture, part.name, objects=part.objects, face_objects=objects,
+                    object_info=part.object_info)
 
 
 def _parse_cmpt(data: bytes, path: Path, y_up: bool, root: Path) -> list[MeshPart]:
