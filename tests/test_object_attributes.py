@@ -407,3 +407,33 @@ def test_hostile_batch_table_is_bounded_with_one_warning_naming_the_file(tmp_pat
     first, second = info["hostile.b3dm#0"]["attributes"], info["hostile.b3dm#1"]["attributes"]
     assert len(first["huge"]) == MAX_TEXT + 1 and first["nan"] is None and "\ufffd" in first["surrogate"]
     assert isinstance(first["deep"], (str, list)) and second["surrogate"] == "f\ufffdne" and second["nan"] == 1.5
+
+
+def test_hostile_cityjson_attributes_are_bounded_in_the_table(tmp_path):
+    """A CityJSON object whose key holds a lone surrogate and whose attributes hold NaN, a 100,000-item
+    list and 2,000 attributes: the table is written (CSV, GeoPackage, shards: valid UTF-8, strict JSON)."""
+    from osgeo import ogr
+
+    attrs = {"nan": float("nan"), "list": list(range(100_000)), **{f"k{i}": i for i in range(2000)}}
+    quad = [[0, 1, 2, 3]]
+    doc = {"type": "CityJSON", "version": "2.0", "transform": {"scale": [1, 1, 1], "translate": [691000, 5334000, 520]},
+           "metadata": {"referenceSystem": "https://www.opengis.net/def/crs/EPSG/0/25832"},
+           "CityObjects": {"b\ud800x": {"type": "Building", "attributes": attrs, "geometry": [
+               {"type": "MultiSurface", "lod": "1", "boundaries": [quad]}]}},
+           "vertices": [[0, 0, 0], [10, 0, 0], [10, 10, 5], [0, 10, 5]]}
+    path = tmp_path / "city.json"
+    path.write_text(json.dumps(doc))
+    ingest({"path": str(path)}, "d", "EPSG:25832", 100.0, 0.5, tmp_path / "chunks" / "d" / "index.json", slot=1)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        rows = scene_objects(tmp_path / "chunks", ["d"], {"d": str(path)})
+    assert any(str(path) in str(w.message) and "bounded" in str(w.message) for w in caught)
+    write_objects(rows, tmp_path / "objects", horizontal_wkt("EPSG:25832"))
+    (row,) = rows
+    assert row.name == "b\ufffdx" and row.attributes["nan"] is None and len(row.attributes["list"]) == 100
+    assert len(row.attributes) == MAX_ATTRIBUTES
+    text = (tmp_path / "objects" / "objects.csv").read_bytes().decode("utf-8")
+    (got,) = [json.loads(r["attributes"], parse_constant=None) for r in csv.DictReader(text.splitlines())]
+    ds = ogr.Open(str(tmp_path / "objects" / "objects.gpkg"))          # held: its layer dies with it
+    (feature,) = ds.GetLayer("objects")
+    assert got == json.loads(feature["attributes"]) == row.attributes

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import warnings
 from collections import Counter
 from collections.abc import Mapping
@@ -31,6 +32,7 @@ MAX_TEXT = 2_000
 MAX_NAME = 200
 MAX_ITEMS = 100
 MAX_DEPTH = 4
+_SURROGATE = re.compile("[\ud800-\udfff]")
 
 
 def object_info(obj_type: str | None, attributes: Mapping | None) -> dict:
@@ -45,11 +47,7 @@ def object_info(obj_type: str | None, attributes: Mapping | None) -> dict:
 
 def clean_text(text: str) -> str:
     """``text`` with what UTF-8 cannot encode (lone surrogates) replaced by U+FFFD."""
-    try:
-        text.encode("utf-8")
-        return text
-    except UnicodeEncodeError:
-        return text.encode("utf-8", "surrogatepass").decode("utf-8", "replace")
+    return _SURROGATE.sub("\ufffd", text)
 
 
 class Limiter:

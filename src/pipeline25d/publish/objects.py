@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline25d.core.atomic import atomic_path, replace_dir, write_bytes, write_json
-from pipeline25d.formats.attributes import Limiter
+from pipeline25d.formats.attributes import Limiter, clean_text
 from pipeline25d.stages.chunks import load_npz, unpack_parts
 from pipeline25d.stages.objects import LOCAL_BITS, LOCAL
 
@@ -136,7 +136,8 @@ def scene_objects(chunks_dir: str | Path, districts: list[str], cityjson: dict[s
             height = attrs.get("measuredHeight") if "measuredHeight_uom" not in attrs else None   # metres only
             if not isinstance(height, (int, float)) or isinstance(height, bool):
                 height = None if box is None else float(box[5] - box[2])
-            rows.append(SceneObject(int(oid), district, name, str(obj.get("type", "")), height, measured.get(name),
+            rows.append(SceneObject(int(oid), district, clean_text(name), clean_text(str(obj.get("type", ""))),
+                                    height, measured.get(name),
                                     attrs, None if box is None else (box[0], box[1], box[3], box[4])))
         limiter.warn()
     return sorted(rows, key=lambda r: r.id)
