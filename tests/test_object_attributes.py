@@ -319,6 +319,24 @@ def test_generated_gltf_property_table_of_every_value_kind(tmp_path):
         assert got == row
 
 
+def test_a_null_feature_has_no_attributes_and_a_broken_table_costs_only_its_attributes(tmp_path):
+    doc, binary, expected = metadata_gltf()
+    doc["meshes"][0]["primitives"][0]["extensions"]["EXT_mesh_features"]["featureIds"][0]["nullFeatureId"] = 1
+    path = tmp_path / "null.glb"
+    path.write_bytes(glb_bytes(doc, binary))
+    info = info_of(read_content(path))
+    assert set(info) == {"null.glb#0", "null.glb#2"} and info["null.glb#2"]["attributes"]["kind"] == expected[2]["kind"]
+    table = doc["extensions"]["EXT_structural_metadata"]["propertyTables"][0]
+    table["count"] = 10 ** 9                                       # far more rows than its buffers hold
+    table["properties"]["name"]["stringOffsets"] = table["properties"]["height"]["values"]
+    path.write_bytes(glb_bytes(doc, binary))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        parts = read_content(path)
+    assert not info_of(parts) and sum(p.n_triangles for p in parts) == 36
+    assert any(str(path) in str(w.message) and "property table not read" in str(w.message) for w in caught)
+
+
 def test_cdb_property_table():
     """The CDB sample's GSModels tile: its property table's SCALAR columns decoded here from the GLB."""
     path = SHARED / "3dtiles-samples/cdb-yemen-cut/Tiles/N12/E045/GSModels/1_1/N12E045_D300_S001_T001_LC5_U0_R0.glb"

@@ -45,7 +45,7 @@ def city_object_info(elem, limiter: Limiter) -> dict:
     """``{"type", "attributes"}`` of the city object ``elem`` (:mod:`pipeline25d.formats.attributes`)."""
     attrs = _attributes(elem)
     parts = {}
-    for n, part in enumerate(p for p in elem.iterdescendants() if local_name(p.tag) in _PARTS):
+    for n, part in enumerate(elem.iterdescendants(*(f"{{*}}{name}" for name in _PARTS))):
         key = part.get(GML_ID[0]) or part.get(GML_ID[1]) or f"{local_name(part.tag)}#{n}"
         parts[key] = _attributes(part)
     if parts and any(parts.values()):

@@ -43,13 +43,14 @@ def feature_properties(gltf: dict, prim: dict, objects: tuple[str, ...], view_by
                        limiter: Limiter) -> dict[str, dict] | None:
     """key -> attributes of a glTF primitive's features (``objects``, keys ``<prefix>#<feature id>``)
     from the ``EXT_structural_metadata`` property table its first feature ids name
-    (:mod:`pipeline25d.formats.structural_metadata`); None without one. A table that cannot be
-    read: None, with a warning naming the file (``limiter.where``)."""
+    (:mod:`pipeline25d.formats.structural_metadata`), none for its ``nullFeatureId``; None without
+    a table. A table that cannot be read: None, with a warning naming the file (``limiter.where``)."""
     ids = prim.get("extensions", {}).get("EXT_mesh_features", {}).get("featureIds") or []
     ext = gltf.get("extensions", {}).get("EXT_structural_metadata")
     if not objects or not ext or not ids or not isinstance(ids[0], dict) or "propertyTable" not in ids[0]:
         return None
-    rows = {int(key.rsplit("#", 1)[1]): key for key in objects}
+    null = ids[0].get("nullFeatureId")              # "no feature": no attributes
+    rows = {r: key for key in objects if (r := int(key.rsplit("#", 1)[1])) != null}
     try:
         found = property_rows(ext, ids[0]["propertyTable"], rows, view_bytes)
     except (MetadataError, InputFileError) as exc:
