@@ -12,7 +12,8 @@ factor and ``COLOR_0`` as vertex colours of untextured parts. Only triangle list
 (mode 4) are read; other primitive modes are skipped with a warning.
 
 One :class:`MeshPart` per primitive instance, its vertices compacted to the ones its
-triangles use. UVs are flipped to the GL convention (v = 0 is the bottom image row).
+triangles use; its faces' objects are the feature ids (``_BATCHID``, ``EXT_mesh_features``) and
+their attributes the ``EXT_structural_metadata`` property table's rows (:mod:`pipeline25d.formats.feature_info`). UVs are flipped to the GL convention (v = 0 is the bottom image row).
 Colours are the 8-bit values of the glTF factors as written (no linear->sRGB step),
 which is how generators such as pg2b3dm author them.
 

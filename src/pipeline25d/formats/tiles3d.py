@@ -12,6 +12,8 @@ Every file a tileset names (contents, external tilesets, subtrees and their buff
 buffers and images, i3dm glTF URIs) must lie inside the root tileset.json's folder
 (:func:`~pipeline25d.formats.common.side_file`): ``../`` to a sibling inside it is fine.
 
+A b3dm's batch table gives its batch ids' attributes (:mod:`pipeline25d.formats.batch_table`).
+
 Bounding volumes are never used: the selection here depends on geometric errors only,
 and geometry is never clipped to a bounding volume (real tilesets, e.g. pg2b3dm's
 Amsterdam sample, have boxes that are too small on one side).
