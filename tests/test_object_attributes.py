@@ -20,7 +20,7 @@ import pytest
 
 from pipeline25d.core.crs import horizontal_wkt
 from pipeline25d.core.mesh import merged_info
-from pipeline25d.formats.attributes import MAX_ATTRIBUTES, MAX_OBJECT_CHARS, MAX_TEXT
+from pipeline25d.formats.attributes import MAX_ATTRIBUTES, MAX_OBJECT_CHARS, MAX_TEXT, Limiter
 from pipeline25d.formats.citygml import read_citygml
 from pipeline25d.formats.tiles3d import read_b3dm, read_content
 from pipeline25d.publish.objects import scene_objects, write_objects
@@ -234,6 +234,16 @@ def test_generated_b3dm_batch_table_json_and_binary(tmp_path):
     assert "name" not in info["tile.b3dm#3"]["attributes"]                       # a null is left out
 
 
+def test_the_inner_tiles_of_a_composite_keep_their_features_apart(tmp_path):
+    """Two b3dm of three batch ids each in one cmpt: six objects, each with its own tile's row."""
+    tiles = [b3dm(3, json.dumps({"tile": [k] * 3, "n": [10 * k + i for i in range(3)]}).encode()) for k in range(2)]
+    path = tmp_path / "two.cmpt"
+    path.write_bytes(struct.pack("<4sIII", b"cmpt", 1, 16 + sum(map(len, tiles)), 2) + b"".join(tiles))
+    parts = read_content(path)
+    expected = {f"two.cmpt/{k}#{i}": {"attributes": {"tile": k, "n": 10 * k + i}} for k in range(2) for i in range(3)}
+    assert info_of(parts) == expected and {o for p in parts for o in p.objects} == set(expected)
+
+
 @pytest.mark.parametrize("tile", ["tokyo-chiyoda-b3dm/cesium-rtc-extension.b3dm", "amsterdam-3dtiles/tiles/5.b3dm"])
 def test_shared_b3dm_batch_tables(tile):
     path = SHARED / tile
@@ -421,9 +431,15 @@ def test_hostile_batch_table_is_bounded_with_one_warning_naming_the_file(tmp_pat
         attrs = info[key]["attributes"]
         text = json.dumps(attrs, ensure_ascii=False, allow_nan=False)        # valid JSON, no NaN
         text.encode("utf-8")                                                 # no lone surrogates
-        assert len(attrs) <= MAX_ATTRIBUTES and len(text) <= MAX_OBJECT_CHARS + MAX_TEXT + 1000
+        assert len(attrs) <= MAX_ATTRIBUTES and len(text) <= MAX_OBJECT_CHARS
+        with warnings.catch_warnings(record=True) as again:                  # bounded once for good
+            warnings.simplefilter("always")
+            limiter = Limiter(path)
+            assert limiter.attributes(attrs) == attrs
+            limiter.warn()
+        assert not again
     first, second = info["hostile.b3dm#0"]["attributes"], info["hostile.b3dm#1"]["attributes"]
-    assert len(first["huge"]) == MAX_TEXT + 1 and first["nan"] is None and "\ufffd" in first["surrogate"]
+    assert len(first["huge"]) == MAX_TEXT and first["nan"] is None and "\ufffd" in first["surrogate"]
     assert isinstance(first["deep"], (str, list)) and second["surrogate"] == "f\ufffdne" and second["nan"] == 1.5
 
 

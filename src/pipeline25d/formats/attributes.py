@@ -109,7 +109,7 @@ class Limiter:
             self.cut["characters that are not UTF-8 replaced by U+FFFD"] += 1
         if len(cleaned) > limit:
             self.cut[f"{what} cut to {limit} characters"] += 1
-            cleaned = cleaned[:limit] + "…"
+            cleaned = cleaned[:limit - 1] + "…"          # ``limit`` long: bounding again changes nothing
         return cleaned
 
     def warn(self, stacklevel: int = 2) -> None:

@@ -274,19 +274,37 @@ def _instanced(part: MeshPart, matrices: np.ndarray) -> MeshPart:
 
 
 def _parse_cmpt(data: bytes, path: Path, y_up: bool, root: Path) -> list[MeshPart]:
-    """Composite tile: the inner tiles one after another."""
+    """Composite tile: the inner tiles one after another, the features of inner tile ``k`` keyed
+    ``<file>/<k>#<feature id>`` (each inner tile numbers its features from 0)."""
     length = _check_length(data, path, 16)
     count = struct.unpack_from("<I", data, 12)[0]
     parts, pos = [], 16
-    for _ in range(count):
+    for k in range(count):
         if pos + 12 > length:
             raise InputFileError(path, "composite tile is truncated")
         inner_len = struct.unpack_from("<I", data, pos + 8)[0]
         if inner_len < 12 or pos + inner_len > length:
             raise InputFileError(path, "composite inner tile runs past the end (corrupt)")
-        parts.extend(_parse_content(data[pos:pos + inner_len], path, y_up, root))
+        parts.extend(_inner_keys(_parse_content(data[pos:pos + inner_len], path, y_up, root),
+                                 feature_prefix(path, root), k))
         pos += inner_len
     return parts
+
+
+def _inner_keys(parts: list[MeshPart], prefix: str, k: int) -> list[MeshPart]:
+    """Inner tile ``k``'s parts with their feature keys ``<prefix>#<id>`` (and their attributes')
+    made ``<prefix>/<k>#<id>``."""
+    old, new = f"{prefix}#", f"{prefix}/{k}#"
+
+    def key(name: str) -> str:
+        return new + name[len(old):] if name.startswith(old) else name
+
+    infos: dict[int, dict] = {}                  # each shared mapping renamed once
+    for p in parts:
+        if p.object_info and id(p.object_info) not in infos:
+            infos[id(p.object_info)] = {key(name): v for name, v in p.object_info.items()}
+    return [replace(p, objects=tuple(key(o) for o in p.objects),
+                    object_info=infos.get(id(p.object_info), p.object_info)) for p in parts]
 
 
 # --------------------------------------------------------------------------- placement and CRS
