@@ -244,6 +244,25 @@ def test_the_inner_tiles_of_a_composite_keep_their_features_apart(tmp_path):
     assert info_of(parts) == expected and {o for p in parts for o in p.objects} == set(expected)
 
 
+def test_each_i3dm_instance_is_an_object_with_its_batch_table_row():
+    """TilesetWithTransforms' instances.i3dm (25 instances, positions only): instance j's faces, less its
+    POSITION read here from the feature table, are the same model for every j; its attributes are row j."""
+    path = SHARED / "3dtiles-samples/TilesetWithTransforms/instances.i3dm"
+    if not path.is_file():
+        pytest.skip(f"{path} not present")
+    data = path.read_bytes()
+    ft_json, ft_bin, bt_json, _, _ = struct.unpack_from("<5I", data, 12)
+    table = json.loads(data[32:32 + ft_json])
+    n = table["INSTANCES_LENGTH"]
+    positions = np.frombuffer(data, "<f4", 3 * n, 32 + ft_json + table["POSITION"]["byteOffset"]).reshape(n, 3)
+    batch = json.loads(data[32 + ft_json + ft_bin:32 + ft_json + ft_bin + bt_json])
+    (part,) = read_content(path)
+    assert part.objects == tuple(f"instances.i3dm#{j}" for j in range(n))
+    shapes = [part.vertices[part.faces[part.face_objects == j]].reshape(-1, 3) - positions[j] for j in range(n)]
+    assert all(np.allclose(s, shapes[0], atol=1e-4) for s in shapes)
+    assert info_of([part]) == {f"instances.i3dm#{j}": {"attributes": {k: v[j] for k, v in batch.items()}} for j in range(n)}
+
+
 @pytest.mark.parametrize("tile", ["tokyo-chiyoda-b3dm/cesium-rtc-extension.b3dm", "amsterdam-3dtiles/tiles/5.b3dm"])
 def test_shared_b3dm_batch_tables(tile):
     path = SHARED / tile

@@ -208,7 +208,9 @@ def _parse_b3dm(data: bytes, path: Path, y_up: bool, root: Path) -> list[MeshPar
 
 
 def _parse_i3dm(data: bytes, path: Path, y_up: bool, root: Path) -> list[MeshPart]:
-    """Instanced 3D model: the glTF repeated at each instance's position/rotation/scale.
+    """Instanced 3D model: the glTF repeated at each instance's position/rotation/scale, each
+    instance an object ``<file>#<batch id>`` (``BATCH_ID``, else its index) with its row of the
+    batch table as attributes (where the glTF's own faces carry no feature ids).
 
     Supported: POSITION, POSITION_QUANTIZED, RTC_CENTER, NORMAL_UP + NORMAL_RIGHT,
     SCALE, SCALE_NON_UNIFORM. EAST_NORTH_UP and oct-encoded normals are ignored with a
@@ -227,7 +229,24 @@ def _parse_i3dm(data: bytes, path: Path, y_up: bool, root: Path) -> list[MeshPar
     else:
         parts = parse_gltf_bytes(gltf, path, y_up, root)
     matrices = _instance_matrices(table, body, path)
-    return [_instanced(p, matrices) for p in parts]
+    batch_ids = _batch_ids(table, body, len(matrices), path)
+    prefix = feature_prefix(path, root)
+    parts = [_instanced(p, matrices, batch_ids, prefix) for p in parts]
+    bt_start = _I3DM_HEADER + ft_json + ft_bin
+    count = int(batch_ids.max()) + 1 if len(batch_ids) else 0
+    rows = batch_table_rows(data[bt_start:bt_start + bt_json], data[bt_start + bt_json:bt_start + bt_json + bt_bin],
+                            count, path)
+    return with_feature_info(parts, rows, prefix, path)
+
+
+def _batch_ids(table: dict, body: bytes, count: int, path: Path) -> np.ndarray:
+    """(count,) int64 batch id of each i3dm instance: ``BATCH_ID`` (UNSIGNED_BYTE/SHORT/INT), else its index."""
+    ref = table.get("BATCH_ID")
+    if ref is None:
+        return np.arange(count)
+    dtype = {"UNSIGNED_BYTE": "uint8", "UNSIGNED_SHORT": "uint16", "UNSIGNED_INT": "uint32"}.get(
+        str(ref.get("componentType", "UNSIGNED_SHORT")) if isinstance(ref, dict) else "", "uint16")
+    return _feature_array(table, body, "BATCH_ID", count, 1, dtype, path).reshape(-1).astype(np.int64)
 
 
 def _instance_matrices(table: dict, body: bytes, path: Path) -> np.ndarray:
@@ -261,15 +280,20 @@ def _instance_matrices(table: dict, body: bytes, path: Path) -> np.ndarray:
     return m
 
 
-def _instanced(part: MeshPart, matrices: np.ndarray) -> MeshPart:
-    """One part holding ``part`` repeated under each of ``matrices``."""
+def _instanced(part: MeshPart, matrices: np.ndarray, batch_ids: np.ndarray, prefix: str) -> MeshPart:
+    """One part holding ``part`` repeated under each of ``matrices``; without feature ids of its own,
+    instance ``j``'s faces belong to the object ``<prefix>#<batch_ids[j]>``."""
     k, n = len(matrices), len(part.vertices)
     verts = np.einsum("kij,nj->kni", matrices[:, :3, :3], part.vertices) + matrices[:, None, :3, 3]
     faces = part.faces[None, :, :] + (np.arange(k) * n)[:, None, None]
     rep = (lambda a: None if a is None else np.tile(a, (k, 1)))
-    objects = None if part.face_objects is None else np.tile(part.face_objects, k)
+    if part.face_objects is not None:
+        keys, face_objects = part.objects, np.tile(part.face_objects, k)
+    else:
+        held, inverse = np.unique(batch_ids, return_inverse=True)
+        keys, face_objects = tuple(f"{prefix}#{b}" for b in held), np.repeat(inverse, part.n_triangles)
     return MeshPart(verts.reshape(-1, 3), faces.reshape(-1, 3), rep(part.colors), rep(part.uv),
-                    part.texture, part.name, objects=part.objects, face_objects=objects,
+                    part.texture, part.name, objects=keys, face_objects=face_objects,
                     object_info=part.object_info)
 
 
