@@ -241,3 +241,21 @@ def test_hostile_cityjson_attributes_are_bounded_in_the_table(tmp_path):
     ds = ogr.Open(str(tmp_path / "objects" / "objects.gpkg"))          # held: its layer dies with it
     (feature,) = ds.GetLayer("objects")
     assert got == json.loads(feature["attributes"]) == row.attributes
+
+
+def test_the_wms_join_table_keeps_one_line_and_eight_fields_a_row(tmp_path):
+    """MapServer's CSV join splits at every comma and line end: names and attributes with commas, quotes,
+    CR/LF and non-ASCII text still give one line of 8 fields a row (MapServer itself: test_wms_ids)."""
+    from pipeline25d.publish.objects import COLUMNS, SceneObject
+    from pipeline25d.publish.wms_ids import write_join_table
+
+    rows = [SceneObject(1 << 22 | k, "d1", name, "Building", 3.0, None, {"note": note})
+            for k, (name, note) in enumerate([("a,b", 'say "hi",\nbye'), ("line\r\nbreak", "東京, 新宿"), ("plain", "")], 1)]
+    write_objects(rows, tmp_path / "objects", horizontal_wkt("EPSG:25832"))
+    write_join_table(tmp_path / "objects" / "objects.csv", tmp_path)
+    lines = (tmp_path / "objects.csv").read_bytes().decode("utf-8").split("\n")[:-1]
+    assert len(lines) == len(rows) + 1 and all(len(line.split(",")) == len(COLUMNS) + 1 for line in lines)
+    for line, r in zip(lines[1:], rows):
+        fields = line.split(",")
+        assert fields[3] == r.name.replace(",", ";").replace("\r\n", " ")
+        assert json.loads(fields[7].replace(";", ",")) == r.attributes        # the JSON back, commas restored
