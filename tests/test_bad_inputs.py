@@ -146,7 +146,7 @@ def test_the_ingest_jobs_of_hostile_files_fail_with_their_message_on_the_termina
     index = json.loads((degenerate / "index.json").read_text())
     assert index["n_triangles"] == 2
     assert _outputs(tmp_path) == sorted([f"chunks/{degenerate.name}/{f}"
-                                         for f in ("index.json", "index.hashes.json", "objects.json")]
+                                         for f in ("index.json", "index.hashes.json", "objects.json", "attributes.json")]
                                         + [f"chunks/{degenerate.name}/{c}.npz" for c in index["chunks"]])
 
 

@@ -1,12 +1,13 @@
 """WMS GetFeatureInfo through MapServer (pipeline25d.publish.wms_ids): a map and its id raster of known
 rectangles published with their objects table; a query at each rectangle answers its id, name, heights
-and attributes (a comma in one included), a query on the transparent corner answers no object, and both
+and attributes (quotes, markup, an escaped line break and non-ASCII text in one intact, commas as ;), a query on the transparent corner answers no object, and both
 layers are listed. Then the small demo run's own mapfile: a query at each flat roof, where each map
 shows it, answers the id of that roof's OBJ group (chunks/<district>/objects.json)."""
 
 from __future__ import annotations
 
 import html
+import json
 import re
 import shutil
 
@@ -21,6 +22,13 @@ from pipeline25d.publish.wms import write_mapfile
 NAMES = {RECTS[0][4]: "ground", RECTS[1][4]: "hall", RECTS[2][4]: "tower", RECTS[3][4]: "shed"}
 
 
+def attributes(name: str, k: int) -> dict:
+    """An object's attributes; the hall's hold what a CSV join or an HTML answer could mangle."""
+    if name != "hall":
+        return {"use": "none", "floors": k}
+    return {"use": "office, shop", "floors": k, "note": 'say "hi",\nthen <b>leave</b> & 東京; 100%'}
+
+
 @pytest.fixture(scope="module")
 def id_wms(tmp_path_factory, mapserv):  # noqa: F811 (the fixture)
     where = tmp_path_factory.mktemp("idwms") / "results"
@@ -28,8 +36,7 @@ def id_wms(tmp_path_factory, mapserv):  # noqa: F811 (the fixture)
     cog, ids_tif, _ = scene(where / "maps")
     shutil.move(cog, where / "maps" / "az045_el45.tif")
     shutil.move(ids_tif, where / "maps" / "az045_el45.ids.tif")
-    rows = [SceneObject(oid, f"d{oid >> 22}", name, "Building", 10.0 + k, 9.5 + k,
-                        {"use": "office, shop" if name == "hall" else "none", "floors": k})
+    rows = [SceneObject(oid, f"d{oid >> 22}", name, "Building", 10.0 + k, 9.5 + k, attributes(name, k))
             for k, (oid, name) in enumerate(sorted(NAMES.items()))]
     write_objects(rows, where / "objects", horizontal_wkt("EPSG:25832"))
     write_mapfile("ids", [where / "maps" / "az045_el45.tif"], where / "wms" / "ids.map",
@@ -64,9 +71,8 @@ def test_getfeatureinfo_at_each_object_answers_its_id_name_heights_and_attribute
         k, name = table[oid]
         assert cells[:4] == [str(oid), f"d{oid >> 22}", name, "Building"], cells
         assert float(cells[4]) == 10.0 + k and float(cells[5]) == 9.5 + k
-        assert f'"floors": {k}' in cells[6]
-        if name == "hall":                       # MapServer's CSV join splits at commas: shown as ;
-            assert '"use": "office; shop"' in cells[6]
+        # MapServer's CSV join splits at every comma: written as ";"; quotes, markup, non-ASCII text intact
+        assert cells[6] == json.dumps(attributes(name, k), ensure_ascii=False).replace(",", ";")
     # the ground between the buildings is the ground object; the transparent corner is nothing
     assert feature_info(server, 50, 300)[:3] == [str(RECTS[0][4]), f"d{RECTS[0][4] >> 22}", "ground"]
     assert feature_info(server, 5, 5) == []

@@ -7,6 +7,7 @@ become float32 relative to the chunk's float64 origin (see :mod:`pipeline25d.sta
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -28,6 +29,10 @@ class MeshPart:
               no object identity).
     object_ids: (len(objects),) uint32 numeric id of each object (see
               :mod:`pipeline25d.stages.objects`), once ingest has given them; else None.
+    object_info: what the input says of its objects, key -> {"type": str, "attributes": dict}
+              (either key optional; :mod:`pipeline25d.formats.attributes`), or None. It may name
+              more objects than the part's own (a reader shares one mapping between its parts);
+              ingest gathers it before chunking (:meth:`Mesh.object_info`).
     """
 
     vertices: np.ndarray
@@ -39,6 +44,7 @@ class MeshPart:
     objects: tuple[str, ...] = ()
     face_objects: np.ndarray | None = None
     object_ids: np.ndarray | None = None
+    object_info: Mapping[str, dict] | None = None
 
     def __post_init__(self) -> None:
         self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float64).reshape(-1, 3)
@@ -124,6 +130,10 @@ class Mesh:
         stacked = np.stack(boxes)
         return np.array([stacked[:, 0].min(axis=0), stacked[:, 1].max(axis=0)])
 
+    def object_info(self) -> dict[str, dict]:
+        """What the input says of the objects of all parts (:attr:`MeshPart.object_info`), merged."""
+        return merged_info(self.parts)
+
     def transformed(self, fn) -> "Mesh":
         return Mesh([p.transformed(fn) for p in self.parts], self.source, self.coarser)
 
@@ -138,7 +148,19 @@ def joined(parts: list[MeshPart], name: str) -> MeshPart:
                     np.concatenate([p.faces + o for p, o in zip(parts, offsets)]),
                     colors=None if first.colors is None else np.concatenate([p.colors for p in parts]),
                     uv=None if first.uv is None else np.concatenate([p.uv for p in parts]),
-                    texture=first.texture, name=name, objects=objects, face_objects=face_objects)
+                    texture=first.texture, name=name, objects=objects, face_objects=face_objects,
+                    object_info=merged_info(parts) or None)
+
+
+def merged_info(parts: list[MeshPart]) -> dict[str, dict]:
+    """The :attr:`MeshPart.object_info` of ``parts`` in one mapping (each shared mapping once)."""
+    out: dict[str, dict] = {}
+    seen: set[int] = set()
+    for p in parts:
+        if p.object_info and id(p.object_info) not in seen:
+            seen.add(id(p.object_info))
+            out.update(p.object_info)
+    return out
 
 
 def joined_objects(parts: list[MeshPart]) -> tuple[tuple[str, ...], np.ndarray | None]:

@@ -33,7 +33,9 @@ first streaming pass that keeps only their targets, run only when the bytes
 ``appearanceMember`` occur in the file. A texture image that is missing or unreadable
 is a :class:`~pipeline25d.core.errors.MissingTextureWarning` (once per image), which
 :func:`pipeline25d.formats.load_district` turns into an error unless the input says
-``missing_textures: untextured``; then its polygons fall back to colour. The renderer repeats textures; texture coordinates outside [0, 1]
+``missing_textures: untextured``; then its polygons fall back to colour.
+Each top-level object's attributes (:mod:`pipeline25d.formats.citygml_attributes`; BuildingParts
+folded into their building) travel on the parts as ``object_info``. The renderer repeats textures; texture coordinates outside [0, 1]
 under wrap modes other than ``wrap`` are clamped per vertex (an approximation).
 
 Forgiving where CityGML tools are: an undeclared namespace prefix (an ADE element such as
@@ -62,7 +64,10 @@ import numpy as np
 from pipeline25d.core.crs import parse_crs
 from pipeline25d.core.errors import CRSError, InputFileError
 from pipeline25d.core.mesh import MeshPart
+from pipeline25d.formats.attributes import Limiter
 from pipeline25d.formats.buildings import Buildings, is_building
+from pipeline25d.formats.citygml_attributes import GML_ID, city_object_info
+from pipeline25d.formats.citygml_attributes import local_name as _local
 from pipeline25d.formats.common import Detail, Loaded, crs_name, side_file, texture_image
 from pipeline25d.formats.surfaces import (
     GROUND_TYPES,
@@ -75,7 +80,6 @@ from pipeline25d.formats.surfaces import (
 )
 from pipeline25d.formats.xml_defects import XmlDefects, recovered_name
 
-GML_ID = ("{http://www.opengis.net/gml}id", "{http://www.opengis.net/gml/3.2}id")
 XLINK_HREF = "{http://www.w3.org/1999/xlink}href"
 _LOD_PROPERTY = re.compile(r"lod([0-4])(Solid|MultiSurface|Geometry|FootPrint|RoofEdge)$")
 _POLYGONS = frozenset({"Polygon", "Triangle", "Rectangle", "PolygonPatch"})
@@ -164,10 +168,6 @@ def _in_geometry(elem) -> bool:
     return name in _GEOMETRY_PARTS or (name.startswith("lod") and name[3:4].isdigit())
 
 
-def _local(tag) -> str:
-    return tag[tag.rfind("}") + 1:] if isinstance(tag, str) else ""
-
-
 def _child_text(elem, name: str) -> str | None:
     for child in elem:
         if _local(child.tag) == name:
@@ -199,6 +199,8 @@ class _Reader:
         self.images: dict[str, bytes | None] = {}
         self.groups: dict[tuple[str, str], _Group] = {}
         self.keys: list[str] = []                  # top-level city objects drawn: gml:id, else type#n
+        self.info: dict[str, dict] = {}            # key -> its type and attributes (citygml_attributes)
+        self.limiter = Limiter(path)
         self.types_drawn: set[str] = set()
         self.issues: Counter = Counter()
         self.version: str | None = None
@@ -214,6 +216,7 @@ class _Reader:
             self._stream(("appearanceMember", "cityObjectMember"), self._global_appearance)
         self._stream(("cityObjectMember", "featureMember", "Envelope"), lambda el: self._member(el, keep))
         self.xml.warn(stacklevel=4)
+        self.limiter.warn(stacklevel=3)
         for issue, n in sorted(self.issues.items()):
             warnings.warn(f"{self.path}: {issue} ({n}x)", stacklevel=3)
 
@@ -386,7 +389,7 @@ class _Reader:
 
     def loaded(self, keep) -> Loaded:
         """The groups of the object types ``keep`` accepts as MeshParts."""
-        parts = [group.part(keep, tuple(self.keys)) for _, group in sorted(self.groups.items())]
+        parts = [group.part(keep, tuple(self.keys), self.info) for _, group in sorted(self.groups.items())]
         return Loaded([p for p in parts if p is not None], self.crs)
 
     def group(self, kind: str, key: str) -> "_Group":
@@ -434,7 +437,7 @@ class _Group:
                  np.concatenate(extra), np.concatenate(objects)]
         self.blocks.setdefault(obj_type, []).append(block)
 
-    def part(self, keep, keys: tuple[str, ...]) -> MeshPart | None:
+    def part(self, keep, keys: tuple[str, ...], info: dict[str, dict]) -> MeshPart | None:
         for obj_type in list(self.pending):
             self._compact(obj_type)
         blocks = [b for t, bl in sorted(self.blocks.items()) if keep(t) for b in bl]
@@ -444,7 +447,7 @@ class _Group:
         vertices = np.concatenate([b[0] for b in blocks])
         faces = np.concatenate([b[1] + o for b, o in zip(blocks, sizes)])
         extra = np.concatenate([b[2] for b in blocks])
-        ids = {"objects": keys, "face_objects": np.concatenate([b[3] for b in blocks])}
+        ids = {"objects": keys, "face_objects": np.concatenate([b[3] for b in blocks]), "object_info": info}
         if self.kind == "tex":
             return MeshPart(vertices, faces, uv=extra, texture=self.texture, name=Path(self.key).name, **ids)
         return MeshPart(vertices, faces, colors=extra, name=self.key, **ids)
@@ -465,6 +468,7 @@ class _Member:
         self.ids: dict[str, object] | None = None
         self.obj = len(reader.keys)                # its faces' object: the member's gml:id, else type#n
         reader.keys.append(root.get(GML_ID[0]) or root.get(GML_ID[1]) or f"{_local(root.tag)}#{self.obj}")
+        reader.info[reader.keys[-1]] = city_object_info(root, reader.limiter)
 
     def draw(self) -> None:
         objects, chosen = [self.root], []

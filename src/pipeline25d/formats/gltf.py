@@ -12,7 +12,8 @@ factor and ``COLOR_0`` as vertex colours of untextured parts. Only triangle list
 (mode 4) are read; other primitive modes are skipped with a warning.
 
 One :class:`MeshPart` per primitive instance, its vertices compacted to the ones its
-triangles use. UVs are flipped to the GL convention (v = 0 is the bottom image row).
+triangles use; its faces' objects are the feature ids (``_BATCHID``, ``EXT_mesh_features``) and
+their attributes the ``EXT_structural_metadata`` property table's rows (:mod:`pipeline25d.formats.feature_info`). UVs are flipped to the GL convention (v = 0 is the bottom image row).
 Colours are the 8-bit values of the glTF factors as written (no linear->sRGB step),
 which is how generators such as pg2b3dm author them.
 
@@ -35,7 +36,9 @@ import numpy as np
 
 from pipeline25d.core.errors import InputFileError, MissingTextureWarning, UnsupportedFeatureError
 from pipeline25d.core.mesh import MeshPart
+from pipeline25d.formats.attributes import Limiter
 from pipeline25d.formats.common import side_file
+from pipeline25d.formats.feature_info import feature_prefix, feature_properties
 
 #: Extensions this reader honours (or may safely ignore) when a file lists them as required.
 SUPPORTED_EXTENSIONS = frozenset({
@@ -102,6 +105,7 @@ def parse_gltf_bytes(data: bytes, path: str | Path, y_up_to_z_up: bool = True,
             part = _primitive_part(doc, prim, world @ node_matrix, f"{name}/{k}")
             if part is not None:
                 parts.append(part)
+    doc.limiter.warn()
     if skipped_modes:
         warnings.warn(f"{path}: skipped primitives with mode {sorted(skipped_modes)} (only triangles are read)",
                       stacklevel=2)
@@ -121,6 +125,7 @@ class _Document:
     glb_bin: bytes | None
     _buffers: dict[int, bytes] = field(default_factory=dict)
     _images: dict[int, bytes | None] = field(default_factory=dict)
+    limiter: Limiter | None = None           # bounds the features' attributes (formats.attributes)
 
     @classmethod
     def parse(cls, data: bytes, path: Path, root: Path) -> "_Document":
@@ -140,7 +145,7 @@ class _Document:
         unsupported = [e for e in doc_json.get("extensionsRequired", []) if e not in SUPPORTED_EXTENSIONS]
         if unsupported:
             raise UnsupportedFeatureError(path, f"glTF requires unsupported extension(s) {', '.join(unsupported)}")
-        return cls(doc_json, path, root, glb_bin)
+        return cls(doc_json, path, root, glb_bin, limiter=Limiter(path))
 
     def item(self, kind: str, index: int) -> dict:
         """``json[kind][index]`` or InputFileError when the reference dangles."""
@@ -401,6 +406,7 @@ def _primitive_part(doc: _Document, prim: dict, matrix: np.ndarray, name: str) -
         raise InputFileError(doc.path, f"primitive {name}: index {faces.max()} out of range "
                                        f"({len(positions)} vertices)")
     objects, face_objects = _face_features(doc, attrs.get(FEATURE), faces)
+    info = feature_properties(doc.json, prim, objects, doc.view_bytes, doc.limiter)
     used, faces = np.unique(faces, return_inverse=True)
     faces = faces.reshape(-1, 3)
     if np.linalg.det(matrix[:3, :3]) < 0:  # mirroring transform: keep front faces front
@@ -415,7 +421,8 @@ def _primitive_part(doc: _Document, prim: dict, matrix: np.ndarray, name: str) -
     else:
         uv = uv[used]
     return MeshPart(vertices, faces, colors=colors, uv=uv, texture=texture,
-                    name=material.get("name") or name, objects=objects, face_objects=face_objects)
+                    name=material.get("name") or name, objects=objects, face_objects=face_objects,
+                    object_info=info)
 
 
 #: the attrs key of a primitive's per-vertex feature ids (3D Tiles batch ids, EXT_mesh_features)
@@ -440,10 +447,7 @@ def _face_features(doc: _Document, feature: np.ndarray | None,
         return (), None
     values = np.rint(feature[faces[:, 0]]).astype(np.int64)
     held, face_objects = np.unique(values, return_inverse=True)
-    try:
-        name = doc.path.resolve().relative_to(doc.root.resolve()).as_posix()
-    except ValueError:
-        name = doc.path.name
+    name = feature_prefix(doc.path, doc.root)
     return tuple(f"{name}#{v}" for v in held), face_objects
 
 

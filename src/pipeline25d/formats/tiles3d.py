@@ -12,6 +12,8 @@ Every file a tileset names (contents, external tilesets, subtrees and their buff
 buffers and images, i3dm glTF URIs) must lie inside the root tileset.json's folder
 (:func:`~pipeline25d.formats.common.side_file`): ``../`` to a sibling inside it is fine.
 
+A b3dm's batch table gives its batch ids' attributes (:mod:`pipeline25d.formats.batch_table`).
+
 Bounding volumes are never used: the selection here depends on geometric errors only,
 and geometry is never clipped to a bounding volume (real tilesets, e.g. pg2b3dm's
 Amsterdam sample, have boxes that are too small on one side).
@@ -35,6 +37,8 @@ import numpy as np
 from pipeline25d.core.errors import InputFileError
 from pipeline25d.core.mesh import Mesh, MeshPart, joined
 from pipeline25d.formats.common import Detail, Loaded, in_scene
+from pipeline25d.formats.batch_table import batch_table_rows
+from pipeline25d.formats.feature_info import feature_prefix, with_feature_info
 from pipeline25d.formats.gltf import parse_gltf_bytes
 from pipeline25d.formats.tileset_tree import read_json, resolve, select
 
@@ -179,25 +183,34 @@ def _feature_array(table: dict, body: bytes, name: str, count: int, n: int, dtyp
 
 
 def _parse_b3dm(data: bytes, path: Path, y_up: bool, root: Path) -> list[MeshPart]:
-    """Batched 3D model: header, feature table (RTC_CENTER), batch table (skipped), GLB."""
+    """Batched 3D model: header, feature table (RTC_CENTER, BATCH_LENGTH), batch table (the batch
+    ids' attributes, :mod:`pipeline25d.formats.batch_table`), GLB."""
     length = _check_length(data, path, _B3DM_HEADER)
     ft_json, ft_bin, bt_json, bt_bin = struct.unpack_from("<4I", data, 12)
-    header = _B3DM_HEADER
+    header, batch_length = _B3DM_HEADER, None
     if bt_json >= _LEGACY_LIMIT:  # legacy: [batchLength, batchTableByteLength]
-        header, ft_json, ft_bin, bt_json, bt_bin = 20, 0, 0, ft_bin, 0
+        header, ft_json, ft_bin, bt_json, bt_bin, batch_length = 20, 0, 0, ft_bin, 0, ft_json
     elif bt_bin >= _LEGACY_LIMIT:  # legacy: [batchTableJsonByteLength, batchTableBinaryByteLength, batchLength]
-        header, ft_json, ft_bin, bt_json, bt_bin = 24, 0, 0, ft_json, ft_bin
+        header, ft_json, ft_bin, bt_json, bt_bin, batch_length = 24, 0, 0, ft_json, ft_bin, bt_json
     glb_start = header + ft_json + ft_bin + bt_json + bt_bin
     if glb_start > length:
         raise InputFileError(path, "b3dm table lengths exceed the tile's byteLength (corrupt)")
     table, body = _feature_table(data, header, ft_json, ft_bin, path)
     parts = parse_gltf_bytes(data[glb_start:length], path, y_up, root)
     rtc = _feature_array(table, body, "RTC_CENTER", 1, 3, "float32", path)
-    return parts if rtc is None else [p.transformed(lambda v, t=rtc[0]: v + t) for p in parts]
+    parts = parts if rtc is None else [p.transformed(lambda v, t=rtc[0]: v + t) for p in parts]
+    batch_start = header + ft_json + ft_bin
+    count = table.get("BATCH_LENGTH", batch_length)
+    rows = batch_table_rows(data[batch_start:batch_start + bt_json],
+                            data[batch_start + bt_json:batch_start + bt_json + bt_bin],
+                            count if isinstance(count, int) and count >= 0 else None, path)
+    return with_feature_info(parts, rows, feature_prefix(path, root), path)
 
 
 def _parse_i3dm(data: bytes, path: Path, y_up: bool, root: Path) -> list[MeshPart]:
-    """Instanced 3D model: the glTF repeated at each instance's position/rotation/scale.
+    """Instanced 3D model: the glTF repeated at each instance's position/rotation/scale, each
+    instance an object ``<file>#<batch id>`` (``BATCH_ID``, else its index) with its row of the
+    batch table as attributes (where the glTF's own faces carry no feature ids).
 
     Supported: POSITION, POSITION_QUANTIZED, RTC_CENTER, NORMAL_UP + NORMAL_RIGHT,
     SCALE, SCALE_NON_UNIFORM. EAST_NORTH_UP and oct-encoded normals are ignored with a
@@ -216,7 +229,24 @@ def _parse_i3dm(data: bytes, path: Path, y_up: bool, root: Path) -> list[MeshPar
     else:
         parts = parse_gltf_bytes(gltf, path, y_up, root)
     matrices = _instance_matrices(table, body, path)
-    return [_instanced(p, matrices) for p in parts]
+    batch_ids = _batch_ids(table, body, len(matrices), path)
+    prefix = feature_prefix(path, root)
+    parts = [_instanced(p, matrices, batch_ids, prefix) for p in parts]
+    bt_start = _I3DM_HEADER + ft_json + ft_bin
+    count = int(batch_ids.max()) + 1 if len(batch_ids) else 0
+    rows = batch_table_rows(data[bt_start:bt_start + bt_json], data[bt_start + bt_json:bt_start + bt_json + bt_bin],
+                            count, path)
+    return with_feature_info(parts, rows, prefix, path)
+
+
+def _batch_ids(table: dict, body: bytes, count: int, path: Path) -> np.ndarray:
+    """(count,) int64 batch id of each i3dm instance: ``BATCH_ID`` (UNSIGNED_BYTE/SHORT/INT), else its index."""
+    ref = table.get("BATCH_ID")
+    if ref is None:
+        return np.arange(count)
+    dtype = {"UNSIGNED_BYTE": "uint8", "UNSIGNED_SHORT": "uint16", "UNSIGNED_INT": "uint32"}.get(
+        str(ref.get("componentType", "UNSIGNED_SHORT")) if isinstance(ref, dict) else "", "uint16")
+    return _feature_array(table, body, "BATCH_ID", count, 1, dtype, path).reshape(-1).astype(np.int64)
 
 
 def _instance_matrices(table: dict, body: bytes, path: Path) -> np.ndarray:
@@ -250,31 +280,55 @@ def _instance_matrices(table: dict, body: bytes, path: Path) -> np.ndarray:
     return m
 
 
-def _instanced(part: MeshPart, matrices: np.ndarray) -> MeshPart:
-    """One part holding ``part`` repeated under each of ``matrices``."""
+def _instanced(part: MeshPart, matrices: np.ndarray, batch_ids: np.ndarray, prefix: str) -> MeshPart:
+    """One part holding ``part`` repeated under each of ``matrices``; without feature ids of its own,
+    instance ``j``'s faces belong to the object ``<prefix>#<batch_ids[j]>``."""
     k, n = len(matrices), len(part.vertices)
     verts = np.einsum("kij,nj->kni", matrices[:, :3, :3], part.vertices) + matrices[:, None, :3, 3]
     faces = part.faces[None, :, :] + (np.arange(k) * n)[:, None, None]
     rep = (lambda a: None if a is None else np.tile(a, (k, 1)))
-    objects = None if part.face_objects is None else np.tile(part.face_objects, k)
+    if part.face_objects is not None:
+        keys, face_objects = part.objects, np.tile(part.face_objects, k)
+    else:
+        held, inverse = np.unique(batch_ids, return_inverse=True)
+        keys, face_objects = tuple(f"{prefix}#{b}" for b in held), np.repeat(inverse, part.n_triangles)
     return MeshPart(verts.reshape(-1, 3), faces.reshape(-1, 3), rep(part.colors), rep(part.uv),
-                    part.texture, part.name, objects=part.objects, face_objects=objects)
+                    part.texture, part.name, objects=keys, face_objects=face_objects,
+                    object_info=part.object_info)
 
 
 def _parse_cmpt(data: bytes, path: Path, y_up: bool, root: Path) -> list[MeshPart]:
-    """Composite tile: the inner tiles one after another."""
+    """Composite tile: the inner tiles one after another, the features of inner tile ``k`` keyed
+    ``<file>/<k>#<feature id>`` (each inner tile numbers its features from 0)."""
     length = _check_length(data, path, 16)
     count = struct.unpack_from("<I", data, 12)[0]
     parts, pos = [], 16
-    for _ in range(count):
+    for k in range(count):
         if pos + 12 > length:
             raise InputFileError(path, "composite tile is truncated")
         inner_len = struct.unpack_from("<I", data, pos + 8)[0]
         if inner_len < 12 or pos + inner_len > length:
             raise InputFileError(path, "composite inner tile runs past the end (corrupt)")
-        parts.extend(_parse_content(data[pos:pos + inner_len], path, y_up, root))
+        parts.extend(_inner_keys(_parse_content(data[pos:pos + inner_len], path, y_up, root),
+                                 feature_prefix(path, root), k))
         pos += inner_len
     return parts
+
+
+def _inner_keys(parts: list[MeshPart], prefix: str, k: int) -> list[MeshPart]:
+    """Inner tile ``k``'s parts with their feature keys ``<prefix>#<id>`` (and their attributes')
+    made ``<prefix>/<k>#<id>``."""
+    old, new = f"{prefix}#", f"{prefix}/{k}#"
+
+    def key(name: str) -> str:
+        return new + name[len(old):] if name.startswith(old) else name
+
+    infos: dict[int, dict] = {}                  # each shared mapping renamed once
+    for p in parts:
+        if p.object_info and id(p.object_info) not in infos:
+            infos[id(p.object_info)] = {key(name): v for name, v in p.object_info.items()}
+    return [replace(p, objects=tuple(key(o) for o in p.objects),
+                    object_info=infos.get(id(p.object_info), p.object_info)) for p in parts]
 
 
 # --------------------------------------------------------------------------- placement and CRS

@@ -2,9 +2,11 @@
 
 Every object that ingest numbered (``chunks/<district>/objects.json``, ids of
 :mod:`pipeline25d.stages.objects`) gets one row: id, district, name (its key in the input),
-its CityJSON type and attributes where the input is CityJSON (the only reader that keeps them
-today: other formats give the name alone), the model's height (highest minus lowest z of its
-faces in the chunks, or its ``measuredHeight`` attribute where the input gives one) and the
+its type and attributes as the input gives them (CityJSON: read from the file here; CityGML,
+3D Tiles batch tables and glTF property tables: handed on by their readers through ingest,
+``chunks/<district>/attributes.json``; other formats give the name alone), the model's height
+(highest minus lowest z of its faces in the chunks, or its ``measuredHeight`` attribute where
+the input gives one in metres) and the
 height the heights stage measured on the maps (``heights.csv``, matched by name), with the
 object's extent (a rectangle in the scene CRS) as its geometry. Written as
 
@@ -30,7 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline25d.core.atomic import atomic_path, replace_dir, write_json, write_text
+from pipeline25d.core.atomic import atomic_path, replace_dir, write_bytes, write_json
+from pipeline25d.formats.attributes import Limiter, clean_text
 from pipeline25d.stages.chunks import load_npz, unpack_parts
 from pipeline25d.stages.objects import LOCAL_BITS, LOCAL
 
@@ -101,6 +104,13 @@ def cityjson_objects(path: str | Path) -> dict[str, dict]:
     return out
 
 
+def ingested_objects(district_dir: Path) -> dict[str, dict]:
+    """key -> {type, attributes} that the reader handed ingest (``attributes.json``; {} without one:
+    chunks from before it existed, or an input that says nothing of its objects)."""
+    path = district_dir / "attributes.json"
+    return json.loads(path.read_text(encoding="utf-8")) if path.is_file() else {}
+
+
 def measured_heights(heights_csv: str | Path | None) -> dict[str, float]:
     """name -> height measured on the maps (heights.csv: id, height; empty heights left out)."""
     if heights_csv is None or not Path(heights_csv).is_file():
@@ -118,15 +128,18 @@ def scene_objects(chunks_dir: str | Path, districts: list[str], cityjson: dict[s
         folder = Path(chunks_dir) / district
         ids = json.loads((folder / "objects.json").read_text(encoding="utf-8"))
         boxes = chunk_extents(folder)
-        city = cityjson_objects(cityjson[district]) if district in cityjson else {}
+        city = cityjson_objects(cityjson[district]) if district in cityjson else ingested_objects(folder)
+        limiter = Limiter(cityjson.get(district, folder / "attributes.json"))
         for name, oid in ids.items():
             obj, box = city.get(name, {}), boxes.get(int(oid))
-            attrs = obj.get("attributes") if isinstance(obj.get("attributes"), dict) else {}
-            height = attrs.get("measuredHeight")
-            if not isinstance(height, (int, float)):
+            attrs = limiter.attributes(obj["attributes"]) if isinstance(obj.get("attributes"), dict) else {}
+            height = attrs.get("measuredHeight") if "measuredHeight_uom" not in attrs else None   # metres only
+            if not isinstance(height, (int, float)) or isinstance(height, bool):
                 height = None if box is None else float(box[5] - box[2])
-            rows.append(SceneObject(int(oid), district, name, str(obj.get("type", "")), height, measured.get(name),
+            rows.append(SceneObject(int(oid), district, clean_text(name), clean_text(str(obj.get("type", ""))),
+                                    height, measured.get(name),
                                     attrs, None if box is None else (box[0], box[1], box[3], box[4])))
+        limiter.warn()
     return sorted(rows, key=lambda r: r.id)
 
 
@@ -141,9 +154,14 @@ def write_objects(rows: list[SceneObject], out_dir: str | Path, crs_wkt: str) ->
     writer.writerow(("row", *COLUMNS))
     for n, r in enumerate(rows, 1):
         d = r.row()
-        writer.writerow([n, *("" if d[c] is None else json.dumps(d[c]) if c == "attributes" else d[c] for c in COLUMNS)])
-    write_text(out_dir / "objects.csv", buf.getvalue())
+        writer.writerow([n, *("" if d[c] is None else _json(d[c]) if c == "attributes" else d[c] for c in COLUMNS)])
+    write_bytes(out_dir / "objects.csv", buf.getvalue().encode("utf-8"))
     return write_shards(rows, out_dir / "shards")
+
+
+def _json(attributes: dict) -> str:
+    """The attributes as JSON text, non-ASCII characters as they are (UTF-8 in the files)."""
+    return json.dumps(attributes, ensure_ascii=False)
 
 
 def write_gpkg(rows: list[SceneObject], path: Path, crs_wkt: str) -> None:
@@ -166,7 +184,7 @@ def write_gpkg(rows: list[SceneObject], path: Path, crs_wkt: str) -> None:
             feat = ogr.Feature(layer.GetLayerDefn())
             for name, value in r.row().items():
                 if value is not None:
-                    feat.SetField(name, json.dumps(value) if name == "attributes" else value)
+                    feat.SetField(name, _json(value) if name == "attributes" else value)
             if r.extent is not None:
                 x0, y0, x1, y1 = r.extent
                 feat.SetGeometry(ogr.CreateGeometryFromWkt(f"POLYGON(({x0} {y0},{x1} {y0},{x1} {y1},{x0} {y1},{x0} {y0}))"))

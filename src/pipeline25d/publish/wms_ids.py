@@ -14,7 +14,7 @@ from typing import Sequence
 
 import numpy as np
 
-from pipeline25d.core.atomic import write_text
+from pipeline25d.core.atomic import write_bytes, write_text
 from pipeline25d.core.errors import InputFileError, MapServiceError
 from pipeline25d.core.geotiff import geotiff_dataset
 from pipeline25d.core.grid import Grid
@@ -26,18 +26,24 @@ JOIN_TABLE, TEMPLATE = "objects.csv", "objects.html"
 
 
 def write_join_table(objects_csv: Path, folder: Path) -> None:
-    """The objects table as MapServer's CSV join reads it (:data:`JOIN_TABLE`: columns by number from
-    1, split at every comma, quotes not understood: a comma within a field is written as a
-    semicolon) and the GetFeatureInfo template (text/html) that shows a pixel's row of it."""
+    """The objects table as MapServer's CSV join reads it (:data:`JOIN_TABLE`, UTF-8: columns by number
+    from 1, split at every comma, one line a row, quotes not understood: :func:`join_field`) and the
+    GetFeatureInfo template (text/html) that shows a pixel's row of it. MapServer escapes the
+    values it puts into the HTML answer itself, so quotes, markup and non-ASCII text arrive as they are."""
     with open(objects_csv, newline="", encoding="utf-8") as fh:
         rows = list(csv.reader(fh))
     if rows and rows[0] != ["row", *JOIN_COLUMNS]:
         raise InputFileError(objects_csv, f"columns {rows[0]} are not row, {', '.join(JOIN_COLUMNS)}")
-    write_text(folder / JOIN_TABLE, "".join(",".join(f.replace(",", ";").replace("\n", " ") for f in r) + "\n"
-                                            for r in rows))
+    write_bytes(folder / JOIN_TABLE, "".join(",".join(join_field(f) for f in r) + "\n" for r in rows).encode("utf-8"))
     cells = "".join(f"<td>[objects_{k}]</td>" for k in range(2, len(JOIN_COLUMNS) + 2))
     write_text(folder / TEMPLATE, "<!-- MapServer Template -->\n"
                f"<table><tr>{''.join(f'<th>{c}</th>' for c in JOIN_COLUMNS)}</tr><tr>{cells}</tr></table>\n")
+
+
+def join_field(text: str) -> str:
+    """A field of the join table: a comma written as a semicolon (MapServer's CSV join splits at every
+    comma, quoted or not; an HTML character reference would be escaped again), a line break as a space."""
+    return text.replace(",", ";").replace("\r\n", " ").replace("\r", " ").replace("\n", " ")
 
 
 def table_ids(objects_csv: Path) -> list[int]:

@@ -87,7 +87,9 @@ def _subset(part: MeshPart, face_index: np.ndarray) -> MeshPart:
 def write_chunks(mesh: Mesh | Iterable[Mesh], district: str, chunk_size: float, out_dir: Path,
                  index_path: Path, slot: int = 0) -> dict:
     """Write the district's chunks into ``out_dir``, its objects' ids (``objects.json``: key -> id,
-    :mod:`pipeline25d.stages.objects`, district id ``slot``) and its index JSON last; ``mesh`` whole
+    :mod:`pipeline25d.stages.objects`, district id ``slot``), what the input says of them
+    (``attributes.json``: key -> {type, attributes}, only the objects it says anything of, see
+    :attr:`~pipeline25d.core.mesh.MeshPart.object_info`) and its index JSON last; ``mesh`` whole
     or in pieces (module docstring). Every face belongs to an object (:meth:`~pipeline25d.core.mesh.MeshPart.named`).
 
     Returns the index: {district, source, n_triangles, chunk_size, [coarser,] chunks: {id: {...}}};
@@ -99,10 +101,11 @@ def write_chunks(mesh: Mesh | Iterable[Mesh], district: str, chunk_size: float, 
     previous = _previous_hashes(sidecar)
     pieces = [mesh] if isinstance(mesh, Mesh) else mesh
     with _Spool(out_dir) as spool:
-        source, n_triangles, coarser = "", 0, []
+        source, n_triangles, coarser, info = "", 0, [], {}
         for piece in pieces:
             source, n_triangles = piece.source, n_triangles + piece.n_triangles
             coarser += piece.coarser
+            info.update(piece.object_info())
             spool.add(split_into_chunks(Mesh([p.named() for p in piece.parts], piece.source), chunk_size))
         ids = object_ids(spool.keys, slot, source or district)
         index = {"district": district, "source": source, "chunk_size": chunk_size, "n_triangles": n_triangles,
@@ -127,6 +130,7 @@ def write_chunks(mesh: Mesh | Iterable[Mesh], district: str, chunk_size: float, 
             stale.unlink()
     write_json(sidecar, {k: v["hash"] for k, v in index["chunks"].items()})
     write_json(out_dir / "objects.json", dict(sorted(ids.items())))
+    write_json(out_dir / "attributes.json", {k: info[k] for k in sorted(ids) if info.get(k)}, indent=None)
     write_json(index_path, index)
     return index
 

@@ -25,7 +25,7 @@ def _probe(names: Iterable[str], size: int, skip_zero: bool) -> dict[str, int]:
     taken: set[int] = set()
     out = {}
     for name in sorted(set(names)):
-        h = zlib.crc32(name.encode()) % size
+        h = zlib.crc32(name.encode("utf-8", "surrogatepass")) % size     # a JSON key may hold a lone surrogate
         while h in taken or (skip_zero and h == 0):
             h = (h + 1) % size
         taken.add(h)
