@@ -99,6 +99,33 @@ def test_every_obj_loads_with_materials_colours_and_textures(scene, loaded):
     assert n_triangles == manifest["n_triangles"]
 
 
+def test_each_building_road_and_the_terrain_is_an_obj_object_named_as_in_truth(scene):
+    """The product's OBJ reader finds one object per building (truth's id), per road and the terrain:
+    a building's faces lie on its footprint (within 1 mm), from its walls' sunk base to its ridge, and
+    it has all of its roof's and walls' triangles (4 walls of 2, gables 1 more each; roof 2, gabled 4)."""
+    from matplotlib.path import Path as Polygon
+
+    from pipeline25d.formats.meshfile import load_mesh_file
+
+    out, manifest, truth = scene
+    for name, path in manifest["districts"].items():
+        faces: dict[str, list[np.ndarray]] = {}
+        for part in load_mesh_file(out / path).parts:
+            for k, key in enumerate(part.objects):
+                faces.setdefault(key, []).append(part.vertices[part.faces[part.face_objects == k]])
+        buildings = {b["id"]: b for b in truth["buildings"] if b["district"] == name}
+        roads = {r["id"] for r in truth["roads"] if r["district"] == name}
+        assert set(faces) == set(buildings) | roads | {"terrain"}, name
+        for bid, b in buildings.items():
+            tri = np.concatenate(faces[bid])
+            assert len(tri) == (8 + 2 if b["roof"] == "flat" else 10 + 4), bid
+            xyz = tri.reshape(-1, 3)
+            assert Polygon(np.asarray(b["footprint"])).contains_points(xyz[:, :2], radius=2e-3).all() or \
+                Polygon(np.asarray(b["footprint"])).contains_points(xyz[:, :2], radius=-2e-3).all(), bid
+            assert xyz[:, 2].min() == pytest.approx(b["base_z"] - 1.0, abs=1e-3)
+            assert xyz[:, 2].max() == pytest.approx(b["ridge_z"], abs=1e-3)
+
+
 def test_obj_text_is_triangles_with_3_decimals(scene):
     out, _, _ = scene
     text = (out / "d0.obj").read_text()
