@@ -55,9 +55,10 @@ def shown(building: dict, azimuth: float, elevation: float):
     return Polygon(hull[ConvexHull(hull).vertices])
 
 
-def visible(truth: dict, building: dict, azimuth: float, elevation: float) -> bool:
-    """Whether no taller building shows within 3 m of where ``building``'s roof centre shows."""
-    roof = np.mean(building["footprint"], axis=0) + roof_shift(building, azimuth, elevation)
+def visible(truth: dict, building: dict, azimuth: float, elevation: float, roof: np.ndarray | None = None) -> bool:
+    """Whether no taller building shows within 3 m of where ``building``'s roof centre shows (or ``roof``)."""
+    if roof is None:
+        roof = np.mean(building["footprint"], axis=0) + roof_shift(building, azimuth, elevation)
     return not any(shown(other, azimuth, elevation).contains_point(roof, radius=3.0) or
                    shown(other, azimuth, elevation).contains_point(roof, radius=-3.0)
                    for other in truth["buildings"] if other is not building and other["eave_z"] > building["eave_z"])
@@ -140,4 +141,50 @@ def test_a_click_on_a_roof_answers_its_building_and_on_open_road_never_a_buildin
         page.close()
     print(json.dumps(answers))
     assert len(flat) == 2 and len(answers) == 3 * len(VIEWS)
+    assert [r for r in responses if r[1] >= 400 and not r[0].endswith("favicon.ico")] == []
+
+
+def test_a_click_on_a_roof_under_an_overlay_feature_still_identifies_the_building(browser, served, tmp_path):
+    """The run's viewer written again with the demo's footprints as an overlay (polygons with properties,
+    as the Delft example's BGT footprints): on two perspectives, turned and not, a click where the map shows a
+    building's roof inside its footprint polygon answers the building's id, and the footprint's popup shows its
+    properties too."""
+    from matplotlib.path import Path as Polygon
+
+    from pipeline25d.geometry.perspectives import Perspective
+    from pipeline25d.publish.viewer import write_viewer
+
+    base_url, workdir, results = served
+    truth, ids, _ = run_ids(workdir, results)
+    features = [{"type": "Feature", "properties": {"footprint": b["id"]},
+                 "geometry": {"type": "Polygon", "coordinates": [b["footprint"] + b["footprint"][:1]]}}
+                for b in truth["buildings"]]
+    path = workdir / "overlays" / "footprints.geojson"
+    path.parent.mkdir(exist_ok=True)
+    path.write_text(json.dumps({"type": "FeatureCollection", "features": features}))
+    write_viewer(results / "report" / "report.json", results / "viewer-footprints" / "index.html",
+                 overlays=[{"path": str(path), "name": "footprints", "color": "#ffd400", "crs": "EPSG:25832"}],
+                 ids=results)
+    responses: list = []
+    for pid, turned in (("az000_el90", False), ("az045_el45", False), ("az045_el45", True)):   # at 30° no roof
+        a, e = Perspective.from_id(pid).azimuth, Perspective.from_id(pid).elevation     # of this city meets its footprint
+        # a roof point inside its footprint polygon: halfway between the footprint's and the shown roof's centres
+        # (on an oblique the footprint lies on the ground, the roof h·cot φ further), 1 m inside both
+        b = next(b for b in sorted(truth["buildings"], key=lambda b: -b["eave_z"]) if b["roof"] == "flat"
+                 and visible(truth, b, a, e, np.mean(b["footprint"], axis=0) + roof_shift(b, a, e) / 2) and all(
+                     Polygon(np.asarray(b["footprint"]) + s * roof_shift(b, a, e)).contains_point(
+                         np.mean(b["footprint"], axis=0) + roof_shift(b, a, e) / 2, radius=r)
+                     for s in (0, 1) for r in (1.0, -1.0)))
+        roof = np.mean(b["footprint"], axis=0) + roof_shift(b, a, e) / 2
+        centre = lonlat(roof)
+        page = open_page(browser, f"{base_url}/viewer-footprints/index.html#{pid}/{ZOOM}/{centre[1]:.7f}/{centre[0]:.7f}"
+                         + ("/up" if turned else ""), responses)
+        page.wait_for_selector('#layers label.loaded[data-overlay="footprints"]')
+        bearing = bearing_of(page)[0]
+        got = click_id(page, screen_px(roof, centre, bearing))
+        assert got == ids[b["id"]], (pid, turned, b["id"], got)
+        page.wait_for_selector(".leaflet-popup-content", timeout=5000)
+        assert f"footprint: {b['id']}" in page.text_content(".leaflet-popup-content")
+        shot(page, tmp_path, f"identify-under-overlay-{pid}{'-up' if turned else ''}-{b['id']}.png")
+        page.close()
     assert [r for r in responses if r[1] >= 400 and not r[0].endswith("favicon.ico")] == []
