@@ -69,7 +69,7 @@ def test_manifest_and_files(scene):
     assert manifest["seed"] == SEED
     names = sorted(os.listdir(out))
     assert not [n for n in names if n.startswith(".")], "temporary files left behind"
-    expected = {"dtm.tif", "truth.json", "manifest.json"} | {f"facade_{k}.png" for k in range(3)}
+    expected = {"dtm.tif", "truth.json", "streets.geojson", "manifest.json"} | {f"facade_{k}.png" for k in range(3)}
     expected |= {f"d{i}.{ext}" for i in range(4) for ext in ("obj", "mtl")}
     assert set(names) == expected
     # the district lies at the UTM position the scene promises
@@ -97,6 +97,23 @@ def test_every_obj_loads_with_materials_colours_and_textures(scene, loaded):
                 assert g.visual.material.image is None
             n_triangles += len(g.faces)
     assert n_triangles == manifest["n_triangles"]
+
+
+def test_the_streets_layer_is_every_road_centreline_in_the_scene_crs_as_ogr_reads_it(scene):
+    """streets.geojson (the demo's street overlay) through OGR: one line per road of truth, its two ends,
+    in EPSG:25832 (the file's crs member)."""
+    from osgeo import ogr, osr
+
+    out, _, truth = scene
+    ds = ogr.Open(str(out / "streets.geojson"))          # kept: the layer lives as long as its dataset
+    layer = ds.GetLayer()
+    want = osr.SpatialReference()
+    want.ImportFromEPSG(25832)
+    assert layer.GetSpatialRef().IsSame(want)
+    got = {f.GetField("id"): np.array(f.GetGeometryRef().GetPoints()) for f in layer}
+    assert got.keys() == {r["id"] for r in truth["roads"]}
+    for r in truth["roads"]:
+        np.testing.assert_array_equal(got[r["id"]], np.array(r["centerline"]))
 
 
 def test_each_building_road_and_the_terrain_is_an_obj_object_named_as_in_truth(scene):

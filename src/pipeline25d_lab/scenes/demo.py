@@ -95,7 +95,7 @@ GROUP_ORDER = ["terrain", "road"] + [f"roof_{c}" for c in ROOF_CLASSES] + [
 ]
 
 # Bump when the generated content changes, so an old scene on disk is regenerated.
-GENERATOR_VERSION = 2      # 2: one OBJ object per building, road and terrain
+GENERATOR_VERSION = 2      # 2: one OBJ object per building, road and terrain; streets.geojson
 
 
 # --------------------------------------------------------------------------- terrain
@@ -605,6 +605,17 @@ def truth_dict(districts: list[District], scale: float, seed: int) -> dict:
     }
 
 
+def streets_geojson(truth: dict) -> dict:
+    """The roads' centrelines of ``truth`` as a GeoJSON FeatureCollection in the scene CRS (named in
+    its ``crs`` member, as OGR reads it): the street layer a 2D map would give (the viewer's overlay)."""
+    return {"type": "FeatureCollection", "name": "streets",
+            "crs": {"type": "name", "properties": {"name": f"urn:ogc:def:crs:EPSG::{EPSG_CODE}"}},
+            "features": [{"type": "Feature", "properties": {"id": r["id"], "district": r["district"],
+                                                              "kind": r["kind"], "width_m": r["width"]},
+                          "geometry": {"type": "LineString", "coordinates": r["centerline"]}}
+                         for r in truth["roads"]]}
+
+
 # --------------------------------------------------------------------------- entry points
 
 
@@ -619,7 +630,7 @@ def _existing_manifest(out_dir: Path, seed: int, n_buildings: int, scale: float)
         return None
     same = (manifest.get("seed") == seed and manifest.get("n_buildings") == n_buildings
             and manifest.get("scale") == scale and manifest.get("version") == GENERATOR_VERSION)
-    files = list((manifest.get("districts") or {}).values()) + [manifest.get("dtm"), manifest.get("truth")]
+    files = list((manifest.get("districts") or {}).values()) + [manifest.get(k) for k in ("dtm", "truth", "streets")]
     if same and all(isinstance(f, str) and (out_dir / f).is_file() for f in files):
         return manifest
     return None
@@ -639,7 +650,8 @@ def generate_demo_city(out_dir: Path, seed: int = 7, n_buildings: int = 320, sca
                        *, progress: Callable[[str], None] | None = None) -> dict:
     """Write the demo city into ``out_dir`` and return its manifest.
 
-    Files: d0..d3 .obj/.mtl, facade_*.png, dtm.tif, truth.json, manifest.json (last).
+    Files: d0..d3 .obj/.mtl, facade_*.png, dtm.tif, truth.json, streets.geojson (the roads'
+    centrelines: :func:`streets_geojson`), manifest.json (last).
     When ``out_dir`` already holds a complete scene for the same parameters nothing
     is written. ``progress`` receives one line per district (the CLI prints them).
     """
@@ -669,11 +681,13 @@ def generate_demo_city(out_dir: Path, seed: int = 7, n_buildings: int = 320, sca
     write_dtm(out_dir / "dtm.tif", scale)
     truth = truth_dict(districts, scale, seed)
     write_bytes(out_dir / "truth.json", (json.dumps(truth, indent=1) + "\n").encode("ascii"))
+    write_bytes(out_dir / "streets.geojson", (json.dumps(streets_geojson(truth)) + "\n").encode("ascii"))
     manifest = {
         "crs": CRS,
         "districts": {d.name: f"{d.name}.obj" for d in districts},
         "dtm": "dtm.tif",
         "truth": "truth.json",
+        "streets": "streets.geojson",
         "n_buildings": sum(len(d.buildings) for d in districts),
         "n_triangles": n_triangles,
         "seed": seed,
