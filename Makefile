@@ -27,7 +27,7 @@ test: deps
 	$(PY) -m pytest -q; rc=$$?; \
 	  if [ $$rc -eq 5 ]; then echo "pytest collected no tests"; exit 1; fi; exit $$rc
 
-# The README's pictures (docs/images/maps.jpg, viewer.jpg) drawn from the demo's own output, so they
+# The README's pictures (docs/images/maps.jpg, viewer.jpg, demo-streets.jpg) drawn from the demo's own output, so they
 # stay current: run after make run (headless Chromium for the viewer)
 pictures: deps
 	$(PY) -m pipeline25d_lab.pictures results/demo docs/images

@@ -69,7 +69,7 @@ def test_manifest_and_files(scene):
     assert manifest["seed"] == SEED
     names = sorted(os.listdir(out))
     assert not [n for n in names if n.startswith(".")], "temporary files left behind"
-    expected = {"dtm.tif", "truth.json", "manifest.json"} | {f"facade_{k}.png" for k in range(3)}
+    expected = {"dtm.tif", "truth.json", "streets.geojson", "manifest.json"} | {f"facade_{k}.png" for k in range(3)}
     expected |= {f"d{i}.{ext}" for i in range(4) for ext in ("obj", "mtl")}
     assert set(names) == expected
     # the district lies at the UTM position the scene promises
@@ -97,6 +97,50 @@ def test_every_obj_loads_with_materials_colours_and_textures(scene, loaded):
                 assert g.visual.material.image is None
             n_triangles += len(g.faces)
     assert n_triangles == manifest["n_triangles"]
+
+
+def test_the_streets_layer_is_every_road_centreline_in_the_scene_crs_as_ogr_reads_it(scene):
+    """streets.geojson (the demo's street overlay) through OGR: one line per road of truth, its two ends,
+    in EPSG:25832 (the file's crs member)."""
+    from osgeo import ogr, osr
+
+    out, _, truth = scene
+    ds = ogr.Open(str(out / "streets.geojson"))          # kept: the layer lives as long as its dataset
+    layer = ds.GetLayer()
+    want = osr.SpatialReference()
+    want.ImportFromEPSG(25832)
+    assert layer.GetSpatialRef().IsSame(want)
+    got = {f.GetField("id"): np.array(f.GetGeometryRef().GetPoints()) for f in layer}
+    assert got.keys() == {r["id"] for r in truth["roads"]}
+    for r in truth["roads"]:
+        np.testing.assert_array_equal(got[r["id"]], np.array(r["centerline"]))
+
+
+def test_each_building_road_and_the_terrain_is_an_obj_object_named_as_in_truth(scene):
+    """The product's OBJ reader finds one object per building (truth's id), per road and the terrain:
+    a building's faces lie on its footprint (within 1 mm), from its walls' sunk base to its ridge, and
+    it has all of its roof's and walls' triangles (4 walls of 2, gables 1 more each; roof 2, gabled 4)."""
+    from matplotlib.path import Path as Polygon
+
+    from pipeline25d.formats.meshfile import load_mesh_file
+
+    out, manifest, truth = scene
+    for name, path in manifest["districts"].items():
+        faces: dict[str, list[np.ndarray]] = {}
+        for part in load_mesh_file(out / path).parts:
+            for k, key in enumerate(part.objects):
+                faces.setdefault(key, []).append(part.vertices[part.faces[part.face_objects == k]])
+        buildings = {b["id"]: b for b in truth["buildings"] if b["district"] == name}
+        roads = {r["id"] for r in truth["roads"] if r["district"] == name}
+        assert set(faces) == set(buildings) | roads | {"terrain"}, name
+        for bid, b in buildings.items():
+            tri = np.concatenate(faces[bid])
+            assert len(tri) == (8 + 2 if b["roof"] == "flat" else 10 + 4), bid
+            xyz = tri.reshape(-1, 3)
+            assert Polygon(np.asarray(b["footprint"])).contains_points(xyz[:, :2], radius=2e-3).all() or \
+                Polygon(np.asarray(b["footprint"])).contains_points(xyz[:, :2], radius=-2e-3).all(), bid
+            assert xyz[:, 2].min() == pytest.approx(b["base_z"] - 1.0, abs=1e-3)
+            assert xyz[:, 2].max() == pytest.approx(b["ridge_z"], abs=1e-3)
 
 
 def test_obj_text_is_triangles_with_3_decimals(scene):

@@ -87,10 +87,12 @@ GENERATORS = {m.group(1): c for c in COMMANDS
 
 
 def _generate_inputs(configfile: Path) -> None:
-    """Run, as the README shows it, the generator of every resources/ input the config lacks."""
+    """Run, as the README shows it, the generator of every resources/ input (or overlay) the config lacks."""
     import yaml
 
-    for spec in (yaml.safe_load(configfile.read_text()).get("inputs") or {}).values():
+    config = yaml.safe_load(configfile.read_text())
+    overlays = (config.get("viewer") or {}).get("overlays") or []
+    for spec in [*(config.get("inputs") or {}).values(), *overlays]:        # a generator writes both
         path = str(spec.get("path", ""))
         folder = "/".join(path.split("/")[:2])
         if path.startswith("resources/") and not (REPO / path).exists() and folder in GENERATORS:

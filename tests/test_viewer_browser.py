@@ -470,7 +470,7 @@ def road_offsets(page, truth: dict, centre: tuple[float, float], bearing: float,
     out = []
     for (road_id, pts), col in zip(profiles, bare_cols):
         left, right = road_edges(col, road, grass)
-        if abs((right - left) * step - 8.0) < 1.0:       # both edges seen, nothing over the road
+        if abs((right - left) * step - 8.0) < 0.5:       # both edges seen (8 m apart), nothing over the road
             line = line_centre(sample(lined, pts))
             out.append((road_id, (line - (left + right) / 2) * step / gsd, (line - len(t) // 2) * step / gsd))
     return out
@@ -478,8 +478,9 @@ def road_offsets(page, truth: dict, centre: tuple[float, float], bearing: float,
 
 def test_a_street_overlay_lies_on_the_roads_of_every_perspective_turned_or_not(browser, overlay_viewer, tmp_path):
     """The demo's road centrelines, given as a config overlay in the scene CRS, are drawn on every perspective
-    (north up and view direction up) within 1 map pixel of the road's centre as the map shows it (both edges
-    measured across the road in the screenshot); a point given with a height is drawn where that perspective
+    (north up and view direction up) within 1 map pixel of the road's centre as the map shows it, at every
+    station where both edges show 8 m apart (measured across the road in the screenshot; the web tiles lie on
+    their own pixels, stages.tiles.web.tile_grid, where gdal2tiles' grid moved a tile by up to a pixel); a point given with a height is drawn where that perspective
     shows that height (h·cot φ along the view), within half a screen pixel."""
     base_url, workdir, results, building = overlay_viewer
     truth = json.loads((workdir / "resources" / "demo" / "truth.json").read_text())
@@ -524,7 +525,7 @@ def test_a_street_overlay_lies_on_the_roads_of_every_perspective_turned_or_not(b
     for name, s in summary.items():
         assert s["stations"] >= 3, (name, s)                  # roads seen with grass on both sides
         assert s["line_vs_truth_max_px"] <= 0.5, (name, s)      # drawn where the centreline is
-        assert s["median_abs_px"] <= 1.0, (name, s)             # and on the road as the web tiles show it
+        assert s["max_abs_px"] <= 1.0, (name, s)                # and on the road as the web tiles show it
     assert [r for r in responses if r[1] >= 400 and not r[0].endswith("favicon.ico")] == []
 
 

@@ -2,7 +2,7 @@
 rectangles published with their objects table; a query at each rectangle answers its id, name, heights
 and attributes (quotes, markup, an escaped line break and non-ASCII text in one intact, commas as ;), a query on the transparent corner answers no object, and both
 layers are listed. Then the small demo run's own mapfile: a query at each flat roof, where each map
-shows it, answers the id of that roof's OBJ group (chunks/<district>/objects.json)."""
+shows it, answers the id of that roof's building (its OBJ object, chunks/<district>/objects.json)."""
 
 from __future__ import annotations
 
@@ -85,10 +85,10 @@ def test_the_map_layer_is_still_drawn_and_the_id_layer_is_listed(id_wms):
     assert b"text/html" in body
 
 
-def test_the_workflow_wms_answers_each_flat_roof_with_its_roof_group(small_run, mapserv):  # noqa: F811
+def test_the_workflow_wms_answers_each_flat_roof_with_its_building(small_run, mapserv):  # noqa: F811
     """Where each map shows a flat roof's centre (its eave height above the DTM, along the view), the run's
-    own mapfile answers the id and name of the roof's OBJ group: on the nadir map every roof, on the obliques
-    all but roofs hidden behind taller buildings."""
+    own mapfile answers the id and name of the roof's building (its OBJ object): on the nadir map every roof, on the obliques
+    all but roofs hidden behind taller buildings (then a taller building's id)."""
     import json
 
     import numpy as np
@@ -100,6 +100,7 @@ def test_the_workflow_wms_answers_each_flat_roof_with_its_roof_group(small_run, 
     workdir, results = small_run
     truth = json.loads((workdir / "resources" / "demo" / "truth.json").read_text())["buildings"]
     flat = [b for b in truth if b["roof"] == "flat"]
+    eave = {b["id"]: b["eave_z"] for b in truth}
     objects = {b["district"]: json.loads((results / "chunks" / b["district"] / "objects.json").read_text()) for b in flat}
     centres = np.array([[*np.mean(b["footprint"], axis=0), b["eave_z"]] for b in flat])
     ground = DTM(str(results / "terrain" / "dtm.tif"), "EPSG:25832", continuous=True).sample(centres[:, 0], centres[:, 1])
@@ -109,10 +110,12 @@ def test_the_workflow_wms_answers_each_flat_roof_with_its_roof_group(small_run, 
         for pid in ("az000_el90", "az045_el45", "az200_el30"):
             xy = project_above_ground(centres, ground, Perspective.from_id(pid))[:, :2]
             got = [feature_info_at(server, pid, float(x) + 0.1, float(y) + 0.1)[:3] for x, y in xy]
-            want = [[str(objects[b["district"]][b["roof_material"]]), b["district"], b["roof_material"]] for b in flat]
+            want = [[str(objects[b["district"]][b["id"]]), b["district"], b["id"]] for b in flat]
             shares[pid] = float(np.mean([g == w for g, w in zip(got, want)]))
+            for g, b in zip(got, flat):          # a roof not answered is hidden behind a taller building
+                assert g[2] == b["id"] or eave[g[2]] > b["eave_z"], (pid, b["id"], g)
     finally:
         server.shutdown()
         server.server_close()
     print(shares)
-    assert shares["az000_el90"] == 1.0 and min(shares.values()) >= 0.9, shares
+    assert shares["az000_el90"] == 1.0 and min(shares.values()) >= 0.8, shares

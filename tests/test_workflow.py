@@ -289,7 +289,7 @@ def test_every_map_has_an_id_map_that_agrees_with_it_and_names_the_roofs(small_r
     """Counted here, apart from the id-map job: every opaque map pixel has an id and no transparent
     one has; every render tile's ids are where its alpha is not 0; a flat roof's centre, where each
     map shows it (displaced by its height above the DTM along the view), carries the id of its
-    district's roof group (chunks/<district>/objects.json, the OBJ group of truth's roof_material).
+    building (chunks/<district>/objects.json: the demo's OBJ writes one object per building, named by its id).
     The report gives the same counts and the id maps' bytes."""
     from osgeo import gdal
 
@@ -325,7 +325,7 @@ def test_every_map_has_an_id_map_that_agrees_with_it_and_names_the_roofs(small_r
         xy = project_above_ground(centres, ground, Perspective.from_id(pid))[:, :2]
         col, row = grid.colrow(xy[:, 0], xy[:, 1])
         got = ids[row.astype(int), col.astype(int)]
-        want = np.array([objects[b["district"]][b["roof_material"]] for b in flat])
+        want = np.array([objects[b["district"]][b["id"]] for b in flat])      # each building its own object
         # a roof may hide behind a taller building in an oblique view, never on the nadir map
         share = float(np.mean(got == want))
         assert share == 1.0 if pid == "az000_el90" else share >= 0.8, (pid, share, len(flat))

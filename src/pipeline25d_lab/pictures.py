@@ -4,11 +4,15 @@
 side by side (both north up, as the maps are), read from the COGs at the pixel size that fits
 the picture. ``docs/images/viewer.jpg``: the web viewer in headless Chromium (Debian's
 ``chromium`` driven by Playwright) over the run served on 127.0.0.1, turned to that view.
+``docs/images/demo-streets.jpg``: the viewer on the oblique map with the config's overlays (the
+demo's streets) drawn, the tallest building with a measured height clicked where the map shows
+it (found on the id map) and identified. ``docs/images/report.jpg``: the top of the run's HTML report.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import shutil
 import sys
 import threading
@@ -25,6 +29,7 @@ from pipeline25d.publish.serve import make_server
 PANEL_PX = 760          # each map panel's width and height in the picture
 WINDOW_M = 300.0        # the map window shown, metres a side (the demo's blocks are 240 m)
 LABEL_PX = 28
+VIEWPORT = (1280, 720)  # the viewer's screenshots
 
 
 def map_window(cog: Path, centre: tuple[float, float], size_m: float, out_px: int) -> Image.Image:
@@ -74,8 +79,9 @@ def maps_picture(results: Path, oblique: str, out: Path) -> None:
     sheet.save(out, quality=82, optimize=True)
 
 
-def viewer_picture(results: Path, view_hash: str, out: Path) -> None:
-    """The viewer over ``results`` served on 127.0.0.1, opened at ``view_hash``, as a screenshot."""
+def viewer_picture(results: Path, view_hash: str, out: Path, act=None) -> None:
+    """The viewer over ``results`` served on 127.0.0.1, opened at ``view_hash``, as a screenshot;
+    ``act(page)``, when given, runs on the settled page first (a click ...)."""
     from playwright.sync_api import sync_playwright
 
     chromium = shutil.which("chromium")
@@ -87,10 +93,14 @@ def viewer_picture(results: Path, view_hash: str, out: Path) -> None:
     try:
         with sync_playwright() as pw:
             browser = pw.chromium.launch(executable_path=chromium)
-            page = browser.new_page(viewport={"width": 1280, "height": 720})
+            page = browser.new_page(viewport={"width": VIEWPORT[0], "height": VIEWPORT[1]})
             page.goto(f"http://127.0.0.1:{server.server_address[1]}/viewer/index.html{view_hash}")
             page.wait_for_load_state("networkidle")
             page.wait_for_timeout(500)
+            if act is not None:
+                act(page)
+                page.wait_for_load_state("networkidle")
+                page.wait_for_timeout(500)
             out.parent.mkdir(parents=True, exist_ok=True)
             png = out.with_suffix(".png")
             page.screenshot(path=str(png))
@@ -100,6 +110,82 @@ def viewer_picture(results: Path, view_hash: str, out: Path) -> None:
     finally:
         server.shutdown()
         server.server_close()
+
+
+def report_picture(results: Path, out: Path) -> None:
+    """The run's report.html (opened from disk; it fetches nothing) in headless Chromium, 1280 px wide:
+    its top (the check-point table and the first map with its residual arrows) above its heights section
+    (the scatter), cut from one full-page screenshot at the page's own headings."""
+    from playwright.sync_api import sync_playwright
+
+    chromium = shutil.which("chromium")
+    if chromium is None:
+        raise SystemExit("no chromium on PATH: apt-get install chromium (make sysdeps does)")
+    png = out.with_suffix(".png")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=chromium)
+        page = browser.new_page(viewport={"width": VIEWPORT[0], "height": VIEWPORT[1]})
+        page.goto((results / "report" / "report.html").resolve().as_uri())
+        page.wait_for_load_state("networkidle")
+        tops = page.evaluate("[...document.querySelectorAll('h2, figure')].map(e => "
+                             "[e.tagName, e.textContent.slice(0, 40), e.getBoundingClientRect().top + scrollY, "
+                             "e.getBoundingClientRect().bottom + scrollY])")
+        page.screenshot(path=str(png), full_page=True)
+        browser.close()
+    sheet = Image.open(png).convert("RGB")
+    png.unlink()
+    first = next((t for t in tops if t[0] == "FIGURE"), None)
+    heights = [k for k, t in enumerate(tops) if t[0] == "H2" and t[1].startswith("Building heights")]
+    parts = [(0, round(first[3]) + 8 if first else min(sheet.height, 1100))]
+    if heights:
+        k = heights[0]
+        end = next((t[2] for t in tops[k + 1:] if t[0] == "H2"), sheet.height + 8)
+        parts.append((round(tops[k][2]) - 8, round(end) - 8))
+    crops = [sheet.crop((0, a, sheet.width, b)) for a, b in parts]
+    picture = Image.new("RGB", (sheet.width, sum(c.height for c in crops)), "white")
+    y = 0
+    for crop in crops:
+        picture.paste(crop, (0, y))
+        y += crop.height
+    picture.save(out, quality=80, optimize=True)
+
+
+def identified_building(results: Path, pid: str) -> tuple[int, str, np.ndarray]:
+    """(id, name, scene x, y) of the tallest object with a measured height (objects/objects.csv), at
+    the pixel of its own on the id map of ``pid`` nearest the middle of its pixels there."""
+    import csv
+
+    with open(results / "objects" / "objects.csv", newline="", encoding="utf-8") as f:
+        rows = [r for r in csv.DictReader(f) if r["measured_height"]]
+    if not rows:
+        raise SystemExit(f"{results}: no object with a measured height (objects/objects.csv)")
+    ds = gdal().Open(str(results / "maps" / f"{pid}.ids.tif"))
+    ids, grid = ds.ReadAsArray(), Grid.of_dataset(ds)
+    for r in sorted(rows, key=lambda r: -float(r["model_height"] or 0)):
+        rr, cc = np.nonzero(ids == int(r["id"]))
+        if len(rr) >= 50:
+            k = np.argmin((rr - np.median(rr)) ** 2 + (cc - np.median(cc)) ** 2)
+            return int(r["id"]), r["name"], np.array(grid.xy(cc[k] + 0.5, rr[k] + 0.5))
+    raise SystemExit(f"{results}: no measured object shows on {pid}")
+
+
+def streets_picture(results: Path, pid: str, out: Path, zoom: int = 18) -> None:
+    """The viewer on ``pid`` with the config's overlays drawn, centred where the map shows the tallest
+    measured building, that building clicked and identified (its row of the objects table)."""
+    from pipeline25d.core.crs import transform_points
+
+    crs = json.loads((results / "report" / "report.json").read_text(encoding="utf-8"))["crs"]
+    oid, _, xy = identified_building(results, pid)
+    lon, lat, _ = transform_points(np.array([[xy[0], xy[1], 0.0]]), crs, "EPSG:4326")[0]
+
+    def click(page) -> None:
+        page.wait_for_function("OVERLAYS.every(o => document.querySelector(`#layers label.loaded[data-overlay='${o.name}']`))")
+        page.mouse.click(VIEWPORT[0] / 2, VIEWPORT[1] / 2)
+        page.wait_for_function(f"(document.querySelector('#object table') || {{}}).textContent?.includes('{oid} (')")
+        page.mouse.move(VIEWPORT[0] / 2 + 1, VIEWPORT[1] / 2)
+
+    viewer_picture(results, f"#{pid}/{zoom}/{lat:.7f}/{lon:.7f}", out, act=click)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -113,7 +199,13 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     maps_picture(args.results, args.oblique, args.out_dir / "maps.jpg")
     viewer_picture(args.results, f"#{args.oblique}/up", args.out_dir / "viewer.jpg")
-    for name in ("maps.jpg", "viewer.jpg"):
+    names = ["maps.jpg", "viewer.jpg"]
+    if (args.results / "objects" / "objects.csv").is_file():
+        streets_picture(args.results, args.oblique, args.out_dir / "demo-streets.jpg")
+        names.append("demo-streets.jpg")
+    report_picture(args.results, args.out_dir / "report.jpg")
+    names.append("report.jpg")
+    for name in names:
         print(args.out_dir / name)
     return 0
 

@@ -151,8 +151,11 @@ def demo_config(scene_dir: Path, scale: float, perspectives: str | list[dict]) -
 
     manifest, where = generated_city("demo", scale, scene_dir)
     config = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    viewer = config.get("viewer") or {}
+    overlays = [{**o, "path": str(where / manifest["streets"])} for o in viewer.get("overlays") or []]
     config.update({"scene": "killtest", "perspectives": perspectives, "terrain": str(where / manifest["dtm"]),
-                   "inputs": {k: {"path": str(where / v)} for k, v in manifest["districts"].items()}})
+                   "inputs": {k: {"path": str(where / v)} for k, v in manifest["districts"].items()},
+                   "viewer": {**viewer, "overlays": overlays}})      # the demo's streets, written beside it
     return config
 
 

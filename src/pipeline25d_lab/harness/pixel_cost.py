@@ -124,8 +124,7 @@ def tms_rows(cog: Path, work: Path, map_mpx: float, repeat: int, tile_format: st
     from pipeline25d.stages.tiles import base, web
 
     g = gdal()
-    grid = web.mercator_grid(cog)
-    zooms = web.zoom_range(grid)
+    grid, zooms = web.tile_grid(cog, "auto")
     max_zoom = int(zooms.split("-")[-1])
     blocks = work / "blocks"
     jobs = [(b, w) for b, w in ((b, web.block_window(b, grid, max_zoom))

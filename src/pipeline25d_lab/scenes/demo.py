@@ -11,7 +11,8 @@ build in well under a second. It exercises what real data exercises:
   is also written as ``dtm.tif``; ground control points taken from the DTM therefore
   match the rendered terrain exactly;
 * textured facades (UV-repeated window grids), per-class roof materials and a
-  vertex-coloured terrain, all in Wavefront OBJ/MTL;
+  vertex-coloured terrain, all in Wavefront OBJ/MTL, one ``o`` object per building (named by its
+  id in truth.json), per road (its id) and the terrain, so a click on a map names a building;
 * a ``truth.json`` with every building's exact footprint and heights, so later
   stages can be checked against independent ground truth.
 
@@ -94,7 +95,7 @@ GROUP_ORDER = ["terrain", "road"] + [f"roof_{c}" for c in ROOF_CLASSES] + [
 ]
 
 # Bump when the generated content changes, so an old scene on disk is regenerated.
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2      # 2: one OBJ object per building, road and terrain; streets.geojson
 
 
 # --------------------------------------------------------------------------- terrain
@@ -401,20 +402,20 @@ def _strip(along: np.ndarray, across: tuple[float, float], axis: str):
 
 
 def _road_pieces(district: District):
-    """Road strips of a district; N-S streets stop at E-W ones (no overlapping tris)."""
+    """Road strips of a district as (road id, strip); N-S streets stop at E-W ones (no overlapping tris)."""
     xmin, ymin, xmax, ymax = district.bounds
     gx, gy = _grid_coords(xmin, xmax), _grid_coords(ymin, ymax)
     half = ROAD_WIDTH / 2
-    ew = sorted(r.centerline[0, 1] for r in district.roads if r.kind == "ew")
-    pieces = [_strip(_stations(xmin, xmax, gx), (y - half, y + half), "x") for y in ew]
-    cuts = [ymin] + [v for y in ew for v in (y - half, y + half)] + [ymax]
+    ew = sorted((r.centerline[0, 1], r.id) for r in district.roads if r.kind == "ew")
+    pieces = [(rid, _strip(_stations(xmin, xmax, gx), (y - half, y + half), "x")) for y, rid in ew]
+    cuts = [ymin] + [v for y, _ in ew for v in (y - half, y + half)] + [ymax]
     for road in district.roads:
         if road.kind != "ns":
             continue
         x = road.centerline[0, 0]
         for a, b in zip(cuts[::2], cuts[1::2]):
             if b - a > 1e-6:
-                pieces.append(_strip(_stations(a, b, gy), (x - half, x + half), "y"))
+                pieces.append((road.id, _strip(_stations(a, b, gy), (x - half, x + half), "y")))
     return pieces
 
 
@@ -465,16 +466,17 @@ def _building_pieces(b: Building):
 
 
 def district_groups(district: District, seed: int) -> dict[str, Group]:
-    """All triangles of a district, grouped by OBJ material name (GROUP_ORDER)."""
+    """All triangles of a district, grouped by OBJ material name (GROUP_ORDER), each piece on its OBJ
+    object: the terrain (``terrain``), each road (its id) and each building (its id, as in truth.json)."""
     groups = {name: Group() for name in GROUP_ORDER}
     rng = np.random.default_rng([seed, DISTRICT_BLOCKS.index(district.block), 1])
-    groups["terrain"].add(*_terrain_piece(district.bounds, rng))
-    for vertices, faces in _road_pieces(district):
-        groups["road"].add(vertices, faces, ROAD_RGB)
+    groups["terrain"].add(*_terrain_piece(district.bounds, rng), obj="terrain")
+    for road_id, (vertices, faces) in _road_pieces(district):
+        groups["road"].add(vertices, faces, ROAD_RGB, obj=road_id)
     for b in district.buildings:
         (fv, ff, fuv), (rv, rf) = _building_pieces(b)
-        groups[f"facade_{b.facade}"].add(fv, ff, (1.0, 1.0, 1.0), fuv)
-        groups[f"roof_{b.roof_class}"].add(rv, rf, ROOF_CLASSES[b.roof_class])
+        groups[f"facade_{b.facade}"].add(fv, ff, (1.0, 1.0, 1.0), fuv, obj=b.id)
+        groups[f"roof_{b.roof_class}"].add(rv, rf, ROOF_CLASSES[b.roof_class], obj=b.id)
     return groups
 
 
@@ -603,6 +605,17 @@ def truth_dict(districts: list[District], scale: float, seed: int) -> dict:
     }
 
 
+def streets_geojson(truth: dict) -> dict:
+    """The roads' centrelines of ``truth`` as a GeoJSON FeatureCollection in the scene CRS (named in
+    its ``crs`` member, as OGR reads it): the street layer a 2D map would give (the viewer's overlay)."""
+    return {"type": "FeatureCollection", "name": "streets",
+            "crs": {"type": "name", "properties": {"name": f"urn:ogc:def:crs:EPSG::{EPSG_CODE}"}},
+            "features": [{"type": "Feature", "properties": {"id": r["id"], "district": r["district"],
+                                                              "kind": r["kind"], "width_m": r["width"]},
+                          "geometry": {"type": "LineString", "coordinates": r["centerline"]}}
+                         for r in truth["roads"]]}
+
+
 # --------------------------------------------------------------------------- entry points
 
 
@@ -617,7 +630,7 @@ def _existing_manifest(out_dir: Path, seed: int, n_buildings: int, scale: float)
         return None
     same = (manifest.get("seed") == seed and manifest.get("n_buildings") == n_buildings
             and manifest.get("scale") == scale and manifest.get("version") == GENERATOR_VERSION)
-    files = list((manifest.get("districts") or {}).values()) + [manifest.get("dtm"), manifest.get("truth")]
+    files = list((manifest.get("districts") or {}).values()) + [manifest.get(k) for k in ("dtm", "truth", "streets")]
     if same and all(isinstance(f, str) and (out_dir / f).is_file() for f in files):
         return manifest
     return None
@@ -637,7 +650,8 @@ def generate_demo_city(out_dir: Path, seed: int = 7, n_buildings: int = 320, sca
                        *, progress: Callable[[str], None] | None = None) -> dict:
     """Write the demo city into ``out_dir`` and return its manifest.
 
-    Files: d0..d3 .obj/.mtl, facade_*.png, dtm.tif, truth.json, manifest.json (last).
+    Files: d0..d3 .obj/.mtl, facade_*.png, dtm.tif, truth.json, streets.geojson (the roads'
+    centrelines: :func:`streets_geojson`), manifest.json (last).
     When ``out_dir`` already holds a complete scene for the same parameters nothing
     is written. ``progress`` receives one line per district (the CLI prints them).
     """
@@ -667,11 +681,13 @@ def generate_demo_city(out_dir: Path, seed: int = 7, n_buildings: int = 320, sca
     write_dtm(out_dir / "dtm.tif", scale)
     truth = truth_dict(districts, scale, seed)
     write_bytes(out_dir / "truth.json", (json.dumps(truth, indent=1) + "\n").encode("ascii"))
+    write_bytes(out_dir / "streets.geojson", (json.dumps(streets_geojson(truth)) + "\n").encode("ascii"))
     manifest = {
         "crs": CRS,
         "districts": {d.name: f"{d.name}.obj" for d in districts},
         "dtm": "dtm.tif",
         "truth": "truth.json",
+        "streets": "streets.geojson",
         "n_buildings": sum(len(d.buildings) for d in districts),
         "n_triangles": n_triangles,
         "seed": seed,

@@ -17,16 +17,18 @@ VertexColumns = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 @dataclass
 class Group:
-    """Triangles of one OBJ material: vertices (n,3), rgb (n,3), uv (n,2)|None, faces."""
+    """Triangles of one OBJ material: vertices (n,3), rgb (n,3), uv (n,2)|None, faces, and each piece's
+    OBJ object (``o`` name, None for none)."""
 
     vertices: list[np.ndarray] = field(default_factory=list)
     colors: list[np.ndarray] = field(default_factory=list)
     uv: list[np.ndarray] = field(default_factory=list)
     faces: list[np.ndarray] = field(default_factory=list)
+    objects: list[str | None] = field(default_factory=list)
     count: int = 0
 
-    def add(self, vertices, faces, colors, uv=None) -> None:
-        """Append a piece; ``faces`` index into ``vertices`` (0-based, local)."""
+    def add(self, vertices, faces, colors, uv=None, obj: str | None = None) -> None:
+        """Append a piece (of OBJ object ``obj``); ``faces`` index into ``vertices`` (0-based, local)."""
         vertices = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
         colors = np.broadcast_to(np.asarray(colors, dtype=np.float64), vertices.shape)
         self.vertices.append(vertices)
@@ -34,6 +36,7 @@ class Group:
         if uv is not None:
             self.uv.append(np.asarray(uv, dtype=np.float64).reshape(-1, 2))
         self.faces.append(np.asarray(faces, dtype=np.int64).reshape(-1, 3) + self.count)
+        self.objects.append(obj)
         self.count += len(vertices)
 
 
@@ -51,13 +54,18 @@ def obj_text(header: str, name: str, groups: dict[str, Group], uv_sets: dict[str
     vertices have them. ``uv_sets`` maps a textured material to (key, uv per vertex); materials
     with equal keys share one block of ``vt`` lines. ``formats``: how the numbers of the ``v`` and
     of the ``vt`` lines are written; ``vertex_columns`` gives the ``v`` numbers (default x y z r g b).
+    Pieces added with an object name are written as ``o`` objects (each its pieces' faces under their
+    materials, objects in order of their first piece; a piece without a name is on the object ``name``);
+    without any, the district is one ``o``.
+    The ``v`` and ``vt`` lines are the same either way.
     """
     v_format, vt_format = formats
     used = [(k, g) for k, g in groups.items() if g.count]
     vertices = np.vstack([np.vstack(g.vertices) for _, g in used])
     colors = np.vstack([np.vstack(g.colors) for _, g in used])
     columns = vertex_columns(vertices, colors) if vertex_columns else np.column_stack([vertices, colors])
-    lines = [header, f"mtllib {name}.mtl", f"o {name}"] + obj_rows("v", columns, v_format)
+    named = any(o is not None for _, g in used for o in g.objects)
+    lines = [header, f"mtllib {name}.mtl"] + ([] if named else [f"o {name}"]) + obj_rows("v", columns, v_format)
     vt_offsets: dict[Hashable, int] = {}  # uv key -> 1-based index of its first vt line
     n_vt = 0
     for material, _ in used:
@@ -67,17 +75,26 @@ def obj_text(header: str, name: str, groups: dict[str, Group], uv_sets: dict[str
             lines += obj_rows("vt", uv, vt_format)
             n_vt += len(uv)
     v_offset, n_tri = 1, 0
+    blocks: dict[str | None, list[tuple[str, list[str]]]] = {}   # object -> [(material, face lines)]
     for material, g in used:
-        faces = np.vstack(g.faces)
-        lines.append(f"usemtl {material}")
-        if material in uv_sets:
-            vt_offset = vt_offsets[uv_sets[material][0]]
-            both = np.stack([faces + v_offset, faces + vt_offset], axis=2).reshape(-1, 6)
-            lines += ["f %d/%d %d/%d %d/%d" % tuple(r) for r in both.tolist()]
-        else:
-            lines += obj_rows("f", faces + v_offset, "%d")
+        for obj, faces in zip(g.objects, g.faces):
+            if material in uv_sets:
+                vt_offset = vt_offsets[uv_sets[material][0]]
+                both = np.stack([faces + v_offset, faces + vt_offset], axis=2).reshape(-1, 6)
+                rows = ["f %d/%d %d/%d %d/%d" % tuple(r) for r in both.tolist()]
+            else:
+                rows = obj_rows("f", faces + v_offset, "%d")
+            pieces = blocks.setdefault((obj or name) if named else None, [])
+            if pieces and pieces[-1][0] == material:
+                pieces[-1][1].extend(rows)
+            else:
+                pieces.append((material, rows))
+            n_tri += len(faces)
         v_offset += g.count
-        n_tri += len(faces)
+    for obj, pieces in blocks.items():
+        lines += [] if obj is None else [f"o {obj}"]
+        for material, rows in pieces:
+            lines += [f"usemtl {material}"] + rows
     return "\n".join(lines) + "\n", n_tri
 
 

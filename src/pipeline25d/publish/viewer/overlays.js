@@ -6,7 +6,8 @@
 // coordinate) shows h·cot φ further along the view direction d = (sin θ, cos θ) of the scene CRS
 // (pipeline25d.geometry.camera.map_affine; the height tool reads the same displacement back), so each
 // such vertex is moved there, per perspective: in the scene CRS by TO_SCENE, back to web mercator by
-// Newton steps on it. BASEMAP (config viewer.basemap): an XYZ layer under the maps, only when given.
+// Newton steps on it. A click on a feature shows its properties in a popup and goes on to the map (identify,
+// height tool). BASEMAP (config viewer.basemap): an XYZ layer under the maps, only when given.
 'use strict';
 
 const overlayState = [];          // {name, color, data, on, drawn: {pid: L.GeoJSON}}
@@ -61,7 +62,13 @@ function drawn(o, p) {
     o.drawn[p.id] = L.geoJSON({type: 'FeatureCollection', features}, {
       style: {color: o.color, weight: 3, opacity: 0.9},
       pointToLayer: (ft, ll) => L.circleMarker(ll, {radius: 5, color: '#000', weight: 1, fillColor: o.color, fillOpacity: 1}),
-      onEachFeature: (ft, layer) => { if (ft.properties && Object.keys(ft.properties).length) layer.bindPopup(popupText(ft.properties)); },
+      onEachFeature: (ft, layer) => {
+        // Not bindPopup: its click handler stops the event, so a click on a feature (a footprint over its
+        // roof) would never reach the map: no identify, no height tool. This popup opens and the click goes on.
+        if (ft.properties && Object.keys(ft.properties).length) {
+          layer.on('click', e => L.popup({autoPan: false}).setLatLng(e.latlng).setContent(popupText(ft.properties)).openOn(map));
+        }
+      },
     });
   }
   return o.drawn[p.id];

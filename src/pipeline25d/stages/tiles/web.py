@@ -2,7 +2,7 @@
 
 The map is reprojected to EPSG:3857 in *blocks*: squares of :data:`BLOCK_TILES` x
 :data:`BLOCK_TILES` web tiles of the highest zoom, each warped by gdalwarp in C onto the
-whole map's web-mercator grid, with the nearest-neighbour resampling of gdal2tiles' own
+whole map's web-mercator grid (on the tile grid's pixels: :func:`tile_grid`), with the nearest-neighbour resampling of gdal2tiles' own
 warped VRT (transform exact to 0.01 px). gdal2tiles then cuts a VRT of the blocks with its
 own tile functions: base tiles by ``create_base_tile`` (its read made fast, same bytes: see
 :mod:`pipeline25d.stages.tiles.base`), overview tiles from their children by ``create_overview_tile``. It reads plain windows instead of re-warping for every tile,
@@ -124,9 +124,8 @@ def update_pyramid(cog: str | Path, zoom: str, work: Path, processes: int = 1, t
     ds = g.Open(str(cog))
     wkt = ds.GetProjection()
     ds = None
-    grid = mercator_grid(cog)
+    grid, zooms = tile_grid(cog, zoom)
     width, height = grid.width, grid.height
-    zooms = zoom_range(grid) if zoom == "auto" else zoom
     key = {"version": STATE_VERSION, "grid": [*grid.geotransform, width, height], "zooms": zooms, "format": tile_format,
            "quality": int(quality) if tile_format == "webp" else None, "block_tiles": BLOCK_TILES}
     map_grid, cells = map_cells(cog)
@@ -361,6 +360,30 @@ def mercator_grid(cog: str | Path) -> Grid:
     vrt = g.Warp("", str(cog), format="VRT", dstSRS=WEB_MERCATOR, resampleAlg="near", errorThreshold=0.01,
                  dstAlpha=True)
     return Grid.of_dataset(vrt)
+
+
+def tile_grid(cog: str | Path, zoom: str) -> tuple[Grid, str]:
+    """The web-mercator grid the map is warped onto, and its zooms ("min-max"; ``zoom`` "auto":
+    :func:`zoom_range` of gdalwarp's own grid). The grid lies on the web-tile grid: its pixel is the
+    highest zoom's tile pixel halved until no coarser than gdalwarp's, its edges those of the highest
+    zoom's tiles. So every base tile reads a whole window of it, no tile clipped at its edge: gdal2tiles
+    takes a tile's window from its offset rounded toward zero, so on gdalwarp's own grid each base tile
+    moved by up to a source pixel (a road by up to a map pixel on the web tiles), and a tile clipped at
+    the grid's left or top edge by one more."""
+    from osgeo_utils.gdal2tiles import GlobalMercator
+
+    native = mercator_grid(cog)
+    zooms = zoom_range(native) if zoom == "auto" else zoom
+    origin = GlobalMercator(GDAL2TILES_TILE).originShift
+    tile = 2 * origin / 2 ** int(zooms.split("-")[-1])                # the highest zoom's tile, metres
+    size = tile / GDAL2TILES_TILE
+    while size > native.transform.a * (1 + 1e-9):
+        size /= 2
+    x0, y0, x1, y1 = native.bounds
+    c0, r0 = np.floor((x0 + origin) / tile + 1e-9), np.floor((origin - y1) / tile + 1e-9)
+    c1, r1 = np.ceil((x1 + origin) / tile - 1e-9), np.ceil((origin - y0) / tile - 1e-9)
+    n = round(tile / size)                                              # pixels a tile
+    return Grid.north_up(c0 * tile - origin, origin - r0 * tile, size, int(c1 - c0) * n, int(r1 - r0) * n), zooms
 
 
 def zoom_range(grid: Grid) -> str:
