@@ -437,3 +437,50 @@ def test_blocks_on_two_processes_give_the_serial_rows(scene):
     for a, b in zip(serial, parallel):
         assert a.reasons == b.reasons
         np.testing.assert_array_equal([a.height, *a.heights.values()], [b.height, *b.heights.values()])
+
+
+def test_footprints_in_blocks_give_the_whole_runs_rows_and_a_change_reaches_only_its_blocks(scene, measured, tmp_path):
+    """The heights stage's block jobs: each block measured alone (its neighbours as context) gives
+    the rows of one job over all footprints, exactly (through their JSON records); a block's digest
+    stays where the maps are rewritten with the same pixels and changes only where a changed pixel
+    lies within its reach."""
+    import shutil
+    from pathlib import Path
+
+    from osgeo import gdal
+
+    from pipeline25d.analysis.heights.blocks import (blocks_of, context_of, reads_digest, row_from_json,
+                                                     row_to_json)
+    from pipeline25d.analysis.heights.results import MatchSettings
+
+    fps = read_footprints(scene["gpkg"], id_field="ident")
+    maps = {k: str(v) for k, v in scene["maps"].items()}
+    blocks = blocks_of(fps, 32.0)
+    assert len(blocks) >= 3 and sorted(i for b in blocks.values() for i in b) == list(range(len(fps)))
+    rows: list = [None] * len(fps)
+    for idx in blocks.values():
+        members = [fps[i] for i in idx]
+        for i, r in zip(idx, measure_heights(maps, members, context=context_of(members, fps))):
+            rows[i] = row_from_json(json.loads(json.dumps(row_to_json(r))))
+    assert [json.dumps(row_to_json(r)) for r in rows] == [json.dumps(row_to_json(measured[f.id])) for f in fps]
+
+    s = MatchSettings(max_height=5.0)          # a reach of at most 5 m x cot 30 deg: blocks apart
+
+    def digests(m: dict) -> dict[str, str]:
+        return {b: reads_digest(m, [fps[i] for i in idx], context_of([fps[i] for i in idx], fps), s, None)
+                for b, idx in blocks.items()}
+
+    before = digests(maps)
+    copies = {k: str(shutil.copy(v, tmp_path / Path(v).name)) for k, v in maps.items()}
+    assert digests(copies) == before
+    by_id = {f.id: f for f in fps}
+    ds = gdal.Open(copies["az000_el90"], gdal.GA_Update)
+    gt = ds.GetGeoTransform()
+    x, y = by_id["nodata"].rings[0].mean(0)
+    col, row = int((x - gt[0]) / gt[1]), int((y - gt[3]) / gt[5])
+    ds.GetRasterBand(1).WriteArray(np.array([[0, 255], [255, 0]], dtype=np.uint8), col, row)
+    ds = None
+    after = digests(copies)
+    changed = {b for b in blocks if after[b] != before[b]}
+    assert next(b for b, idx in blocks.items() if fps.index(by_id["nodata"]) in idx) in changed
+    assert next(b for b, idx in blocks.items() if fps.index(by_id["A"]) in idx) not in changed

@@ -17,9 +17,9 @@ from pipeline25d.analysis.heights.pitched import KINDS, MAX_LOSS, fit_eave, ridg
 from pipeline25d.analysis.heights.results import NADIR_ID, HeightRow, MatchSettings, ViewMeasurement
 from pipeline25d.analysis.heights.silhouette import (MIN_CONSISTENT, Lines, levelled, robust_level, roof_heights,
                                                      silhouette_lines)
-from pipeline25d.analysis.heights.template import _PAD, Template, _prepare_view, build_template
+from pipeline25d.analysis.heights.template import _PAD, Template, _prepare_view, _View, build_template
 from pipeline25d.core.errors import InputFileError
-from pipeline25d.core.grid import Extent, Grid
+from pipeline25d.core.grid import Extent, Grid, Window
 from pipeline25d.core.raster import read_rgba_block
 from pipeline25d.formats.footprints import Footprint
 from pipeline25d.geometry.camera import horizontal_direction
@@ -101,13 +101,7 @@ def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint
                 results[v.pid] = MatchResult(math.nan, 0.0, 1.0, tmpl)
                 continue
             u_max = s.max_height * v.cot
-            # oblique window covering the nadir window moved by -3 .. u_max + 3 steps, clipped to the raster
-            corners = np.array([[r0, c0], [r0, c1], [r1, c0], [r1, c1]], dtype=np.float64)
-            pts = np.concatenate([corners + v.offset + u * v.d_px for u in (-3 * step_m, u_max + 3 * step_m)])
-            o_r0 = max(int(math.floor(pts[:, 0].min())) - _PAD, -_PAD)
-            o_c0 = max(int(math.floor(pts[:, 1].min())) - _PAD, -_PAD)
-            o_r1 = min(int(math.ceil(pts[:, 0].max())) + _PAD, v.src.RasterYSize + _PAD)
-            o_c1 = min(int(math.ceil(pts[:, 1].max())) + _PAD, v.src.RasterXSize + _PAD)
+            o_r0, o_c0, o_r1, o_c1 = oblique_window(v, win, u_max, step_m)
             if o_r1 <= o_r0 or o_c1 <= o_c0:
                 results[v.pid] = MatchResult(math.nan, 0.0, 1.0, "outside_map")
                 continue
@@ -158,6 +152,18 @@ def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint
                         else None)
         rows_out.append(row)
     return rows_out
+
+
+def oblique_window(v: _View, win: Window, u_max: float, step_m: float) -> tuple[int, int, int, int]:
+    """(row0, col0, row1, col1) of the oblique map ``v`` that a footprint's nadir window ``win``
+    is searched in: that window moved by -3 .. u_max + 3 steps along the view, with a margin,
+    clipped to the raster (empty where row1 <= row0 or col1 <= col0)."""
+    c0, r0, c1, r1 = win
+    corners = np.array([[r0, c0], [r0, c1], [r1, c0], [r1, c1]], dtype=np.float64)
+    pts = np.concatenate([corners + v.offset + u * v.d_px for u in (-3 * step_m, u_max + 3 * step_m)])
+    return (max(int(math.floor(pts[:, 0].min())) - _PAD, -_PAD), max(int(math.floor(pts[:, 1].min())) - _PAD, -_PAD),
+            min(int(math.ceil(pts[:, 0].max())) + _PAD, v.src.RasterYSize + _PAD),
+            min(int(math.ceil(pts[:, 1].max())) + _PAD, v.src.RasterXSize + _PAD))
 
 
 def _roof(fp: Footprint, row: HeightRow, measurements: dict[str, ViewMeasurement], cot: dict[str, float],
