@@ -49,6 +49,30 @@ def test_gable_and_eave_lines_end_where_the_geometry_says(rise):
     assert line_excess(fp, "gabled", rise, eave[None], ACROSS, cot)[0] == pytest.approx(want, abs=0.06)
 
 
+@pytest.mark.parametrize("slope", [0.3, 0.8, 1.4])
+@pytest.mark.parametrize("kind", ["gabled", "hipped"])
+def test_ground_falling_towards_the_viewer_draws_the_roof_farther_out(slope, kind):
+    """On a planar ground rising ``slope`` m per m along the view (the map subtracts it under every
+    roof point), a line from an eave's middle, the view across the ridge, ends at the farthest of
+    the roof's far eave (t = 0), its ridge (t = W) and its near eave (t = 2W): each drawn at its
+    height above its own ground, G(e) − G(q) = slope·t higher than the line's start says."""
+    fp = _house()
+    c = np.array([100.0, 200.0])
+    cot = 1 / math.tan(math.radians(30))
+
+    def ground(x, y):                                    # rises along ACROSS, any level
+        return 50.0 + slope * ((np.asarray(x) - c[0]) * ACROSS[0] + (np.asarray(y) - c[1]) * ACROSS[1])
+
+    eave = c + HALF_W * ACROSS
+    for rise in (0.0, 2.0, 4.0):
+        want = max(0.0, rise + (slope - 1 / cot) * HALF_W, (slope - 1 / cot) * 2 * HALF_W)
+        got = line_excess(fp, kind, rise, eave[None], ACROSS, cot, ground)[0]
+        assert got == pytest.approx(want, abs=0.02), (rise, got, want)
+    # level ground: as without it
+    flat = line_excess(fp, kind, 3.0, eave[None], ACROSS, cot, lambda x, y: np.full(np.shape(x), 7.0))
+    assert flat == pytest.approx(line_excess(fp, kind, 3.0, eave[None], ACROSS, cot))
+
+
 def test_two_faces_colours_give_the_rise_and_the_kind():
     """Roof faces of two colours, drawn at q + (eave + rise·share(q))·cot·d on a fine grid; the fit
     finds the rise it was drawn with, and a flat roof of one colour stays flat."""

@@ -149,7 +149,7 @@ def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint
             row = _roof(fp, row, measurements, cot, s,
                         lambda r: _with_ridge(r, fp, tmpl, grid, win, around, sample, step_m, s.tol),
                         (lambda: lines or lines.update(all_lines()) or lines) if np.isfinite(base) and s.silhouette
-                        else None)
+                        else None, sample)
         rows_out.append(row)
     return rows_out
 
@@ -168,11 +168,13 @@ def oblique_window(v: _View, win: Window, u_max: float, step_m: float) -> tuple[
 
 def _roof(fp: Footprint, row: HeightRow, measurements: dict[str, ViewMeasurement], cot: dict[str, float],
           s: MatchSettings, ridge_fit: Callable[[HeightRow], HeightRow],
-          get_lines: Callable[[], dict[str, "Lines | str"]] | None) -> HeightRow:
+          get_lines: Callable[[], dict[str, "Lines | str"]] | None, sample: Sampler | None = None) -> HeightRow:
     """``row`` with its roof: the ridge and kind from the colours (``ridge_fit``), else from the
     silhouette's gable and hip ends; a pitched roof's eave then from the silhouette's lines with that
     ridge (its colours move by more than the eave's height, its gable ends' lines end above it),
-    ``measurements`` updated in place. ``get_lines``: the levelled lines (None: no DTM, colours only)."""
+    ``measurements`` updated in place. ``get_lines``: the levelled lines (None: no DTM, colours only);
+    ``sample``: the DTM (the ground under the roof moves its points on the map, see
+    :func:`.pitched.line_excess`)."""
     row = ridge_fit(row)
     if get_lines is None:
         return row
@@ -187,9 +189,9 @@ def _roof(fp: Footprint, row: HeightRow, measurements: dict[str, ViewMeasurement
                 row = replace(row, ridge=lower.ridge, roof=lower.roof, ridges=lower.ridges)
     if row.roof == "flat":
         # colours alike on both faces (the ridge along the light): the gable ends' silhouette
-        row = _silhouette_ridge(fp, row, get_lines(), cot)
+        row = _silhouette_ridge(fp, row, get_lines(), cot, sample)
         from_lines = row.roof in KINDS
-    if row.roof not in KINDS or not _eaves(fp, row, measurements, get_lines(), cot):
+    if row.roof not in KINDS or not _eaves(fp, row, measurements, get_lines(), cot, sample):
         return row
     _drop_inconsistent(measurements, s.outlier_m)
     new = _combine(fp.id, measurements, s)
@@ -210,20 +212,21 @@ def _silhouette_level(lines: dict[str, "Lines | str"]) -> float:
     return robust_level(np.concatenate([lv.h for lv in usable]), max(lv.inlier for lv in usable))[0]
 
 
-def _silhouette_ridge(fp: Footprint, row: HeightRow, lines: dict[str, "Lines | str"], cot: dict[str, float]) -> HeightRow:
+def _silhouette_ridge(fp: Footprint, row: HeightRow, lines: dict[str, "Lines | str"], cot: dict[str, float],
+                      sample: Sampler | None = None) -> HeightRow:
     """``row`` with the ridge and kind of :func:`.pitched.silhouette_roof` where it finds a rise."""
     usable = [(lv.xy, lv.h, horizontal_direction(Perspective.from_id(p)), cot[p], lv.inlier)
               for p, lv in lines.items() if isinstance(lv, Lines)]
     if not usable:
         return row
-    kind, rise, eave, _ = silhouette_roof(fp, [u[:4] for u in usable], max(u[4] for u in usable))
+    kind, rise, eave, _ = silhouette_roof(fp, [u[:4] for u in usable], max(u[4] for u in usable), sample)
     if kind == "flat":
         return row
     return replace(row, ridge=eave + rise, roof=kind, ridges={p: math.nan for p in row.ridges})
 
 
 def _eaves(fp: Footprint, row: HeightRow, measurements: dict[str, ViewMeasurement], lines: dict[str, "Lines | str"],
-           cot: dict[str, float]) -> bool:
+           cot: dict[str, float], sample: Sampler | None = None) -> bool:
     """Each view's eave of a pitched roof (``row.roof`` up to ``row.ridge``) from its silhouette lines
     (:func:`.pitched.fit_eave`), where enough of them agree (in place); whether any changed."""
     changed = False
@@ -232,7 +235,7 @@ def _eaves(fp: Footprint, row: HeightRow, measurements: dict[str, ViewMeasuremen
         if not isinstance(lv, Lines) or m.reason in ("too_small", "nadir_nodata", "outside_map"):
             continue
         d = horizontal_direction(Perspective.from_id(p))
-        eave, share = fit_eave(fp, row.roof, row.ridge, lv.xy, lv.h, d, cot[p], lv.inlier)
+        eave, share = fit_eave(fp, row.roof, row.ridge, lv.xy, lv.h, d, cot[p], lv.inlier, sample)
         if share < MIN_CONSISTENT:
             continue
         measurements[p] = replace(m, height=eave, shift_m=eave * cot[p], reason="", method="silhouette")
