@@ -113,3 +113,19 @@ def test_two_faces_colours_give_the_rise_and_the_kind():
         got = fit_rise(fp, q, colour, sample, np.full(len(q), eave * cot), cot, 30.0)
         assert got.kind == want_kind
         assert got.rise == pytest.approx(want_rise, abs=0.15)
+
+
+def test_a_view_that_fits_a_flat_roof_makes_it_flat_only_where_no_rise_fits_it_better():
+    """ridge_height: a view whose flat roof fits within FLAT_FIT says flat only when its own fit
+    found no rise; a view whose faces look alike (flat fits well) but whose rise fits better still
+    leaves the ridge to the rises (their median above the eave)."""
+    from pipeline25d.analysis.heights.pitched import FLAT_FIT, RiseFit, ridge_height
+
+    good = FLAT_FIT / 2
+    assert ridge_height({"a": RiseFit(0.0, "flat", good, good), "b": RiseFit(2.9, "gabled", 0.3, 0.1)}, 10.0) \
+        == (10.0, "flat")
+    ridge, kind = ridge_height({"a": RiseFit(3.1, "gabled", good, good / 4), "b": RiseFit(2.9, "gabled", 0.3, 0.1)},
+                               10.0)
+    assert kind == "gabled" and ridge == pytest.approx(10.0 + (3.1 + 2.9) / 2)
+    # a view that does not show the roof (loss above MAX_LOSS) says nothing
+    assert ridge_height({"a": RiseFit(3.0, "hipped", 0.9, 0.8)}, 10.0)[1] == ""

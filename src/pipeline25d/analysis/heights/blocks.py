@@ -79,13 +79,25 @@ def row_from_json(d: dict[str, Any]) -> HeightRow:
 
 # --------------------------------------------------------------------------- what a block reads
 
+def code_digest() -> str:
+    """A digest of the measuring code (this package's modules and the ground under a footprint):
+    rows kept from another version of it are measured again."""
+    from pipeline25d.analysis import ground_under
+
+    h = hashlib.sha256()
+    for path in sorted(Path(__file__).parent.glob("*.py")) + [Path(ground_under.__file__)]:
+        h.update(path.name.encode() + path.read_bytes())
+    return h.hexdigest()
+
+
 def reads_digest(map_paths: dict[str, str | Path], members: list[Footprint], context: list[Footprint],
                  settings: MatchSettings, dtm: str | Path | None, extra: str = "") -> str:
     """A digest of everything a block's measurement depends on: its footprints and their context,
-    the settings, ``extra`` (e.g. the ground's definition), and the pixels it can read: on the
-    nadir map the window around all its footprints, on each oblique map (and the nadir map under
-    it, for the hidden-ground check) that window moved over the search range, and the DTM's cells
-    under the oblique reach (the silhouette's levelling samples it there)."""
+    the settings, the measuring code (:func:`code_digest`), ``extra`` (e.g. the ground's
+    definition), and the pixels it can read: on the nadir map the window around all its
+    footprints, on each oblique map (and the nadir map under it, for the hidden-ground check) that
+    window moved over the search range, and the DTM's cells under the oblique reach (the
+    silhouette's levelling samples it there)."""
     from pipeline25d.analysis.evaluate.rasters import _open
     from pipeline25d.analysis.heights.template import _prepare_view
     from pipeline25d.analysis.heights.views import oblique_window
@@ -99,7 +111,7 @@ def reads_digest(map_paths: dict[str, str | Path], members: list[Footprint], con
             for ring in fp.rings:
                 h.update(np.ascontiguousarray(ring, dtype=np.float64).tobytes())
         h.update(b"|")
-    h.update(repr(sorted(settings.__dict__.items())).encode() + extra.encode())
+    h.update(repr(sorted(settings.__dict__.items())).encode() + extra.encode() + code_digest().encode())
     if not members:
         return h.hexdigest()
     nad = _open(map_paths[NADIR_ID])

@@ -299,13 +299,14 @@ def view_rise(fp: Footprint, tmpl: Template, xy: np.ndarray, obl_rgb: np.ndarray
 def ridge_height(fits: dict[str, RiseFit], eave: float) -> tuple[float, str]:
     """(ridge height, roof kind) of a building from its views' :func:`view_rise`. Views whose best
     loss is above MAX_LOSS do not show the roof; a view where the flat roof fits within FLAT_FIT
-    makes it flat; else the kind of the view that gained most and the eave plus the median rise of
+    and no rise fits clearly better (its fit's kind is flat) makes it flat (a view whose faces
+    look alike fits a flat roof well too, but then another view's rise decides); else the kind of the view that gained most and the eave plus the median rise of
     the views that found one. Without a view that shows the roof: unmeasured."""
     seen = [f for f in fits.values() if math.isfinite(f.loss) and f.loss <= MAX_LOSS]
     if not seen or not math.isfinite(eave):
         return math.nan, ""
     pitched = [f for f in seen if f.kind != "flat"]
-    if not pitched or any(f.flat_loss <= FLAT_FIT for f in seen):
+    if not pitched or any(f.flat_loss <= FLAT_FIT and f.kind == "flat" for f in seen):
         return eave, "flat"
     best = max(pitched, key=lambda f: f.flat_loss - f.loss)
     return eave + float(np.median([f.rise for f in pitched])), best.kind
