@@ -484,3 +484,47 @@ def test_footprints_in_blocks_give_the_whole_runs_rows_and_a_change_reaches_only
     changed = {b for b in blocks if after[b] != before[b]}
     assert next(b for b, idx in blocks.items() if fps.index(by_id["nodata"]) in idx) in changed
     assert next(b for b, idx in blocks.items() if fps.index(by_id["A"]) in idx) not in changed
+
+
+def test_the_stage_in_block_jobs_writes_the_single_jobs_files_and_keeps_unchanged_blocks(scene, tmp_path):
+    """height_blocks: the checkpoint's blocks, one measure_block per block and merge_blocks write the
+    heights.csv of run_stage in one job byte for byte and its heights.json but for "cost"; measured
+    again with nothing changed, every block keeps its rows and the files stay the same."""
+    import json
+
+    from pipeline25d.analysis.height_blocks import measure_block, merge_blocks, write_blocks
+    from pipeline25d.analysis.height_sources import run_stage
+    from pipeline25d.core.atomic import write_json
+
+    maps = {k: str(v) for k, v in scene["maps"].items() if k in ("az000_el90", "az045_el45")}
+    config = {"crs": "EPSG:28992", "gsd": GSD, "inputs": {},
+              "perspectives": [{"azimuth": 0, "elevation": 90}, {"azimuth": 45, "elevation": 45}],
+              "heights": {"footprints": str(scene["gpkg"]), "id_field": "ident", "reference": "none",
+                          "block_size": 32.0}}
+    scene_json = tmp_path / "scene.json"
+    write_json(scene_json, {"bounds": [[X0, Y0 - SIZE_M, 0.0], [X0 + SIZE_M, Y0, 20.0]], "z0": 0.0, "terrain": "flat",
+                            "projection": "plane", "dtm": None, "n_candidates": 0, "n_check": 0,
+                            "dtm_check_holdout_m": None, "n_chunks": 1})
+    one = run_stage(config, maps, scene_json, None, tmp_path / "one.csv", tmp_path / "one.json")
+    blocks_json = tmp_path / "work" / "blocks.json"
+    blocks = write_blocks(config, maps["az000_el90"], blocks_json)
+    assert len(blocks) >= 3
+
+    def in_blocks(tag: str) -> tuple[dict, list[dict]]:
+        outs = [tmp_path / "work" / f"block_{b}.{tag}.json" for b in blocks]
+        summaries = [measure_block(config, maps, scene_json, blocks_json, b, tmp_path / "work" / "rows", out)
+                     for b, out in zip(blocks, outs)]
+        merged = merge_blocks(config, maps, scene_json, None, blocks_json, [str(o) for o in outs],
+                              tmp_path / "work" / "rows", tmp_path / f"{tag}.csv", tmp_path / f"{tag}.json")
+        return merged, summaries
+
+    merged, summaries = in_blocks("blocks")
+    assert all(s["measured"] for s in summaries) and sum(s["n"] for s in summaries) == one["footprints"]["n_on_maps"]
+    assert (tmp_path / "blocks.csv").read_bytes() == (tmp_path / "one.csv").read_bytes()
+    strip = lambda d: {k: v for k, v in d.items() if k != "cost"}  # noqa: E731
+    assert strip(json.loads((tmp_path / "blocks.json").read_text())) == \
+        strip(json.loads((tmp_path / "one.json").read_text()))
+    assert merged["cost"]["jobs"] == len(blocks) and merged["cost"]["blocks_measured"] == len(blocks)
+    again, summaries = in_blocks("again")
+    assert not any(s["measured"] for s in summaries) and again["cost"]["blocks_measured"] == 0
+    assert (tmp_path / "again.csv").read_bytes() == (tmp_path / "one.csv").read_bytes()

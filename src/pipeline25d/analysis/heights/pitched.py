@@ -194,7 +194,8 @@ def roof_ground(frame: RoofFrame, kind: str, ground: Ground, x: np.ndarray, y: n
     if kind == "hipped":
         r = max(L - W, 0.0)
         ahead = pa >= 0
-        end = lerp(np.where(ahead, corner[(1, -1)], corner[(-1, -1)]), np.where(ahead, corner[(1, 1)], corner[(-1, 1)]), pc)
+        end = lerp(np.where(ahead, corner[(1, -1)], corner[(-1, -1)]),
+                   np.where(ahead, corner[(1, 1)], corner[(-1, 1)]), pc)
         eave = np.where(L * (1 - np.abs(pa)) < W * (1 - np.abs(pc)), end, eave)
     ends = np.stack([c - r * u, c + r * u])
     g_ends = ground(ends[:, 0], ends[:, 1])
@@ -300,8 +301,9 @@ def ridge_height(fits: dict[str, RiseFit], eave: float) -> tuple[float, str]:
     """(ridge height, roof kind) of a building from its views' :func:`view_rise`. Views whose best
     loss is above MAX_LOSS do not show the roof; a view where the flat roof fits within FLAT_FIT
     and no rise fits clearly better (its fit's kind is flat) makes it flat (a view whose faces
-    look alike fits a flat roof well too, but then another view's rise decides); else the kind of the view that gained most and the eave plus the median rise of
-    the views that found one. Without a view that shows the roof: unmeasured."""
+    look alike fits a flat roof well too, but then another view's rise decides); else the kind of
+    the view that gained most and the eave plus the median rise of the views that found one.
+    Without a view that shows the roof: unmeasured."""
     seen = [f for f in fits.values() if math.isfinite(f.loss) and f.loss <= MAX_LOSS]
     if not seen or not math.isfinite(eave):
         return math.nan, ""
