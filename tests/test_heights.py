@@ -492,8 +492,7 @@ def test_the_stage_in_block_jobs_writes_the_single_jobs_files_and_keeps_unchange
     again with nothing changed, every block keeps its rows and the files stay the same."""
     import json
 
-    from pipeline25d.analysis.height_blocks import measure_block, merge_blocks, write_blocks
-    from pipeline25d.analysis.height_sources import run_stage
+    from pipeline25d.analysis.height_blocks import measure_block, merge_blocks, run_stage, write_blocks
     from pipeline25d.core.atomic import write_json
 
     maps = {k: str(v) for k, v in scene["maps"].items() if k in ("az000_el90", "az045_el45")}

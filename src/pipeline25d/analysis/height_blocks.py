@@ -9,7 +9,7 @@
   unchanged (a district update elsewhere, a map rewritten with the same pixels here) keeps them.
 * :func:`merge_blocks` (``heights``): the rows in footprint order, then the comparison and the
   outputs of :func:`.height_sources.finish_stage`: the same heights.csv and heights.json (but for
-  its ``cost``) as :func:`.height_sources.run_stage` in one job.
+  its ``cost``) as :func:`run_stage` in one job.
 """
 
 from __future__ import annotations
@@ -125,3 +125,24 @@ def merge_blocks(config: dict, maps: dict[str, str], scene_json: str | Path, dsm
             "block_size": float((config.get("heights") or {}).get("block_size", 500.0))}
     return finish_stage(config, p, Scene.read(scene_json), [r for r in rows if r is not None],
                         (fps_all, on_maps, model), dsm_path, out_csv, out_json, cost)
+
+
+def run_stage(config: dict, maps: dict[str, str], scene_json: str | Path, dsm_path: str | Path | None,
+              out_csv: str | Path, out_json: str | Path, workers: int = 1) -> dict[str, Any]:
+    """The heights step in one job: measure every footprint on the maps (on ``workers`` processes),
+    then :func:`.height_sources.finish_stage`: the files the block jobs write, but for "cost"."""
+    from pipeline25d.analysis.heights.views import measure_parallel
+
+    p = plan(config)
+    if p["skip"]:
+        return write_skipped(p["skip"], out_csv, out_json)
+    scene = Scene.read(scene_json)
+    fps_all, fps, model = buildings_on_maps(p, config, maps[NADIR_ID])
+    t0, c0 = time.perf_counter(), time.process_time()
+    rows = (measure_parallel(maps, fps, settings=settings_of(config), workers=workers,
+                             ground=partial(ground_sampler, scene, config["crs"])) if fps else [])
+    seconds = time.perf_counter() - t0
+    cost = {"jobs": 1, "workers": workers, "job_seconds": round(seconds * workers, 2)}
+    if workers <= 1:
+        cost["job_cpu_seconds"] = round(time.process_time() - c0, 2)
+    return finish_stage(config, p, scene, rows, (fps_all, fps, model), dsm_path, out_csv, out_json, cost)

@@ -25,7 +25,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -311,31 +310,6 @@ def write_skipped(reason: str, out_csv: str | Path, out_json: str | Path) -> dic
     write_json(out_json, stats)
     log.info("heights skipped: %s", reason)
     return stats
-
-
-def run_stage(config: dict, maps: dict[str, str], scene_json: str | Path, dsm_path: str | Path | None,
-              out_csv: str | Path, out_json: str | Path, workers: int = 1) -> dict[str, Any]:
-    """The heights step in one job: measure every footprint on the maps (on ``workers`` processes),
-    then :func:`finish_stage`. The workflow runs it in blocks instead (:mod:`.height_blocks`), with
-    the same results."""
-    import time
-
-    from pipeline25d.analysis.heights.results import NADIR_ID
-    from pipeline25d.analysis.heights.views import measure_parallel
-
-    p = plan(config)
-    if p["skip"]:
-        return write_skipped(p["skip"], out_csv, out_json)
-    scene = Scene.read(scene_json)
-    fps_all, fps, model = buildings_on_maps(p, config, maps[NADIR_ID])
-    t0, c0 = time.perf_counter(), time.process_time()
-    rows = (measure_parallel(maps, fps, settings=settings_of(config), workers=workers,
-                             ground=partial(ground_sampler, scene, config["crs"])) if fps else [])
-    seconds = time.perf_counter() - t0
-    cost = {"jobs": 1, "workers": workers, "job_seconds": round(seconds * workers, 2)}
-    if workers <= 1:
-        cost["job_cpu_seconds"] = round(time.process_time() - c0, 2)
-    return finish_stage(config, p, scene, rows, (fps_all, fps, model), dsm_path, out_csv, out_json, cost)
 
 
 def finish_stage(config: dict, p: dict, scene: Scene, rows: list, buildings: tuple, dsm_path: str | Path | None,

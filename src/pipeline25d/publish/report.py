@@ -279,7 +279,7 @@ def _height_table(group: dict) -> list[str]:
 
 
 def heights_section(h: dict) -> list[str]:
-    """The report's building-height section (see height_sources.run_stage)."""
+    """The report's building-height section (see height_sources.finish_stage)."""
     lines = ["", "## Building heights from the maps", ""]
     if h.get("skipped"):
         return lines + [f"Not measured: {h['skipped']}."]
