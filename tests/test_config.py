@@ -30,6 +30,7 @@ def test_three_keys_run_with_every_default_filled():
                              "rigidness": 2, "class_threshold": 0.5}
     assert cfg["warp"] == {"method": "auto", "order": 3}
     assert cfg["objects"] == {"enabled": True}
+    assert cfg["heights"] == {"footprints": "auto", "reference": "auto", "max_height": 200, "block_size": 500}
 
 
 @pytest.mark.parametrize("changes, key", [
@@ -42,6 +43,8 @@ def test_three_keys_run_with_every_default_filled():
     ({"perspectives": "sideways"}, "perspectives"),
     ({"warp": {"method": "magic"}}, "warp.method"),
     ({"objects": {"enabled": "yes"}}, "objects.enabled"),
+    ({"heights": {"block_size": 5}}, "heights.block_size"),
+    ({"heights": {"block_size": "city"}}, "heights.block_size"),
     ({"shadows": {"enabled": True, "azimuth": 360, "elevation": 30}}, "shadows.azimuth"),
     ({"shadows": {"enabled": True, "azimuth": 100, "elevation": 0}}, "shadows.elevation"),
     ({"shadows": {"enabled": True, "azimuth": 100, "elevation": 91}}, "shadows.elevation"),

@@ -437,3 +437,93 @@ def test_blocks_on_two_processes_give_the_serial_rows(scene):
     for a, b in zip(serial, parallel):
         assert a.reasons == b.reasons
         np.testing.assert_array_equal([a.height, *a.heights.values()], [b.height, *b.heights.values()])
+
+
+def test_footprints_in_blocks_give_the_whole_runs_rows_and_a_change_reaches_only_its_blocks(scene, measured, tmp_path):
+    """The heights stage's block jobs: each block measured alone (its neighbours as context) gives
+    the rows of one job over all footprints, exactly (through their JSON records); a block's digest
+    stays where the maps are rewritten with the same pixels and changes only where a changed pixel
+    lies within its reach."""
+    import shutil
+    from pathlib import Path
+
+    from osgeo import gdal
+
+    from pipeline25d.analysis.heights.blocks import (blocks_of, context_of, reads_digest, row_from_json,
+                                                     row_to_json)
+    from pipeline25d.analysis.heights.results import MatchSettings
+
+    fps = read_footprints(scene["gpkg"], id_field="ident")
+    maps = {k: str(v) for k, v in scene["maps"].items()}
+    blocks = blocks_of(fps, 32.0)
+    assert len(blocks) >= 3 and sorted(i for b in blocks.values() for i in b) == list(range(len(fps)))
+    rows: list = [None] * len(fps)
+    for idx in blocks.values():
+        members = [fps[i] for i in idx]
+        for i, r in zip(idx, measure_heights(maps, members, context=context_of(members, fps))):
+            rows[i] = row_from_json(json.loads(json.dumps(row_to_json(r))))
+    assert [json.dumps(row_to_json(r)) for r in rows] == [json.dumps(row_to_json(measured[f.id])) for f in fps]
+
+    s = MatchSettings(max_height=5.0)          # a reach of at most 5 m x cot 30 deg: blocks apart
+
+    def digests(m: dict) -> dict[str, str]:
+        return {b: reads_digest(m, [fps[i] for i in idx], context_of([fps[i] for i in idx], fps), s, None)
+                for b, idx in blocks.items()}
+
+    before = digests(maps)
+    copies = {k: str(shutil.copy(v, tmp_path / Path(v).name)) for k, v in maps.items()}
+    assert digests(copies) == before
+    by_id = {f.id: f for f in fps}
+    ds = gdal.Open(copies["az000_el90"], gdal.GA_Update)
+    gt = ds.GetGeoTransform()
+    x, y = by_id["nodata"].rings[0].mean(0)
+    col, row = int((x - gt[0]) / gt[1]), int((y - gt[3]) / gt[5])
+    ds.GetRasterBand(1).WriteArray(np.array([[0, 255], [255, 0]], dtype=np.uint8), col, row)
+    ds = None
+    after = digests(copies)
+    changed = {b for b in blocks if after[b] != before[b]}
+    assert next(b for b, idx in blocks.items() if fps.index(by_id["nodata"]) in idx) in changed
+    assert next(b for b, idx in blocks.items() if fps.index(by_id["A"]) in idx) not in changed
+
+
+def test_the_stage_in_block_jobs_writes_the_single_jobs_files_and_keeps_unchanged_blocks(scene, tmp_path):
+    """height_blocks: the checkpoint's blocks, one measure_block per block and merge_blocks write the
+    heights.csv of run_stage in one job byte for byte and its heights.json but for "cost"; measured
+    again with nothing changed, every block keeps its rows and the files stay the same."""
+    import json
+
+    from pipeline25d.analysis.height_blocks import measure_block, merge_blocks, run_stage, write_blocks
+    from pipeline25d.core.atomic import write_json
+
+    maps = {k: str(v) for k, v in scene["maps"].items() if k in ("az000_el90", "az045_el45")}
+    config = {"crs": "EPSG:28992", "gsd": GSD, "inputs": {},
+              "perspectives": [{"azimuth": 0, "elevation": 90}, {"azimuth": 45, "elevation": 45}],
+              "heights": {"footprints": str(scene["gpkg"]), "id_field": "ident", "reference": "none",
+                          "block_size": 32.0}}
+    scene_json = tmp_path / "scene.json"
+    write_json(scene_json, {"bounds": [[X0, Y0 - SIZE_M, 0.0], [X0 + SIZE_M, Y0, 20.0]], "z0": 0.0, "terrain": "flat",
+                            "projection": "plane", "dtm": None, "n_candidates": 0, "n_check": 0,
+                            "dtm_check_holdout_m": None, "n_chunks": 1})
+    one = run_stage(config, maps, scene_json, None, tmp_path / "one.csv", tmp_path / "one.json")
+    blocks_json = tmp_path / "work" / "blocks.json"
+    blocks = write_blocks(config, maps["az000_el90"], blocks_json)
+    assert len(blocks) >= 3
+
+    def in_blocks(tag: str) -> tuple[dict, list[dict]]:
+        outs = [tmp_path / "work" / f"block_{b}.{tag}.json" for b in blocks]
+        summaries = [measure_block(config, maps, scene_json, blocks_json, b, tmp_path / "work" / "rows", out)
+                     for b, out in zip(blocks, outs)]
+        merged = merge_blocks(config, maps, scene_json, None, blocks_json, [str(o) for o in outs],
+                              tmp_path / "work" / "rows", tmp_path / f"{tag}.csv", tmp_path / f"{tag}.json")
+        return merged, summaries
+
+    merged, summaries = in_blocks("blocks")
+    assert all(s["measured"] for s in summaries) and sum(s["n"] for s in summaries) == one["footprints"]["n_on_maps"]
+    assert (tmp_path / "blocks.csv").read_bytes() == (tmp_path / "one.csv").read_bytes()
+    strip = lambda d: {k: v for k, v in d.items() if k != "cost"}  # noqa: E731
+    assert strip(json.loads((tmp_path / "blocks.json").read_text())) == \
+        strip(json.loads((tmp_path / "one.json").read_text()))
+    assert merged["cost"]["jobs"] == len(blocks) and merged["cost"]["blocks_measured"] == len(blocks)
+    again, summaries = in_blocks("again")
+    assert not any(s["measured"] for s in summaries) and again["cost"]["blocks_measured"] == 0
+    assert (tmp_path / "again.csv").read_bytes() == (tmp_path / "one.csv").read_bytes()

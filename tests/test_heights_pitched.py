@@ -49,6 +49,30 @@ def test_gable_and_eave_lines_end_where_the_geometry_says(rise):
     assert line_excess(fp, "gabled", rise, eave[None], ACROSS, cot)[0] == pytest.approx(want, abs=0.06)
 
 
+@pytest.mark.parametrize("slope", [0.3, 0.8, 1.4])
+@pytest.mark.parametrize("kind", ["gabled", "hipped"])
+def test_ground_falling_towards_the_viewer_draws_the_roof_farther_out(slope, kind):
+    """On a planar ground rising ``slope`` m per m along the view (the map subtracts it under every
+    roof point), a line from an eave's middle, the view across the ridge, ends at the farthest of
+    the roof's far eave (t = 0), its ridge (t = W) and its near eave (t = 2W): each drawn at its
+    height above its own ground, G(e) − G(q) = slope·t higher than the line's start says."""
+    fp = _house()
+    c = np.array([100.0, 200.0])
+    cot = 1 / math.tan(math.radians(30))
+
+    def ground(x, y):                                    # rises along ACROSS, any level
+        return 50.0 + slope * ((np.asarray(x) - c[0]) * ACROSS[0] + (np.asarray(y) - c[1]) * ACROSS[1])
+
+    eave = c + HALF_W * ACROSS
+    for rise in (0.0, 2.0, 4.0):
+        want = max(0.0, rise + (slope - 1 / cot) * HALF_W, (slope - 1 / cot) * 2 * HALF_W)
+        got = line_excess(fp, kind, rise, eave[None], ACROSS, cot, ground)[0]
+        assert got == pytest.approx(want, abs=0.02), (rise, got, want)
+    # level ground: as without it
+    flat = line_excess(fp, kind, 3.0, eave[None], ACROSS, cot, lambda x, y: np.full(np.shape(x), 7.0))
+    assert flat == pytest.approx(line_excess(fp, kind, 3.0, eave[None], ACROSS, cot))
+
+
 def test_two_faces_colours_give_the_rise_and_the_kind():
     """Roof faces of two colours, drawn at q + (eave + rise·share(q))·cot·d on a fine grid; the fit
     finds the rise it was drawn with, and a flat roof of one colour stays flat."""
@@ -89,3 +113,19 @@ def test_two_faces_colours_give_the_rise_and_the_kind():
         got = fit_rise(fp, q, colour, sample, np.full(len(q), eave * cot), cot, 30.0)
         assert got.kind == want_kind
         assert got.rise == pytest.approx(want_rise, abs=0.15)
+
+
+def test_a_view_that_fits_a_flat_roof_makes_it_flat_only_where_no_rise_fits_it_better():
+    """ridge_height: a view whose flat roof fits within FLAT_FIT says flat only when its own fit
+    found no rise; a view whose faces look alike (flat fits well) but whose rise fits better still
+    leaves the ridge to the rises (their median above the eave)."""
+    from pipeline25d.analysis.heights.pitched import FLAT_FIT, RiseFit, ridge_height
+
+    good = FLAT_FIT / 2
+    assert ridge_height({"a": RiseFit(0.0, "flat", good, good), "b": RiseFit(2.9, "gabled", 0.3, 0.1)}, 10.0) \
+        == (10.0, "flat")
+    ridge, kind = ridge_height({"a": RiseFit(3.1, "gabled", good, good / 4), "b": RiseFit(2.9, "gabled", 0.3, 0.1)},
+                               10.0)
+    assert kind == "gabled" and ridge == pytest.approx(10.0 + (3.1 + 2.9) / 2)
+    # a view that does not show the roof (loss above MAX_LOSS) says nothing
+    assert ridge_height({"a": RiseFit(3.0, "hipped", 0.9, 0.8)}, 10.0)[1] == ""

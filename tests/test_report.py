@@ -48,8 +48,12 @@ def test_stage_timings_count_only_this_configurations_jobs(tmp_path):
     tsv("warp/az135_el45.tsv", 60.0)                     # a perspective no longer asked for
     tsv("render/az045_el45/block_0_1_2.tsv", 4.0)
     tsv("render/az045_el45/block_0_9_9.tsv", 70.0)       # an older grouping's block
-    current = current_jobs({"d0"}, {"az045_el45": {"0_1_2"}})
+    tsv("heights.tsv", 0.5)
+    tsv("heights/blocks.tsv", 0.25)
+    tsv("heights/block_3_-1.tsv", 5.0)
+    tsv("heights/block_7_7.tsv", 90.0)                   # a block of footprints no longer there
+    current = current_jobs({"d0"}, {"az045_el45": {"0_1_2"}}, {"3_-1"})
     got = stage_timings(tmp_path, current)
     assert {k: (v["jobs"], v["seconds"]) for k, v in got.items()} == \
-        {"scene": (1, 1.0), "lod": (1, 2.0), "warp": (1, 3.0), "render": (1, 4.0)}
+        {"scene": (1, 1.0), "lod": (1, 2.0), "warp": (1, 3.0), "render": (1, 4.0), "heights": (3, 5.75)}
     assert stage_timings(tmp_path)["render"]["jobs"] == 2         # without the filter: every file

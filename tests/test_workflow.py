@@ -58,11 +58,12 @@ def test_dry_run_of_the_default_config_counts_jobs_per_rule(tmp_path):
     out = snakemake(tmp_path, "-n").stdout
     assert job_counts(out) == {"ingest": 4, "lod": 4, "terrain": 1, "scene": 1, "plan": 9, "gcps": 9, "mosaic": 9,
                                "mosaic_ids": 9, "warp": 9, "id_map": 9, "tms": 9, "id_tiles": 9, "objects": 1,
-                               "heights": 1, "report": 1, "viewer": 1, "wms": 1, "all": 1, "total": 88}
+                               "heights_blocks": 1, "heights": 1, "report": 1, "viewer": 1, "wms": 1, "all": 1,
+                               "total": 89}
     # objects off: no id mosaics, no id maps, no id tiles, no objects table
     (tmp_path / "config.yaml").write_text(yaml.safe_dump({**config, "objects": {"enabled": False}}))
     off = job_counts(snakemake(tmp_path, "-n").stdout)
-    assert not {"mosaic_ids", "id_map", "id_tiles", "objects"} & set(off) and off["total"] == 60
+    assert not {"mosaic_ids", "id_map", "id_tiles", "objects"} & set(off) and off["total"] == 61
     (tmp_path / "config.yaml").write_text(yaml.safe_dump(config))
     # Once the plans exist the tile jobs are known: one per non-empty tile, none for empty ones.
     pids = [f"az{a:03d}_el45" for a in range(0, 360, 45)] + ["az000_el90"]

@@ -138,11 +138,25 @@ def objects_job(job: Job) -> None:
     write_objects(rows, Path(job.output.gpkg).parent, horizontal_wkt(config["crs"]))
 
 
-def heights_job(job: Job) -> None:
-    from pipeline25d.analysis.height_sources import run_stage as measure_heights
+def heights_blocks_job(job: Job) -> None:
+    from pipeline25d.analysis.height_blocks import write_blocks
 
-    measure_heights(dict(job.params.config), dict(zip(job.params.pids, job.input.maps)), job.input.scene,
-                    job.input.dsm, job.output.csv, job.output.json, workers=max(int(job.threads), 1))
+    write_blocks(dict(job.params.config), _first(job.input.nadir), job.output.blocks)
+
+
+def heights_block_job(job: Job) -> None:
+    from pipeline25d.analysis.height_blocks import measure_block
+
+    measure_block(dict(job.params.config), dict(zip(job.params.pids, job.input.maps)), job.input.scene,
+                  job.input.blocks, job.wildcards.hblock, job.params.rows_dir, job.output[0])
+
+
+def heights_job(job: Job) -> None:
+    from pipeline25d.analysis.height_blocks import merge_blocks
+
+    merge_blocks(dict(job.params.config), dict(zip(job.params.pids, job.input.maps)), job.input.scene,
+                 job.input.dsm, _first(job.input.blocks), list(job.input.block_jobs), job.params.rows_dir,
+                 job.output.csv, job.output.json)
 
 
 def report_job(job: Job) -> None:
@@ -173,7 +187,8 @@ RULES: dict[str, Callable[[Job], None]] = {
     "ingest": ingest_job, "lod": lod_job, "terrain": terrain_job, "scene": scene_job, "plan": plan_job,
     "render_block": render_block_job, "gcps": gcps_job, "mosaic": mosaic_job, "mosaic_ids": mosaic_job,
     "warp": warp_job, "id_map": id_map_job, "tms": tms_job, "pmtiles": pmtiles_job, "id_tiles": tms_job,
-    "objects": objects_job, "heights": heights_job, "report": report_job, "viewer": viewer_job, "wms": wms_job,
+    "objects": objects_job, "heights_blocks": heights_blocks_job, "heights_block": heights_block_job,
+    "heights": heights_job, "report": report_job, "viewer": viewer_job, "wms": wms_job,
 }
 
 

@@ -59,6 +59,7 @@ wildcard_constraints:
     pid=ID_PATTERN,
     block=r"\d+_-?\d+_-?\d+(_[0-3]+)?",
     district=r"[A-Za-z0-9-]+",
+    hblock=r"-?\d+_-?\d+",
 
 
 def district_inputs(wildcards):
@@ -107,3 +108,14 @@ def perspective_blocks(wildcards):
 def perspective_tiles(wildcards, suffix):
     plan = read_plan(plan_path(wildcards.pid))
     return [f"{RESULTS}/tiles/{wildcards.pid}/{t.key}{suffix}" for t in plan.tiles]
+
+
+@parse_guard
+def heights_block_files(wildcards):
+    """The heights_block jobs' summaries, one per block of the heights_blocks checkpoint (none when skipped)."""
+    if HEIGHTS_PLAN["skip"]:
+        return []
+    from pipeline25d.analysis.height_blocks import read_blocks
+
+    _, blocks = read_blocks(checkpoints.heights_blocks.get().output.blocks)
+    return [f"{RESULTS}/work/heights/block_{b}.json" for b in blocks]

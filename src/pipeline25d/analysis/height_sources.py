@@ -25,13 +25,13 @@ from __future__ import annotations
 import json
 import logging
 import math
-from functools import partial
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from pipeline25d.analysis.ground_under import Sampler, dsm_roof, dtm_under, ground_range_under, ground_sampler
+from pipeline25d.analysis.heights.results import MatchSettings
 from pipeline25d.core.errors import InputFileError
 from pipeline25d.formats.footprints import Footprint, RefBuilding, read_footprints
 from pipeline25d.stages.records import Scene
@@ -287,36 +287,43 @@ def reference_heights(p: dict, config: dict, fps: list[Footprint], model: dict[s
             f"the model's DSM ({dsm_path}, {cell:g} m cells): median inside each footprint, one cell in", "dsm")
 
 
-def run_stage(config: dict, maps: dict[str, str], scene_json: str | Path, dsm_path: str | Path | None,
-              out_csv: str | Path, out_json: str | Path, workers: int = 1) -> dict[str, Any]:
-    """The workflow's heights step: measure every footprint on the maps (on ``workers`` processes),
-    compare with the model's heights (on the maps' basis, see the module docstring), write the CSV
-    and the statistics JSON."""
-    import time
+def buildings_on_maps(p: dict, config: dict, nadir_map: str | Path) -> tuple[list[Footprint], list[Footprint],
+                                                                           dict[str, RefBuilding]]:
+    """(every footprint given, those inside the nadir map's extent, the model's buildings)."""
+    fps_all, model = load_buildings(p, config)
+    ext = _nadir_extent(nadir_map)
+    return fps_all, [f for f in fps_all if _within(f.bounds, ext)], model
 
-    from pipeline25d.analysis.heights.results import NADIR_ID, MatchSettings, write_csv
-    from pipeline25d.analysis.heights.views import measure_parallel
+
+def settings_of(config: dict) -> MatchSettings:
+    """The matcher's settings the config asks for."""
+    h = config.get("heights") or {}
+    return MatchSettings(max_height=float(h.get("max_height", MatchSettings.max_height)))
+
+
+def write_skipped(reason: str, out_csv: str | Path, out_json: str | Path) -> dict[str, Any]:
+    """The outputs of a skipped heights step (the reason in the JSON)."""
     from pipeline25d.core.atomic import write_json, write_text
 
-    p = plan(config)
-    if p["skip"]:
-        write_text(out_csv, "id,height\n")
-        stats = {"skipped": p["skip"]}
-        write_json(out_json, stats)
-        log.info("heights skipped: %s", p["skip"])
-        return stats
-    scene = Scene.read(scene_json)
-    h = config.get("heights") or {}
-    fps_all, model = load_buildings(p, config)
-    ext = _nadir_extent(maps[NADIR_ID])
-    fps = [f for f in fps_all if _within(f.bounds, ext)]
+    write_text(out_csv, "id,height\n")
+    stats = {"skipped": reason}
+    write_json(out_json, stats)
+    log.info("heights skipped: %s", reason)
+    return stats
+
+
+def finish_stage(config: dict, p: dict, scene: Scene, rows: list, buildings: tuple, dsm_path: str | Path | None,
+                 out_csv: str | Path, out_json: str | Path, cost: dict[str, Any]) -> dict[str, Any]:
+    """Compare the measured ``rows`` with the model's heights (on the maps' basis, see the module
+    docstring), write the CSV and the statistics JSON. ``buildings``: :func:`buildings_on_maps`;
+    ``cost``: how the rows were measured (``job_seconds``: measuring time summed over jobs)."""
+    from pipeline25d.analysis.heights.results import write_csv
+    from pipeline25d.core.atomic import write_json
+
+    fps_all, fps, model = buildings
     ground = ground_sampler(scene, config["crs"])
     gsd = float(config["gsd"])
-    s = MatchSettings(max_height=float(h.get("max_height", MatchSettings.max_height)))
-    t0 = time.perf_counter()
-    rows = (measure_parallel(maps, fps, settings=s, workers=workers,
-                             ground=partial(ground_sampler, scene, config["crs"])) if fps else [])
-    seconds = time.perf_counter() - t0
+    s = settings_of(config)
     views = sorted({k for r in rows for k in r.heights})
     refs, ref_source, ref_kind = reference_heights(p, config, fps, model, ground, dsm_path, gsd)
 
@@ -367,9 +374,9 @@ def run_stage(config: dict, maps: dict[str, str], scene_json: str | Path, dsm_pa
         "own_ground": own_stats,
         "own_ground_source": OWN_GROUND.get(ref_kind) if own_stats else None,
         "settings": dict(s.__dict__),
-        "cost": {"workers": workers, "seconds": round(seconds, 2),
-                 "job_seconds_per_1000_building_views": (round(1000 * seconds * workers / (len(fps) * len(views)), 1)
-                                                         if fps and views else None)},
+        "cost": {**cost, **{f"{k}_per_1000_building_views": (round(1000 * cost[k] / (len(fps) * len(views)), 1)
+                                                              if fps and views else None)
+                            for k in ("job_seconds", "job_cpu_seconds") if k in cost}},
     }
     write_json(out_json, stats)
     return stats

@@ -55,16 +55,18 @@ def stage_timings(results: Path, current=None) -> dict[str, dict]:
     return out
 
 
-def current_jobs(districts: set[str], blocks: dict[str, set[str]]):
+def current_jobs(districts: set[str], blocks: dict[str, set[str]], heights_blocks: set[str] = frozenset()):
     """``current(benchmark file)``: whether it belongs to a job of this configuration, whose
-    ``districts`` and perspectives' render ``blocks`` (ids by perspective) are given. Files an
-    earlier configuration left (a removed district or perspective, a render block of another
-    grouping) are not this run's."""
+    ``districts``, perspectives' render ``blocks`` (ids by perspective) and blocks of footprints
+    (``heights_blocks``) are given. Files an earlier configuration left (a removed district or
+    perspective, a render block of another grouping) are not this run's."""
     def current(rel: Path) -> bool:
         if len(rel.parts) == 1:                              # scene.tsv, terrain.tsv
             return True
         if rel.parts[0] == "render":
             return rel.parts[1] in blocks and rel.stem.removeprefix("block_") in blocks[rel.parts[1]]
+        if rel.parts[0] == "heights":
+            return rel.stem == "blocks" or rel.stem.removeprefix("block_") in heights_blocks
         return rel.stem in districts or rel.stem in blocks
     return current
 
@@ -127,9 +129,17 @@ def build_report(config: dict, results: str | Path) -> dict:
         "sizes": {"model_bytes": model, "maps_bytes": maps, "tms_bytes": tms,
                   "ids_bytes": sum(p["ids"]["ids_bytes"] for p in persp if p["ids"]),
                   "model_to_maps": model / maps if maps else None},
-        "timings": stage_timings(results, current_jobs(set(config["inputs"]), blocks)),
+        "timings": stage_timings(results, current_jobs(set(config["inputs"]), blocks, _heights_blocks(results))),
         **({"coarser": coarser} if coarser else {}),
     }
+
+
+def _heights_blocks(results: Path) -> set[str]:
+    """The blocks of footprints the heights stage measured in (work/heights/blocks.json; none without it)."""
+    try:
+        return set(json.loads((results / "work" / "heights" / "blocks.json").read_text())["blocks"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return set()
 
 
 def coarser_inputs(results: Path, districts: list[str]) -> list[dict]:
@@ -269,7 +279,7 @@ def _height_table(group: dict) -> list[str]:
 
 
 def heights_section(h: dict) -> list[str]:
-    """The report's building-height section (see height_sources.run_stage)."""
+    """The report's building-height section (see height_sources.finish_stage)."""
     lines = ["", "## Building heights from the maps", ""]
     if h.get("skipped"):
         return lines + [f"Not measured: {h['skipped']}."]

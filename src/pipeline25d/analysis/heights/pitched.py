@@ -145,66 +145,124 @@ def fit_rise(fp: Footprint, xy: np.ndarray, colour: np.ndarray, sample_oblique: 
     return RiseFit(best[1], best[2], flat, best[0])
 
 
-def _paths(fp: Footprint, kind: str, xy: np.ndarray, d: np.ndarray, cot: float,
-           step_m: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
-    """(share of the rise, t / cot φ) along each line's path back over the roof (q = e − t·d)."""
+Ground = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+def _paths(fp: Footprint, kind: str, xy: np.ndarray, d: np.ndarray, cot: float, ground: Ground | None = None,
+           step_m: float = 0.25) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(share of the rise, t / cot φ, ground drop) along each line's path back over the roof
+    (q = e − t·d). The drop is what the map subtracted at the line's start (the outline, as
+    :func:`.silhouette.levelled` adds it back) minus what it subtracted under q, ``ground`` (the
+    DTM) there: on ground that falls towards the viewer a roof point behind the outline is drawn
+    that much farther out. 0 without ``ground``; −inf where q is off the roof (t > 0)."""
     frame = roof_frame(fp)
     t = np.arange(0.0, 2.0 * (frame.half_length + frame.half_width) + step_m, step_m)
-    share = rise_share(frame, kind, xy[:, 0, None] - t[None, :] * d[0], xy[:, 1, None] - t[None, :] * d[1])
-    return share, t[None, :] / cot
+    qx, qy = xy[:, 0, None] - t[None, :] * d[0], xy[:, 1, None] - t[None, :] * d[1]
+    share = rise_share(frame, kind, qx, qy)
+    drop = np.zeros_like(share)
+    if ground is not None:
+        from pipeline25d.analysis.heights.silhouette import outline_ground
+
+        cx, cy = qx - frame.centre[0], qy - frame.centre[1]
+        on = ((np.abs(cx * frame.across[0] + cy * frame.across[1]) <= frame.half_width + 0.05)
+              & (np.abs(cx * frame.along[0] + cy * frame.along[1]) <= frame.half_length + 0.05))
+        g = roof_ground(frame, kind, ground, qx, qy, share)
+        drop = np.where(on & np.isfinite(g), outline_ground(fp, xy, ground)[:, None] - g, -np.inf)
+        drop[:, 0] = 0.0
+    return share, t[None, :] / cot, drop
 
 
-def line_excess(fp: Footprint, kind: str, rise: float, xy: np.ndarray, d: np.ndarray, cot: float) -> np.ndarray:
+def roof_ground(frame: RoofFrame, kind: str, ground: Ground, x: np.ndarray, y: np.ndarray,
+                share: np.ndarray) -> np.ndarray:
+    """The ground a terrain-relative map subtracted under roof points (x, y): the renderer takes the
+    DTM at the roof's vertices (eave corners, ridge ends) and interpolates it across each face, so
+    here the eave's ground (linear along its edge between two corners) and the ridge's (linear
+    between its ends), mixed by the point's ``share`` of the rise."""
+    c, u, v = frame.centre, frame.along, frame.across
+    L, W = frame.half_length, frame.half_width
+    corner = {(a, b): float(ground(*(c + a * L * u + b * W * v)[:, None])[0]) for a in (-1, 1) for b in (-1, 1)}
+    qx, qy = x - c[0], y - c[1]
+    pa = np.clip((qx * u[0] + qy * u[1]) / max(L, 1e-9), -1.0, 1.0)
+    pc = np.clip((qx * v[0] + qy * v[1]) / max(W, 1e-9), -1.0, 1.0)
+
+    def lerp(g0, g1, t):
+        return g0 + (g1 - g0) * (t + 1.0) / 2.0
+
+    up = pc >= 0
+    eave = lerp(np.where(up, corner[(-1, 1)], corner[(-1, -1)]), np.where(up, corner[(1, 1)], corner[(1, -1)]), pa)
+    r = L
+    if kind == "hipped":
+        r = max(L - W, 0.0)
+        ahead = pa >= 0
+        end = lerp(np.where(ahead, corner[(1, -1)], corner[(-1, -1)]),
+                   np.where(ahead, corner[(1, 1)], corner[(-1, 1)]), pc)
+        eave = np.where(L * (1 - np.abs(pa)) < W * (1 - np.abs(pc)), end, eave)
+    ends = np.stack([c - r * u, c + r * u])
+    g_ends = ground(ends[:, 0], ends[:, 1])
+    ridge = lerp(g_ends[0], g_ends[1], np.clip(pa * L / r, -1.0, 1.0) if r > 0 else 0.0 * pa)
+    return (1.0 - share) * eave + share * ridge
+
+
+def _excess(paths: tuple[np.ndarray, np.ndarray, np.ndarray], rise: float) -> np.ndarray:
+    """:func:`line_excess` on paths of :func:`_paths`."""
+    share, back, drop = paths
+    return np.max(rise * share + drop - back, axis=1)
+
+
+def line_excess(fp: Footprint, kind: str, rise: float, xy: np.ndarray, d: np.ndarray, cot: float,
+                ground: Ground | None = None) -> np.ndarray:
     """How much higher than the eave each silhouette line from outline points ``xy`` (n, 2) ends, in
     metres of height, on a roof of ``kind`` rising ``rise`` m: the roof point behind the line's start
-    (q = e − t·d) drawn farthest along d, max over t of rise·share(q) − t / cot φ (0 on an eave, up to
-    the rise at a gable end, more where the roof is steeper than the view)."""
-    share, back = _paths(fp, kind, xy, d, cot)
-    return np.max(rise * share - back, axis=1)
+    (q = e − t·d) drawn farthest along d, max over t of rise·share(q) + ground drop − t / cot φ (0 on
+    an eave on level ground, up to the rise at a gable end, more where the roof, or the ground under
+    it, is steeper than the view; see :func:`_paths` for the drop)."""
+    return _excess(_paths(fp, kind, xy, d, cot, ground), rise)
 
 
 def silhouette_roof(fp: Footprint, views: list[tuple[np.ndarray, np.ndarray, np.ndarray, float]],
-                    inlier: float) -> tuple[str, float, float, float]:
+                    inlier: float, ground: Ground | None = None) -> tuple[str, float, float, float]:
     """(kind, rise, eave, share of lines agreeing) of the roof whose levelled silhouette lines
     (``views``: (outline points, heights, d, cot φ) per view) end where a gabled roof of that rise
     (up to a pitch of MAX_SILHOUETTE_PITCH) over one eave ends them, for the most lines; kind
     ``flat`` (rise 0) unless a rise makes at least MIN_SHARE_GAIN more of the lines agree. Only a
     gable end (a wall up to the ridge) on a far outline shows a rise: a hip end's slope, gentler
     than the view, ends its lines at the eave, and lines that other buildings lengthen would
-    pass for one."""
+    pass for one. ``ground``: the DTM (see :func:`line_excess`)."""
     h = np.concatenate([v[1] for v in views])
+    paths = [_paths(fp, "gabled", xy, d, cot, ground) for xy, _, d, cot in views]
 
-    def level(excess: np.ndarray) -> tuple[float, float]:
-        return robust_level(h - excess, inlier)
+    def level(rise: float) -> tuple[float, float]:
+        return robust_level(h - np.concatenate([_excess(p, rise) for p in paths]), inlier)
 
-    eave, share = level(np.zeros(len(h)))
+    eave, share = level(0.0)
     best = ("flat", 0.0, eave, share)
     top = min(MAX_RISE_M, roof_frame(fp).half_width * MAX_SILHOUETTE_PITCH)
-    paths = [_paths(fp, "gabled", xy, d, cot) for xy, _, d, cot in views]
     for rise in np.arange(COARSE_STEP_M / 2, top + 1e-9, COARSE_STEP_M / 2):
-        e, sh = level(np.concatenate([np.max(rise * share - back, axis=1) for share, back in paths]))
+        e, sh = level(float(rise))
         if sh > best[3] + (MIN_SHARE_GAIN if best[0] == "flat" else 0.0):
             best = ("gabled", float(rise), e, sh)
     return best
 
 
 def fit_eave(fp: Footprint, kind: str, ridge: float, xy: np.ndarray, h: np.ndarray, d: np.ndarray, cot: float,
-             inlier: float) -> tuple[float, float]:
+             inlier: float, ground: Ground | None = None) -> tuple[float, float]:
     """(eave, share of lines agreeing) of a pitched roof whose ``ridge`` is known, from one view's
     levelled silhouette lines (outline points ``xy``, heights ``h``): the eave e whose roof (rising
     ridge − e) ends every line where it ends, h ≈ e + :func:`line_excess`, for the most lines (the
-    eave's own lines pin e; a gable end's lines agree only with the right e as well)."""
+    eave's own lines pin e; a gable end's lines agree only with the right e as well). ``ground``:
+    the DTM (see :func:`line_excess`)."""
+    paths = _paths(fp, kind, xy, d, cot, ground)
     best = (-1.0, math.inf, math.nan)
     for e in np.arange(ridge, ridge - MAX_RISE_M - 1e-9, -COARSE_STEP_M / 5):
-        r = h - e - line_excess(fp, kind, ridge - e, xy, d, cot)
+        r = h - e - _excess(paths, ridge - e)
         share = float(np.mean(np.abs(r) <= inlier))
         spread = float(np.mean(np.abs(r)))
         if (share, -spread) > (best[0], -best[1]):
             best = (share, spread, float(e))
     share, _, e = best
-    near = np.abs(h - e - line_excess(fp, kind, ridge - e, xy, d, cot)) <= inlier
+    near = np.abs(h - e - _excess(paths, ridge - e)) <= inlier
     if near.any():                                    # the level of the agreeing lines, unrounded
-        e += float(np.mean((h - e - line_excess(fp, kind, ridge - e, xy, d, cot))[near]))
+        e += float(np.mean((h - e - _excess(paths, ridge - e))[near]))
     return e, share
 
 
@@ -242,13 +300,15 @@ def view_rise(fp: Footprint, tmpl: Template, xy: np.ndarray, obl_rgb: np.ndarray
 def ridge_height(fits: dict[str, RiseFit], eave: float) -> tuple[float, str]:
     """(ridge height, roof kind) of a building from its views' :func:`view_rise`. Views whose best
     loss is above MAX_LOSS do not show the roof; a view where the flat roof fits within FLAT_FIT
-    makes it flat; else the kind of the view that gained most and the eave plus the median rise of
-    the views that found one. Without a view that shows the roof: unmeasured."""
+    and no rise fits clearly better (its fit's kind is flat) makes it flat (a view whose faces
+    look alike fits a flat roof well too, but then another view's rise decides); else the kind of
+    the view that gained most and the eave plus the median rise of the views that found one.
+    Without a view that shows the roof: unmeasured."""
     seen = [f for f in fits.values() if math.isfinite(f.loss) and f.loss <= MAX_LOSS]
     if not seen or not math.isfinite(eave):
         return math.nan, ""
     pitched = [f for f in seen if f.kind != "flat"]
-    if not pitched or any(f.flat_loss <= FLAT_FIT for f in seen):
+    if not pitched or any(f.flat_loss <= FLAT_FIT and f.kind == "flat" for f in seen):
         return eave, "flat"
     best = max(pitched, key=lambda f: f.flat_loss - f.loss)
     return eave + float(np.median([f.rise for f in pitched])), best.kind

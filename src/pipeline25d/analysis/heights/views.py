@@ -17,9 +17,9 @@ from pipeline25d.analysis.heights.pitched import KINDS, MAX_LOSS, fit_eave, ridg
 from pipeline25d.analysis.heights.results import NADIR_ID, HeightRow, MatchSettings, ViewMeasurement
 from pipeline25d.analysis.heights.silhouette import (MIN_CONSISTENT, Lines, levelled, robust_level, roof_heights,
                                                      silhouette_lines)
-from pipeline25d.analysis.heights.template import _PAD, Template, _prepare_view, build_template
+from pipeline25d.analysis.heights.template import _PAD, Template, _prepare_view, _View, build_template
 from pipeline25d.core.errors import InputFileError
-from pipeline25d.core.grid import Extent, Grid
+from pipeline25d.core.grid import Extent, Grid, Window
 from pipeline25d.core.raster import read_rgba_block
 from pipeline25d.formats.footprints import Footprint
 from pipeline25d.geometry.camera import horizontal_direction
@@ -101,13 +101,7 @@ def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint
                 results[v.pid] = MatchResult(math.nan, 0.0, 1.0, tmpl)
                 continue
             u_max = s.max_height * v.cot
-            # oblique window covering the nadir window moved by -3 .. u_max + 3 steps, clipped to the raster
-            corners = np.array([[r0, c0], [r0, c1], [r1, c0], [r1, c1]], dtype=np.float64)
-            pts = np.concatenate([corners + v.offset + u * v.d_px for u in (-3 * step_m, u_max + 3 * step_m)])
-            o_r0 = max(int(math.floor(pts[:, 0].min())) - _PAD, -_PAD)
-            o_c0 = max(int(math.floor(pts[:, 1].min())) - _PAD, -_PAD)
-            o_r1 = min(int(math.ceil(pts[:, 0].max())) + _PAD, v.src.RasterYSize + _PAD)
-            o_c1 = min(int(math.ceil(pts[:, 1].max())) + _PAD, v.src.RasterXSize + _PAD)
+            o_r0, o_c0, o_r1, o_c1 = oblique_window(v, win, u_max, step_m)
             if o_r1 <= o_r0 or o_c1 <= o_c0:
                 results[v.pid] = MatchResult(math.nan, 0.0, 1.0, "outside_map")
                 continue
@@ -155,18 +149,32 @@ def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint
             row = _roof(fp, row, measurements, cot, s,
                         lambda r: _with_ridge(r, fp, tmpl, grid, win, around, sample, step_m, s.tol),
                         (lambda: lines or lines.update(all_lines()) or lines) if np.isfinite(base) and s.silhouette
-                        else None)
+                        else None, sample)
         rows_out.append(row)
     return rows_out
 
 
+def oblique_window(v: _View, win: Window, u_max: float, step_m: float) -> tuple[int, int, int, int]:
+    """(row0, col0, row1, col1) of the oblique map ``v`` that a footprint's nadir window ``win``
+    is searched in: that window moved by -3 .. u_max + 3 steps along the view, with a margin,
+    clipped to the raster (empty where row1 <= row0 or col1 <= col0)."""
+    c0, r0, c1, r1 = win
+    corners = np.array([[r0, c0], [r0, c1], [r1, c0], [r1, c1]], dtype=np.float64)
+    pts = np.concatenate([corners + v.offset + u * v.d_px for u in (-3 * step_m, u_max + 3 * step_m)])
+    return (max(int(math.floor(pts[:, 0].min())) - _PAD, -_PAD), max(int(math.floor(pts[:, 1].min())) - _PAD, -_PAD),
+            min(int(math.ceil(pts[:, 0].max())) + _PAD, v.src.RasterYSize + _PAD),
+            min(int(math.ceil(pts[:, 1].max())) + _PAD, v.src.RasterXSize + _PAD))
+
+
 def _roof(fp: Footprint, row: HeightRow, measurements: dict[str, ViewMeasurement], cot: dict[str, float],
           s: MatchSettings, ridge_fit: Callable[[HeightRow], HeightRow],
-          get_lines: Callable[[], dict[str, "Lines | str"]] | None) -> HeightRow:
+          get_lines: Callable[[], dict[str, "Lines | str"]] | None, sample: Sampler | None = None) -> HeightRow:
     """``row`` with its roof: the ridge and kind from the colours (``ridge_fit``), else from the
     silhouette's gable and hip ends; a pitched roof's eave then from the silhouette's lines with that
     ridge (its colours move by more than the eave's height, its gable ends' lines end above it),
-    ``measurements`` updated in place. ``get_lines``: the levelled lines (None: no DTM, colours only)."""
+    ``measurements`` updated in place. ``get_lines``: the levelled lines (None: no DTM, colours only);
+    ``sample``: the DTM (the ground under the roof moves its points on the map, see
+    :func:`.pitched.line_excess`)."""
     row = ridge_fit(row)
     if get_lines is None:
         return row
@@ -181,9 +189,9 @@ def _roof(fp: Footprint, row: HeightRow, measurements: dict[str, ViewMeasurement
                 row = replace(row, ridge=lower.ridge, roof=lower.roof, ridges=lower.ridges)
     if row.roof == "flat":
         # colours alike on both faces (the ridge along the light): the gable ends' silhouette
-        row = _silhouette_ridge(fp, row, get_lines(), cot)
+        row = _silhouette_ridge(fp, row, get_lines(), cot, sample)
         from_lines = row.roof in KINDS
-    if row.roof not in KINDS or not _eaves(fp, row, measurements, get_lines(), cot):
+    if row.roof not in KINDS or not _eaves(fp, row, measurements, get_lines(), cot, sample):
         return row
     _drop_inconsistent(measurements, s.outlier_m)
     new = _combine(fp.id, measurements, s)
@@ -204,20 +212,21 @@ def _silhouette_level(lines: dict[str, "Lines | str"]) -> float:
     return robust_level(np.concatenate([lv.h for lv in usable]), max(lv.inlier for lv in usable))[0]
 
 
-def _silhouette_ridge(fp: Footprint, row: HeightRow, lines: dict[str, "Lines | str"], cot: dict[str, float]) -> HeightRow:
+def _silhouette_ridge(fp: Footprint, row: HeightRow, lines: dict[str, "Lines | str"], cot: dict[str, float],
+                      sample: Sampler | None = None) -> HeightRow:
     """``row`` with the ridge and kind of :func:`.pitched.silhouette_roof` where it finds a rise."""
     usable = [(lv.xy, lv.h, horizontal_direction(Perspective.from_id(p)), cot[p], lv.inlier)
               for p, lv in lines.items() if isinstance(lv, Lines)]
     if not usable:
         return row
-    kind, rise, eave, _ = silhouette_roof(fp, [u[:4] for u in usable], max(u[4] for u in usable))
+    kind, rise, eave, _ = silhouette_roof(fp, [u[:4] for u in usable], max(u[4] for u in usable), sample)
     if kind == "flat":
         return row
     return replace(row, ridge=eave + rise, roof=kind, ridges={p: math.nan for p in row.ridges})
 
 
 def _eaves(fp: Footprint, row: HeightRow, measurements: dict[str, ViewMeasurement], lines: dict[str, "Lines | str"],
-           cot: dict[str, float]) -> bool:
+           cot: dict[str, float], sample: Sampler | None = None) -> bool:
     """Each view's eave of a pitched roof (``row.roof`` up to ``row.ridge``) from its silhouette lines
     (:func:`.pitched.fit_eave`), where enough of them agree (in place); whether any changed."""
     changed = False
@@ -226,7 +235,7 @@ def _eaves(fp: Footprint, row: HeightRow, measurements: dict[str, ViewMeasuremen
         if not isinstance(lv, Lines) or m.reason in ("too_small", "nadir_nodata", "outside_map"):
             continue
         d = horizontal_direction(Perspective.from_id(p))
-        eave, share = fit_eave(fp, row.roof, row.ridge, lv.xy, lv.h, d, cot[p], lv.inlier)
+        eave, share = fit_eave(fp, row.roof, row.ridge, lv.xy, lv.h, d, cot[p], lv.inlier, sample)
         if share < MIN_CONSISTENT:
             continue
         measurements[p] = replace(m, height=eave, shift_m=eave * cot[p], reason="", method="silhouette")
