@@ -1,4 +1,5 @@
-# gdalbuildvrt over a perspective's tiles (they share one pixel grid).
+# gdalbuildvrt over a perspective's tiles (they share one pixel grid); with objects.enabled the same
+# job mosaics the tiles' object ids too (ID_MOSAIC).
 
 
 rule mosaic:
@@ -6,27 +7,13 @@ rule mosaic:
         perspective_blocks,
     params:
         tiles=lambda wc: perspective_tiles(wc, ".tif"),
+        **with_ids(id_tiles=lambda wc: perspective_tiles(wc, ".ids.tif")),
     output:
-        f"{RESULTS}/mosaic/{{pid}}.vrt",
+        vrt=f"{RESULTS}/mosaic/{{pid}}.vrt",
+        **with_ids(ids=ID_MOSAIC),
     log:
         f"{RESULTS}/logs/mosaic/{{pid}}.log",
     benchmark:
         f"{RESULTS}/benchmarks/mosaic/{{pid}}.tsv"
-    script:
-        "../scripts/job.py"
-
-
-# The same over the tiles' object ids (objects.enabled).
-
-
-rule mosaic_ids:
-    input:
-        perspective_blocks,
-    params:
-        tiles=lambda wc: perspective_tiles(wc, ".ids.tif"),
-    output:
-        f"{RESULTS}/mosaic/{{pid}}.ids.vrt",
-    log:
-        f"{RESULTS}/logs/mosaic/{{pid}}.ids.log",
     script:
         "../scripts/job.py"
