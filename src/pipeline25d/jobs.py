@@ -81,16 +81,12 @@ def render_block_job(job: Job) -> None:
                               objects=p.objects)
 
 
-def gcps_job(job: Job) -> None:
-    from pipeline25d.stages import gcps
-
-    gcps.gather_gcps(list(job.params.tiles), job.output[0])
-
-
 def mosaic_job(job: Job) -> None:
+    from pipeline25d.stages import gcps
     from pipeline25d.stages.maps import warp
 
     warp.build_mosaic(sorted(job.params.tiles), job.output.vrt)
+    gcps.gather_gcps(list(job.params.gcp_tiles), job.output.gcps)
     if "ids" in job.output.keys():                   # objects.enabled: the tiles' object ids too
         warp.build_mosaic(sorted(job.params.id_tiles), job.output.ids)
 
@@ -172,8 +168,7 @@ def wms_job(job: Job) -> None:
 #: rule name -> its function, in the order data moves through the workflow
 RULES: dict[str, Callable[[Job], None]] = {
     "ingest": ingest_job, "lod": lod_job, "terrain": terrain_job, "scene": scene_job, "plan": plan_job,
-    "render_block": render_block_job, "gcps": gcps_job, "mosaic": mosaic_job, "warp": warp_job, "tms": tms_job,
-    "pmtiles": pmtiles_job,
+    "render_block": render_block_job, "mosaic": mosaic_job, "warp": warp_job, "tms": tms_job, "pmtiles": pmtiles_job,
     "objects": objects_job, "heights": heights_job, "report": report_job, "viewer": viewer_job, "wms": wms_job,
 }
 

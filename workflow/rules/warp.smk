@@ -8,7 +8,7 @@
 rule warp:
     input:
         mosaic=rules.mosaic.output.vrt,
-        gcps=rules.gcps.output[0],
+        gcps=rules.mosaic.output.gcps,
         plan=f"{RESULTS}/plans/{{pid}}.json",
         **with_ids(ids=ID_MOSAIC),
     output:
