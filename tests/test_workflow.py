@@ -118,6 +118,10 @@ def test_a_gsd_typo_is_refused_before_any_job_under_a_memory_limit(tmp_path, dry
     assert not (tmp_path / "results").exists()
 
 
+#: for runs whose tests check no object ids (small_run and plane_run check them): no id tiles, id maps,
+#: id web tiles nor objects table to make
+NO_OBJECTS = {"objects": {"enabled": False}}
+
 SMALL_CONFIG = {"scene": "small", "crs": "EPSG:25832",
                 "inputs": {f"d{i}": {"path": f"resources/demo/d{i}.obj"} for i in range(4)},
                 "gsd": 0.5, "tile_size": 256, "chunk_size": 80,
@@ -466,7 +470,7 @@ def test_plain_loop_reference_draws_the_same_tiles(small_run):
 def sparse_run(tmp_path_factory):
     """The small demo city with one district moved 2.4 km east and 1.6 km north: a sparse scene."""
     inputs = {**SMALL_CONFIG["inputs"], "d3": {"path": "resources/demo/d3.obj", "offset": [2400.0, 1600.0, 0.0]}}
-    return demo_run(tmp_path_factory, "sparse", inputs=inputs, perspectives=SMALL_PERSPECTIVES[:2])
+    return demo_run(tmp_path_factory, "sparse", inputs=inputs, perspectives=SMALL_PERSPECTIVES[:2], **NO_OBJECTS)
 
 
 def test_a_sparse_scene_costs_its_content(sparse_run):
