@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from test_workflow import snakemake
+from test_workflow import NO_OBJECTS, snakemake
 
 from pipeline25d_lab.scenes import building_city as bc
 from pipeline25d_lab.scenes import citygml_city as cc
@@ -53,7 +53,7 @@ def ade_runs(tmp_path_factory) -> dict:
         truth = cc.write_city(workdir / "resources", grid=(3, 3), tin_cells=6, ade=ade)
         config = {"scene": "city", "crs": "EPSG:25832", "inputs": {"city": {"path": "resources/city.gml"}},
                   "terrain": "auto", "gsd": GSD, "tile_size": 256, "perspectives": ADE_VIEWS,
-                  "gcp": {"spacing": 10}}
+                  "gcp": {"spacing": 10}, **NO_OBJECTS}
         (workdir / "config.yaml").write_text(yaml.safe_dump(config))
         t0 = time.monotonic()
         snakemake(workdir, *[f"results/city/maps/{pid}.tif" for pid in ADE_IDS])
@@ -123,7 +123,7 @@ def sparse_run(tmp_path_factory) -> tuple[Path, list, float]:
               "perspectives": [{"azimuth": 0, "elevation": 90}, {"azimuth": 45, "elevation": 45},
                                {"azimuth": 200, "elevation": 30}],
               "gcp": {"spacing": 6, "holdout": 0.4, "marker_px": 4}, "tms": {"zoom": "13-15"},
-              "heights": {"footprints": "none"}}
+              "heights": {"footprints": "none"}, **NO_OBJECTS}
     (workdir / "config.yaml").write_text(yaml.safe_dump(config))
     t0 = time.monotonic()
     snakemake(workdir, "results/sparse/report/report.json")

@@ -56,14 +56,18 @@ def test_dry_run_of_the_default_config_counts_jobs_per_rule(tmp_path):
     config = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
     make_scene(tmp_path, config)
     out = snakemake(tmp_path, "-n").stdout
-    assert job_counts(out) == {"ingest": 4, "lod": 4, "terrain": 1, "scene": 1, "plan": 9, "gcps": 9, "mosaic": 9,
-                               "mosaic_ids": 9, "warp": 9, "id_map": 9, "tms": 9, "id_tiles": 9, "objects": 1,
-                               "heights_blocks": 1, "heights": 1, "report": 1, "viewer": 1, "wms": 1, "all": 1,
-                               "total": 89}
-    # objects off: no id mosaics, no id maps, no id tiles, no objects table
+    # the id layer's mosaics, maps and tiles are made by the map's own mosaic, warp and tms jobs
+    # (and the GCP tables by the mosaic job)
+    assert job_counts(out) == {"ingest": 4, "lod": 4, "terrain": 1, "scene": 1, "plan": 9, "mosaic": 9, "warp": 9,
+                               "tms": 9, "objects": 1, "heights_blocks": 1, "heights": 1, "report": 1, "viewer": 1,
+                               "wms": 1, "all": 1, "total": 53}
+    id_files = (".ids.vrt", ".ids.tif", "/idtiles/", "/objects/")
+    assert all(f in out for f in id_files)
+    # objects off: no id mosaics, no id maps, no id tiles (not even declared), no objects table
     (tmp_path / "config.yaml").write_text(yaml.safe_dump({**config, "objects": {"enabled": False}}))
-    off = job_counts(snakemake(tmp_path, "-n").stdout)
-    assert not {"mosaic_ids", "id_map", "id_tiles", "objects"} & set(off) and off["total"] == 61
+    off_out = snakemake(tmp_path, "-n").stdout
+    off = job_counts(off_out)
+    assert "objects" not in off and off["total"] == 52 and not any(f in off_out for f in id_files)
     (tmp_path / "config.yaml").write_text(yaml.safe_dump(config))
     # Once the plans exist the tile jobs are known: one per non-empty tile, none for empty ones.
     pids = [f"az{a:03d}_el45" for a in range(0, 360, 45)] + ["az000_el90"]
@@ -113,6 +117,10 @@ def test_a_gsd_typo_is_refused_before_any_job_under_a_memory_limit(tmp_path, dry
     assert "Traceback" not in proc.stderr + proc.stdout
     assert not (tmp_path / "results").exists()
 
+
+#: for runs whose tests check no object ids (small_run and plane_run check them): no id tiles, id maps,
+#: id web tiles nor objects table to make
+NO_OBJECTS = {"objects": {"enabled": False}}
 
 SMALL_CONFIG = {"scene": "small", "crs": "EPSG:25832",
                 "inputs": {f"d{i}": {"path": f"resources/demo/d{i}.obj"} for i in range(4)},
@@ -462,7 +470,7 @@ def test_plain_loop_reference_draws_the_same_tiles(small_run):
 def sparse_run(tmp_path_factory):
     """The small demo city with one district moved 2.4 km east and 1.6 km north: a sparse scene."""
     inputs = {**SMALL_CONFIG["inputs"], "d3": {"path": "resources/demo/d3.obj", "offset": [2400.0, 1600.0, 0.0]}}
-    return demo_run(tmp_path_factory, "sparse", inputs=inputs, perspectives=SMALL_PERSPECTIVES[:2])
+    return demo_run(tmp_path_factory, "sparse", inputs=inputs, perspectives=SMALL_PERSPECTIVES[:2], **NO_OBJECTS)
 
 
 def test_a_sparse_scene_costs_its_content(sparse_run):

@@ -81,42 +81,39 @@ def render_block_job(job: Job) -> None:
                               objects=p.objects)
 
 
-def gcps_job(job: Job) -> None:
-    from pipeline25d.stages import gcps
-
-    gcps.gather_gcps(list(job.params.tiles), job.output[0])
-
-
 def mosaic_job(job: Job) -> None:
+    from pipeline25d.stages import gcps
     from pipeline25d.stages.maps import warp
 
-    warp.build_mosaic(sorted(job.params.tiles), job.output[0])
+    warp.build_mosaic(sorted(job.params.tiles), job.output.vrt)
+    gcps.gather_gcps(list(job.params.gcp_tiles), job.output.gcps)
+    if "ids" in job.output.keys():                   # objects.enabled: the tiles' object ids too
+        warp.build_mosaic(sorted(job.params.id_tiles), job.output.ids)
 
 
 def warp_job(job: Job) -> None:
     from pipeline25d.stages.maps import warp
 
-    p = job.params
-    warp.warp(job.input.mosaic, job.input.gcps, job.input.plan, dict(p.warp), job.output.cog, job.output.meta,
-              dict(p.maps), work_dir=p.work, threads=job.threads)
+    p, i, o = job.params, job.input, job.output
+    warp.warp(i.mosaic, i.gcps, i.plan, dict(p.warp), o.cog, o.meta, dict(p.maps), work_dir=p.work, threads=job.threads)
+    if "ids" in o.keys():                            # objects.enabled: the id map, by the warp just chosen
+        from pipeline25d.stages.maps.ids import id_map
 
-
-def id_map_job(job: Job) -> None:
-    from pipeline25d.stages.maps.ids import id_map
-
-    i = job.input
-    id_map(i.ids, i.mosaic, i.gcps, i.meta, i.cog, job.output.ids, job.output.stats, work_dir=job.params.work,
-           threads=job.threads)
+        id_map(i.ids, i.mosaic, i.gcps, o.meta, o.cog, o.ids, o.id_stats, work_dir=p.id_work, threads=job.threads)
 
 
 def tms_job(job: Job) -> None:
     from pipeline25d.core.atomic import write_json
     from pipeline25d.stages.tiles.web import tms
 
-    p = job.params
-    stats = tms(job.input.cog, p.zoom, job.output.tiles, processes=job.threads, tile_format=p.tile_format,
+    p, o = job.params, job.output
+    stats = tms(job.input.cog, p.zoom, o.tiles, processes=job.threads, tile_format=p.tile_format,
                 quality=p.quality, work_dir=p.work)
-    write_json(job.output.stats, stats)
+    write_json(o.stats, stats)
+    if "id_tiles" in o.keys():                       # objects.enabled: the id map's tiles, same positions
+        stats = tms(job.input.ids, p.zoom, o.id_tiles, processes=job.threads, tile_format="ids", quality=0,
+                    work_dir=p.id_work)
+        write_json(o.id_stats, stats)
 
 
 def pmtiles_job(job: Job) -> None:
@@ -185,8 +182,7 @@ def wms_job(job: Job) -> None:
 #: rule name -> its function, in the order data moves through the workflow
 RULES: dict[str, Callable[[Job], None]] = {
     "ingest": ingest_job, "lod": lod_job, "terrain": terrain_job, "scene": scene_job, "plan": plan_job,
-    "render_block": render_block_job, "gcps": gcps_job, "mosaic": mosaic_job, "mosaic_ids": mosaic_job,
-    "warp": warp_job, "id_map": id_map_job, "tms": tms_job, "pmtiles": pmtiles_job, "id_tiles": tms_job,
+    "render_block": render_block_job, "mosaic": mosaic_job, "warp": warp_job, "tms": tms_job, "pmtiles": pmtiles_job,
     "objects": objects_job, "heights_blocks": heights_blocks_job, "heights_block": heights_block_job,
     "heights": heights_job, "report": report_job, "viewer": viewer_job, "wms": wms_job,
 }

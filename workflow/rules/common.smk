@@ -36,7 +36,9 @@ with stop_on_error(log=False):
     PERSPECTIVE_IDS = [p.id for p in perspectives(config)]
     # which object each map pixel shows: id tiles beside the render tiles, an id map beside each map
     OBJECTS = config["objects"]["enabled"]
-    ID_MAPS = [f"{RESULTS}/maps/{pid}.ids.tif" for pid in PERSPECTIVE_IDS] if OBJECTS else []
+    ID_MOSAIC = f"{RESULTS}/mosaic/{{pid}}.ids.vrt"
+    ID_MAP = f"{RESULTS}/maps/{{pid}}.ids.tif"
+    ID_MAPS = expand(ID_MAP, pid=PERSPECTIVE_IDS) if OBJECTS else []
     ID_STATS = [f"{RESULTS}/work/ids/{pid}.json" for pid in PERSPECTIVE_IDS] if OBJECTS else []
     # the web-tile pyramids as PMTiles archives too (tms.pmtiles), read by the viewer
     PMTILES = [f"{RESULTS}/pmtiles/{pid}.pmtiles" for pid in PERSPECTIVE_IDS] if config["tms"]["pmtiles"] else []
@@ -53,6 +55,13 @@ with stop_on_error(log=False):
     EXTENT = cheap_extent(config, RESULTS)
     if EXTENT is not None:
         budget.check(WORK, budget.estimate(WORK, *EXTENT))
+
+
+def with_ids(**files):
+    """A rule's named inputs, outputs or params of the id layer: the map's own jobs (mosaic, warp, tms)
+    make the ids beside the map in the same job (one start-up, not three more jobs per view), so
+    these are ``**``-added to them, and are none without objects.enabled."""
+    return files if OBJECTS else {}
 
 
 wildcard_constraints:

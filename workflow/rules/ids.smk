@@ -1,28 +1,8 @@
-# Which object every map pixel shows, on the web: each perspective's id raster (maps/{pid}.ids.tif)
-# cut into the same XYZ tiles as its map (pipeline25d.stages.tiles.ids, updated where the ids changed),
-# and one table of the scene's objects (pipeline25d.publish.objects): objects/objects.gpkg, objects.csv
-# (MapServer's GetFeatureInfo join) and the viewer's JSON shards. The viewer and the WMS take them
-# where the id maps are made (objects.enabled: ID_LAYER).
-
-ID_MAP = f"{RESULTS}/maps/{{pid}}.ids.tif"
-
-
-rule id_tiles:
-    input:
-        cog=ID_MAP,
-    output:
-        tiles=directory(f"{RESULTS}/idtiles/{{pid}}"),
-        stats=f"{RESULTS}/work/idtiles/{{pid}}.json",
-    params:
-        zoom=config["tms"]["zoom"],
-        tile_format="ids",
-        quality=0,
-        work=f"{RESULTS}/work/idtiles/{{pid}}",
-    threads: 2
-    log:
-        f"{RESULTS}/logs/id_tiles/{{pid}}.log",
-    script:
-        "../scripts/job.py"
+# Which object every map pixel shows, on the web: each perspective's id raster (maps/{pid}.ids.tif, made
+# by the warp job) cut into the same XYZ tiles as its map by the tms job (pipeline25d.stages.tiles.ids,
+# updated where the ids changed), and one table of the scene's objects (pipeline25d.publish.objects):
+# objects/objects.gpkg, objects.csv (MapServer's GetFeatureInfo join) and the viewer's JSON shards.
+# The viewer and the WMS take them where the id maps are made (objects.enabled: ID_LAYER).
 
 
 rule objects:
@@ -52,5 +32,5 @@ def id_layer_inputs(kind):
     if not ID_LAYER:
         return []
     if kind == "tiles":
-        return expand(rules.id_tiles.output.tiles, pid=PERSPECTIVE_IDS) + [rules.objects.output.shards]
+        return expand(rules.tms.output.id_tiles, pid=PERSPECTIVE_IDS) + [rules.objects.output.shards]
     return expand(ID_MAP, pid=PERSPECTIVE_IDS) + [rules.objects.output.csv]

@@ -1,4 +1,6 @@
-# gdalbuildvrt over a perspective's tiles (they share one pixel grid).
+# A perspective's render tiles gathered in one job: gdalbuildvrt over them (they share one pixel grid)
+# and the GCPs they observed in one table (pipeline25d.stages.gcps); with objects.enabled it mosaics
+# the tiles' object ids too (ID_MOSAIC).
 
 
 rule mosaic:
@@ -6,27 +8,15 @@ rule mosaic:
         perspective_blocks,
     params:
         tiles=lambda wc: perspective_tiles(wc, ".tif"),
+        gcp_tiles=lambda wc: perspective_tiles(wc, ".gcps.csv"),
+        **with_ids(id_tiles=lambda wc: perspective_tiles(wc, ".ids.tif")),
     output:
-        f"{RESULTS}/mosaic/{{pid}}.vrt",
+        vrt=f"{RESULTS}/mosaic/{{pid}}.vrt",
+        gcps=f"{RESULTS}/gcps/{{pid}}.csv",
+        **with_ids(ids=ID_MOSAIC),
     log:
         f"{RESULTS}/logs/mosaic/{{pid}}.log",
     benchmark:
         f"{RESULTS}/benchmarks/mosaic/{{pid}}.tsv"
-    script:
-        "../scripts/job.py"
-
-
-# The same over the tiles' object ids (objects.enabled).
-
-
-rule mosaic_ids:
-    input:
-        perspective_blocks,
-    params:
-        tiles=lambda wc: perspective_tiles(wc, ".ids.tif"),
-    output:
-        f"{RESULTS}/mosaic/{{pid}}.ids.vrt",
-    log:
-        f"{RESULTS}/logs/mosaic/{{pid}}.ids.log",
     script:
         "../scripts/job.py"

@@ -1,19 +1,23 @@
 # gdal2tiles XYZ pyramid per perspective, kept in work/tms/{pid} and updated where the map changed
 # (see pipeline25d.stages.tiles.web); the published folder hard-links the kept tiles. The stats file says
-# how many web tiles the run redid.
+# how many web tiles the run redid. With objects.enabled the same job cuts the id map into the same
+# XYZ tiles (idtiles/{pid}, pipeline25d.stages.tiles.ids, updated where the ids changed).
 
 
 rule tms:
     input:
         cog=rules.warp.output.cog,
+        **with_ids(ids=ID_MAP),
     output:
         tiles=directory(f"{RESULTS}/tms/{{pid}}"),
         stats=f"{RESULTS}/work/tms/{{pid}}.json",
+        **with_ids(id_tiles=directory(f"{RESULTS}/idtiles/{{pid}}"), id_stats=f"{RESULTS}/work/idtiles/{{pid}}.json"),
     params:
         zoom=config["tms"]["zoom"],
         tile_format=config["tms"]["format"],
         quality=config["tms"]["quality"],
         work=f"{RESULTS}/work/tms/{{pid}}",
+        id_work=f"{RESULTS}/work/idtiles/{{pid}}",
     threads: 2
     log:
         f"{RESULTS}/logs/tms/{{pid}}.log",

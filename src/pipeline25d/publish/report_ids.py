@@ -1,6 +1,6 @@
 """The report's object-id section: per map, how its id map agrees with it and what it weighs.
 
-Read from the id-map job's figures (``work/ids/<id>.json``, :func:`pipeline25d.stages.maps.ids.id_map`):
+Read from the id map's figures (``work/ids/<id>.json``, :func:`pipeline25d.stages.maps.ids.id_map` in the warp job):
 opaque map pixels without an id and transparent ones with an id (both counted over the whole
 map after the id map was made), the edge pixels the id map was held to the map at, and the id
 map's bytes against the map's.
