@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from pipeline25d.analysis.heights.pitched import fit_rise, line_excess, rise_share, roof_frame
+from pipeline25d.analysis.heights.pitched import fit_rise, line_excess, rise_share, roof_frame, roof_ground
 from pipeline25d.formats.footprints import Footprint
 
 ANGLE = math.radians(30)
@@ -73,6 +73,37 @@ def test_ground_falling_towards_the_viewer_draws_the_roof_farther_out(slope, kin
     assert flat == pytest.approx(line_excess(fp, kind, 3.0, eave[None], ACROSS, cot))
 
 
+
+@pytest.mark.parametrize("kind", ["flat", "gabled", "hipped"])
+def test_roof_ground_is_the_renderers_interpolation_of_its_vertices(kind):
+    """The renderer interpolates the DTM at the roof's vertices linearly across each face: on planar
+    ground that is the plane itself at every roof point (hip end triangles and side trapezoids
+    included), and at the vertices it is the DTM there whatever the ground."""
+    fp = _house()
+    f = roof_frame(fp)
+    rng = np.random.default_rng(3)
+    a, b = rng.uniform(-HALF_L, HALF_L, 400), rng.uniform(-HALF_W, HALF_W, 400)
+    xy = f.centre + a[:, None] * ALONG + b[:, None] * ACROSS
+    share = rise_share(f, kind, xy[:, 0], xy[:, 1]) if kind != "flat" else np.zeros(len(xy))
+
+    def plane(x, y):
+        return 300.0 + 0.7 * np.asarray(x) - 0.4 * np.asarray(y)
+
+    assert roof_ground(f, kind, plane, xy[:, 0], xy[:, 1], share) == pytest.approx(plane(xy[:, 0], xy[:, 1]), abs=1e-9)
+
+    def bumpy(x, y):
+        return 10.0 * np.sin(np.asarray(x) / 3.0) + np.asarray(y) ** 2 / 50.0
+
+    r = HALF_L - HALF_W if kind == "hipped" else HALF_L
+    verts = [f.centre + s * HALF_L * ALONG + t * HALF_W * ACROSS for s in (-1, 1) for t in (-1, 1)]
+    shares = [0.0] * 4
+    if kind != "flat":
+        verts += [f.centre - r * ALONG, f.centre + r * ALONG]
+        shares += [1.0, 1.0]
+    v = np.array(verts)
+    got = roof_ground(f, kind, bumpy, v[:, 0], v[:, 1], np.array(shares))
+    assert got == pytest.approx(bumpy(v[:, 0], v[:, 1]), abs=1e-9)
+
 def test_two_faces_colours_give_the_rise_and_the_kind():
     """Roof faces of two colours, drawn at q + (eave + rise·share(q))·cot·d on a fine grid; the fit
     finds the rise it was drawn with, and a flat roof of one colour stays flat."""
@@ -129,3 +160,38 @@ def test_a_view_that_fits_a_flat_roof_makes_it_flat_only_where_no_rise_fits_it_b
     assert kind == "gabled" and ridge == pytest.approx(10.0 + (3.1 + 2.9) / 2)
     # a view that does not show the roof (loss above MAX_LOSS) says nothing
     assert ridge_height({"a": RiseFit(3.0, "hipped", 0.9, 0.8)}, 10.0)[1] == ""
+
+
+def test_views_ridges_that_disagree_are_settled_by_the_silhouettes_gable():
+    """A view ridge fitted from a wrong eave: where the views' ridges differ by more than 1 m, the
+    gable end's silhouette lines (a line from the gable at offset c across ends rise·(1 − |c|/W)
+    above the eave when the view looks along the ridge) pick the view ridge near eave + rise, else
+    give that ridge themselves; lines of a flat outline leave the row as it was."""
+    from pipeline25d.analysis.heights.results import HeightRow, MatchSettings
+    from pipeline25d.analysis.heights.silhouette import Lines
+    from pipeline25d.analysis.heights.views import _ridge_checked
+    from pipeline25d.geometry.camera import horizontal_direction
+    from pipeline25d.geometry.perspectives import Perspective
+
+    fp = _house()
+    pid = next(f"az{a:03d}_el45" for a in range(360)
+               if abs(horizontal_direction(Perspective.from_id(f"az{a:03d}_el45")) @ ALONG) > 0.9999)
+    d = horizontal_direction(Perspective.from_id(pid))
+    eave, rise = 12.0, 3.5
+    c = np.linspace(-0.9 * HALF_W, 0.9 * HALF_W, 19)
+    xy = np.array([100.0, 200.0]) + np.sign(d @ ALONG) * HALF_L * ALONG + c[:, None] * ACROSS
+    gable = {pid: Lines(xy, eave + rise * (1 - np.abs(c) / HALF_W), 0.2)}
+    flat = {pid: Lines(xy, np.full(len(c), eave), 0.2)}
+
+    def row(*ridges: float) -> HeightRow:
+        return HeightRow("h", {}, {}, {}, 2, 2, eave, 1.0, {}, max(ridges), "gabled", dict(zip(("v1", "v2"), ridges)))
+
+    def checked(r: HeightRow, lines: dict) -> HeightRow:
+        return _ridge_checked(fp, r, {}, lines, {pid: 1.0}, MatchSettings(), None)
+
+    got = checked(row(eave + rise + 3.0, eave + rise + 0.3), gable)
+    assert got.ridge == pytest.approx(eave + rise + 0.3) and math.isnan(got.ridges["v1"])
+    got = checked(row(eave + rise + 3.0, eave), gable)
+    assert got.roof == "gabled" and got.ridge == pytest.approx(eave + rise, abs=0.15)
+    assert checked(row(eave + rise + 3.0, eave), flat).ridge == pytest.approx(eave + rise + 3.0)
+    assert checked(row(eave + rise + 0.6, eave + rise), gable).ridge == pytest.approx(eave + rise + 0.6)   # agree

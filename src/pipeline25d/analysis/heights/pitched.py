@@ -23,9 +23,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline25d.analysis.heights.silhouette import robust_level
+from pipeline25d.analysis.heights.silhouette import Lines, robust_level
 from pipeline25d.analysis.heights.template import Template
 from pipeline25d.formats.footprints import Footprint
+from pipeline25d.geometry.camera import horizontal_direction
+from pipeline25d.geometry.perspectives import Perspective
 
 KINDS = ("gabled", "hipped")
 RISE_STEP_M = 0.1
@@ -109,11 +111,13 @@ NO_FIT = RiseFit(math.nan, "", math.nan, math.nan)
 
 
 def fit_rise(fp: Footprint, xy: np.ndarray, colour: np.ndarray, sample_oblique: Callable[[np.ndarray], np.ndarray],
-             eave_move: np.ndarray, cot: float, tol: float) -> RiseFit:
+             eave_move: np.ndarray | dict[str, np.ndarray], cot: float, tol: float) -> RiseFit:
     """The rise and kind (:class:`RiseFit`) of the roof whose nadir pixels at world ``xy`` (n, 2)
     have ``colour`` (n, 3): ``sample_oblique(u)`` gives the oblique colours (n, 3) where each pixel
     lands when moved by u (n,) metres along d; ``eave_move`` (n,) is each pixel's move were it at
-    the eave (its eave height above the ground the map subtracted there, × cot φ). Rise 0 and kind
+    the eave (its eave height above the ground the map subtracted there, × cot φ), or such moves
+    per roof kind (flat, gabled, hipped: the map subtracts the ground of each one's vertices,
+    :func:`roof_ground`). Rise 0 and kind
     ``flat`` when no rise lowers the loss by MIN_GAIN of the flat roof's and MIN_LOSS_DROP."""
     frame = roof_frame(fp)
     tol2 = tol * tol
@@ -122,14 +126,15 @@ def fit_rise(fp: Footprint, xy: np.ndarray, colour: np.ndarray, sample_oblique: 
         d2 = np.sum((sample_oblique(u) - colour) ** 2, axis=-1)
         return float(np.mean(np.minimum(d2, tol2)) / tol2)
 
-    flat = loss(eave_move)
+    moves = eave_move if isinstance(eave_move, dict) else {k: eave_move for k in ("flat", *KINDS)}
+    flat = loss(moves["flat"])
     best = (flat, 0.0, "flat")
     for kind in KINDS:
         share = rise_share(frame, kind, xy[:, 0], xy[:, 1])
         coarse = np.arange(COARSE_STEP_M, MAX_RISE_M + 1e-9, COARSE_STEP_M)
-        k = int(np.argmin([loss(eave_move + r * share * cot) for r in coarse]))
+        k = int(np.argmin([loss(moves[kind] + r * share * cot) for r in coarse]))
         rises = np.arange(max(coarse[k] - COARSE_STEP_M, RISE_STEP_M), coarse[k] + COARSE_STEP_M + 1e-9, RISE_STEP_M)
-        scores = np.array([loss(eave_move + r * share * cot) for r in rises])
+        scores = np.array([loss(moves[kind] + r * share * cot) for r in rises])
         k = int(np.argmin(scores))
         r = float(rises[k])
         if 0 < k < len(rises) - 1:                   # parabola through the minimum and its neighbours
@@ -182,24 +187,32 @@ def roof_ground(frame: RoofFrame, kind: str, ground: Ground, x: np.ndarray, y: n
     L, W = frame.half_length, frame.half_width
     corner = {(a, b): float(ground(*(c + a * L * u + b * W * v)[:, None])[0]) for a in (-1, 1) for b in (-1, 1)}
     qx, qy = x - c[0], y - c[1]
-    pa = np.clip((qx * u[0] + qy * u[1]) / max(L, 1e-9), -1.0, 1.0)
-    pc = np.clip((qx * v[0] + qy * v[1]) / max(W, 1e-9), -1.0, 1.0)
+    a, b = qx * u[0] + qy * u[1], qx * v[0] + qy * v[1]
 
     def lerp(g0, g1, t):
         return g0 + (g1 - g0) * (t + 1.0) / 2.0
 
-    up = pc >= 0
+    if kind == "flat":                                # the four corners', bilinear
+        pa, pc = np.clip(a / max(L, 1e-9), -1.0, 1.0), np.clip(b / max(W, 1e-9), -1.0, 1.0)
+        return lerp(lerp(corner[(-1, -1)], corner[(1, -1)], pa), lerp(corner[(-1, 1)], corner[(1, 1)], pa), pc)
+    # the point's place on its level's outline (half extents L − s·W, W·(1 − s) on a hipped roof,
+    # L, W·(1 − s) on a gabled one), carried down its face to the eave and up to the ridge
+    s = np.clip(share, 0.0, 1.0)
+    hipped = kind == "hipped"
+    pa = np.clip(a / np.maximum(L - s * W if hipped else L, 1e-9), -1.0, 1.0)
+    pc = np.clip(b / np.maximum(W * (1.0 - s), 1e-9), -1.0, 1.0)
+    up = b >= 0
     eave = lerp(np.where(up, corner[(-1, 1)], corner[(-1, -1)]), np.where(up, corner[(1, 1)], corner[(1, -1)]), pa)
     r = L
-    if kind == "hipped":
+    if hipped:
         r = max(L - W, 0.0)
-        ahead = pa >= 0
+        ahead = a >= 0
         end = lerp(np.where(ahead, corner[(1, -1)], corner[(-1, -1)]),
                    np.where(ahead, corner[(1, 1)], corner[(-1, 1)]), pc)
-        eave = np.where(L * (1 - np.abs(pa)) < W * (1 - np.abs(pc)), end, eave)
+        eave = np.where(L - np.abs(a) < W - np.abs(b), end, eave)
     ends = np.stack([c - r * u, c + r * u])
     g_ends = ground(ends[:, 0], ends[:, 1])
-    ridge = lerp(g_ends[0], g_ends[1], np.clip(pa * L / r, -1.0, 1.0) if r > 0 else 0.0 * pa)
+    ridge = lerp(g_ends[0], g_ends[1], pa if r > 0 else 0.0 * pa)
     return (1.0 - share) * eave + share * ridge
 
 
@@ -244,6 +257,16 @@ def silhouette_roof(fp: Footprint, views: list[tuple[np.ndarray, np.ndarray, np.
     return best
 
 
+def lines_roof(fp: Footprint, lines: dict[str, Lines | str], cot: dict[str, float],
+               ground: Ground | None = None) -> tuple[str, float, float, float]:
+    """:func:`silhouette_roof` on every view's levelled lines ({perspective id: Lines, or why
+    none}; ``cot``: cot φ per view); kind "" where no view has lines."""
+    usable = [(lv.xy, lv.h, horizontal_direction(Perspective.from_id(p)), cot[p], lv.inlier)
+              for p, lv in lines.items() if isinstance(lv, Lines)]
+    if not usable:
+        return "", math.nan, math.nan, 0.0
+    return silhouette_roof(fp, [u[:4] for u in usable], max(u[4] for u in usable), ground)
+
 def fit_eave(fp: Footprint, kind: str, ridge: float, xy: np.ndarray, h: np.ndarray, d: np.ndarray, cot: float,
              inlier: float, ground: Ground | None = None) -> tuple[float, float]:
     """(eave, share of lines agreeing) of a pitched roof whose ``ridge`` is known, from one view's
@@ -267,11 +290,12 @@ def fit_eave(fp: Footprint, kind: str, ridge: float, xy: np.ndarray, h: np.ndarr
 
 
 def view_rise(fp: Footprint, tmpl: Template, xy: np.ndarray, obl_rgb: np.ndarray, off: np.ndarray, d_px: np.ndarray,
-              cot: float, eave: float, ground_excess: np.ndarray, tol: float) -> RiseFit:
+              cot: float, eave: float, ground_excess: dict[str, np.ndarray], tol: float) -> RiseFit:
     """:func:`fit_rise` on one oblique view: the template's pixels deeper than 2.5 px inside the
     outline (no mixed edge pixels; at most about MAX_FIT_PX of them, evenly) at world ``xy``;
-    ``eave`` the building's eave height above the mean ground under it, ``ground_excess`` (n,) the ground the map subtracted at each pixel minus
-    that mean (zeros without a DTM)."""
+    ``eave`` the building's eave height above the mean ground under it, ``ground_excess``: per roof
+    kind (flat, gabled, hipped) the ground the map subtracted at each pixel minus that mean (n,)
+    (:func:`roof_ground`; zeros without a DTM)."""
     deep = np.flatnonzero(tmpl.deep)
     if len(deep) < 16:
         return NO_FIT
@@ -279,9 +303,11 @@ def view_rise(fp: Footprint, tmpl: Template, xy: np.ndarray, obl_rgb: np.ndarray
     from scipy import ndimage
 
     rows, cols, colour = tmpl.rows[deep] + off[0], tmpl.cols[deep] + off[1], tmpl.colour[deep]
-    move = (eave - ground_excess[deep]) * cot
+    moves = {k: (eave - g[deep]) * cot for k, g in ground_excess.items()}
+    move = np.minimum.reduce(list(moves.values()))
     # the part of the window the moves reach (eave .. eave + MAX_RISE_M), as float64 once
-    ends = [(rows + u * d_px[0], cols + u * d_px[1]) for u in (move, move + MAX_RISE_M * cot)]
+    ends = [(rows + u * d_px[0], cols + u * d_px[1])
+            for u in (move, np.maximum.reduce(list(moves.values())) + MAX_RISE_M * cot)]
     r0 = max(int(min(e[0].min() for e in ends)) - 2, 0)
     c0 = max(int(min(e[1].min() for e in ends)) - 2, 0)
     r1 = min(int(max(e[0].max() for e in ends)) + 3, obl_rgb.shape[0])
@@ -294,7 +320,7 @@ def view_rise(fp: Footprint, tmpl: Template, xy: np.ndarray, obl_rgb: np.ndarray
         at = [rows + u * d_px[0] - r0, cols + u * d_px[1] - c0]
         return np.stack([ndimage.map_coordinates(b, at, order=1, mode="nearest") for b in bands], axis=-1)
 
-    return fit_rise(fp, xy[deep], colour, sample, move, cot, tol)
+    return fit_rise(fp, xy[deep], colour, sample, moves, cot, tol)
 
 
 def ridge_height(fits: dict[str, RiseFit], eave: float) -> tuple[float, str]:

@@ -13,7 +13,8 @@ import numpy as np
 from pipeline25d.analysis.evaluate.rasters import _open
 from pipeline25d.analysis.ground_under import Sampler, dtm_under
 from pipeline25d.analysis.heights.matcher import MatchResult, _Matcher
-from pipeline25d.analysis.heights.pitched import KINDS, MAX_LOSS, fit_eave, ridge_height, silhouette_roof, view_rise
+from pipeline25d.analysis.heights.pitched import (KINDS, MAX_LOSS, fit_eave, lines_roof, ridge_height, rise_share,
+                                                  roof_frame, roof_ground, view_rise)
 from pipeline25d.analysis.heights.results import NADIR_ID, HeightRow, MatchSettings, ViewMeasurement
 from pipeline25d.analysis.heights.silhouette import (MIN_CONSISTENT, Lines, levelled, robust_level, roof_heights,
                                                      silhouette_lines)
@@ -191,17 +192,49 @@ def _roof(fp: Footprint, row: HeightRow, measurements: dict[str, ViewMeasurement
         # colours alike on both faces (the ridge along the light): the gable ends' silhouette
         row = _silhouette_ridge(fp, row, get_lines(), cot, sample)
         from_lines = row.roof in KINDS
-    if row.roof not in KINDS or not _eaves(fp, row, measurements, get_lines(), cot, sample):
-        return row
+    kept = _refit_eaves(fp, row, measurements, get_lines(), cot, s, sample) if row.roof in KINDS else None
+    if kept is None or from_lines:
+        return row if kept is None else kept
+    again = ridge_fit(kept)
+    return _ridge_checked(fp, again if again.roof in KINDS else kept, measurements, get_lines(), cot, s, sample)
+
+
+def _refit_eaves(fp: Footprint, row: HeightRow, measurements: dict[str, ViewMeasurement],
+                 lines: dict[str, "Lines | str"], cot: dict[str, float], s: MatchSettings,
+                 sample: Sampler | None) -> HeightRow | None:
+    """``row`` with its views' eaves fitted under its ridge (:func:`_eaves`, ``measurements`` in
+    place) and combined again; None where no view's eave changed or none is left."""
+    if not _eaves(fp, row, measurements, lines, cot, sample):
+        return None
     _drop_inconsistent(measurements, s.outlier_m)
     new = _combine(fp.id, measurements, s)
-    if not np.isfinite(new.height):
+    return replace(new, ridge=row.ridge, roof=row.roof, ridges=row.ridges) if np.isfinite(new.height) else None
+
+
+def _ridge_checked(fp: Footprint, row: HeightRow, measurements: dict[str, ViewMeasurement],
+                   lines: dict[str, "Lines | str"], cot: dict[str, float], s: MatchSettings,
+                   sample: Sampler | None) -> HeightRow:
+    """``row`` whose views' ridges differ by more than PITCHED_GAP_M (a view fitted its rise from a
+    wrong eave) checked against the silhouette's gable ends (:func:`.pitched.silhouette_roof`): the
+    view ridge within PITCHED_GAP_M of theirs, else their gabled roof, the eaves fitted again under
+    it (``measurements`` in place); view ridges farther from it are dropped (NaN). Unchanged where
+    the silhouette shows no gable."""
+    ridges = [h for h in row.ridges.values() if np.isfinite(h)]
+    if row.roof not in KINDS or len(ridges) < 2 or max(ridges) - min(ridges) <= PITCHED_GAP_M:
         return row
-    kept = replace(new, ridge=row.ridge, roof=row.roof, ridges=row.ridges)
-    if from_lines:
-        return kept
-    again = ridge_fit(new)
-    return again if again.roof in KINDS else kept
+    kind, rise, eave, _ = lines_roof(fp, lines, cot, sample)
+    if kind not in KINDS:
+        return row
+    target = eave + rise
+    near = min(ridges, key=lambda h: abs(h - target))
+    log.info("%s: view ridges %s disagree, the silhouette's gable says %.2f m", fp.id, np.round(ridges, 2), target)
+    ridge = near if abs(near - target) <= PITCHED_GAP_M else target
+    kept = {p: h if abs(h - ridge) <= PITCHED_GAP_M else math.nan for p, h in row.ridges.items()}
+    if ridge == near:
+        return replace(row, ridge=near, ridges=kept)
+    row = replace(row, ridge=target, roof=kind, ridges=kept)
+    new = _refit_eaves(fp, row, measurements, lines, cot, s, sample)
+    return row if new is None else new
 
 
 def _silhouette_level(lines: dict[str, "Lines | str"]) -> float:
@@ -215,12 +248,8 @@ def _silhouette_level(lines: dict[str, "Lines | str"]) -> float:
 def _silhouette_ridge(fp: Footprint, row: HeightRow, lines: dict[str, "Lines | str"], cot: dict[str, float],
                       sample: Sampler | None = None) -> HeightRow:
     """``row`` with the ridge and kind of :func:`.pitched.silhouette_roof` where it finds a rise."""
-    usable = [(lv.xy, lv.h, horizontal_direction(Perspective.from_id(p)), cot[p], lv.inlier)
-              for p, lv in lines.items() if isinstance(lv, Lines)]
-    if not usable:
-        return row
-    kind, rise, eave, _ = silhouette_roof(fp, [u[:4] for u in usable], max(u[4] for u in usable), sample)
-    if kind == "flat":
+    kind, rise, eave, _ = lines_roof(fp, lines, cot, sample)
+    if kind not in KINDS:
         return row
     return replace(row, ridge=eave + rise, roof=kind, ridges={p: math.nan for p in row.ridges})
 
@@ -249,12 +278,15 @@ def _with_ridge(row: HeightRow, fp: Footprint, tmpl: Template, grid: Grid, win, 
     around the roof (``views``: {pid: (view, oblique RGB window, offset)}), the eave at its height."""
     x, y = grid.xy(win.col0 + tmpl.cols + 0.5, win.row0 + tmpl.rows + 0.5)
     xy = np.column_stack([x, y])
-    excess = np.zeros(len(xy))
+    excess = {k: np.zeros(len(xy)) for k in ("flat", *KINDS)}
     if sample is not None:
-        g = sample(xy[:, 0], xy[:, 1])
         base = dtm_under(fp, sample, step_m)
-        if np.isfinite(base) and np.isfinite(g).all():
-            excess = g - base
+        frame = roof_frame(fp)
+        # the ground the map subtracted under each pixel, were the roof of each kind (its vertices' DTM)
+        g = {k: roof_ground(frame, k, sample, x, y, rise_share(frame, k, x, y) if k in KINDS else np.zeros(len(x)))
+             for k in excess}
+        if np.isfinite(base) and all(np.isfinite(v).all() for v in g.values()):
+            excess = {k: v - base for k, v in g.items()}
     fits = {p: view_rise(fp, tmpl, xy, rgb, off, v.d_px, v.cot, row.height, excess, tol) for p, (v, rgb, off) in views.items()}
     ridge, kind = ridge_height(fits, row.height)
     per_view = {p: row.height + f.rise if f.loss <= MAX_LOSS else math.nan for p, f in fits.items()}
