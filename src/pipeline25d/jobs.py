@@ -87,7 +87,7 @@ def mosaic_job(job: Job) -> None:
 
     warp.build_mosaic(sorted(job.params.tiles), job.output.vrt)
     gcps.gather_gcps(list(job.params.gcp_tiles), job.output.gcps)
-    if "ids" in job.output.keys():                   # objects.enabled: the tiles' object ids too
+    if hasattr(job.output, "ids"):                   # objects.enabled: the tiles' object ids too
         warp.build_mosaic(sorted(job.params.id_tiles), job.output.ids)
 
 
@@ -96,7 +96,7 @@ def warp_job(job: Job) -> None:
 
     p, i, o = job.params, job.input, job.output
     warp.warp(i.mosaic, i.gcps, i.plan, dict(p.warp), o.cog, o.meta, dict(p.maps), work_dir=p.work, threads=job.threads)
-    if "ids" in o.keys():                            # objects.enabled: the id map, by the warp just chosen
+    if hasattr(o, "ids"):                            # objects.enabled: the id map, by the warp just chosen
         from pipeline25d.stages.maps.ids import id_map
 
         id_map(i.ids, i.mosaic, i.gcps, o.meta, o.cog, o.ids, o.id_stats, work_dir=p.id_work, threads=job.threads)
@@ -110,7 +110,7 @@ def tms_job(job: Job) -> None:
     stats = tms(job.input.cog, p.zoom, o.tiles, processes=job.threads, tile_format=p.tile_format,
                 quality=p.quality, work_dir=p.work)
     write_json(o.stats, stats)
-    if "id_tiles" in o.keys():                       # objects.enabled: the id map's tiles, same positions
+    if hasattr(o, "id_tiles"):                       # objects.enabled: the id map's tiles, same positions
         stats = tms(job.input.ids, p.zoom, o.id_tiles, processes=job.threads, tile_format="ids", quality=0,
                     work_dir=p.id_work)
         write_json(o.id_stats, stats)
