@@ -39,7 +39,8 @@ with stop_on_error(log=False):
     ID_MOSAIC = f"{RESULTS}/mosaic/{{pid}}.ids.vrt"
     ID_MAP = f"{RESULTS}/maps/{{pid}}.ids.tif"
     ID_MAPS = expand(ID_MAP, pid=PERSPECTIVE_IDS) if OBJECTS else []
-    ID_STATS = [f"{RESULTS}/work/ids/{pid}.json" for pid in PERSPECTIVE_IDS] if OBJECTS else []
+    ID_STAT = f"{RESULTS}/work/ids/{{pid}}.json"
+    ID_STATS = expand(ID_STAT, pid=PERSPECTIVE_IDS) if OBJECTS else []
     # the web-tile pyramids as PMTiles archives too (tms.pmtiles), read by the viewer
     PMTILES = [f"{RESULTS}/pmtiles/{pid}.pmtiles" for pid in PERSPECTIVE_IDS] if config["tms"]["pmtiles"] else []
     MAX_LOD_ERROR = config["gsd"] * config["lod"]["max_error_px"]

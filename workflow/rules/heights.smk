@@ -7,6 +7,7 @@
 
 # only what the steps read: a change elsewhere (web tiles, shadows ...) must not re-run them
 HEIGHTS_CONFIG = {k: config[k] for k in ("crs", "gsd", "inputs", "perspectives", "heights") if k in config}
+HEIGHTS_ROWS = f"{RESULTS}/work/heights/rows"   # each block's rows and their digest, kept between runs
 HEIGHTS_NADIR = [f"{RESULTS}/maps/{pid}.tif" for pid in PERSPECTIVE_IDS if pid == "az000_el90"]
 
 
@@ -36,7 +37,7 @@ rule heights_block:
     params:
         config=HEIGHTS_CONFIG,
         pids=PERSPECTIVE_IDS,
-        rows_dir=f"{RESULTS}/work/heights/rows",
+        rows_dir=HEIGHTS_ROWS,
     log:
         f"{RESULTS}/logs/heights/block_{{hblock}}.log",
     benchmark:
@@ -59,7 +60,7 @@ rule heights:
     params:
         config=HEIGHTS_CONFIG,
         pids=PERSPECTIVE_IDS,
-        rows_dir=f"{RESULTS}/work/heights/rows",
+        rows_dir=HEIGHTS_ROWS,
     log:
         f"{RESULTS}/logs/heights.log",
     benchmark:

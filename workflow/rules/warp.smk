@@ -14,7 +14,7 @@ rule warp:
     output:
         cog=f"{RESULTS}/maps/{{pid}}.tif",
         meta=f"{RESULTS}/maps/{{pid}}.json",
-        **with_ids(ids=ID_MAP, id_stats=f"{RESULTS}/work/ids/{{pid}}.json"),
+        **with_ids(ids=ID_MAP, id_stats=ID_STAT),
     params:
         warp=config["warp"],
         maps=config["maps"],

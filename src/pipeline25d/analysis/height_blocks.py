@@ -35,13 +35,18 @@ from pipeline25d.stages.records import Scene
 log = logging.getLogger(__name__)
 
 
+def block_size(config: dict) -> float:
+    """The side of a heights block in metres (``heights.block_size``; the schema's default where absent)."""
+    return float((config.get("heights") or {}).get("block_size", 500.0))
+
+
 def write_blocks(config: dict, nadir_map: str | Path | None, out_json: str | Path) -> dict[str, list[int]]:
     """The footprints on the maps in blocks (none where the step is skipped), written to ``out_json``."""
     p = plan(config)
     fps: list[Footprint] = []
     if not p["skip"] and nadir_map:
         _, fps, _ = buildings_on_maps(p, config, nadir_map)
-    size = float((config.get("heights") or {}).get("block_size", 500.0))
+    size = block_size(config)
     blocks = blocks_of(fps, size)
     write_json(out_json, {"block_size": size, "footprints": [footprint_to_json(f) for f in fps], "blocks": blocks},
                indent=None)
@@ -122,7 +127,7 @@ def merge_blocks(config: dict, maps: dict[str, str], scene_json: str | Path, dsm
             "job_seconds": round(sum(float(s["seconds"]) for s in summaries), 2),
             "job_cpu_seconds": round(sum(float(s["cpu_seconds"]) for s in summaries), 2),
             "blocks_measured": sum(1 for s in summaries if s["measured"]),
-            "block_size": float((config.get("heights") or {}).get("block_size", 500.0))}
+            "block_size": block_size(config)}
     return finish_stage(config, p, Scene.read(scene_json), [r for r in rows if r is not None],
                         (fps_all, on_maps, model), dsm_path, out_csv, out_json, cost)
 
