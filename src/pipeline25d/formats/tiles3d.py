@@ -36,8 +36,8 @@ import numpy as np
 
 from pipeline25d.core.errors import InputFileError
 from pipeline25d.core.mesh import Mesh, MeshPart, joined
+from pipeline25d.formats.batch_table import COMPONENT_TYPES, batch_table_rows
 from pipeline25d.formats.common import Detail, Loaded, in_scene
-from pipeline25d.formats.batch_table import batch_table_rows
 from pipeline25d.formats.feature_info import feature_prefix, with_feature_info
 from pipeline25d.formats.gltf import parse_gltf_bytes
 from pipeline25d.formats.tileset_tree import read_json, resolve, select
@@ -244,8 +244,8 @@ def _batch_ids(table: dict, body: bytes, count: int, path: Path) -> np.ndarray:
     ref = table.get("BATCH_ID")
     if ref is None:
         return np.arange(count)
-    dtype = {"UNSIGNED_BYTE": "uint8", "UNSIGNED_SHORT": "uint16", "UNSIGNED_INT": "uint32"}.get(
-        str(ref.get("componentType", "UNSIGNED_SHORT")) if isinstance(ref, dict) else "", "uint16")
+    kind = str(ref.get("componentType", "UNSIGNED_SHORT")) if isinstance(ref, dict) else ""
+    dtype = COMPONENT_TYPES[kind if kind in ("UNSIGNED_BYTE", "UNSIGNED_SHORT", "UNSIGNED_INT") else "UNSIGNED_SHORT"]
     return _feature_array(table, body, "BATCH_ID", count, 1, dtype, path).reshape(-1).astype(np.int64)
 
 
