@@ -169,11 +169,17 @@ def cell_bounds(cell_id: str, cells_grid: list) -> Extent:
     return grid.window_bounds(Window(c0, r0, min(c0 + cell, grid.width), min(r0 + cell, grid.height)))
 
 
-def _block_metres(max_zoom: int) -> tuple[float, float]:
+def _tile_metres(max_zoom: int) -> tuple[float, float]:
+    """(origin, tile): the web-tile grid starts at (-origin, -origin); a tile of ``max_zoom`` is tile m wide."""
     from osgeo_utils.gdal2tiles import GlobalMercator
 
-    origin = GlobalMercator(GDAL2TILES_TILE).originShift          # the tile grid starts at (-origin, -origin)
-    return origin, BLOCK_TILES * 2 * origin / 2 ** max_zoom
+    origin = GlobalMercator(GDAL2TILES_TILE).originShift
+    return origin, 2 * origin / 2 ** max_zoom
+
+
+def _block_metres(max_zoom: int) -> tuple[float, float]:
+    origin, tile = _tile_metres(max_zoom)
+    return origin, BLOCK_TILES * tile
 
 
 def mercator_reach(bounds: list[Extent], crs_wkt: str, grid: Grid) -> list[Window]:
@@ -370,12 +376,9 @@ def tile_grid(cog: str | Path, zoom: str) -> tuple[Grid, str]:
     takes a tile's window from its offset rounded toward zero, so on gdalwarp's own grid each base tile
     moved by up to a source pixel (a road by up to a map pixel on the web tiles), and a tile clipped at
     the grid's left or top edge by one more."""
-    from osgeo_utils.gdal2tiles import GlobalMercator
-
     native = mercator_grid(cog)
     zooms = zoom_range(native) if zoom == "auto" else zoom
-    origin = GlobalMercator(GDAL2TILES_TILE).originShift
-    tile = 2 * origin / 2 ** int(zooms.split("-")[-1])                # the highest zoom's tile, metres
+    origin, tile = _tile_metres(int(zooms.split("-")[-1]))            # the highest zoom's tile, metres
     size = tile / GDAL2TILES_TILE
     while size > native.transform.a * (1 + 1e-9):
         size /= 2
