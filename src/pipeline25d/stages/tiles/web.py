@@ -2,8 +2,8 @@
 
 The map is reprojected to EPSG:3857 in *blocks*: squares of :data:`BLOCK_TILES` x
 :data:`BLOCK_TILES` web tiles of the highest zoom, each warped by gdalwarp in C onto the
-whole map's web-mercator grid (on the tile grid's pixels: :func:`tile_grid`), with the nearest-neighbour resampling of gdal2tiles' own
-warped VRT (transform exact to 0.01 px). gdal2tiles then cuts a VRT of the blocks with its
+whole map's web-mercator grid (on the tile grid's pixels: :func:`tile_grid`), with the
+nearest-neighbour resampling of gdal2tiles' own warped VRT (transform exact to 0.01 px). gdal2tiles then cuts a VRT of the blocks with its
 own tile functions: base tiles by ``create_base_tile`` (its read made fast, same bytes: see
 :mod:`pipeline25d.stages.tiles.base`), overview tiles from their children by ``create_overview_tile``. It reads plain windows instead of re-warping for every tile,
 and only tiles that hold data are written, so a sparse map costs its districts, not its
