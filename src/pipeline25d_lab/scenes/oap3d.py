@@ -24,12 +24,15 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import multiprocessing
 import os
 import re
 import sys
 import tempfile
 import time
 from collections import Counter
+from concurrent.futures import ProcessPoolExecutor
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -54,8 +57,11 @@ SIZES = {
 }
 
 
-def generate_oap3d(out: str | Path, size: str = "quarter", seed: int = 7, progress=None) -> dict:
-    """Write the dataset of ``size`` into ``out`` (kept when its manifest matches); return the manifest."""
+def generate_oap3d(out: str | Path, size: str = "quarter", seed: int = 7, progress=None,
+                   workers: int | None = None) -> dict:
+    """Write the dataset of ``size`` into ``out`` (kept when its manifest matches); return the manifest.
+    Tiles are written by ``workers`` processes (default: one per core); each tile's files depend on
+    the seed alone, so the dataset is the same byte for byte whatever the count."""
     if size not in SIZES:
         raise ConfigError(f"oap3d: size must be one of {', '.join(SIZES)}, got {size!r}")
     out = Path(out)
@@ -74,12 +80,17 @@ def generate_oap3d(out: str | Path, size: str = "quarter", seed: int = 7, progre
         (build / "3dtiles" / "Data").mkdir(parents=True)
         (build / "osgb" / "metadata.xml").write_text(metadata_xml(SRS, ORIGIN))
         stats: dict[str, Counter] = {"osgb": Counter(), "3dtiles": Counter(), "triangles": Counter()}
+        cells = [(tx, ty) for ty in range(spec.tiles[1]) for tx in range(spec.tiles[0])]
         entries = []
-        for ty in range(spec.tiles[1]):
-            for tx in range(spec.tiles[0]):
-                entries.append(_write_tile(build, work, city, spec, tx, ty, seed, stats))
+        write = partial(_write_tile, build, work, city, spec, seed=seed)
+        with ProcessPoolExecutor(max(1, min(workers or os.cpu_count() or 1, len(cells))),
+                                 mp_context=multiprocessing.get_context("fork")) as pool:
+            for entry, counts in pool.map(write, cells):
+                entries.append(entry)
+                for key, counter in counts.items():
+                    stats[key].update(counter)
                 if progress is not None:
-                    progress(f"oap3d {size}: tile {len(entries)}/{spec.tiles[0] * spec.tiles[1]}")
+                    progress(f"oap3d {size}: tile {len(entries)}/{len(cells)}")
         (build / "3dtiles" / "tileset.json").write_text(root_tileset(entries, 2 * spec.tile))
         manifest = _manifest(build, size, seed, spec, stats, time.monotonic() - t0)
         write_json(build / "manifest.json", manifest)
@@ -88,10 +99,15 @@ def generate_oap3d(out: str | Path, size: str = "quarter", seed: int = 7, progre
     return manifest
 
 
-def _write_tile(build: Path, work: Path, city: City, spec: Spec, tx: int, ty: int, seed: int,
-                stats: dict[str, Counter]) -> tuple[str, list[float]]:
-    """Both formats of one tile; (its external tileset's URI, its ECEF bounding sphere)."""
+def _write_tile(build: Path, work: Path, city: City, spec: Spec, cell: tuple[int, int], seed: int
+                ) -> tuple[tuple[str, list[float]], dict[str, Counter]]:
+    """Both formats of one tile: ((its external tileset's URI, its ECEF bounding sphere), its bytes
+    per level and format and triangles per level)."""
+    tx, ty = cell
     name = tile_name(tx, ty)
+    stats: dict[str, Counter] = {"osgb": Counter(), "3dtiles": Counter(), "triangles": Counter()}
+    work = work / name
+    work.mkdir()
     osgb_dir, tiles_dir = build / "osgb" / "Data" / name, build / "3dtiles" / "Data" / name
     osgb_dir.mkdir()
     tiles_dir.mkdir()
@@ -120,7 +136,7 @@ def _write_tile(build: Path, work: Path, city: City, spec: Spec, tx: int, ty: in
     expand(root)
     (tiles_dir / "tileset.json").write_text(json.dumps(tree.tileset(), separators=(",", ":")))
     radius = float(np.sqrt(2) * spec.tile / 2 + 60.0)
-    return f"Data/{name}/tileset.json", [*centre.tolist(), radius]
+    return (f"Data/{name}/tileset.json", [*centre.tolist(), radius]), stats
 
 
 def _manifest(build: Path, size: str, seed: int, spec: Spec, stats: dict[str, Counter], seconds: float) -> dict:
