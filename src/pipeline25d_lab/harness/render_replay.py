@@ -130,7 +130,8 @@ def replay(packed: Path, out: Path, objects: bool = True) -> dict:
     finally:
         ctx.release()
     rows = report["perspectives"].values()
-    report["total"] = {"tiles": sum(r["tiles"] for r in rows), "content_mpx": round(sum(r["content_mpx"] for r in rows), 1),
+    report["total"] = {"tiles": sum(r["tiles"] for r in rows),
+                       "content_mpx": round(sum(r["content_mpx"] for r in rows), 1),
                        "load_s": round(sum(r["load_s"] for r in rows), 1),
                        "render_s": round(sum(r["render_s"] for r in rows), 1),
                        "wall_s": round(time.monotonic() - t_all, 1)}
