@@ -29,10 +29,13 @@ import numpy as np
 from pipeline25d.core.atomic import write_json
 
 
-def pack(results: Path, out: Path, workdir: Path, max_tiles: int | None = None) -> dict:
+def pack(results: Path, out: Path, workdir: Path, max_tiles: int | None = None,
+         perspectives: set[str] | None = None, ground_float32: bool = False) -> dict:
     """Copy ``results``' plans and the LOD chunks they draw into ``out``, with each terrain-mode
     plan's DTM window pickled (``workdir``: where the plans' relative DTM paths start);
-    ``max_tiles``: keep only that many tiles from the middle of each plan (a sample that travels)."""
+    ``max_tiles``: keep only that many tiles from the middle of each plan, ``perspectives`` only
+    those plans, ``ground_float32``: the DTM heights in float32 (half the bytes; 2 µm at 30 m) for a
+    sample that must travel light."""
     from pyproj import CRS
 
     from pipeline25d.core.grid import Extent
@@ -46,6 +49,8 @@ def pack(results: Path, out: Path, workdir: Path, max_tiles: int | None = None) 
     crs: dict[str, str] = {}
     ground_of: dict[str, str] = {}
     for path in sorted((results / "plans").glob("*.json")):
+        if perspectives and path.stem not in perspectives:
+            continue
         pl = read_plan(path)
         if max_tiles is not None and len(pl.tiles) > max_tiles:
             data = json.loads(path.read_text())
@@ -56,17 +61,26 @@ def pack(results: Path, out: Path, workdir: Path, max_tiles: int | None = None) 
         else:
             shutil.copyfile(path, out / "plans" / path.name)
         chunks |= {Path(c.district) / f"{c.id}.npz" for t in pl.tiles for c in (*t.chunks, *t.casters)}
-        if pl.projection == "terrain":
-            reach.setdefault(pl.dtm, []).extend(
+        if pl.projection == "terrain":     # a window per DTM; per plan for a sample, whose plans lie apart
+            key = pl.dtm if max_tiles is None else f"{pl.dtm}#{pl.id}"
+            reach.setdefault(key, []).extend(
                 [np.array(c.xy).reshape(2, 2) for t in pl.tiles for c in t.chunks]
                 + [np.array([[g.x, g.y] for g in t.gcps]).reshape(-1, 2) for t in pl.tiles])
-            crs[pl.dtm] = pl.crs
-            ground_of[pl.id] = f"{list(reach).index(pl.dtm)}.pkl"
-    for k, (dtm_path, pieces) in enumerate(reach.items()):
+            crs[key] = pl.crs
+            ground_of[pl.id] = f"{list(reach).index(key)}.pkl"
+    for k, (key, pieces) in enumerate(reach.items()):
         xy = np.concatenate(pieces)
-        dtm = DTM(workdir / dtm_path, crs[dtm_path], continuous=True, window=Extent(*xy.min(axis=0), *xy.max(axis=0)))
-        if dtm.crs_wkt and CRS.from_user_input(dtm.crs_wkt) == CRS.from_user_input(crs[dtm_path]):
+        window = Extent(*xy.min(axis=0), *xy.max(axis=0))
+        dtm = DTM(workdir / key.split("#")[0], crs[key], continuous=True, window=window)
+        if dtm.crs_wkt and CRS.from_user_input(dtm.crs_wkt) == CRS.from_user_input(crs[key]):
             dtm.crs_wkt = ""                # the same CRS: no transform, so no pyproj where it is replayed
+        if not dtm.crs_wkt:                 # a DTM with holes is read whole: keep only the cells drawn
+            win = dtm.grid.window_covering(window, pad=2)
+            h, w = dtm.values.shape
+            rows, cols = slice(max(win.row0, 0), min(win.row1, h)), slice(max(win.col0, 0), min(win.col1, w))
+            dtm.values, dtm.grid = dtm.values[rows, cols].copy(), dtm.grid.window(rows, cols)
+        if ground_float32:
+            dtm.values = dtm.values.astype(np.float32)
         (out / "ground" / f"{k}.pkl").write_bytes(pickle.dumps(dtm))
     write_json(out / "ground" / "plans.json", ground_of)
     for rel in sorted(chunks):
@@ -170,6 +184,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("out", type=Path)
     p.add_argument("--workdir", type=Path, default=Path("."))
     p.add_argument("--max-tiles", type=int, help="only this many tiles from the middle of each plan")
+    p.add_argument("--perspectives", help="comma-separated: only these plans")
+    p.add_argument("--ground-float32", action="store_true", help="DTM heights in float32 (half the bytes)")
     r = sub.add_parser("replay")
     r.add_argument("packed", type=Path)
     r.add_argument("out", type=Path)
@@ -179,7 +195,8 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("b", type=Path)
     args = ap.parse_args(argv)
     if args.cmd == "pack":
-        result = pack(args.results, args.out, args.workdir, args.max_tiles)
+        result = pack(args.results, args.out, args.workdir, args.max_tiles,
+                      set(args.perspectives.split(",")) if args.perspectives else None, args.ground_float32)
     elif args.cmd == "replay":
         result = replay(args.packed, args.out, not args.no_objects)["total"]
     else:
