@@ -266,7 +266,7 @@ def pixel_cost(results: Path, pid: str, work: Path, repeat: int = 3, scale: int 
                tile_format: str = "webp", quality: int = 85, compare: bool = True) -> dict:
     """The per-step table of one map of a finished run (see the module docstring)."""
     g = gdal()
-    tiles = sorted((results / "tiles" / pid).glob("*.tif"))
+    tiles = sorted(p for p in (results / "tiles" / pid).glob("*.tif") if not p.name.endswith(".ids.tif"))
     mosaic, cog = results / "mosaic" / f"{pid}.vrt", results / "maps" / f"{pid}.tif"
     map_mpx = _mpx(g.Open(str(cog)))
     rows = render_tile_rows(tiles, work, map_mpx, repeat) + map_rows(mosaic, work, map_mpx, repeat)

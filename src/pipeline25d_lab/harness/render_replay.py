@@ -155,21 +155,25 @@ def replay(packed: Path, out: Path, objects: bool = True) -> dict:
 
 def compare(a: Path, b: Path) -> dict:
     """Per perspective: the sample tiles' mean and largest absolute difference (0-255, where both
-    drew), and the GCP image positions seen by both drivers (count, RMS and largest distance, px)."""
+    drew; where both runs kept the tile), and the GCP image positions seen by both drivers (count,
+    RMS and largest distance, px)."""
     out = {}
-    for fa in sorted(a.glob("*_sample_tile.npz")):
-        pid = fa.name.removesuffix("_sample_tile.npz")
-        ra, rb = np.load(fa)["rgba"].astype(float), np.load(b / fa.name)["rgba"].astype(float)
-        both = (ra[..., 3] > 0) & (rb[..., 3] > 0)
-        diff = np.abs(ra[..., :3] - rb[..., :3])[both]
+    for ga_file in sorted(a.glob("*_gcps.json")):
+        pid = ga_file.name.removesuffix("_gcps.json")
+        row: dict = {}
+        tiles = [d / f"{pid}_sample_tile.npz" for d in (a, b)]
+        if all(t.exists() for t in tiles):
+            ra, rb = (np.load(t)["rgba"].astype(float) for t in tiles)
+            both = (ra[..., 3] > 0) & (rb[..., 3] > 0)
+            diff = np.abs(ra[..., :3] - rb[..., :3])[both]
+            row = {"tile_mean_abs": round(float(diff.mean()), 3) if diff.size else None,
+                   "tile_max_abs": int(diff.max()) if diff.size else None,
+                   "coverage_a": round(float((ra[..., 3] > 0).mean()), 4),
+                   "coverage_b": round(float((rb[..., 3] > 0).mean()), 4)}
         ga, gb = (json.loads((d / f"{pid}_gcps.json").read_text()) for d in (a, b))
         common = sorted(set(ga) & set(gb))
         dist = np.hypot(*(np.array([ga[i] for i in common]) - np.array([gb[i] for i in common])).T) if common else []
-        out[pid] = {"tile_mean_abs": round(float(diff.mean()), 3) if diff.size else None,
-                    "tile_max_abs": int(diff.max()) if diff.size else None,
-                    "coverage_a": round(float((ra[..., 3] > 0).mean()), 4),
-                    "coverage_b": round(float((rb[..., 3] > 0).mean()), 4),
-                    "gcps_a": len(ga), "gcps_b": len(gb), "gcps_both": len(common),
+        out[pid] = {**row, "gcps_a": len(ga), "gcps_b": len(gb), "gcps_both": len(common),
                     "gcp_rms_px": round(float(np.sqrt(np.mean(np.square(dist)))), 4) if common else None,
                     "gcp_max_px": round(float(np.max(dist)), 4) if common else None}
     return out
