@@ -6,6 +6,7 @@ and an update that rewrites only the id tiles a changed rectangle reaches."""
 from __future__ import annotations
 
 import os
+import zlib
 
 import numpy as np
 
@@ -99,6 +100,10 @@ def test_a_tile_of_any_number_of_ids_decodes_to_itself():
         tile = np.resize(rng.choice(2**32, n, replace=False).astype(np.uint32), (256, 256))
         rng.shuffle(tile.reshape(-1))
         assert np.array_equal(id_tiles.decode(id_tiles.encode(tile)), tile), n
+        palette, index = np.unique(tile, return_inverse=True)     # the format, written out by its definition
+        raw = (np.uint32(n).astype("<u4").tobytes() + palette.astype("<u4").tobytes()
+               + index.astype("u1" if n <= 256 else "<u2").tobytes())
+        assert id_tiles.encode(tile) == zlib.compress(raw, 9), n
 
 
 def test_mode_keeps_the_majority_and_breaks_ties_at_the_bottom_right():

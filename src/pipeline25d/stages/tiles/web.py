@@ -124,7 +124,7 @@ def update_pyramid(cog: str | Path, zoom: str, work: Path, processes: int = 1, t
     ds = g.Open(str(cog))
     wkt = ds.GetProjection()
     ds = None
-    grid, zooms = tile_grid(cog, zoom)
+    grid, zooms = tile_grid(cog, zoom, halved=tile_format != "ids")
     width, height = grid.width, grid.height
     key = {"version": STATE_VERSION, "grid": [*grid.geotransform, width, height], "zooms": zooms, "format": tile_format,
            "quality": int(quality) if tile_format == "webp" else None, "block_tiles": BLOCK_TILES}
@@ -156,9 +156,6 @@ def update_pyramid(cog: str | Path, zoom: str, work: Path, processes: int = 1, t
     log.info("web tiles: %s; %d of %d map cells changed, %d web-mercator blocks warped, %d of %d web tiles redone",
              "full cut" if full else "update", len(changed), len(cells), len(jobs), redone, stats["web_tiles"])
     return stats
-
-
-
 
 
 def cell_bounds(cell_id: str, cells_grid: list) -> Extent:
@@ -368,11 +365,12 @@ def mercator_grid(cog: str | Path) -> Grid:
     return Grid.of_dataset(vrt)
 
 
-def tile_grid(cog: str | Path, zoom: str) -> tuple[Grid, str]:
+def tile_grid(cog: str | Path, zoom: str, halved: bool = True) -> tuple[Grid, str]:
     """The web-mercator grid the map is warped onto, and its zooms ("min-max"; ``zoom`` "auto":
     :func:`zoom_range` of gdalwarp's own grid). The grid lies on the web-tile grid: its pixel is the
-    highest zoom's tile pixel halved until no coarser than gdalwarp's, its edges those of the highest
-    zoom's tiles. So every base tile reads a whole window of it, no tile clipped at its edge: gdal2tiles
+    highest zoom's tile pixel, ``halved`` until no coarser than gdalwarp's (not for an id raster: a
+    tile takes its ids by nearest neighbour, one per pixel), its edges those of the highest zoom's
+    tiles. So every base tile reads a whole window of it, no tile clipped at its edge: gdal2tiles
     takes a tile's window from its offset rounded toward zero, so on gdalwarp's own grid each base tile
     moved by up to a source pixel (a road by up to a map pixel on the web tiles), and a tile clipped at
     the grid's left or top edge by one more."""
@@ -380,7 +378,7 @@ def tile_grid(cog: str | Path, zoom: str) -> tuple[Grid, str]:
     zooms = zoom_range(native) if zoom == "auto" else zoom
     origin, tile = _tile_metres(int(zooms.split("-")[-1]))            # the highest zoom's tile, metres
     size = tile / GDAL2TILES_TILE
-    while size > native.transform.a * (1 + 1e-9):
+    while halved and size > native.transform.a * (1 + 1e-9):
         size /= 2
     x0, y0, x1, y1 = native.bounds
     c0, r0 = np.floor((x0 + origin) / tile + 1e-9), np.floor((origin - y1) / tile + 1e-9)
