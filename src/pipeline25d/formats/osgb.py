@@ -70,7 +70,7 @@ OSG_ENV = {"OSG_OPTIMIZER": "OFF", "OSG_NOTIFY_LEVEL": "WARN", "OSG_FILE_PATH": 
 _LOD_CLASSES = ("osg::PagedLOD", "osg::LOD")
 _TRANSFORM_CLASSES = ("osg::PositionAttitudeTransform", "osg::AutoTransform", "osg::Camera", "osg::Transform",
                       "osgSim::DOFTransform", "osg::Billboard")
-_TOKEN = re.compile(r'"(?:[^"\\]|\\.)*"|[{}]|[^\s{}"]+|\n')
+_TOKEN = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*"|[{}]|[^\s{}"]+|\n')   # strings unrolled: base64 images are long
 
 
 # --------------------------------------------------------------------------- public API
@@ -328,31 +328,49 @@ class Block:
 
 
 def parse_osgt(text: str, path: Path) -> Block:
-    """The bracket tree of an .osgt file (statements split at line ends, strings may span lines)."""
+    """The bracket tree of an .osgt file (statements split at line ends, strings may span lines).
+    A ``vector`` block of plain values (no brace or string inside: vertex, index and coordinate
+    arrays, most of a file) is kept whole, without its lines: nothing reads them, and they are
+    most of the tokens."""
     root = Block([], [], 0, len(text))
     stack, stmt, stmt_start, stmt_end = [root], [], 0, 0
-    for m in _TOKEN.finditer(text):
-        tok = m.group()
-        if tok in ("\n", "{", "}") and stmt and tok != "{":
-            stack[-1].items.append(Stmt(stmt, stmt_start, stmt_end))
-            stmt = []
-        if tok == "{":
-            block = Block(stmt, [], stmt_start if stmt else m.start())
-            stack[-1].items.append(block)
-            stack.append(block)
-            stmt = []
-        elif tok == "}":
-            if len(stack) == 1:
-                raise InputFileError(path, f"osgt text has an unmatched '}}' at character {m.start()}")
-            stack.pop().end = m.end()
-        elif tok != "\n":
-            if not stmt:
-                stmt_start = m.start()
-            stmt.append(tok)
-            stmt_end = m.end()
+    pos = 0
+    while pos is not None:
+        tokens, pos = _TOKEN.finditer(text, pos), None
+        for m in tokens:
+            tok = m.group()
+            if tok in ("\n", "{", "}") and stmt and tok != "{":
+                stack[-1].items.append(Stmt(stmt, stmt_start, stmt_end))
+                stmt = []
+            if tok == "{":
+                block = Block(stmt, [], stmt_start if stmt else m.start())
+                stack[-1].items.append(block)
+                stack.append(block)
+                stmt = []
+                close = _plain_end(text, m.end()) if block.head[:1] == ["vector"] else None
+                if close is not None:
+                    stack.pop().end = pos = close + 1
+                    break
+            elif tok == "}":
+                if len(stack) == 1:
+                    raise InputFileError(path, f"osgt text has an unmatched '}}' at character {m.start()}")
+                stack.pop().end = m.end()
+            elif tok != "\n":
+                if not stmt:
+                    stmt_start = m.start()
+                stmt.append(tok)
+                stmt_end = m.end()
     if len(stack) != 1:
         raise InputFileError(path, "osgt text ends inside a block (truncated?)")
     return root
+
+
+def _plain_end(text: str, start: int) -> int | None:
+    """Where the block opened just before ``start`` closes if nothing in it is a block or a string."""
+    close = text.find("}", start)
+    if close < 0 or text.find("{", start, close) >= 0 or text.find('"', start, close) >= 0:
+        return None
+    return close
 
 
 def _unquote(token: str) -> str:
