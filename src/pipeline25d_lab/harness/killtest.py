@@ -162,7 +162,8 @@ def demo_config(scene_dir: Path, scale: float, perspectives: str | list[dict]) -
 def run_trials(work: Path, config: dict, trials: int, signals: list[str], seed: int, cores: int = 2,
                stop_limit: float = STOP_LIMIT_S) -> dict:
     """The reference run, then ``trials`` trials cycling through ``signals``, each at a random
-    moment (seeded) between 2 % and 95 % of the reference's wall time."""
+    moment (seeded) between 2 % and 80 % of the reference's wall time (a trial on a machine less loaded than
+    the reference's ran out before a later signal)."""
     ref_dir = work / "reference"
     wall = run_workflow(ref_dir, config, cores)
     reference = output_digests(results_of(ref_dir, config))
@@ -171,7 +172,7 @@ def run_trials(work: Path, config: dict, trials: int, signals: list[str], seed: 
     records = []
     for k in range(trials):
         sig_name = signals[k % len(signals)]
-        at_s = rng.uniform(0.02, 0.95) * wall
+        at_s = rng.uniform(0.02, 0.8) * wall
         rec = trial(work / f"trial{k:02d}", config, sig_name, at_s, reference, cores, stop_limit)
         log.info("killtest %d/%d: SIG%s at %.1f s: %s", k + 1, trials, sig_name, at_s,
                  "ok" if rec["ok"] else f"FAILED {rec}")
