@@ -63,7 +63,7 @@ def render_block(plan_path: str | Path, block_id: str, block: int, lod_dir: str 
     tiles = plan_block(read_plan_blocks(plan_path, block), block_id, pl.id)
     todo = [t for t in tiles if not _tile_current(tiles_dir, t, objects)]
     if todo:
-        chunks = _ChunkCache(lod_dir, todo)
+        chunks = ChunkCache(lod_dir, todo)
         ground = _block_ground(pl, todo)
         ctx = create_context()
         try:
@@ -89,7 +89,7 @@ def render_block(plan_path: str | Path, block_id: str, block: int, lod_dir: str 
     return manifest
 
 
-class _ChunkCache:
+class ChunkCache:
     """Chunk LODs loaded once per block job and dropped after the last tile that draws them."""
 
     def __init__(self, lod_dir: str | Path, tiles: Sequence[Tile]):
@@ -124,10 +124,15 @@ def _block_ground(pl: Plan, tiles: Sequence[Tile]):
 
     if pl.projection != "terrain":
         return None
+    return DTM(pl.dtm, pl.crs, continuous=True, window=ground_window(tiles)).sample
+
+
+def ground_window(tiles: Sequence[Tile]) -> Extent:
+    """The scene-CRS extent whose ground ``tiles`` sample: their chunks' extents and their GCPs."""
     xy = [np.array(c.xy).reshape(2, 2) for t in tiles for c in t.chunks]
     xy += [np.array([[c.x, c.y] for c in t.gcps]).reshape(-1, 2) for t in tiles]
     xy = np.concatenate(xy)
-    return DTM(pl.dtm, pl.crs, continuous=True, window=Extent(*xy.min(axis=0), *xy.max(axis=0))).sample
+    return Extent(*xy.min(axis=0), *xy.max(axis=0))
 
 
 def render_plan_tile(renderer, pl: Plan, tile: Tile, chunks: list, ground, casters: list | None = None,

@@ -41,11 +41,12 @@ def pack(results: Path, out: Path, workdir: Path, max_tiles: int | None = None,
     from pipeline25d.core.grid import Extent
     from pipeline25d.core.raster import DTM
     from pipeline25d.stages.plan import read_plan
+    from pipeline25d.stages.render_block import ground_window
 
     (out / "plans").mkdir(parents=True, exist_ok=True)
     (out / "ground").mkdir(exist_ok=True)
     chunks: set[Path] = set()
-    reach: dict[str, list[np.ndarray]] = {}        # per DTM: the points its plans sample around
+    reach: dict[str, list[Extent]] = {}            # per DTM: the windows its plans sample
     crs: dict[str, str] = {}
     ground_of: dict[str, str] = {}
     for path in sorted((results / "plans").glob("*.json")):
@@ -63,14 +64,12 @@ def pack(results: Path, out: Path, workdir: Path, max_tiles: int | None = None,
         chunks |= {Path(c.district) / f"{c.id}.npz" for t in pl.tiles for c in (*t.chunks, *t.casters)}
         if pl.projection == "terrain":     # a window per DTM; per plan for a sample, whose plans lie apart
             key = pl.dtm if max_tiles is None else f"{pl.dtm}#{pl.id}"
-            reach.setdefault(key, []).extend(
-                [np.array(c.xy).reshape(2, 2) for t in pl.tiles for c in t.chunks]
-                + [np.array([[g.x, g.y] for g in t.gcps]).reshape(-1, 2) for t in pl.tiles])
+            reach.setdefault(key, []).append(ground_window(pl.tiles))
             crs[key] = pl.crs
             ground_of[pl.id] = f"{list(reach).index(key)}.pkl"
-    for k, (key, pieces) in enumerate(reach.items()):
-        xy = np.concatenate(pieces)
-        window = Extent(*xy.min(axis=0), *xy.max(axis=0))
+    for k, (key, windows) in enumerate(reach.items()):
+        lo, hi = np.array([w[:2] for w in windows]).min(axis=0), np.array([w[2:] for w in windows]).max(axis=0)
+        window = Extent(*lo, *hi)
         dtm = DTM(workdir / key.split("#")[0], crs[key], continuous=True, window=window)
         if dtm.crs_wkt and CRS.from_user_input(dtm.crs_wkt) == CRS.from_user_input(crs[key]):
             dtm.crs_wkt = ""                # the same CRS: no transform, so no pyproj where it is replayed
@@ -92,10 +91,9 @@ def pack(results: Path, out: Path, workdir: Path, max_tiles: int | None = None,
 
 def replay(packed: Path, out: Path, objects: bool = True) -> dict:
     """Render every tile of every plan in ``packed``; write ``out/replay.json``, the GCPs seen and a sample tile."""
-    from pipeline25d.stages.lod import load_chunk_level
     from pipeline25d.stages.plan import read_plan
     from pipeline25d.stages.render import TileRenderer, create_context, renderer_info
-    from pipeline25d.stages.render_block import render_plan_tile
+    from pipeline25d.stages.render_block import ChunkCache, render_plan_tile
     from pipeline25d.stages.render_ids import IdRenderer
 
     out.mkdir(parents=True, exist_ok=True)
@@ -112,18 +110,13 @@ def replay(packed: Path, out: Path, objects: bool = True) -> dict:
             renderer = TileRenderer(ctx, ambient=pl.tiles[0].render["ambient"], samples=pl.tiles[0].render["samples"],
                                     shadows=pl.shadows is not None, ids=objects)
             ids = IdRenderer(ctx, samples=pl.tiles[0].render["samples"]) if objects else None
-            cache: dict[tuple, tuple] = {}
+            chunks = ChunkCache(packed / "lod", pl.tiles)      # the render job's: each chunk loaded once
             load_s = render_s = mpx = 0.0
             seen: dict[str, list[float]] = {}
             best: tuple = (0, None, None)                 # the tile that draws most: kept to compare drivers
             for tile in pl.tiles:
                 t0 = time.monotonic()
-                loaded = []
-                for c in tile.chunks:
-                    key = (c.district, c.id, c.lod)
-                    if key not in cache:
-                        cache[key] = load_chunk_level(packed / "lod" / c.district / f"{c.id}.npz", c.lod)
-                    loaded.append(cache[key])
+                loaded = chunks.take(tile.chunks)
                 t1 = time.monotonic()
                 rgba, obs, _ = render_plan_tile(renderer, pl, tile, loaded, ground, None, ids)
                 t2 = time.monotonic()

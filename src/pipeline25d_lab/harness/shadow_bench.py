@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 from pipeline25d.stages.plan import read_plan
-from pipeline25d.stages.render_block import _block_ground, _ChunkCache, shadow_view
+from pipeline25d.stages.render_block import ChunkCache, _block_ground, shadow_view
 
 
 def measure(plan_path: str | Path, lod_dir: str | Path, repeats: int = 3) -> dict:
@@ -27,7 +27,7 @@ def measure(plan_path: str | Path, lod_dir: str | Path, repeats: int = 3) -> dic
     if pl.shadows is None:
         raise SystemExit(f"{plan_path}: the plan has no shadows (shadows.enabled was off)")
     tiles = pl.tiles
-    cache = _ChunkCache(lod_dir, tiles)
+    cache = ChunkCache(lod_dir, tiles)
     ground = _block_ground(pl, tiles)
     ctx = create_context()
     plain, shaded = TileRenderer(ctx, samples=tiles[0].render["samples"]), \
