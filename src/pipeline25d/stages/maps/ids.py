@@ -28,7 +28,6 @@ from pathlib import Path
 import numpy as np
 
 from pipeline25d.core.atomic import atomic_path, write_json
-from pipeline25d.core.geotiff import geotiff_dataset
 from pipeline25d.core.grid import Extent, Grid, Window
 from pipeline25d.core.journal import read_state, write_state
 from pipeline25d.core.raster import gdal, map_cells
@@ -36,10 +35,12 @@ from pipeline25d.stages.gcps import read_observations
 from pipeline25d.stages.maps.parts import overview_factors
 from pipeline25d.stages.maps.patch import (
     BLOCK_PX,
+    KEPT_OPTIONS,
     MARGIN_PX,
     block_window,
     blocks_reached,
     gcps_digest,
+    kept_dataset,
     pixel_to_map,
     source_to_map,
     window_warp_options,
@@ -51,8 +52,6 @@ log = logging.getLogger(__name__)
 STATE_VERSION = 1
 KEPT = "ids.tif"
 ID_COG = ["COMPRESS=DEFLATE", "PREDICTOR=2", "OVERVIEWS=FORCE_USE_EXISTING"]
-KEPT_OPTIONS = ["TILED=YES", "BLOCKXSIZE=512", "BLOCKYSIZE=512", "COMPRESS=ZSTD", "ZSTD_LEVEL=1", "SPARSE_OK=TRUE",
-                "BIGTIFF=IF_SAFER"]
 
 
 def id_map(ids_vrt: str | Path, mosaic_vrt: str | Path, gcps_csv: str | Path, map_json: str | Path,
@@ -155,13 +154,13 @@ class _Blocks:
 def conform(ids: np.ndarray, alpha: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(ids, filled, cleared): ``ids`` made to agree with the map's ``alpha`` (module docstring):
     cleared where alpha is 0, and an opaque pixel without an id given the nearest pixel's id."""
-    from scipy import ndimage as ndi
-
     ids = ids.copy()
     cleared = (alpha == 0) & (ids != 0)
     ids[cleared] = 0
     filled = (alpha > 0) & (ids == 0)
     if filled.any() and ids.any():
+        from scipy import ndimage as ndi
+
         _, (r, c) = ndi.distance_transform_edt(ids == 0, return_indices=True)
         ids[filled] = ids[r[filled], c[filled]]
     return ids, filled & (ids != 0), cleared
@@ -210,8 +209,6 @@ def _patched(maker: _Blocks, ids_vrt: str | Path, mosaic_vrt: str | Path, work: 
     if full:
         shutil.rmtree(work, ignore_errors=True)
         work.mkdir(parents=True)
-        with geotiff_dataset(work / KEPT, grid, maker.crs, 1, "UInt32", KEPT_OPTIONS, nodata=0, overviews=factors):
-            pass
         todo = {(bx, by) for bx in range(nx) for by in range(ny)}
         changed: list[str] = []
         fixes: dict[str, list[int]] = {}
@@ -223,14 +220,12 @@ def _patched(maker: _Blocks, ids_vrt: str | Path, mosaic_vrt: str | Path, work: 
         fixes = state["fixes"]
     todo = sorted(todo)
     write_state(work, {"key": key, "cells": {} if full else state["cells"], "fixes": fixes, "dirty": todo})
-    kept = gdal().Open(str(work / KEPT), 1)
-    for bx, by in todo:
-        win = block_window(bx, by, grid.width, grid.height, size)
-        ids, filled, cleared = maker.make(win)
-        fixes[f"{bx}_{by}"] = [filled, cleared]
-        write_block(kept, maker.dataset(ids, win), win, factors, "NEAREST")
-    kept.FlushCache()
-    kept = None
+    with kept_dataset(work / KEPT, full, grid, maker.crs, factors, 1, "UInt32", KEPT_OPTIONS, nodata=0) as kept:
+        for bx, by in todo:
+            win = block_window(bx, by, grid.width, grid.height, size)
+            ids, filled, cleared = maker.make(win)
+            fixes[f"{bx}_{by}"] = [filled, cleared]
+            write_block(kept, maker.dataset(ids, win), win, factors, "NEAREST")
     write_state(work, {"key": key, "cells": cells, "fixes": fixes, "dirty": []})
     log.info("id map: %s; %d mosaic squares changed, %d of %d blocks %s", "full" if full else "patch",
              len(changed), len(todo), nx * ny, "warped" if warped else "copied")

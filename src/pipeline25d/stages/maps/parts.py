@@ -41,13 +41,15 @@ def tile_parts(cells: Iterable[tuple[int, int]], gap: int = PART_GAP_TILES,
     come within ``gap`` of each other merge. One rectangle, the tiles' bounding box, when the
     rectangles cover at least ``dense_share`` of it.
     """
-    from scipy import ndimage as ndi
-
     rc = np.array(sorted(set(cells)), dtype=np.int64).reshape(-1, 2)
     if not len(rc):
         raise ValueError("no tiles to group into parts")
     lo, hi = rc.min(axis=0), rc.max(axis=0)
     whole = [(int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1]))]
+    if len(rc) >= dense_share * np.prod(hi - lo + 1):    # the tiles alone fill the share: rectangles can only add
+        return whole
+    from scipy import ndimage as ndi                      # (its import costs more than a dense map's grouping)
+
     occupied = np.zeros(tuple(hi - lo + 1), bool)
     occupied[rc[:, 0] - lo[0], rc[:, 1] - lo[1]] = True
     grown = ndi.binary_dilation(occupied, np.ones((3, 3), bool), iterations=gap) if gap else occupied

@@ -301,7 +301,12 @@ def _warp_parts(source: Path, mosaic: str | Path, choice: dict, plan: Plan, crs:
             g.Warp(str(path), str(source), outputBounds=grid.window_bounds(win), **warp_options)
             ds = g.Open(str(path), 1)
             if factors:
-                ds.BuildOverviews("AVERAGE", factors)
+                # a file opened for update compresses its overviews at zstd's default level (9) unless told
+                g.SetConfigOption("ZSTD_LEVEL_OVERVIEW", "1")
+                try:
+                    ds.BuildOverviews("AVERAGE", factors)
+                finally:
+                    g.SetConfigOption("ZSTD_LEVEL_OVERVIEW", None)
             ds = None
         log.info("sparse map: %d parts, %d x %d px, %.1f%% of it in parts", len(windows), width, height,
                  100 * sum(w.width * w.height for w in windows) / (width * height))
