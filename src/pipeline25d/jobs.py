@@ -53,7 +53,7 @@ def terrain_job(job: Job) -> None:
     chunks = lod_chunks(list(job.input.lods))
     log.info("work asked for: %s", check_ingested(dict(p.work), chunks).summary())
     build_terrain(chunks, dict(p.inputs), p.crs, p.gsd, p.terrain, dict(p.ground), job.output.dsm,
-                  _first(job.output.ground), job.output.meta)
+                  _first(job.output.ground), job.output.meta, processes=job.threads)
 
 
 def scene_job(job: Job) -> None:

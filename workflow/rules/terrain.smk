@@ -18,6 +18,8 @@ rule terrain:
         terrain=config["terrain"],
         ground=config["ground"],
         work=WORK,
+    # the ground filter's blocks run on both cores (nothing else can run beside this job)
+    threads: 2
     log:
         f"{RESULTS}/logs/terrain.log",
     benchmark:

@@ -18,12 +18,13 @@ log = logging.getLogger(__name__)
 
 
 def build_terrain(chunks: Sequence[LodChunk], inputs: dict, scene_crs: str, gsd: float, terrain: str, ground_cfg: dict,
-                  out_dsm: str | Path, out_ground: str | Path | None, out_json: str | Path) -> dict:
+                  out_dsm: str | Path, out_ground: str | Path | None, out_json: str | Path, processes: int = 1) -> dict:
     """Render the DSM of the LOD ``chunks``; with ``terrain: auto`` also find its ground cells (see :mod:`pipeline25d.stages.terrain`).
 
     ``out_ground`` holds the ground heights (NaN elsewhere); the scene stage interpolates
     the DTM from it once it knows the check points, which it holds out of the DTM. Both
-    rasters are written block by block: memory follows a block, not the scene.
+    rasters are written block by block: memory follows a block, not the scene. ``processes``:
+    how many blocks the ground filter runs at once (the same ground whatever the count).
     """
     from pipeline25d.core.crs import horizontal_wkt
     from pipeline25d.core.geotiff import float_geotiff_writer
@@ -44,7 +45,7 @@ def build_terrain(chunks: Sequence[LodChunk], inputs: dict, scene_crs: str, gsd:
             dsm_cells += int(np.isfinite(heights).sum())
     record = {"dsm": str(out_dsm), "resolution": res, "dsm_cells": dsm_cells}
     if terrain == "auto":
-        record.update(_ground_from_model(inputs, scene_crs, ground_cfg, out_dsm, out_ground, wkt))
+        record.update(_ground_from_model(inputs, scene_crs, ground_cfg, out_dsm, out_ground, wkt, processes))
         log.info("ground from %s: %.1f%% of the model's cells, relief %.1f m", record["source"],
                  100 * record["ground_share"], record["relief_m"])
     elif terrain == "flat":
@@ -56,7 +57,7 @@ def build_terrain(chunks: Sequence[LodChunk], inputs: dict, scene_crs: str, gsd:
 
 
 def _ground_from_model(inputs: dict, scene_crs: str, ground_cfg: dict, dsm_path: str | Path,
-                       out_ground: str | Path, wkt: str) -> dict:
+                       out_ground: str | Path, wkt: str, processes: int = 1) -> dict:
     """Write the ground heights on the DSM's grid, block by block: the inputs' own terrain where
     they carry one; elsewhere the bases of their buildings (:mod:`pipeline25d.stages.terrain.bases`)
     and, unless every other input is made of buildings alone, the Cloth Simulation Filter's ground
@@ -76,7 +77,7 @@ def _ground_from_model(inputs: dict, scene_crs: str, ground_cfg: dict, dsm_path:
         cloth = ground_cfg["cloth_resolution"]
         cloth = 2 * grid.res if cloth == "auto" else float(cloth)
         blocks = ground_blocks(dsm_src.read, grid, ground_cfg["max_object_size"], cloth, ground_cfg["rigidness"],
-                               ground_cfg["class_threshold"])
+                               ground_cfg["class_threshold"], processes=processes)
         sources.append("model surface (nadir DSM, Cloth Simulation Filter)")
     else:
         blocks = ((b, dsm_src.read(*b.core), np.zeros(grid.window(*b.core).shape, bool))

@@ -135,33 +135,63 @@ def _cloth_of(residual: np.ndarray, valid: np.ndarray, xs: np.ndarray, ys: np.nd
 
 def ground_blocks(read: Callable[[slice, slice], np.ndarray], grid: Grid, max_object_m: float,
                   cloth_resolution: float, rigidness: int, class_threshold: float,
-                  max_cells: int = BLOCK_CELLS) -> Iterator[tuple[Block, np.ndarray, np.ndarray]]:
+                  max_cells: int = BLOCK_CELLS, processes: int = 1) -> Iterator[tuple[Block, np.ndarray, np.ndarray]]:
     """(block, DSM, ground mask) of each block's core: :func:`csf_ground` and :func:`trim_object_edges`
     run on the block's window, the DSM read through ``read(rows, cols)`` (float64, NaN: no model).
 
     The window reaches ``max_object_m`` beyond the core (an object cut by the core's edge lies
     whole in it, with ground beyond it for the cloth to rest on); the DSM is read wider still,
     by :func:`envelope_reach`, so the detrended heights equal the whole grid's on the window.
+    With ``processes`` > 1 the blocks are filtered that many at a time in forked processes (the
+    DSM is read here, at most ``processes`` blocks ahead); each block's ground is its own, so the
+    result does not depend on the count.
     """
     q = round(cloth_resolution / grid.res)
     align = q if q >= 1 and math.isclose(q * grid.res, cloth_resolution) else 1
     k, g = envelope_reach(grid.res, max_object_m)
-    margin = math.ceil(max_object_m / grid.res)
-    for block in cell_blocks(grid.height, grid.width, margin, max_cells, align=align):
-        wide = tuple(widen(s, k - 1 + g, n) for s, n in zip(block.window, grid.shape))
-        dsm = read(*wide)
-        keep = Block(block.window, wide).inner
-        if not np.isfinite(dsm[keep]).any():     # no model in the window: no ground, nothing to filter
-            core = dsm[keep][block.inner]
-            yield block, core, np.zeros(core.shape, bool)
-            continue
-        residual = dsm[keep] - lower_envelope(dsm, grid.res, max_object_m, keep)
-        dsm = dsm[keep]
-        ground = _cloth_ground(residual, grid, block.window, cloth_resolution, rigidness, class_threshold,
-                               island_gap(max_object_m, grid.res))
-        del residual
-        ground = trim_object_edges(restore_smooth_ground(ground, dsm, grid.res), dsm)
-        yield block, dsm[block.inner], ground[block.inner]
+    blocks = cell_blocks(grid.height, grid.width, math.ceil(max_object_m / grid.res), max_cells, align=align)
+    args = (grid, max_object_m, cloth_resolution, rigidness, class_threshold)
+
+    def windows():
+        for block in blocks:
+            wide = tuple(widen(s, k - 1 + g, n) for s, n in zip(block.window, grid.shape))
+            yield block, read(*wide), wide
+
+    if processes <= 1 or len(blocks) < 2:
+        for block, dsm, wide in windows():
+            yield block, *_block_ground(block, dsm, wide, *args)
+        return
+    import multiprocessing
+    from collections import deque
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(min(processes, len(blocks)), mp_context=multiprocessing.get_context("fork")) as pool:
+        pending: deque = deque()
+        for block, dsm, wide in windows():
+            pending.append((block, pool.submit(_block_ground, block, dsm, wide, *args)))
+            del dsm
+            if len(pending) >= processes:
+                block, done = pending.popleft()
+                yield block, *done.result()
+        while pending:
+            block, done = pending.popleft()
+            yield block, *done.result()
+
+
+def _block_ground(block: Block, dsm: np.ndarray, wide: tuple[slice, slice], grid: Grid, max_object_m: float,
+                  cloth_resolution: float, rigidness: int, class_threshold: float) -> tuple[np.ndarray, np.ndarray]:
+    """(DSM, ground mask) of ``block``'s core from the DSM read over ``wide`` (see :func:`ground_blocks`)."""
+    keep = Block(block.window, wide).inner
+    if not np.isfinite(dsm[keep]).any():     # no model in the window: no ground, nothing to filter
+        core = dsm[keep][block.inner]
+        return core, np.zeros(core.shape, bool)
+    residual = dsm[keep] - lower_envelope(dsm, grid.res, max_object_m, keep)
+    dsm = dsm[keep]
+    ground = _cloth_ground(residual, grid, block.window, cloth_resolution, rigidness, class_threshold,
+                           island_gap(max_object_m, grid.res))
+    del residual
+    ground = trim_object_edges(restore_smooth_ground(ground, dsm, grid.res), dsm)
+    return dsm[block.inner], ground[block.inner]
 
 
 #: the steepest terrain (tan of 60°): a step between neighbouring cells up to res x this + SMOOTH_STEP_M is smooth
