@@ -75,6 +75,7 @@ def test_rgba_writer_reads_back_and_matches_direct_gdal_bytes(tmp_path):
 
     rng = np.random.default_rng(1)
     rgba = rng.integers(0, 255, (300, 270, 4), dtype=np.uint8)
+    rgba[..., 3] |= 1                  # no alpha 0: the writer clears the colour under it (tests/test_mosaic_sources.py)
     grid = Grid.north_up(X0, Y1, RES, 270, 300)
     wkt = horizontal_wkt("EPSG:25832")
     write_rgba_geotiff(tmp_path / "ours.tif", rgba, grid, wkt)

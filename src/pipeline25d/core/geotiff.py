@@ -80,7 +80,12 @@ def write_geotiff(path: str | Path, values: np.ndarray, grid: Grid, wkt: str, dt
 
 def write_rgba_geotiff(path: str | Path, rgba: np.ndarray, grid: Grid, wkt: str) -> None:
     """An (h, w, 4) uint8 image as a tiled RGBA GeoTIFF, atomically (ZSTD level 1: lossless and
-    ~3x faster to write than DEFLATE; these are the workflow's intermediate tiles)."""
+    ~3x faster to write than DEFLATE; these are the workflow's intermediate tiles). No colour is
+    stored under alpha 0, so a mosaic may copy the tile's pixels as they are."""
+    clear = rgba[..., 3] == 0
+    if rgba[..., :3][clear].any():
+        rgba = rgba.copy()
+        rgba[..., :3][clear] = 0
     write_geotiff(path, rgba, grid, wkt, "Byte", RGBA_OPTIONS, RGBA)
 
 

@@ -16,6 +16,8 @@ from pipeline25d.core.errors import InputFileError
 from pipeline25d.core.grid import Extent, Grid, Window
 
 CELL_PX = 128          # the map is compared with the one last cut in squares of this many pixels
+READ_ROWS = 1024       # map_cells reads windows of at least this many rows ...
+READ_PX = 1 << 22      # ... and about this many pixels
 CACHE_MB = 256      # GDAL's block cache per job (its default, 5 % of RAM, is what a sparse map's COG filled)
 
 
@@ -190,17 +192,28 @@ def map_cells(cog: str | Path, cell: int = CELL_PX) -> tuple[list, dict[str, str
     ds = gdal().Open(str(cog))
     grid = Grid.of_dataset(ds)
     width, height = grid.width, grid.height
-    mask = ds.GetRasterBand(1).GetMaskBand()
-    bw, bh = ds.GetRasterBand(1).GetBlockSize()
-    step_x, step_y = max(cell, bw // cell * cell), max(cell, bh // cell * cell)
+    band = ds.GetRasterBand(1)
+    mask = band.GetMaskBand()
+    # an alpha band is its own mask: read once (a VRT reads each band's sources per window)
+    alpha_band = ds.RasterCount > 1 and band.GetMaskFlags() == gdal().GMF_ALPHA | gdal().GMF_PER_DATASET
+    bw, bh = band.GetBlockSize()
+    # windows of whole blocks and cells, at least READ_ROWS rows (a VRT's 128-px blocks cost a read each)
+    step_y = max(cell, bh // cell * cell, READ_ROWS // cell * cell)
+    step_x = max(cell, bw // cell * cell, READ_PX // step_y // cell * cell)
     digests = {}
     for r in range(0, height, step_y):
         for c in range(0, width, step_x):
             w, h = min(step_x, width - c), min(step_y, height - r)
-            alpha = mask.ReadAsArray(c, r, w, h)
+            if alpha_band:
+                bands = ds.ReadAsArray(c, r, w, h)
+                alpha = bands[-1]
+            else:
+                alpha = mask.ReadAsArray(c, r, w, h)
             if not alpha.any():
                 continue
-            pixels = np.concatenate([ds.ReadAsArray(c, r, w, h).reshape(-1, h, w), alpha[None]])
+            if not alpha_band:
+                bands = ds.ReadAsArray(c, r, w, h)
+            pixels = np.concatenate([bands.reshape(-1, h, w), alpha[None]])
             for y in range(0, h, cell):
                 for x in range(0, w, cell):
                     if alpha[y:y + cell, x:x + cell].any():

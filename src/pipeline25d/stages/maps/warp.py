@@ -201,9 +201,13 @@ def gcp_source(mosaic: str | Path, obs: Sequence[Observation], crs: str, out_vrt
 
 
 def build_mosaic(tiles: list[str], out_vrt: str | Path) -> None:
-    """gdalbuildvrt over the tile GeoTIFFs (they share one pixel grid)."""
+    """gdalbuildvrt over the tile GeoTIFFs (they share one pixel grid), its sources made plain
+    copies where no two overlap (:func:`.mosaic_sources.plain_sources`)."""
+    from pipeline25d.stages.maps.mosaic_sources import plain_sources
+
     with atomic_path(out_vrt) as tmp:
         run_tool(["gdalbuildvrt", "-q", str(tmp), *tiles])
+        plain_sources(Path(tmp))
 
 
 def cog_codec(compression: str, quality: int) -> list[str]:

@@ -1,0 +1,62 @@
+"""The mosaic VRT's sources as plain copies where the tiles do not overlap.
+
+gdalbuildvrt gives each tile a ``ComplexSource`` that composites it through its mask (an RGBA
+tile's alpha, an id tile's nodata 0): a pixel the mask leaves out is not copied. Reading that
+VRT cost 3.5x reading the same pixels through ``SimpleSource`` copies (4.0 against 1.2 CPU-s
+for a 135 Mpx Delft map, 2.9 against 0.7 for its ids), and the warp job reads its mosaic three
+to four times. The render tiles of one perspective lie on one grid and never overlap, and a
+pixel left out is one that copying leaves as it is: transparent RGBA tiles have no colour
+under alpha 0 (:func:`pipeline25d.core.geotiff.write_rgba_geotiff`), and an id tile's nodata is
+the VRT's own 0. So where no two sources of a band overlap, a plain copy reads the same pixels;
+where some do (tiles from elsewhere), the VRT is left as gdalbuildvrt wrote it.
+"""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+
+#: what only a compositing source has: its mask use and its nodata
+COMPOSITING = ("UseMaskBand", "NODATA")
+
+
+def plain_sources(vrt: Path) -> bool:
+    """Rewrite ``vrt``'s ComplexSources as SimpleSources when no two of a band's overlap and none
+    scales or offsets values; True if it did."""
+    tree = ET.parse(vrt)
+    bands = tree.getroot().findall("VRTRasterBand")
+    for band in bands:
+        sources = band.findall("ComplexSource")
+        if band.findall("SimpleSource") or any(_transforms(s) for s in sources) or _overlap(sources):
+            return False
+    for band in bands:
+        for source in band.findall("ComplexSource"):
+            source.tag = "SimpleSource"
+            for name in COMPOSITING:
+                for child in source.findall(name):
+                    source.remove(child)
+    tree.write(vrt, encoding="unicode")
+    return True
+
+
+def _transforms(source: ET.Element) -> bool:
+    """A source that does more than copy through its mask (scale, offset, lookup table, ...)."""
+    return any(child.tag not in ("SourceFilename", "SourceBand", "SourceProperties", "SrcRect", "DstRect",
+                                 *COMPOSITING) for child in source)
+
+
+def _overlap(sources: list[ET.Element]) -> bool:
+    """Whether any two sources' destination rectangles share a pixel."""
+    if len(sources) < 2:
+        return False
+    r = np.array([[float(s.find("DstRect").get(k)) for k in ("xOff", "yOff", "xSize", "ySize")] for s in sources])
+    x0, y0, x1, y1 = r[:, 0], r[:, 1], r[:, 0] + r[:, 2], r[:, 1] + r[:, 3]
+    for i in range(0, len(r), 1024):         # 1024 rows of the pairs at a time: memory O(n), not O(n^2)
+        a = slice(i, i + 1024)
+        hit = (x0[a, None] < x1[None]) & (x0[None] < x1[a, None]) & (y0[a, None] < y1[None]) & (y0[None] < y1[a, None])
+        hit[np.arange(hit.shape[0]), np.arange(i, i + hit.shape[0])] = False
+        if hit.any():
+            return True
+    return False
