@@ -116,3 +116,20 @@ def test_failed_writing_leaves_nothing(tmp_path):
             out.band(1).WriteArray(np.ones((10, 10), np.uint8))
             raise RuntimeError("stop")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_map_cells_memo_digests_a_file_once_per_job(tmp_path):
+    """With a memo (the warp job's, shared by its map and id map), a mosaic is digested once: a
+    second call returns the first digests, even after the file changed; without it, it is read again."""
+    from pipeline25d.core.crs import horizontal_wkt
+    from pipeline25d.core.raster import map_cells
+
+    rng = np.random.default_rng(5)
+    grid, wkt, path = Grid.north_up(X0, Y1, RES, 300, 200), horizontal_wkt("EPSG:25832"), tmp_path / "m.tif"
+    write_rgba_geotiff(path, rng.integers(1, 255, (200, 300, 4), dtype=np.uint8), grid, wkt)
+    memo: dict = {}
+    first = map_cells(path, memo=memo)
+    assert len(first[1]) == 3 * 2 and first == map_cells(path)        # 128-px cells of 300 x 200 px
+    write_rgba_geotiff(path, rng.integers(1, 255, (200, 300, 4), dtype=np.uint8), grid, wkt)
+    assert map_cells(path, memo=memo) is first
+    assert map_cells(path)[1].keys() == first[1].keys() and map_cells(path)[1] != first[1]

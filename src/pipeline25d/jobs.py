@@ -95,11 +95,14 @@ def warp_job(job: Job) -> None:
     from pipeline25d.stages.maps import warp
 
     p, i, o = job.params, job.input, job.output
-    warp.warp(i.mosaic, i.gcps, i.plan, dict(p.warp), o.cog, o.meta, dict(p.maps), work_dir=p.work, threads=job.threads)
+    cells: dict = {}                                 # the mosaic's digests, made once for both maps
+    warp.warp(i.mosaic, i.gcps, i.plan, dict(p.warp), o.cog, o.meta, dict(p.maps), work_dir=p.work, threads=job.threads,
+              cells_memo=cells)
     if hasattr(o, "ids"):                            # objects.enabled: the id map, by the warp just chosen
         from pipeline25d.stages.maps.ids import id_map
 
-        id_map(i.ids, i.mosaic, i.gcps, o.meta, o.cog, o.ids, o.id_stats, work_dir=p.id_work, threads=job.threads)
+        id_map(i.ids, i.mosaic, i.gcps, o.meta, o.cog, o.ids, o.id_stats, work_dir=p.id_work, threads=job.threads,
+               cells_memo=cells)
 
 
 def tms_job(job: Job) -> None:

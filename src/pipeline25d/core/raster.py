@@ -186,9 +186,16 @@ def fill_nearest(values: np.ndarray, reach_cells: float | None = None) -> np.nda
     out[dist > reach_cells] = np.nan
     return out
 
-def map_cells(cog: str | Path, cell: int = CELL_PX) -> tuple[list, dict[str, str]]:
+def map_cells(cog: str | Path, cell: int = CELL_PX, memo: dict | None = None) -> tuple[list, dict[str, str]]:
     """The map's grid [*geotransform, width, height, cell] and a digest of each ``cell`` x ``cell``
-    pixel square of it that holds data ({"col_row": digest}), read block by block."""
+    pixel square of it that holds data ({"col_row": digest}), read block by block. ``memo``: a
+    job's own dict of what it has digested already (the warp job digests its mosaic for the map
+    and again for the id map)."""
+    if memo is not None:
+        key = (str(cog), cell)
+        if key not in memo:
+            memo[key] = map_cells(cog, cell)
+        return memo[key]
     ds = gdal().Open(str(cog))
     grid = Grid.of_dataset(ds)
     width, height = grid.width, grid.height

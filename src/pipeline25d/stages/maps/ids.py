@@ -56,7 +56,7 @@ ID_COG = ["COMPRESS=DEFLATE", "PREDICTOR=2", "OVERVIEWS=FORCE_USE_EXISTING"]
 
 def id_map(ids_vrt: str | Path, mosaic_vrt: str | Path, gcps_csv: str | Path, map_json: str | Path,
            map_cog: str | Path, out: str | Path, stats_json: str | Path, work_dir: str | Path | None = None,
-           threads: int = 1) -> dict:
+           threads: int = 1, cells_memo: dict | None = None) -> dict:
     """Write ``out`` (UInt32 COG, nodata 0) from the id mosaic ``ids_vrt`` with the warp the map
     ``map_cog`` was made with (``map_json``; its GCPs in ``gcps_csv``), and its figures to
     ``stats_json``: the fixes at edges, agreement with the map's alpha, bytes against the map's."""
@@ -83,7 +83,7 @@ def id_map(ids_vrt: str | Path, mosaic_vrt: str | Path, gcps_csv: str | Path, ma
             else:
                 kept_dir = Path(work_dir) if work_dir else Path(tmp).with_suffix(".blocks")
                 try:
-                    kept, stats = _patched(maker, ids_vrt, mosaic_vrt, kept_dir)
+                    kept, stats = _patched(maker, ids_vrt, mosaic_vrt, kept_dir, cells_memo)
                     run_tool(["gdal_translate", "-q", "-of", "COG", *[o for c in codec for o in ("-co", c)],
                               str(kept), str(tmp)])
                 finally:
@@ -190,7 +190,8 @@ def _sparse(maker: _Blocks, windows: list[Window], out: Path, codec: list[str]) 
     return {"full": True, "parts": len(windows), "filled": filled, "cleared": cleared}
 
 
-def _patched(maker: _Blocks, ids_vrt: str | Path, mosaic_vrt: str | Path, work: Path) -> tuple[Path, dict]:
+def _patched(maker: _Blocks, ids_vrt: str | Path, mosaic_vrt: str | Path, work: Path,
+             cells_memo: dict | None = None) -> tuple[Path, dict]:
     """A dense map's id map kept in ``work`` and redone in the blocks that a changed square of the
     id or colour mosaic reaches (as :func:`.patch.patched_map` does for the map)."""
     grid, factors, choice = maker.grid, maker.factors, maker.choice
@@ -200,7 +201,7 @@ def _patched(maker: _Blocks, ids_vrt: str | Path, mosaic_vrt: str | Path, work: 
            "gcps": gcps_digest(maker.source) if warped else None, "grid": [*grid.geotransform, grid.width, grid.height],
            "block": size, "overviews": factors, "map_bands": maker.map.RasterCount}
     mosaic_grid, ids_cells = map_cells(ids_vrt)
-    _, colour_cells = map_cells(mosaic_vrt)
+    _, colour_cells = map_cells(mosaic_vrt, memo=cells_memo)
     cells = {k: ids_cells.get(k, "") + colour_cells.get(k, "") for k in ids_cells.keys() | colour_cells.keys()}
     key["mosaic"] = mosaic_grid
     state = read_state(work)

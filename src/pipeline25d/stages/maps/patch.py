@@ -74,7 +74,7 @@ def source_to_map(source: str | Path, choice: dict):
 
 
 def patched_map(mosaic: str | Path, source: str | Path, choice: dict, crs: str, gsd: float,
-                work: Path) -> tuple[Path, dict]:
+                work: Path, cells_memo: dict | None = None) -> tuple[Path, dict]:
     """Bring the map kept in ``work`` up to the ``mosaic``: copied where ``choice`` is no warp,
     else warped from ``source`` (a VRT of the mosaic with its GCPs). Returns the kept GeoTIFF,
     with its overviews, and the run's figures (full or not, squares changed, blocks redone)."""
@@ -92,7 +92,7 @@ def patched_map(mosaic: str | Path, source: str | Path, choice: dict, crs: str, 
     key = {"version": STATE_VERSION, "method": choice["method"], "order": choice.get("order"), "crs": crs,
            "gcps": gcps_digest(source) if warped else None, "grid": [*grid.geotransform, width, height], "block": size,
            "overviews": factors}
-    mosaic_grid, cells = map_cells(mosaic)
+    mosaic_grid, cells = map_cells(mosaic, memo=cells_memo)
     key["mosaic"] = mosaic_grid
     state = read_state(work)
     full = state is None or state["key"] != key or not (work / KEPT).is_file()

@@ -229,7 +229,8 @@ def cog_options(compression: str, quality: int) -> list[str]:
 def warp_to_cog(mosaic: str | Path, obs: Sequence[Observation], choice: dict, plan: Plan, out: str | Path,
                 compression: str = "deflate", quality: int = 85,
                 parts: list[tuple[int, int, int, int]] | None = None,
-                work_dir: str | Path | None = None, threads: int = 1) -> list[list[float]]:
+                work_dir: str | Path | None = None, threads: int = 1,
+                cells_memo: dict | None = None) -> list[list[float]]:
     """Write the north-up COG: the mosaic warped with the chosen GCP warp, or a plain copy for none.
 
     ``compression``: deflate (lossless RGBA), jpeg (RGB + the alpha as a mask, which the COG
@@ -257,7 +258,7 @@ def warp_to_cog(mosaic: str | Path, obs: Sequence[Observation], choice: dict, pl
 
             kept_dir = Path(work_dir) if work_dir else Path(tmp).with_suffix(".blocks")
             try:
-                kept, _ = patched_map(mosaic, source, choice, crs, plan.gsd, kept_dir)
+                kept, _ = patched_map(mosaic, source, choice, crs, plan.gsd, kept_dir, cells_memo)
                 run_tool(["gdal_translate", "-q", "-of", "COG", *cog, str(kept), str(tmp)])
             finally:
                 if not work_dir:
@@ -328,9 +329,10 @@ def raster_grid(path: str | Path) -> Grid:
 
 def warp(mosaic_vrt: str | Path, gcps_csv: str | Path, plan_path: str | Path, warp_cfg: dict,
          out_cog: str | Path, out_json: str | Path, maps_cfg: dict | None = None,
-         work_dir: str | Path | None = None, threads: int = 1) -> dict:
+         work_dir: str | Path | None = None, threads: int = 1, cells_memo: dict | None = None) -> dict:
     """Choose the warp by cross-validation on the GCPs, write the COG, and record the check-point
-    scores. ``work_dir`` keeps the warped map for the next run to patch; ``threads`` encode the COG."""
+    scores. ``work_dir`` keeps the warped map for the next run to patch; ``threads`` encode the COG;
+    ``cells_memo``: the job's mosaic digests (:func:`pipeline25d.core.raster.map_cells`), kept for its id map."""
     from pipeline25d.stages.maps.parts import tile_parts
 
     pl = read_plan(plan_path)
@@ -339,7 +341,7 @@ def warp(mosaic_vrt: str | Path, gcps_csv: str | Path, plan_path: str | Path, wa
     choice = choose(obs, pl, grid, warp_cfg["method"], warp_cfg["order"])
     parts = tile_parts((t.row, t.col) for t in pl.tiles)
     bounds = warp_to_cog(mosaic_vrt, obs, choice, pl, out_cog, parts=parts, work_dir=work_dir, threads=threads,
-                         **(maps_cfg or {}))   # compression, quality
+                         cells_memo=cells_memo, **(maps_cfg or {}))   # compression, quality
     p = pl.perspective
     record = {"perspective": {"id": p.id, "azimuth": p.azimuth, "elevation": p.elevation}, **choice, "n_observed": len(obs), "parts": bounds,
               "paper_method": paper_method_on(obs, pl, grid) if pl.projection == "terrain" else None}
