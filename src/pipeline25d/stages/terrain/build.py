@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
+from contextlib import ExitStack
 from pathlib import Path
 
 import numpy as np
@@ -28,8 +29,9 @@ def build_terrain(chunks: Sequence[LodChunk], inputs: dict, scene_crs: str, gsd:
     """
     from pipeline25d.core.crs import horizontal_wkt
     from pipeline25d.core.geotiff import float_geotiff_writer
-    from pipeline25d.core.grid import Grid
+    from pipeline25d.core.grid import BLOCK_CELLS, Grid
     from pipeline25d.stages.terrain.dsm import auto_resolution, height_map_tiles
+    from pipeline25d.stages.terrain.ground import ground_pool
 
     _, lo, hi = scene_bounds(chunks)
     bounds_xy = (lo[0], lo[1], hi[0], hi[1])
@@ -39,25 +41,29 @@ def build_terrain(chunks: Sequence[LodChunk], inputs: dict, scene_crs: str, gsd:
     log.info("DSM: %d x %d cells of %.2f m from %d chunks", grid.width, grid.height, res, len(chunks))
     wkt = horizontal_wkt(scene_crs)
     dsm_cells = 0
-    with float_geotiff_writer(out_dsm, grid, wkt) as write:
-        for row, col, heights in height_map_tiles(chunk_loaders(chunks, res / 4), grid):
-            write(heights, row, col)
-            dsm_cells += int(np.isfinite(heights).sum())
-    record = {"dsm": str(out_dsm), "resolution": res, "dsm_cells": dsm_cells}
-    if terrain == "auto":
-        record.update(_ground_from_model(inputs, scene_crs, ground_cfg, out_dsm, out_ground, wkt, processes))
-        log.info("ground from %s: %.1f%% of the model's cells, relief %.1f m", record["source"],
-                 100 * record["ground_share"], record["relief_m"])
-    elif terrain == "flat":
+    with ExitStack() as stack:
+        # the ground filter's workers where it has blocks to share, forked before the DSM render makes this job large
+        several = terrain == "auto" and processes > 1 and grid.width * grid.height > BLOCK_CELLS
+        pool = stack.enter_context(ground_pool(processes)) if several else None
+        with float_geotiff_writer(out_dsm, grid, wkt) as write:
+            for row, col, heights in height_map_tiles(chunk_loaders(chunks, res / 4), grid):
+                write(heights, row, col)
+                dsm_cells += int(np.isfinite(heights).sum())
+        record = {"dsm": str(out_dsm), "resolution": res, "dsm_cells": dsm_cells}
+        if terrain == "auto":
+            record.update(_ground_from_model(inputs, scene_crs, ground_cfg, out_dsm, out_ground, wkt, processes, pool))
+            log.info("ground from %s: %.1f%% of the model's cells, relief %.1f m", record["source"],
+                     100 * record["ground_share"], record["relief_m"])
+    if terrain == "flat":
         record.update({"source": "flat plane at z0"})
-    else:
+    elif terrain != "auto":
         record.update({"source": f"user DTM {terrain}", "dtm": terrain})
     write_json(out_json, record)
     return record
 
 
 def _ground_from_model(inputs: dict, scene_crs: str, ground_cfg: dict, dsm_path: str | Path,
-                       out_ground: str | Path, wkt: str, processes: int = 1) -> dict:
+                       out_ground: str | Path, wkt: str, processes: int = 1, pool=None) -> dict:
     """Write the ground heights on the DSM's grid, block by block: the inputs' own terrain where
     they carry one; elsewhere the bases of their buildings (:mod:`pipeline25d.stages.terrain.bases`)
     and, unless every other input is made of buildings alone, the Cloth Simulation Filter's ground
@@ -77,7 +83,7 @@ def _ground_from_model(inputs: dict, scene_crs: str, ground_cfg: dict, dsm_path:
         cloth = ground_cfg["cloth_resolution"]
         cloth = 2 * grid.res if cloth == "auto" else float(cloth)
         blocks = ground_blocks(dsm_src.read, grid, ground_cfg["max_object_size"], cloth, ground_cfg["rigidness"],
-                               ground_cfg["class_threshold"], processes=processes)
+                               ground_cfg["class_threshold"], processes=processes, pool=pool)
         sources.append("model surface (nadir DSM, Cloth Simulation Filter)")
     else:
         blocks = ((b, dsm_src.read(*b.core), np.zeros(grid.window(*b.core).shape, bool))

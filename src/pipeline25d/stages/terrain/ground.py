@@ -5,6 +5,8 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable, Iterator
+from concurrent.futures import Executor
+from contextlib import contextmanager, nullcontext
 
 import numpy as np
 
@@ -135,16 +137,18 @@ def _cloth_of(residual: np.ndarray, valid: np.ndarray, xs: np.ndarray, ys: np.nd
 
 def ground_blocks(read: Callable[[slice, slice], np.ndarray], grid: Grid, max_object_m: float,
                   cloth_resolution: float, rigidness: int, class_threshold: float,
-                  max_cells: int = BLOCK_CELLS, processes: int = 1) -> Iterator[tuple[Block, np.ndarray, np.ndarray]]:
+                  max_cells: int = BLOCK_CELLS, processes: int = 1,
+                  pool: Executor | None = None) -> Iterator[tuple[Block, np.ndarray, np.ndarray]]:
     """(block, DSM, ground mask) of each block's core: :func:`csf_ground` and :func:`trim_object_edges`
     run on the block's window, the DSM read through ``read(rows, cols)`` (float64, NaN: no model).
 
     The window reaches ``max_object_m`` beyond the core (an object cut by the core's edge lies
     whole in it, with ground beyond it for the cloth to rest on); the DSM is read wider still,
     by :func:`envelope_reach`, so the detrended heights equal the whole grid's on the window.
-    With ``processes`` > 1 the blocks are filtered that many at a time in forked processes (the
-    DSM is read here, at most ``processes`` blocks ahead); each block's ground is its own, so the
-    result does not depend on the count.
+    With ``processes`` > 1 the blocks are filtered that many at a time in worker processes, those
+    of ``pool`` (see :func:`ground_pool`) or forked now (the DSM is read here, at most
+    ``processes`` blocks ahead); each block's ground is its own, so the result does not depend
+    on the count.
     """
     q = round(cloth_resolution / grid.res)
     align = q if q >= 1 and math.isclose(q * grid.res, cloth_resolution) else 1
@@ -161,14 +165,12 @@ def ground_blocks(read: Callable[[slice, slice], np.ndarray], grid: Grid, max_ob
         for block, dsm, wide in windows():
             yield block, *_block_ground(block, dsm, wide, *args)
         return
-    import multiprocessing
     from collections import deque
-    from concurrent.futures import ProcessPoolExecutor
 
-    with ProcessPoolExecutor(min(processes, len(blocks)), mp_context=multiprocessing.get_context("fork")) as pool:
+    with ground_pool(processes) if pool is None else nullcontext(pool) as workers:
         pending: deque = deque()
         for block, dsm, wide in windows():
-            pending.append((block, pool.submit(_block_ground, block, dsm, wide, *args)))
+            pending.append((block, workers.submit(_block_ground, block, dsm, wide, *args)))
             del dsm
             if len(pending) >= processes:
                 block, done = pending.popleft()
@@ -176,6 +178,19 @@ def ground_blocks(read: Callable[[slice, slice], np.ndarray], grid: Grid, max_ob
         while pending:
             block, done = pending.popleft()
             yield block, *done.result()
+
+
+@contextmanager
+def ground_pool(processes: int) -> Iterator[Executor]:
+    """``processes`` worker processes for :func:`ground_blocks`, forked now: a job that makes them
+    before it grows (the terrain job, before its DSM render) keeps their memory small, as a
+    forked child's resident pages count again in the job's process tree."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("fork")) as pool:
+        list(pool.map(abs, range(processes)))          # a fork pool starts all its workers at its first task
+        yield pool
 
 
 def _block_ground(block: Block, dsm: np.ndarray, wide: tuple[slice, slice], grid: Grid, max_object_m: float,
