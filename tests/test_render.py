@@ -232,3 +232,26 @@ def test_terrain_relative_projection_puts_sloped_ground_at_its_orthographic_posi
     assert rows.max() == round((top - foot[1]) / GSD) - 1
     # the roof's north edge is 10 m above the ground there (z_fn at foot[3]): it leans 10 m north
     assert rows.min() == round((top - (foot[3] + 10.0)) / GSD)
+
+
+def test_a_renderer_reusing_its_targets_renders_each_tile_as_a_fresh_one(gl_ctx):
+    """One renderer keeps its render targets from tile to tile (remade when the size changes):
+    tiles of two sizes, in turn, equal those of a renderer made for each tile alone."""
+    p = Perspective(135, 45)
+    origin = np.array([E0, N0, Z0])
+    chunks = [(origin, [ground_part(E0 - 50, N0 - 50, E0 + 150, N0 + 150, Z0),
+                        box_part((E0 + 20, N0 + 20, Z0), (E0 + 40, N0 + 30, Z0 + 20))])]
+    pts = np.array([[E0 + 8, N0 + 45, Z0], [E0 + 50, N0 + 12, Z0], [E0 + 30, N0 + 25, Z0]])   # the last in the box
+    slopes = np.zeros((len(pts), 2))
+
+    def tile(renderer: TileRenderer, size: int):
+        v = view(p, 0, size)
+        return renderer.render_color(chunks, v), renderer.render_markers(chunks, view(p, 8, size), pts, slopes,
+                                                                          6 * GSD, 0.3, 0.1)
+
+    kept = TileRenderer(gl_ctx)
+    for size in (SIZE, 200, SIZE, SIZE):
+        (rgba, (full, sums)), (rgba1, (full1, sums1)) = tile(kept, size), tile(TileRenderer(gl_ctx), size)
+        assert rgba.shape == (size, size, 4) and (rgba[..., 3] > 0).mean() > 0.5
+        assert np.array_equal(rgba, rgba1) and np.array_equal(full, full1) and np.array_equal(sums, sums1)
+    assert sums[0, 0] == full[0] > 0 and sums[2, 0] == 0 < full[2]      # the first in the open, the last hidden

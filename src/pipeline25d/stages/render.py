@@ -206,8 +206,23 @@ class TileRenderer:
                                 fragment_shader=_variant(FRAGMENT_SHADER, *defines))
         self._set(u_faces=FACE_UNIT)     # its own unit: never a colour texture's (sampler types differ)
         self._textures: dict[bytes, object] = {}
+        self._targets: dict[str, tuple[tuple, dict]] = {}
 
     # -- resources -----------------------------------------------------------
+    def _targets_for(self, name: str, key: tuple, make: Callable[[], dict]) -> dict:
+        """The render targets of pass ``name`` for ``key`` (its size, ...), made by ``make`` and kept
+        for the next tile: a block's tiles share a size, and fresh multisample buffers cost their
+        page faults every tile. Those of another key are released first (one set a pass)."""
+        held = self._targets.get(name)
+        if held is not None and held[0] == key:
+            return held[1]
+        if held is not None:
+            for obj in {id(o): o for o in held[1].values()}.values():
+                obj.release()
+        made = make()
+        self._targets[name] = (key, made)
+        return made
+
     def _texture(self, data: bytes):
         """A GL texture for encoded image bytes, uploaded once per distinct image (:mod:`.textures`)."""
         if data not in self._textures:
@@ -329,12 +344,8 @@ class TileRenderer:
                     shadow_map = self._shadow_map([geometry, cast], shadow)
                 shadow_map.use(location=1)
                 self._set(u_shadow_map=1, **_shadow_uniforms(shadow))
-            colour = ctx.renderbuffer((w, h), 4, samples=self.samples)
-            id_target = None if ids is None else ids.target((w, h), self.samples)
-            fbo_ms = ctx.framebuffer(color_attachments=[colour] + ([id_target] if id_target else []),
-                                     depth_attachment=ctx.depth_renderbuffer((w, h), samples=self.samples))
-            colour_only = ctx.framebuffer(color_attachments=[colour]) if id_target else fbo_ms
-            fbo = ctx.simple_framebuffer((w, h), components=4)
+            t = self._targets_for("colour", (w, h, ids is not None), lambda: self._colour_targets(w, h, ids))
+            fbo_ms, colour_only, fbo, id_target = t["fbo_ms"], t["colour_only"], t["fbo"], t.get("ids")
             fbo_ms.use()
             fbo_ms.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)     # each attachment by its type (ids: 0)
             ctx.enable(moderngl.DEPTH_TEST)
@@ -343,9 +354,24 @@ class TileRenderer:
         ctx.copy_framebuffer(fbo, colour_only)
         rgba = _read_rgba(fbo, w, h)
         out_ids = None if ids is None else ids.resolve(id_target, (w, h), self.samples)
-        for obj in {id(o): o for o in (colour_only, fbo_ms, fbo, shadow_map, id_target) if o is not None}.values():
-            obj.release()
+        if shadow_map is not None:
+            shadow_map.release()
         return unpremultiply(rgba), out_ids
+
+    def _colour_targets(self, w: int, h: int, ids: "IdPass | None") -> dict:
+        """The colour pass's targets: a multisample framebuffer (colour, ids where asked, depth), its
+        colour alone (what the resolve copies) and the single-sample framebuffer resolved into."""
+        ctx = self.ctx
+        colour = ctx.renderbuffer((w, h), 4, samples=self.samples)
+        depth = ctx.depth_renderbuffer((w, h), samples=self.samples)
+        id_target = None if ids is None else ids.target((w, h), self.samples)
+        fbo_ms = ctx.framebuffer(color_attachments=[colour] + ([id_target] if id_target else []),
+                                 depth_attachment=depth)
+        out = {"colour": colour, "depth": depth, "fbo_ms": fbo_ms, "fbo": ctx.simple_framebuffer((w, h), components=4),
+               "colour_only": ctx.framebuffer(color_attachments=[colour]) if id_target else fbo_ms}
+        if id_target is not None:
+            out["ids"] = id_target
+        return out
 
     def _shadow_map(self, geometries: list["TileGeometry"], shadow: ShadowView):
         """A depth texture of ``geometries`` seen from the sun over the shadow view's window
@@ -393,6 +419,12 @@ class TileRenderer:
         depth.release()
         return out
 
+    def _plain_targets(self, w: int, h: int) -> dict:
+        """A single-sample framebuffer of RGBA colour and a readable depth texture."""
+        colour, depth = self.ctx.renderbuffer((w, h), 4), self.ctx.depth_texture((w, h))
+        return {"colour": colour, "depth": depth,
+                "fbo": self.ctx.framebuffer(color_attachments=[colour], depth_attachment=depth)}
+
     def render_markers(self, chunks: "Chunks", view: TileView,
                        points: np.ndarray, slopes: np.ndarray, radius_m: float, depth_bias_m: float,
                        depth_tolerance_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -410,8 +442,8 @@ class TileRenderer:
         import moderngl
 
         ctx, (w, h) = self.ctx, view.size
-        depth = ctx.depth_texture((w, h))
-        fbo = ctx.framebuffer(color_attachments=[ctx.renderbuffer((w, h), 4)], depth_attachment=depth)
+        t = self._targets_for("markers", (w, h), lambda: self._plain_targets(w, h))
+        depth, fbo = t["depth"], t["fbo"]
         fbo.use()
         ctx.enable(moderngl.DEPTH_TEST)
         ctx.disable(moderngl.CULL_FACE)
@@ -444,20 +476,19 @@ class TileRenderer:
         model_depth = _read_depth(depth, w, h)[rows, cols]
         draw_markers(depth_bias_m)
         seen = _marker_ids(fbo, w, h)
-        fbo.release()
-        depth.release()
         # window depth is linear in view depth (orthographic); a cleared model pixel (1.0) never agrees
-        agree = np.zeros((h, w), dtype=bool)
-        agree[rows, cols] = (np.abs(model_depth - marker_depth).astype(np.float64) * (dmax - dmin)
-                             <= depth_tolerance_m) & (model_depth < 1.0)
-        over_model = np.zeros((h, w), dtype=bool)
-        over_model[rows, cols] = model_depth < 1.0
-        alone_stats = _marker_stats(alone, n, agree)
-        bare = (_marker_stats(alone, n, over_model)[:, 3] == 0) & (alone_stats[:, 0] > 0)
+        over_model = model_depth < 1.0
+        gap = np.abs(model_depth - marker_depth).astype(np.float64) * (dmax - dmin)
+        agree = (gap <= depth_tolerance_m) & over_model
+        which = alone[rows, cols]
+        alone_stats = _marker_stats(which, rows, cols, n, agree)
+        bare = (_marker_stats(which, rows, cols, n, over_model)[:, 3] == 0) & (alone_stats[:, 0] > 0)
         alone_stats[bare, 3] = alone_stats[bare, 0]
         full = alone_stats[:, 0].copy()
         full[_overlapping(points, slopes, radius_m, view)] = 0   # one marker hides another: no clean centroid
-        sums = _marker_stats(seen, n)
+        which = seen[rows, cols]          # a marker drawn over the model covers some of its own pixels alone
+        kept = which > 0
+        sums = _marker_stats(which[kept], rows[kept], cols[kept], n)
         sums[:, 3] = alone_stats[:, 3]
         return full, sums
 
@@ -547,16 +578,17 @@ def _marker_ids(fbo, w: int, h: int) -> np.ndarray:
     return rgba & 0xFFFFFF
 
 
-def _marker_stats(ids: np.ndarray, n: int, flag: np.ndarray | None = None) -> np.ndarray:
+def _marker_stats(which: np.ndarray, rows: np.ndarray, cols: np.ndarray, n: int,
+                  flag: np.ndarray | None = None) -> np.ndarray:
     """(n, 4) float64 per marker: pixel count, Σ(col + 0.5), Σ(row + 0.5) (row 0 = north), and
-    the count of its pixels where ``flag`` is true."""
-    rows, cols = np.nonzero(ids)
-    which = ids[rows, cols] - 1
+    the count of its pixels where ``flag`` is true, from marker pixels: each one's marker id + 1
+    (``which``, never 0) at ``rows``, ``cols``, and ``flag`` there."""
+    which = which.astype(np.int64) - 1
     stats = np.zeros((n, 4))
     if n:
         stats[:, 0] = np.bincount(which, minlength=n)[:n]
         if flag is not None:
-            stats[:, 3] = np.bincount(which, weights=flag[rows, cols].astype(float), minlength=n)[:n]
+            stats[:, 3] = np.bincount(which, weights=flag.astype(float), minlength=n)[:n]
         stats[:, 1] = np.bincount(which, weights=cols + 0.5, minlength=n)[:n]
         stats[:, 2] = np.bincount(which, weights=rows + 0.5, minlength=n)[:n]
     return stats

@@ -26,7 +26,8 @@ from pipeline25d.stages.records import ChunkRef, Observation, Plan, Tile
 log = logging.getLogger(__name__)
 
 
-ID_OPTIONS = ("COMPRESS=DEFLATE", "PREDICTOR=2", "TILED=YES")   # an id tile: uint32, nodata 0
+# an id tile: uint32, nodata 0; ZSTD level 1 writes it ~4x faster than DEFLATE, and smaller
+ID_OPTIONS = ("COMPRESS=ZSTD", "ZSTD_LEVEL=1", "PREDICTOR=2", "TILED=YES")
 
 
 def tile_files(tiles_dir: str | Path, row: int, col: int) -> dict[str, Path]:
