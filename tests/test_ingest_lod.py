@@ -10,7 +10,7 @@ from conftest import DATA, box_part
 from pipeline25d.core.mesh import Mesh, MeshPart
 from pipeline25d.formats import load_district
 from pipeline25d.stages.ingest import split_into_chunks, write_chunks
-from pipeline25d.stages.lod import build_levels, choose_level
+from pipeline25d.stages.lod import _simplify, build_levels, choose_level, surface_error, texture_drift
 
 
 def grid_part(n: int = 40, step: float = 2.0, bump: float = 0.0) -> MeshPart:
@@ -94,6 +94,40 @@ def test_lod_errors_are_measured_and_levels_chosen_by_pixel_size():
                         trimesh.proximity.closest_point(orig, np.vstack([back, level.vertices]))[1].max())
         assert hausdorff * 0.97 <= error <= hausdorff * 1.10, (k, error, hausdorff)
     assert choose_level([0.0, 0.1, 0.3, 0.9], 0.25) == 1 and choose_level([0.0, 0.5], 0.1) == 0
+
+
+def _levels_measured_whole(mesh: Mesh, max_error: float, max_levels: int) -> list:
+    """build_levels as it was before its bound: every part of a level simplified and measured
+    exactly, then the level kept or building stopped."""
+    rng, levels = np.random.default_rng(0), [(mesh.parts, 0.0)]
+    for k in range(1, max_levels):
+        parts, error = [], 0.0
+        for part in mesh.parts:
+            simple, mapping = _simplify(part, 1.0 - 0.5 ** k)
+            error = max(error, surface_error(part, simple, rng), texture_drift(part, simple, mapping, rng))
+            parts.append(simple)
+        if error > max_error or sum(p.n_triangles for p in parts) > 0.85 * sum(p.n_triangles for p in levels[-1][0]):
+            break
+        levels.append((parts, error))
+    return levels
+
+
+@pytest.mark.parametrize("max_error", [0.05, 0.3, 1.0, 3.0])
+def test_levels_stop_at_the_first_sample_beyond_the_bound_with_the_same_levels(max_error):
+    """A level whose error exceeds max_error is dropped at its first sample found beyond it
+    (its other parts not simplified): the levels kept, their errors and faces, are those of
+    measuring every level whole."""
+    mesh = Mesh([grid_part(bump=2.0), grid_part(n=30, step=3.0, bump=0.7)])
+    got, want = build_levels(mesh, max_error, 6), _levels_measured_whole(mesh, max_error, 6)
+    assert [e for _, e in got] == [e for _, e in want] and len(want) >= (1 if max_error < 0.1 else 2)
+    for (parts, _), (ref, _) in zip(got, want):
+        for a, b in zip(parts, ref):
+            assert np.array_equal(a.faces, b.faces) and np.array_equal(a.vertices, b.vertices)
+    part = mesh.parts[0]
+    simple, _ = _simplify(part, 0.75)
+    exact = surface_error(part, simple, np.random.default_rng(1))
+    assert surface_error(part, simple, np.random.default_rng(1), bound=2 * exact) == exact
+    assert exact / 2 < surface_error(part, simple, np.random.default_rng(1), bound=exact / 2) <= exact
 
 
 def test_dae_and_glb_load_through_the_dispatcher(tmp_path):
