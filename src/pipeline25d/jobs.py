@@ -179,7 +179,8 @@ def wms_job(job: Job) -> None:
     from pipeline25d.publish.wms import write_mapfile
 
     objects = [f for f in job.input.ids if str(f).endswith(".csv")]
-    write_mapfile(job.params.scene, list(job.input.maps), job.output.mapfile, objects=_first(objects))
+    write_mapfile(job.params.scene, list(job.input.maps), job.output.mapfile, objects=_first(objects),
+                  threads=job.threads)
 
 
 #: rule name -> its function, in the order data moves through the workflow

@@ -10,6 +10,8 @@ rule wms:
         mapfile=f"{RESULTS}/wms/{config['scene']}.map",
     params:
         scene=config["scene"],
+    # each map's row raster (the id layer) on its own thread: two maps at a time
+    threads: 2
     log:
         f"{RESULTS}/logs/wms.log",
     script:

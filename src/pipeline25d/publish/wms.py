@@ -22,6 +22,7 @@ import re
 import shutil
 import subprocess
 import tempfile
+from concurrent.futures import ThreadPoolExecutor
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import NamedTuple, Sequence
@@ -167,10 +168,11 @@ def mapfile_text(scene: str, layers: Sequence[MapLayer], folder: Path, objects: 
     return "\n".join([*out, "END", ""])
 
 
-def write_mapfile(scene: str, maps: Sequence[str | Path], mapfile: str | Path, objects: str | Path | None = None
-                  ) -> list[MapLayer]:
+def write_mapfile(scene: str, maps: Sequence[str | Path], mapfile: str | Path, objects: str | Path | None = None,
+                  threads: int = 1) -> list[MapLayer]:
     """Write the mapfile publishing ``maps`` (COGs named ``<pid>.tif``, one CRS) atomically; with
-    ``objects`` (the objects table's CSV), also each map's id raster (:func:`id_layer`).
+    ``objects`` (the objects table's CSV), also each map's id raster (:func:`id_layer`), ``threads``
+    maps at a time (GDAL's reads and writes, most of the work, run outside Python's lock).
 
     Raises :class:`InputFileError` naming the map that cannot be served (see :func:`read_layer`)
     or whose CRS differs from the first map's, and :class:`MapServiceError` for no maps or a
@@ -192,7 +194,8 @@ def write_mapfile(scene: str, maps: Sequence[str | Path], mapfile: str | Path, o
         for lr in layers:
             if not id_path(lr.path).is_file():
                 raise InputFileError(id_path(lr.path), f"no id raster beside the map {lr.path}")
-            row_raster(id_path(lr.path), rows, mapfile.parent / f"{lr.pid}.rows.tif")
+        with ThreadPoolExecutor(max(1, threads)) as pool:
+            list(pool.map(lambda lr: row_raster(id_path(lr.path), rows, mapfile.parent / f"{lr.pid}.rows.tif"), layers))
         write_join_table(Path(objects), mapfile.parent)
     write_text(mapfile, mapfile_text(scene, layers, mapfile.resolve().parent,
                                      None if objects is None else Path(objects).resolve()))
