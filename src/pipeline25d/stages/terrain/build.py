@@ -29,7 +29,7 @@ def build_terrain(chunks: Sequence[LodChunk], inputs: dict, scene_crs: str, gsd:
     """
     from pipeline25d.core.crs import horizontal_wkt
     from pipeline25d.core.geotiff import float_geotiff_writer
-    from pipeline25d.core.grid import BLOCK_CELLS, Grid
+    from pipeline25d.core.grid import Grid, cell_blocks
     from pipeline25d.stages.terrain.dsm import auto_resolution, height_map_tiles
     from pipeline25d.stages.terrain.ground import ground_pool
 
@@ -43,7 +43,7 @@ def build_terrain(chunks: Sequence[LodChunk], inputs: dict, scene_crs: str, gsd:
     dsm_cells = 0
     with ExitStack() as stack:
         # the ground filter's workers where it has blocks to share, forked before the DSM render makes this job large
-        several = terrain == "auto" and processes > 1 and grid.width * grid.height > BLOCK_CELLS
+        several = terrain == "auto" and processes > 1 and len(cell_blocks(grid.height, grid.width, 0)) > 1
         pool = stack.enter_context(ground_pool(processes)) if several else None
         with float_geotiff_writer(out_dsm, grid, wkt) as write:
             for row, col, heights in height_map_tiles(chunk_loaders(chunks, res / 4), grid):
