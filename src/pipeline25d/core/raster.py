@@ -186,6 +186,12 @@ def fill_nearest(values: np.ndarray, reach_cells: float | None = None) -> np.nda
     out[dist > reach_cells] = np.nan
     return out
 
+def run_starts(flat: np.ndarray) -> np.ndarray:
+    """Indices where a 1-D array starts a run of equal values (0 first): object ids come in runs
+    along a row, so what is done per id can be done per run."""
+    return np.concatenate(([0], np.flatnonzero(flat[1:] != flat[:-1]) + 1))
+
+
 def map_cells(cog: str | Path, cell: int = CELL_PX, memo: dict | None = None) -> tuple[list, dict[str, str]]:
     """The map's grid [*geotransform, width, height, cell] and a digest of each ``cell`` x ``cell``
     pixel square of it that holds data ({"col_row": digest}), read block by block. ``memo``: a

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline25d.core.atomic import write_bytes
+from pipeline25d.core.raster import run_starts
 from pipeline25d.stages.tiles.base import nearest_index, source_dataset
 
 TILE = 256
@@ -33,7 +34,7 @@ EXT = "bin"                  # {z}/{x}/{y}.bin: zlib(n, palette, indices), see t
 def encode(ids: np.ndarray) -> bytes:
     """A (256, 256) id tile as stored: zlib of its palette and each pixel's index into it."""
     flat = ids.ravel()
-    runs = flat[np.concatenate(([0], np.flatnonzero(flat[1:] != flat[:-1]) + 1))]    # few: ids come in runs
+    runs = flat[run_starts(flat)]                      # few: ids come in runs
     palette = np.unique(runs)
     index = np.searchsorted(palette, flat)
     kind = "u1" if len(palette) <= 256 else "<u2"
