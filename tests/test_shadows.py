@@ -381,8 +381,9 @@ def test_no_seams_one_big_tile_equals_its_four_quarter_tiles(gl_ctx, perspective
 @pytest.mark.slow
 def test_the_workflow_casts_shadows_and_renders_again_when_they_change(tmp_path_factory):
     """The small demo city with shadows (the sun from a date and time at the scene centre): plans
-    carry the sun and the casters, each render job takes its casters' LOD files as inputs, and a
-    changed shadow setting renders every tile again."""
+    carry the sun and the casters, each render job takes the LOD indexes of its casters' districts
+    as inputs (a caster's content hash is in its tiles' specs), and a changed shadow setting
+    renders every tile again."""
     import json
 
     from osgeo import gdal
@@ -411,11 +412,12 @@ def test_the_workflow_casts_shadows_and_renders_again_when_they_change(tmp_path_
     for row in rows:
         pid, block = row["output_file"].split("/")[-2], row["output_file"].split("block_")[1][:-len(".json")]
         tiles = plan_blocks(plans[pid], 1)[block]
-        name = lambda c: f"{results.name}/lod/{c.district}/{c.id}.npz"
         inputs = {i.split("results/")[-1] for i in row["input-file(s)"].split(",")}
-        casters = {name(c) for t in tiles for c in t.casters}
+        casters = {f"{results.name}/lod/{c.district}/index.json" for t in tiles for c in t.casters}
         assert casters <= inputs, (row["output_file"], casters - inputs)
-        foreign += len(casters - {name(c) for t in tiles for c in t.chunks})
+        assert all(c.hash for t in tiles for c in t.casters)          # in the spec: a changed caster re-renders
+        drawn = {(c.district, c.id) for t in tiles for c in t.chunks}
+        foreign += len({(c.district, c.id) for t in tiles for c in t.casters} - drawn)
     assert foreign > 0                      # casters that no tile of their job draws
     before = gdal.Open(str(results / "maps" / "az000_el90.tif")).ReadAsArray()[:3].astype(int)
     (workdir / "config.yaml").write_text((workdir / "config.yaml").read_text().replace("enabled: true",

@@ -96,10 +96,15 @@ def block_tiles(wildcards):
 
 @parse_guard
 def block_lods(wildcards):
-    """The LOD files a block's tiles draw or take shadows from (side files of the lod jobs): a block
-    depends on its own chunks and their shadow casters only."""
-    chunks = {(c.district, c.id) for t in block_tiles(wildcards) for c in (*t.chunks, *t.casters)}
-    return [f"{RESULTS}/lod/{d}/{c}.npz" for d, c in sorted(chunks)]
+    """The LOD indexes of the districts whose chunks a block's tiles draw or take shadows from.
+
+    ancient(): a district's index is rewritten whenever any of its chunks is, so its time must not
+    re-run the block; the block's spec hash (a param, with each chunk's LOD content hash) re-runs it
+    when a chunk it draws changed. One file per district, not one per chunk: Snakemake stats every
+    input of every ready job on each scheduling pass (hundreds of chunks per block in a city).
+    """
+    districts = {c.district for t in block_tiles(wildcards) for c in (*t.chunks, *t.casters)}
+    return [ancient(f"{RESULTS}/lod/{d}/index.json") for d in sorted(districts)]
 
 
 @parse_guard

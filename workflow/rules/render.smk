@@ -2,8 +2,9 @@
 # x render.block whole tiles, see plan.plan_blocks; one process and GL context): each non-empty tile
 # gets an RGBA GeoTIFF, its object ids (objects.enabled: <row>_<col>.ids.tif), the GCPs seen in it
 # and its spec hash.
-# Inputs are the block's chunk LODs; the block's hash (its tiles' spec hashes) re-runs the job
-# when a tile's plan entry changes, and the job then re-renders only the tiles whose spec changed.
+# Inputs are the LOD indexes of the districts the block draws (ancient: see block_lods); the block's
+# hash (its tiles' spec hashes, which hold each chunk's LOD content hash) re-runs the job when a
+# tile's plan entry changes, and the job then re-renders only the tiles whose spec changed.
 
 
 rule render_block:
