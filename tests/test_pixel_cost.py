@@ -74,18 +74,36 @@ def test_base_tiles_are_gdal2tiles_own_bytes(tmp_path, tile_format):
     assert len(digests["ours"]) >= 4 and digests["ours"] == digests["g2t"]
 
 
+def test_the_web_tile_job_cuts_the_map_and_its_ids_with_the_jobs_workers(monkeypatch, tmp_path):
+    """tms_job cuts the map and the id map each on the job's workers (core.cores.job_workers)."""
+    from pipeline25d import jobs
+    from pipeline25d.stages.tiles import web
+
+    cuts = []
+    monkeypatch.setattr(web, "tms", lambda source, zoom, out, **k: cuts.append((source, k["processes"])) or {})
+    monkeypatch.setattr(jobs, "job_workers", lambda threads: threads + 1)
+    job = SimpleNamespace(input=SimpleNamespace(cog="m.tif", ids="m.ids.tif"), threads=1,
+                          output=SimpleNamespace(tiles="t", stats=str(tmp_path / "s.json"), id_tiles="i",
+                                                 id_stats=str(tmp_path / "i.json")),
+                          params=SimpleNamespace(zoom="14-18", tile_format="webp", quality=85, work="w", id_work="iw"))
+    jobs.tms_job(job)
+    assert cuts == [("m.tif", 2), ("m.ids.tif", 2)]
+
+
 def test_the_cog_is_compressed_with_the_jobs_threads(monkeypatch, tmp_path):
-    """warp_job hands the job's threads to the warp, and the COG encode asks GDAL for them."""
+    """warp_job hands the job's workers (its threads, or the cores idle when it starts:
+    core.cores.job_workers) to the warp, and the COG encode asks GDAL for them."""
     from pipeline25d import jobs
     from pipeline25d.stages.maps import warp
 
-    seen = {}
+    seen, given = {}, []
     monkeypatch.setattr(warp, "warp", lambda *a, **k: seen.update(k))
+    monkeypatch.setattr(jobs, "job_workers", lambda threads: given.append(threads) or threads + 1)
     job = SimpleNamespace(input=SimpleNamespace(mosaic="m.vrt", gcps="g.csv", plan="p.json"),
                           output=SimpleNamespace(cog="c.tif", meta="c.json"),
                           params=SimpleNamespace(warp={}, maps={}, work="w"), threads=2)
     jobs.warp_job(job)
-    assert seen["threads"] == 2
+    assert given == [2] and seen["threads"] == 3
 
     calls = []
     monkeypatch.setattr(warp, "run_tool", lambda args: calls.append(args) or gdal().Translate(

@@ -16,6 +16,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from pipeline25d.core.cores import job_workers
 from pipeline25d.core.logsetup import log_job_resources, log_to, process_age, stop_on_error
 
 log = logging.getLogger(__name__)
@@ -95,13 +96,14 @@ def warp_job(job: Job) -> None:
     from pipeline25d.stages.maps import warp
 
     p, i, o = job.params, job.input, job.output
+    threads = job_workers(job.threads)               # the COG encode on the cores idle now too
     cells: dict = {}                                 # the mosaic's digests, made once for both maps
-    warp.warp(i.mosaic, i.gcps, i.plan, dict(p.warp), o.cog, o.meta, dict(p.maps), work_dir=p.work, threads=job.threads,
+    warp.warp(i.mosaic, i.gcps, i.plan, dict(p.warp), o.cog, o.meta, dict(p.maps), work_dir=p.work, threads=threads,
               cells_memo=cells)
     if hasattr(o, "ids"):                            # objects.enabled: the id map, by the warp just chosen
         from pipeline25d.stages.maps.ids import id_map
 
-        id_map(i.ids, i.mosaic, i.gcps, o.meta, o.cog, o.ids, o.id_stats, work_dir=p.id_work, threads=job.threads,
+        id_map(i.ids, i.mosaic, i.gcps, o.meta, o.cog, o.ids, o.id_stats, work_dir=p.id_work, threads=threads,
                cells_memo=cells)
 
 
@@ -110,11 +112,12 @@ def tms_job(job: Job) -> None:
     from pipeline25d.stages.tiles.web import tms
 
     p, o = job.params, job.output
-    stats = tms(job.input.cog, p.zoom, o.tiles, processes=job.threads, tile_format=p.tile_format,
+    processes = job_workers(job.threads)             # the cut on the cores idle now too
+    stats = tms(job.input.cog, p.zoom, o.tiles, processes=processes, tile_format=p.tile_format,
                 quality=p.quality, work_dir=p.work)
     write_json(o.stats, stats)
     if hasattr(o, "id_tiles"):                       # objects.enabled: the id map's tiles, same positions
-        stats = tms(job.input.ids, p.zoom, o.id_tiles, processes=job.threads, tile_format="ids", quality=0,
+        stats = tms(job.input.ids, p.zoom, o.id_tiles, processes=processes, tile_format="ids", quality=0,
                     work_dir=p.id_work)
         write_json(o.id_stats, stats)
 

@@ -18,7 +18,9 @@ rule tms:
         quality=config["tms"]["quality"],
         work=f"{RESULTS}/work/tms/{{pid}}",
         id_work=f"{RESULTS}/work/idtiles/{{pid}}",
-    threads: 2
+    # one core (a job holding two waited for both to be free), and the cores idle when it starts
+    # (core.cores); on a cluster profiles/slurm gives it two
+    threads: 1
     log:
         f"{RESULTS}/logs/tms/{{pid}}.log",
     benchmark:

@@ -20,8 +20,11 @@ rule warp:
         maps=config["maps"],
         work=f"{RESULTS}/work/warp/{{pid}}",
         id_work=f"{RESULTS}/work/ids/{{pid}}",
-    # the COG's blocks are compressed on both cores (GDAL's NUM_THREADS: the same bytes, 1.34x on one map)
-    threads: 2
+    # one core: the warp used 1.13 of two and, holding two, kept render jobs off the other (with the
+    # web tiles on one core too: a 3 x 3 Delft city 126 s -> 101 and 111 s in two runs); the cores idle
+    # when it starts too (core.cores); on a cluster profiles/slurm gives it two (GDAL's NUM_THREADS
+    # compresses the COG's blocks on all: the same bytes)
+    threads: 1
     log:
         f"{RESULTS}/logs/warp/{{pid}}.log",
     benchmark:

@@ -1,0 +1,66 @@
+"""How many cores a job may use now: the cores it holds, and more where the machine has them idle.
+
+Snakemake gives a job the threads its rule declares, and holds them until it ends. The warp and
+web-tile jobs declare one: holding two, each waited until both cores were free and then used 1.1
+and 1.6 of them, while render jobs waited. Alone at the end of a run (the last map, nothing else
+ready) one core leaves the other idle. :func:`job_workers` lets such a job take, when it starts,
+the cores that are idle at that moment as well. What a job writes does not depend on the count.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+
+log = logging.getLogger(__name__)
+
+#: how long the machine's idle time is sampled before a job picks its worker count
+SAMPLE_S = 0.1
+
+
+def allowed_cores() -> int:
+    """The cores this process may run on (its CPU affinity: a SLURM job's own CPUs, a container's)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def _cpu_times() -> tuple[float, float] | None:
+    """(idle, total) jiffies of all CPUs from /proc/stat; None where there is none."""
+    try:
+        with open("/proc/stat") as fh:
+            fields = [float(v) for v in fh.readline().split()[1:]]
+    except (OSError, ValueError):
+        return None
+    if len(fields) < 5:
+        return None
+    return fields[3] + fields[4], sum(fields[:8])          # idle + iowait; user .. steal
+
+
+def idle_cores(interval: float = SAMPLE_S) -> float | None:
+    """Cores idle on the machine over the next ``interval`` seconds (this process sleeps through
+    it, so its own core counts as idle); None without /proc/stat."""
+    first = _cpu_times()
+    if first is None:
+        return None
+    time.sleep(interval)
+    second = _cpu_times()
+    if second is None or second[1] <= first[1]:
+        return None
+    return (os.cpu_count() or 1) * (second[0] - first[0]) / (second[1] - first[1])
+
+
+def job_workers(threads: int, idle: float | None = None) -> int:
+    """Workers for a job Snakemake gave ``threads``: those, or the cores idle now (``idle``, by default
+    :func:`idle_cores`; this job's own included) where that is more, at most the cores it may run on."""
+    allowed = allowed_cores()
+    if threads >= allowed:
+        return max(1, min(threads, allowed))
+    idle = idle_cores() if idle is None else idle
+    if idle is None:
+        return max(1, threads)
+    workers = max(1, threads, min(allowed, int(idle + 0.5)))
+    log.info("workers: %d (%d thread(s) given, %.1f of %d cores idle)", workers, threads, idle, allowed)
+    return workers

@@ -1,0 +1,53 @@
+"""A job's workers: the threads Snakemake gave it, or the cores idle when it starts, within its affinity."""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+
+import pytest
+
+from pipeline25d.core import cores
+from pipeline25d.core.cores import idle_cores, job_workers
+
+
+def _spin(stop) -> None:
+    while not stop.is_set():
+        pass
+
+
+def test_a_busy_process_takes_about_one_core_off_the_idle_ones():
+    n = os.cpu_count() or 1
+    calm = idle_cores(0.3)
+    assert calm is not None and -0.05 <= calm <= n + 0.05          # this process sleeps: its core is idle
+    stop = multiprocessing.Event()
+    spinner = multiprocessing.Process(target=_spin, args=(stop,))
+    spinner.start()
+    try:
+        busy = idle_cores(0.3)
+    finally:
+        stop.set()
+        spinner.join()
+    assert busy is not None and busy <= n - 0.6                    # the spinner held one core
+
+
+@pytest.mark.parametrize(("threads", "allowed", "idle", "expected"), [
+    (1, 2, 1.9, 2),      # alone on a 2-core machine: both cores
+    (1, 2, 1.4, 1),      # the other core mostly busy: its own
+    (1, 2, 0.2, 1),      # even when its own core looks busy, never fewer than given
+    (1, 16, 6.6, 7),     # the idle cores of a larger machine
+    (1, 4, 9.0, 4),      # never beyond its affinity
+    (2, 2, 0.0, 2),      # given all it may use: no sampling, those
+    (3, 2, 2.0, 2),      # given more than it may use: its affinity
+])
+def test_workers_are_the_idle_cores_within_the_threads_given_and_the_affinity(monkeypatch, threads, allowed, idle,
+                                                                                 expected):
+    monkeypatch.setattr(cores, "allowed_cores", lambda: allowed)
+    assert job_workers(threads, idle=idle) == expected
+
+
+def test_without_proc_stat_a_job_keeps_its_threads(monkeypatch):
+    monkeypatch.setattr(cores, "allowed_cores", lambda: 8)
+    monkeypatch.setattr(cores, "_cpu_times", lambda: None)
+    assert idle_cores(0.01) is None
+    assert job_workers(1) == 1 and job_workers(3) == 3
