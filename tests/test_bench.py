@@ -31,3 +31,35 @@ def test_mirrored_copies_meet_edge_to_edge_and_keep_facing_up(tmp_path):
 
     cfg = validate_schema(bench_config("b", districts, 0.5, "nadir"))      # district names the schema accepts
     assert cfg["terrain"] == "auto" and len(cfg["inputs"]) == 4
+
+
+def test_run_cpu_splits_the_run_into_jobs_per_stage_and_snakemake(tmp_path):
+    """Jobs' CPU from their logs' last ``job time:`` line (own + children), per stage; Snakemake's own
+    is the run's total less the jobs'; the threads a rule got come from Snakemake's job block."""
+    import json
+
+    from pipeline25d.core.logsetup import JOB_TIME_LINE
+    from pipeline25d_lab.harness.bench import RUN_CPU, job_cpu, rule_threads, run_cpu
+
+    results = tmp_path / "results" / "s"
+    logs = {"render/az000_el45/block_0_0_0.log": (0.1, 5.0, 4.5, 0.0),
+            "render/az000_el90/block_0_0_0.log": (0.1, 3.0, 2.5, 0.25),
+            "tms/az000_el45.log": (0.1, 2.0, 1.0, 3.0), "terrain.log": (0.1, 9.0, 8.0, 0.5)}
+    for rel, times in logs.items():
+        path = results / "logs" / rel
+        path.parent.mkdir(parents=True, exist_ok=True)
+        # an earlier attempt's line first: only the last counts
+        path.write_text(f"x INFO pipeline25d.jobs: {JOB_TIME_LINE % (0, 1, 99, 99)}\n"
+                        f"x INFO pipeline25d.jobs: {JOB_TIME_LINE % times}\n")
+    (results / "logs" / "ingest").mkdir()
+    (results / "logs" / "ingest" / "d1.log").write_text("a job that failed before its end line\n")
+    assert job_cpu(results) == {"render": 7.25, "tms": 4.0, "terrain": 8.5}
+    assert run_cpu(tmp_path, results) is None                       # a run not timed here
+    (tmp_path / RUN_CPU).write_text(json.dumps({"cpu_s": 25.0, "wall_s": 20.0}))
+    assert run_cpu(tmp_path, results) == {"total_s": 25.0, "jobs_s": 19.75, "snakemake_s": 5.25,
+                                          "stages": {"render": 7.25, "tms": 4.0, "terrain": 8.5}}
+    (tmp_path / "snakemake.log").write_text(
+        "localrule render_block:\n    jobid: 4\n    wildcards: pid=az000_el45\n    resources: tmpdir=/tmp\n"
+        "localrule tms:\n    jobid: 7\n    wildcards: pid=az000_el45\n    threads: 2\n    resources: tmpdir=/tmp\n"
+        "Select jobs to execute...\n")
+    assert rule_threads(tmp_path, "tms") == 2 and rule_threads(tmp_path, "render_block") == 1

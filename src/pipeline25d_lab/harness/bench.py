@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
+import resource
 import shutil
 import subprocess
 import sys
@@ -31,6 +33,7 @@ import yaml
 from pipeline25d.config import validate_schema
 from pipeline25d.core.atomic import write_text
 from pipeline25d.core.errors import WorkflowRunError
+from pipeline25d.core.logsetup import JOB_TIME_LINE
 
 REPO = Path(__file__).resolve().parents[3]
 SOURCE = REPO.parent / "shared" / "data" / "delft" / "delft_dsm_mesh.ply"
@@ -116,13 +119,47 @@ def run_workflow(workdir: Path, config: dict, cores: int | None = 2, from_scratc
             shutil.rmtree(stale, ignore_errors=True)
     write_text(workdir / "config.yaml", yaml.safe_dump(config))
     cmd = workflow_command(workdir, cores) + list(extra)
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.monotonic()
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
     wall = time.monotonic() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
     write_text(workdir / "snakemake.log", proc.stdout + proc.stderr)
+    cpu = (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime)
+    write_text(workdir / RUN_CPU, json.dumps({"cpu_s": round(cpu, 2), "wall_s": round(wall, 2)}))
     if proc.returncode != 0:
         raise WorkflowRunError(f"the workflow failed, see {workdir / 'snakemake.log'}")
     return wall
+
+
+#: beside snakemake.log: the CPU seconds of the whole run (Snakemake, its jobs and their children)
+RUN_CPU = "snakemake.cpu.json"
+_JOB_TIME = re.compile(JOB_TIME_LINE.replace("%.2f", r"([\d.]+)"))
+
+
+def job_cpu(results: Path) -> dict[str, float]:
+    """CPU seconds per stage, each job's own and its children's, from the ``job time:`` line of
+    every job log under ``results/logs`` (exact, unlike the benchmark files' sampled ``cpu_time``)."""
+    out: dict[str, float] = {}
+    for log in sorted((results / "logs").rglob("*.log")):
+        found = _JOB_TIME.findall(log.read_text(errors="replace"))
+        if found:
+            stage = log.relative_to(results / "logs").parts[0].removesuffix(".log")
+            _, _, own, kids = (float(v) for v in found[-1])
+            out[stage] = round(out.get(stage, 0.0) + own + kids, 2)
+    return out
+
+
+def run_cpu(workdir: Path, results: Path) -> dict | None:
+    """The run's CPU seconds: all of it, its jobs' (:func:`job_cpu`) and the rest, Snakemake's own
+    (scheduling, DAG updates, output checks); None for a run not timed by :func:`run_workflow`."""
+    path = workdir / RUN_CPU
+    if not path.exists():
+        return None
+    total = json.loads(path.read_text())["cpu_s"]
+    jobs = job_cpu(results)
+    return {"total_s": total, "jobs_s": round(sum(jobs.values()), 2),
+            "snakemake_s": round(total - sum(jobs.values()), 2), "stages": jobs}
 
 
 def collect(workdir: Path, config: dict, wall: float, cores: int = 2) -> dict:
@@ -142,7 +179,7 @@ def collect(workdir: Path, config: dict, wall: float, cores: int = 2) -> dict:
             "peak_rss_mb": max(s["max_rss_mb"] for s in stages.values()),
             "check_rmsd_px": {p["id"]: p["rmsd_px"] for p in report["perspectives"]},
             "check_rmsd_m": {p["id"]: p["rmsd_m"] for p in report["perspectives"]},
-            "sizes": report["sizes"]}
+            "sizes": report["sizes"], "cpu": run_cpu(workdir, results)}
 
 
 def render_against_plain_loop(results: Path, pid: str, samples: int) -> dict:
@@ -160,32 +197,56 @@ def render_against_plain_loop(results: Path, pid: str, samples: int) -> dict:
             "plain_loop_s_per_tile": plain["per_tile_s"], "ratio": round(job_s / n / plain["per_tile_s"], 2)}
 
 
+def rule_threads(workdir: Path, rule: str) -> int:
+    """The threads Snakemake gave ``rule``'s jobs in the last run (its log names them when more than one)."""
+    found = re.findall(rf"rule {rule}:\n(?:    .*\n)*?    threads: (\d+)", (workdir / "snakemake.log").read_text())
+    return int(found[-1]) if found else 1
+
+
 def tms_against_gdal2tiles_default(results: Path, pid: str, work: Path, config: dict) -> dict:
-    """The workflow's web-tile cut of one map (:func:`pipeline25d.stages.tiles.web.tms` with the rule's settings)
-    beside gdal2tiles with its defaults (``--xyz``, same zoom levels) on the same COG, timed back to
-    back here on an otherwise idle machine; the tms job's own seconds in the run are given too."""
+    """The workflow's web-tile job of one map beside gdal2tiles with its defaults (``--xyz``, one
+    process, same zoom levels) on the same COG, timed back to back here on an otherwise idle machine.
+
+    ``job_alone_s``: the job's own work (:func:`pipeline25d.stages.tiles.web.tms` on the map, and on
+    its id map where there is one) with the workers it took in the run (its log's ``workers:``, see
+    :func:`pipeline25d.core.cores.job_workers`; else the rule's threads), against ``job_s_in_run``
+    (its benchmark seconds in the run): what running beside other jobs cost it. ``cut_s``: the map's
+    cut alone on 1 and on 2 processes, each against gdal2tiles (``speed_up``)."""
     import shutil
 
     from pipeline25d.publish.report import benchmark_rows
     from pipeline25d.stages.tiles.web import tms
 
     ((_, row),) = benchmark_rows(results / "benchmarks" / "tms" / f"{pid}.tsv")
-    cog = results / "maps" / f"{pid}.tif"
+    cog, ids = results / "maps" / f"{pid}.tif", results / "maps" / f"{pid}.ids.tif"
     zooms = sorted(int(z.name) for z in (results / "tms" / pid).iterdir() if z.name.isdigit())
     zoom = f"{zooms[0]}-{zooms[-1]}"
     cfg = validate_schema(config)["tms"]
+    workers = re.findall(r"workers: (\d+)", (results / "logs" / "tms" / f"{pid}.log").read_text())
+    threads = int(workers[-1]) if workers else rule_threads(results.parents[1], "tms")
     out = work / "tms-compare"
+
+    def timed(source: Path, processes: int, tile_format: str, quality: int) -> float:
+        shutil.rmtree(out, ignore_errors=True)
+        t0 = time.monotonic()
+        tms(source, zoom, out / "ours", processes=processes, tile_format=tile_format, quality=quality)
+        return time.monotonic() - t0
+
+    cut = {n: timed(cog, n, cfg["format"], cfg["quality"]) for n in (1, 2)}
+    alone = timed(cog, threads, cfg["format"], cfg["quality"])
+    if ids.exists():
+        alone += timed(ids, threads, "ids", 0)
     shutil.rmtree(out, ignore_errors=True)
-    t0 = time.monotonic()
-    tms(cog, zoom, out / "ours", processes=2, tile_format=cfg["format"], quality=cfg["quality"])
-    ours_s = time.monotonic() - t0
     t0 = time.monotonic()
     subprocess.run([sys.executable, "-m", "osgeo_utils.gdal2tiles", "-q", "--xyz", "-z", zoom, str(cog),
                     str(out / "default")], check=True)
     default_s = time.monotonic() - t0
     shutil.rmtree(out, ignore_errors=True)
-    return {"perspective": pid, "zoom": zoom, "tms_s": round(ours_s, 2), "tms_job_s_in_run": round(float(row["s"]), 2),
-            "gdal2tiles_default_s": round(default_s, 2), "speed_up": round(default_s / ours_s, 2)}
+    in_run = float(row["s"])
+    return {"perspective": pid, "zoom": zoom, "workers": threads, "job_s_in_run": round(in_run, 2),
+            "job_alone_s": round(alone, 2), "in_run_to_alone": round(in_run / alone, 2),
+            "cut_s": {str(n): round(v, 2) for n, v in cut.items()}, "gdal2tiles_default_s": round(default_s, 2),
+            "speed_up": {str(n): round(default_s / v, 2) for n, v in cut.items()}}
 
 
 def logged_wall(workdir: Path) -> float:
