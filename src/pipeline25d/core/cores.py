@@ -57,10 +57,10 @@ def job_workers(threads: int, idle: float | None = None) -> int:
     :func:`idle_cores`; this job's own included) where that is more, at most the cores it may run on."""
     allowed = allowed_cores()
     if threads >= allowed:
-        return max(1, min(threads, allowed))
-    idle = idle_cores() if idle is None else idle
-    if idle is None:
-        return max(1, threads)
-    workers = max(1, threads, min(allowed, int(idle + 0.5)))
-    log.info("workers: %d (%d thread(s) given, %.1f of %d cores idle)", workers, threads, idle, allowed)
+        workers, idle = max(1, allowed), None
+    else:
+        idle = idle_cores() if idle is None else idle
+        workers = max(1, threads) if idle is None else max(1, threads, min(allowed, int(idle + 0.5)))
+    log.info("workers: %d (%d thread(s) given, %d cores allowed, %s idle)", workers, threads, allowed,
+             "not measured" if idle is None else f"{idle:.1f}")
     return workers

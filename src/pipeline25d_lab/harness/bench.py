@@ -140,11 +140,12 @@ _JOB_TIME = re.compile(JOB_TIME_LINE.replace("%.2f", r"([\d.]+)"))
 def job_cpu(results: Path) -> dict[str, float]:
     """CPU seconds per stage, each job's own and its children's, from the ``job time:`` line of
     every job log under ``results/logs`` (exact, unlike the benchmark files' sampled ``cpu_time``)."""
+    from pipeline25d_lab.harness.dataset_io import stage_logs
+
     out: dict[str, float] = {}
-    for log in sorted((results / "logs").rglob("*.log")):
+    for stage, log in stage_logs(results / "logs"):
         found = _JOB_TIME.findall(log.read_text(errors="replace"))
         if found:
-            stage = log.relative_to(results / "logs").parts[0].removesuffix(".log")
             _, _, own, kids = (float(v) for v in found[-1])
             out[stage] = round(out.get(stage, 0.0) + own + kids, 2)
     return out
@@ -233,7 +234,7 @@ def tms_against_gdal2tiles_default(results: Path, pid: str, work: Path, config: 
         return time.monotonic() - t0
 
     cut = {n: timed(cog, n, cfg["format"], cfg["quality"]) for n in (1, 2)}
-    alone = timed(cog, threads, cfg["format"], cfg["quality"])
+    alone = cut[threads] if threads in cut else timed(cog, threads, cfg["format"], cfg["quality"])
     if ids.exists():
         alone += timed(ids, threads, "ids", 0)
     shutil.rmtree(out, ignore_errors=True)

@@ -21,7 +21,7 @@ import ctypes
 import mmap
 import os
 import re
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 from pipeline25d.core.logsetup import RESOURCES_LINE
@@ -103,16 +103,22 @@ def job_resources(lines: Iterable[str]) -> dict | None:
     return found
 
 
+def stage_logs(logs: Path) -> Iterator[tuple[str, Path]]:
+    """(stage, job log) of every job log under a run's ``logs`` folder; the stage is the log's first
+    part there (``render/<pid>/block_*.log`` -> render, ``terrain.log`` -> terrain)."""
+    for log in sorted(logs.rglob("*.log")):
+        yield log.relative_to(logs).parts[0].removesuffix(".log"), log
+
+
 def stage_resources(logs: Path) -> dict[str, dict]:
-    """Per stage (the log folder's first part): jobs with a resources line, summed rchar and
+    """Per stage (:func:`stage_logs`): jobs with a resources line, summed rchar and
     read_bytes, and the largest peak RSS of a job and of a job's child, MB."""
     out: dict[str, dict] = {}
-    for log in sorted(logs.rglob("*.log")):
+    for stage, log in stage_logs(logs):
         with open(log, errors="replace") as fh:
             rec = job_resources(fh)
         if rec is None:
             continue
-        stage = log.relative_to(logs).parts[0].removesuffix(".log")
         s = out.setdefault(stage, {"jobs": 0, "rchar": 0, "read_bytes": 0, "peak_rss_mb": 0.0,
                                    "child_peak_rss_mb": 0.0})
         s["jobs"] += 1
