@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import time
 
+import numpy as np
 import pytest
 
 from pipeline25d.core import cores
@@ -51,3 +53,48 @@ def test_without_proc_stat_a_job_keeps_its_threads(monkeypatch):
     monkeypatch.setattr(cores, "_cpu_times", lambda: None)
     assert idle_cores(0.01) is None
     assert job_workers(1) == 1 and job_workers(3) == 3
+
+
+def test_the_idle_meter_reads_the_time_since_its_last_figure_and_sees_a_busy_process():
+    n = os.cpu_count() or 1
+    meter = cores.IdleMeter()
+    assert meter() is None                                         # no time has passed: too few ticks to tell
+    time.sleep(cores.METER_MIN_S + 0.1)
+    calm = meter()
+    assert calm is not None and -0.05 <= calm <= n + 0.05
+    stop = multiprocessing.Event()
+    spinner = multiprocessing.Process(target=_spin, args=(stop,))
+    spinner.start()
+    try:
+        time.sleep(cores.METER_MIN_S + 0.2)
+        busy = meter()
+    finally:
+        stop.set()
+        spinner.join()
+    assert busy is not None and busy <= n - 0.6
+
+
+def _note_times(folder: str, item: int) -> None:
+    start = time.monotonic()
+    time.sleep(0.05)
+    with open(os.path.join(folder, str(item)), "w") as fh:
+        fh.write(f"{start} {time.monotonic()} {os.getpid()}")
+
+
+@pytest.mark.parametrize(("idle", "at_once"), [(2.0, 2), (0.0, 1), (None, 1)])
+def test_a_cut_takes_a_worker_more_only_while_a_core_is_idle(tmp_path, idle, at_once):
+    """Workers(1, most=2) runs a stage one piece at a time and two at a time once the meter
+    says a core was idle (None: the meter cannot tell); every item runs once, in a worker."""
+    from functools import partial
+
+    from pipeline25d.stages.tiles.web import Workers
+
+    with Workers(1, most=2, idle=lambda: idle) as workers:
+        workers.map(partial(_note_times, str(tmp_path)), list(range(32)))
+    assert sorted(int(p.name) for p in tmp_path.iterdir()) == list(range(32))
+    runs = [[float(v) for v in p.read_text().split()] for p in tmp_path.iterdir()]
+    assert os.getpid() not in {int(pid) for *_, pid in runs}
+    edges = sorted([(start, 1) for start, _, _ in runs] + [(end, -1) for _, end, _ in runs])
+    running = np.cumsum([step for _, step in edges])
+    assert running.max() == at_once
+    assert workers.grown == (1 if idle else 0)

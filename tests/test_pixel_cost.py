@@ -90,6 +90,21 @@ def test_the_web_tile_job_cuts_the_map_and_its_ids_with_the_jobs_workers(monkeyp
     assert cuts == [("m.tif", 2), ("m.ids.tif", 2)]
 
 
+def test_the_map_service_job_makes_its_id_layers_on_the_jobs_workers(monkeypatch):
+    """wms_job hands the job's workers (one thread, or the cores idle when it starts) to the
+    mapfile's id layers: holding two threads, it waited for the run's last web-tile job."""
+    from pipeline25d import jobs
+    from pipeline25d.publish import wms
+
+    seen, given = {}, []
+    monkeypatch.setattr(wms, "write_mapfile", lambda *a, **k: seen.update(k))
+    monkeypatch.setattr(jobs, "job_workers", lambda threads: given.append(threads) or threads + 1)
+    job = SimpleNamespace(input=SimpleNamespace(maps=["m.tif"], ids=["objects.csv"]), threads=1,
+                          output=SimpleNamespace(mapfile="s.map"), params=SimpleNamespace(scene="s"))
+    jobs.wms_job(job)
+    assert given == [1] and seen == {"objects": "objects.csv", "threads": 2}
+
+
 def test_the_cog_is_compressed_with_the_jobs_threads(monkeypatch, tmp_path):
     """warp_job hands the job's workers (its threads, or the cores idle when it starts:
     core.cores.job_workers) to the warp, and the COG encode asks GDAL for them."""

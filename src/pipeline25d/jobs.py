@@ -16,7 +16,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from pipeline25d.core.cores import job_workers
+from pipeline25d.core.cores import allowed_cores, job_workers
 from pipeline25d.core.logsetup import log_job_resources, log_to, process_age, stop_on_error
 
 log = logging.getLogger(__name__)
@@ -112,13 +112,14 @@ def tms_job(job: Job) -> None:
     from pipeline25d.stages.tiles.web import tms
 
     p, o = job.params, job.output
-    processes = job_workers(job.threads)             # the cut on the cores idle now too
+    processes = job_workers(job.threads)             # the cut on the cores idle now too,
+    most = allowed_cores()                           # and on those that fall idle while it runs
     stats = tms(job.input.cog, p.zoom, o.tiles, processes=processes, tile_format=p.tile_format,
-                quality=p.quality, work_dir=p.work)
+                quality=p.quality, work_dir=p.work, most=most)
     write_json(o.stats, stats)
     if hasattr(o, "id_tiles"):                       # objects.enabled: the id map's tiles, same positions
         stats = tms(job.input.ids, p.zoom, o.id_tiles, processes=processes, tile_format="ids", quality=0,
-                    work_dir=p.id_work)
+                    work_dir=p.id_work, most=most)
         write_json(o.id_stats, stats)
 
 
@@ -183,7 +184,7 @@ def wms_job(job: Job) -> None:
 
     objects = [f for f in job.input.ids if str(f).endswith(".csv")]
     write_mapfile(job.params.scene, list(job.input.maps), job.output.mapfile, objects=_first(objects),
-                  threads=job.threads)
+                  threads=job_workers(job.threads))      # the id layers on the cores idle now too
 
 
 #: rule name -> its function, in the order data moves through the workflow

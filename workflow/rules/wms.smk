@@ -10,8 +10,10 @@ rule wms:
         mapfile=f"{RESULTS}/wms/{config['scene']}.map",
     params:
         scene=config["scene"],
-    # each map's row raster (the id layer) on its own thread: two maps at a time
-    threads: 2
+    # one core, and the cores idle when it starts (core.cores): each map's row raster (the id
+    # layer) on its own thread; holding two, it waited for the last web-tile job to end (make bench:
+    # 12 s alone at the end of the run)
+    threads: 1
     log:
         f"{RESULTS}/logs/wms.log",
     script:

@@ -4,7 +4,9 @@ Snakemake gives a job the threads its rule declares, and holds them until it end
 web-tile jobs declare one: holding two, each waited until both cores were free and then used 1.1
 and 1.6 of them, while render jobs waited. Alone at the end of a run (the last map, nothing else
 ready) one core leaves the other idle. :func:`job_workers` lets such a job take, when it starts,
-the cores that are idle at that moment as well. What a job writes does not depend on the count.
+the cores that are idle at that moment as well; :class:`IdleMeter` lets a job that works in
+pieces take one more as a core falls idle later (the web-tile cut: its workers grow). What a job
+writes does not depend on the count.
 """
 
 from __future__ import annotations
@@ -17,6 +19,8 @@ log = logging.getLogger(__name__)
 
 #: how long the machine's idle time is sampled before a job picks its worker count
 SAMPLE_S = 0.1
+#: the shortest interval an :class:`IdleMeter` reading covers (/proc/stat counts in 10 ms ticks)
+METER_MIN_S = 0.25
 
 
 def allowed_cores() -> int:
@@ -64,3 +68,25 @@ def job_workers(threads: int, idle: float | None = None) -> int:
     log.info("workers: %d (%d thread(s) given, %d cores allowed, %s idle)", workers, threads, allowed,
              "not measured" if idle is None else f"{idle:.1f}")
     return workers
+
+
+class IdleMeter:
+    """Cores idle on the machine since the previous reading, without sleeping: each call covers
+    the time since the last one that gave a figure, and gives None while that is under
+    :data:`METER_MIN_S` (too few ticks to tell) or without /proc/stat."""
+
+    def __init__(self) -> None:
+        self._last = _cpu_times()
+
+    def __call__(self) -> float | None:
+        now = _cpu_times()
+        if now is None or self._last is None:
+            self._last = self._last or now
+            return None
+        cpus = os.cpu_count() or 1
+        ticks = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+        if now[1] - self._last[1] < METER_MIN_S * ticks * cpus:
+            return None
+        idle = cpus * (now[0] - self._last[0]) / (now[1] - self._last[1])
+        self._last = now
+        return idle

@@ -28,7 +28,7 @@ import os
 import shutil
 import signal
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from functools import partial
 from pathlib import Path
@@ -40,6 +40,7 @@ from pipeline25d.core.errors import OutputError
 from pipeline25d.core.grid import Extent, Grid, Window
 from pipeline25d.core.journal import read_state, write_state
 from pipeline25d.core.raster import cells_grid_of, gdal, map_cells
+from pipeline25d.stages.maps.mosaic_sources import plain_sources
 from pipeline25d.stages.maps.parts import box_outline
 from pipeline25d.stages.tiles import ids as id_tiles
 from pipeline25d.stages.tiles.base import close_source, create_base_tile
@@ -51,11 +52,12 @@ GDAL2TILES_TILE = 256
 BLOCK_TILES = 4        # a web-mercator block is 4 x 4 tiles of the highest zoom (1024 x 1024 px)
 MARGIN_PX = 2          # a changed map cell reaches this far (web-mercator px) beyond its reprojected outline
 EDGE_SAMPLES = 5       # points per cell edge reprojected (a cell is small: the reprojection is near affine)
+IDLE_TO_GROW = 0.75    # a cut takes one more worker after a piece of work in which this many cores were idle
 STATE_VERSION = 1
 
 
 def tms(cog: str | Path, zoom: str, out_dir: str | Path, processes: int = 1, tile_format: str = "png",
-        quality: int = 85, work_dir: str | Path | None = None) -> dict:
+        quality: int = 85, work_dir: str | Path | None = None, most: int | None = None) -> dict:
     """The gdal2tiles XYZ pyramid (web mercator) of a map at ``out_dir``, published atomically.
 
     ``tile_format`` png or webp (lossy at ``quality``, with alpha), or ids (``cog`` is then an
@@ -63,6 +65,8 @@ def tms(cog: str | Path, zoom: str, out_dir: str | Path, processes: int = 1, til
     pyramid, its blocks and its state between runs, so that the next call redoes only what
     changed in the map; without it the pyramid is cut from scratch. Returns the cut's
     figures: web tiles in all, web tiles redone, blocks warped, and whether it was a full cut.
+    ``processes``: the worker processes each stage of the cut starts with; ``most``: those it may
+    grow to while cores are idle (:class:`Workers`; default ``processes``).
     """
     out_dir = Path(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
@@ -73,13 +77,13 @@ def tms(cog: str | Path, zoom: str, out_dir: str | Path, processes: int = 1, til
             stale.unlink()
     if work_dir is not None:
         with _space_checked(Path(work_dir)):
-            stats = update_pyramid(cog, zoom, Path(work_dir), processes, tile_format, quality)
+            stats = update_pyramid(cog, zoom, Path(work_dir), processes, tile_format, quality, most)
         publish(Path(work_dir) / "tiles", out_dir)
         return stats
     tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
     try:
         with _space_checked(tmp):
-            stats = update_pyramid(cog, zoom, tmp / "work", processes, tile_format, quality)
+            stats = update_pyramid(cog, zoom, tmp / "work", processes, tile_format, quality, most)
         publish(tmp / "work" / "tiles", out_dir)
         return stats
     finally:
@@ -118,7 +122,7 @@ def publish(tiles: Path, out_dir: Path) -> None:
 
 
 def update_pyramid(cog: str | Path, zoom: str, work: Path, processes: int = 1, tile_format: str = "png",
-                   quality: int = 85) -> dict:
+                   quality: int = 85, most: int | None = None) -> dict:
     """Bring the pyramid kept in ``work`` (``tiles/``, ``blocks/``, ``state.json``) up to the map ``cog``."""
     g = gdal()
     ds = g.Open(str(cog))
@@ -145,7 +149,7 @@ def update_pyramid(cog: str | Path, zoom: str, work: Path, processes: int = 1, t
     write_state(work, {**state, "dirty": reach})
     todo = sorted({b for w in reach for b in blocks_meeting(w, grid, max_zoom)})
     jobs = [(b, w) for b, w in ((b, block_window(b, grid, max_zoom)) for b in todo) if w is not None]
-    with Workers(processes) as workers:
+    with Workers(processes, most) as workers:
         workers.map(partial(_warp_block, str(cog), str(work / "blocks"), grid, tile_format == "ids"), jobs)
         redone = cut(sorted((work / "blocks").glob("*.tif")), work / "tiles", grid, zooms, reach,
                      workers, tile_format, quality)
@@ -153,8 +157,9 @@ def update_pyramid(cog: str | Path, zoom: str, work: Path, processes: int = 1, t
     stats = {"full": full, "map_cells_changed": len(changed), "blocks_warped": len(jobs),
              "web_tiles_redone": redone, "web_tiles": sum(1 for p in (work / "tiles").rglob("*") if p.is_file()),
              "zooms": zooms}
-    log.info("web tiles: %s; %d of %d map cells changed, %d web-mercator blocks warped, %d of %d web tiles redone",
-             "full cut" if full else "update", len(changed), len(cells), len(jobs), redone, stats["web_tiles"])
+    log.info("web tiles: %s; %d of %d map cells changed, %d web-mercator blocks warped, %d of %d web tiles redone"
+             " (workers: %d at each stage's start, %d more taken as cores fell idle)", "full cut" if full else "update",
+             len(changed), len(cells), len(jobs), redone, stats["web_tiles"], workers.processes, workers.grown)
     return stats
 
 
@@ -243,7 +248,10 @@ def cut(blocks: list[Path], tiles: Path, grid: Grid, zooms: str, windows: list[W
     tiles.mkdir(parents=True, exist_ok=True)
     vrt = tiles.parent / "blocks.vrt"
     gdal().BuildVRT(str(vrt), [str(b) for b in blocks], outputBounds=grid.bounds, xRes=grid.transform.a,
-                    yRes=-grid.transform.e)
+                    yRes=-grid.transform.e)          # not kept: dropped, it is written
+    # blocks never overlap, and gdalwarp leaves a block's colour 0 (an id block's 0) where it is
+    # transparent: read as plain copies, not composited through their masks (the same pixels)
+    plain_sources(vrt)
     ids = tile_format == "ids"
     layout = vrt
     if ids:         # gdal2tiles lays out only 8-bit rasters: its tiles' windows from a Byte view of the ids
@@ -296,7 +304,12 @@ def _cut_ids(vrt: str, tiles: Path, base: list, reach: dict[int, set], conf, wor
 
 class Workers:
     """One pool of forked worker processes (as gdal2tiles' own) for every stage of a cut, started
-    at the first stage with more than one item; a stage of one item runs in this process.
+    at the first stage with more than one item; a stage runs in this process where neither
+    ``processes`` nor ``most`` exceeds one.
+    Each stage starts on ``processes`` workers and takes one more, up to ``most``, whenever the
+    machine had a core idle since the last piece of work ended (``idle``: cores idle since the
+    previous call, :class:`pipeline25d.core.cores.IdleMeter`): a cut that started beside another
+    job takes the core that job leaves. The tiles do not depend on the count.
     A worker dies on SIGTERM (it would otherwise, with the job's SystemExit handler, fail one
     tile and take the next), and leaving on an exception kills the workers at once.
 
@@ -304,9 +317,12 @@ class Workers:
     which can leave one waiting for a queue lock a terminated sibling held (seen: a hung job).
     """
 
-    def __init__(self, processes: int):
-        self.processes = processes
+    def __init__(self, processes: int, most: int | None = None, idle: Callable[[], float | None] | None = None):
+        self.processes = max(1, processes)
+        self.most = max(self.processes, most or 1)
+        self.idle = idle
         self.pool = None
+        self.grown = 0            # workers taken beyond ``processes``, summed over the stages
 
     def __enter__(self) -> "Workers":
         return self
@@ -325,7 +341,7 @@ class Workers:
 
     def map(self, fn, items: list) -> None:
         """``fn`` over ``items``; their results are not kept."""
-        if self.processes <= 1 or len(items) <= 1:
+        if self.most <= 1 or len(items) <= 1:
             for item in items:
                 fn(item)
             return
@@ -333,10 +349,36 @@ class Workers:
             import multiprocessing
             from concurrent.futures import ProcessPoolExecutor
 
-            self.pool = ProcessPoolExecutor(self.processes, mp_context=multiprocessing.get_context("fork"),
+            from pipeline25d.core.cores import IdleMeter
+
+            self.idle = self.idle or IdleMeter()
+            self.pool = ProcessPoolExecutor(self.most, mp_context=multiprocessing.get_context("fork"),
                                             initializer=signal.signal, initargs=(signal.SIGTERM, signal.SIG_DFL))
-        for _ in self.pool.map(fn, items, chunksize=max(1, min(64, len(items) // (4 * self.processes)))):
-            pass
+        from concurrent.futures import FIRST_COMPLETED, wait
+
+        size = max(1, min(16, len(items) // (8 * self.most)))
+        pieces = iter([items[i:i + size] for i in range(0, len(items), size)])
+        limit, pending = self.processes, set()
+        self.idle()                                   # this stage's idle time counts from here
+        while True:
+            while len(pending) < limit and (piece := next(pieces, None)) is not None:
+                pending.add(self.pool.submit(_each, fn, piece))
+            if not pending:
+                break
+            done, pending = wait(pending, return_when=FIRST_COMPLETED)
+            for future in done:
+                future.result()
+            idle = self.idle()
+            if limit < self.most and idle is not None and idle >= IDLE_TO_GROW:
+                limit += 1
+                self.grown += 1
+                log.debug("web tiles: a worker more, %d of at most %d (%.1f cores idle)", limit, self.most, idle)
+
+
+def _each(fn, items: list) -> None:
+    """``fn`` over one piece of a stage's items (in a worker)."""
+    for item in items:
+        fn(item)
 
 
 def _mercator_args(threads: int, extra: list[str] | None = None, alpha: bool = True) -> list[str]:
