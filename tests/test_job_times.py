@@ -6,7 +6,7 @@ import re
 import subprocess
 import sys
 
-from pipeline25d.core.logsetup import JOB_TIME_LINE
+from pipeline25d.core.logsetup import JOB_TIME_LINE, job_logs, job_record
 
 SCRIPT = """
 import time, subprocess, sys
@@ -36,3 +36,20 @@ def test_a_job_logs_its_startup_its_run_and_its_cpu(tmp_path):
     assert run >= 0.5                          # wall: at least its CPU
     assert cpu >= 0.4 + 0.5 - 0.05             # the start-up's and the function's CPU (clock ticks: 10 ms)
     assert 0.3 - 0.05 <= children < 5
+
+
+def test_a_job_record_is_what_the_log_says_its_last_run_took(tmp_path):
+    """job_record reads the last time and resources lines of a job log (a log appended to by two
+    runs gives the second), as the report's timings and the benches take them."""
+    log = tmp_path / "logs" / "render" / "p" / "block_0_0_0.log"
+    log.parent.mkdir(parents=True)
+    for _ in range(2):
+        subprocess.run([sys.executable, "-c", SCRIPT, str(log)], check=True, timeout=60)
+    text = log.read_text()
+    pattern = JOB_TIME_LINE.replace("%.2f", r"([\d.]+)")
+    last = [float(v) for v in re.findall(pattern, text)[-1]]
+    rec = job_record(text.splitlines())
+    assert [rec[k] for k in ("startup_s", "run_s", "cpu_s", "children_cpu_s")] == last
+    assert rec["max_rss_kb"] > 10_000 and rec["children_max_rss_kb"] > 1_000
+    assert list(job_logs(tmp_path / "logs")) == [("render", log)]
+    assert job_record(["nothing here"]) == {}

@@ -32,28 +32,38 @@ def test_size_ratio_puts_the_larger_side_first():
 
 
 def test_stage_timings_count_only_this_configurations_jobs(tmp_path):
-    """Benchmark files an earlier configuration left behind (a removed district, a render block of
-    another grouping) do not count in the report's timings."""
+    """Job logs an earlier configuration left behind (a removed district, a render block of
+    another grouping) do not count in the report's timings, nor a job's log without a time line
+    (killed), nor the report's and viewer's own (an earlier run's)."""
+    from pipeline25d.core.logsetup import JOB_TIME_LINE, RESOURCES_LINE
     from pipeline25d.publish.report import current_jobs, stage_timings
 
-    def tsv(rel: str, seconds: float) -> None:
-        path = tmp_path / "benchmarks" / rel
+    def log(rel: str, seconds: float, rss_mb: int = 100, finished: bool = True) -> None:
+        path = tmp_path / "logs" / rel
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(f"s\th:m:s\tmax_rss\n{seconds}\t0:00:01\t100.0\n")
+        lines = ["2026-11-27 00:00:00,000 INFO pipeline25d.x: working"]
+        if finished:
+            lines += ["... INFO pipeline25d.jobs: " + RESOURCES_LINE % (1, 2, 3, 4, rss_mb * 1024, 10 * 1024),
+                      "... INFO pipeline25d.jobs: " + JOB_TIME_LINE % (0.25, seconds - 0.25, seconds, 0.0)]
+        path.write_text("\n".join(lines) + "\n")
 
-    tsv("scene.tsv", 1.0)
-    tsv("lod/d0.tsv", 2.0)
-    tsv("lod/gone.tsv", 50.0)                            # a district no longer in the config
-    tsv("warp/az045_el45.tsv", 3.0)
-    tsv("warp/az135_el45.tsv", 60.0)                     # a perspective no longer asked for
-    tsv("render/az045_el45/block_0_1_2.tsv", 4.0)
-    tsv("render/az045_el45/block_0_9_9.tsv", 70.0)       # an older grouping's block
-    tsv("heights.tsv", 0.5)
-    tsv("heights/blocks.tsv", 0.25)
-    tsv("heights/block_3_-1.tsv", 5.0)
-    tsv("heights/block_7_7.tsv", 90.0)                   # a block of footprints no longer there
-    current = current_jobs({"d0"}, {"az045_el45": {"0_1_2"}}, {"3_-1"})
+    log("scene.log", 1.0)
+    log("lod/d0.log", 2.0)
+    log("lod/gone.log", 50.0)                            # a district no longer in the config
+    log("warp/az045_el45.log", 3.0, rss_mb=700)
+    log("warp/az135_el45.log", 60.0)                     # a perspective no longer asked for
+    log("render/az045_el45/block_0_1_2.log", 4.0)
+    log("render/az045_el45/block_0_9_9.log", 70.0)       # an older grouping's block
+    log("render/az045_el45/block_0_1_3.log", 80.0, finished=False)
+    log("heights.log", 0.5)
+    log("heights/blocks.log", 0.25)
+    log("heights/block_3_-1.log", 5.0)
+    log("heights/block_7_7.log", 90.0)                   # a block of footprints no longer there
+    log("report.log", 9.0)
+    log("viewer.log", 9.0)
+    current = current_jobs({"d0"}, {"az045_el45": {"0_1_2", "0_1_3"}}, {"3_-1"})
     got = stage_timings(tmp_path, current)
     assert {k: (v["jobs"], v["seconds"]) for k, v in got.items()} == \
         {"scene": (1, 1.0), "lod": (1, 2.0), "warp": (1, 3.0), "render": (1, 4.0), "heights": (3, 5.75)}
-    assert stage_timings(tmp_path)["render"]["jobs"] == 2         # without the filter: every file
+    assert got["warp"]["max_rss_mb"] == 710.0                   # the job's process and its largest child
+    assert stage_timings(tmp_path)["render"]["jobs"] == 2         # without the filter: every finished job

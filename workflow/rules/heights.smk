@@ -21,8 +21,6 @@ checkpoint heights_blocks:
         config=HEIGHTS_CONFIG,
     log:
         f"{RESULTS}/logs/heights/blocks.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/heights/blocks.tsv"
     script:
         "../scripts/job.py"
 
@@ -40,8 +38,6 @@ rule heights_block:
         rows_dir=HEIGHTS_ROWS,
     log:
         f"{RESULTS}/logs/heights/block_{{hblock}}.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/heights/block_{{hblock}}.tsv"
     script:
         "../scripts/job.py"
 
@@ -63,7 +59,5 @@ rule heights:
         rows_dir=HEIGHTS_ROWS,
     log:
         f"{RESULTS}/logs/heights.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/heights.tsv"
     script:
         "../scripts/job.py"

@@ -18,7 +18,5 @@ rule ingest:
         slot=lambda wc: OBJECT_SLOTS[wc.district],
     log:
         f"{RESULTS}/logs/ingest/{{district}}.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/ingest/{{district}}.tsv"
     script:
         "../scripts/job.py"

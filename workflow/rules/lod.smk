@@ -16,7 +16,5 @@ rule lod:
         max_levels=config["lod"]["max_levels"],
     log:
         f"{RESULTS}/logs/lod/{{district}}.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/lod/{{district}}.tsv"
     script:
         "../scripts/job.py"

@@ -16,7 +16,5 @@ rule mosaic:
         **with_ids(ids=ID_MOSAIC),
     log:
         f"{RESULTS}/logs/mosaic/{{pid}}.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/mosaic/{{pid}}.tsv"
     script:
         "../scripts/job.py"

@@ -23,8 +23,6 @@ rule scene:
         ground=config["ground"],
     log:
         f"{RESULTS}/logs/scene.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/scene.tsv"
     script:
         "../scripts/job.py"
 
@@ -45,7 +43,5 @@ checkpoint plan:
         work=WORK,
     log:
         f"{RESULTS}/logs/plan/{{pid}}.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/plan/{{pid}}.tsv"
     script:
         "../scripts/job.py"

@@ -21,7 +21,5 @@ rule render_block:
         objects=OBJECTS,
     log:
         f"{RESULTS}/logs/render/{{pid}}/block_{{block}}.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/render/{{pid}}/block_{{block}}.tsv"
     script:
         "../scripts/job.py"

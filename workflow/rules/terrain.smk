@@ -22,7 +22,5 @@ rule terrain:
     threads: 2
     log:
         f"{RESULTS}/logs/terrain.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/terrain.tsv"
     script:
         "../scripts/job.py"

@@ -23,8 +23,6 @@ rule tms:
     threads: 1
     log:
         f"{RESULTS}/logs/tms/{{pid}}.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/tms/{{pid}}.tsv"
     script:
         "../scripts/job.py"
 

@@ -27,7 +27,5 @@ rule warp:
     threads: 1
     log:
         f"{RESULTS}/logs/warp/{{pid}}.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/warp/{{pid}}.tsv"
     script:
         "../scripts/job.py"

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import resource
 import signal
 import sys
 import warnings
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
 
 from pipeline25d.core.errors import Pipeline25dError
 
@@ -63,6 +65,32 @@ RESOURCES_LINE = "job resources: rchar %d read_bytes %d wchar %d write_bytes %d 
 #: the line :func:`log_job_resources` adds when told the job's times: the process's start-up (interpreter,
 #: Snakemake's job object, imports) before the rule's function, the function itself, and CPU seconds
 JOB_TIME_LINE = "job time: startup_s %.2f run_s %.2f cpu_s %.2f children_cpu_s %.2f"
+
+
+#: the fields of :data:`RESOURCES_LINE` and :data:`JOB_TIME_LINE`, as :func:`job_record` names them
+RESOURCE_KEYS = ("rchar", "read_bytes", "wchar", "write_bytes", "max_rss_kb", "children_max_rss_kb")
+TIME_KEYS = ("startup_s", "run_s", "cpu_s", "children_cpu_s")
+_RESOURCES = re.compile(RESOURCES_LINE.replace("%d", r"(\d+)"))
+_TIME = re.compile(JOB_TIME_LINE.replace("%.2f", r"([\d.]+)"))
+
+
+def job_record(lines: Iterable[str]) -> dict:
+    """A job log's last resources and time lines (:func:`log_job_resources`) as one dict of
+    :data:`RESOURCE_KEYS` (int) and :data:`TIME_KEYS` (float); without either line, without its keys."""
+    rec: dict = {}
+    for line in lines:
+        if m := _RESOURCES.search(line):
+            rec.update(zip(RESOURCE_KEYS, (int(v) for v in m.groups())))
+        elif m := _TIME.search(line):
+            rec.update(zip(TIME_KEYS, (float(v) for v in m.groups())))
+    return rec
+
+
+def job_logs(logs: Path) -> Iterator[tuple[str, Path]]:
+    """(stage, job log) of every job log under a run's ``logs`` folder; the stage is the log's first
+    part there (``render/<pid>/block_*.log`` -> render, ``terrain.log`` -> terrain)."""
+    for log in sorted(Path(logs).rglob("*.log")):
+        yield log.relative_to(logs).parts[0].removesuffix(".log"), log
 
 
 def process_age() -> float | None:

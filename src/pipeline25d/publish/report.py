@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import csv
 import json
 from pathlib import Path
 
@@ -29,39 +28,41 @@ def input_size(config: dict) -> int:
     return total
 
 
-def benchmark_rows(where: Path) -> list[tuple[Path, dict]]:
-    """(file, first row) of a Snakemake benchmark TSV, or of every one under a folder."""
-    rows = []
-    for tsv in [where] if where.is_file() else sorted(where.rglob("*.tsv")):
-        with open(tsv) as fh:
-            rows.append((tsv, next(csv.DictReader(fh, delimiter="\t"))))
-    return rows
+#: the stages that run while or after the report is written: their logs hold an earlier run's job
+AFTER_TIMINGS = ("report", "viewer")
 
 
 def stage_timings(results: Path, current=None) -> dict[str, dict]:
-    """Sum of wall seconds and max RSS (MB) per stage from Snakemake benchmark files; with
-    ``current(path relative to benchmarks/)``, only the files it accepts (see :func:`current_jobs`)."""
+    """Per stage, from the jobs' own logs (:func:`pipeline25d.core.logsetup.job_record`): jobs,
+    wall seconds summed (start-up and the rule's function), and the largest peak RSS (MB) of a
+    job's process and its largest child together; with ``current(path relative to logs/)``, only
+    the logs it accepts (see :func:`current_jobs`). A log without a time line (a job still running,
+    or killed) does not count."""
+    from pipeline25d.core.logsetup import job_logs, job_record
+
     out: dict[str, dict] = {}
-    for tsv, row in benchmark_rows(results / "benchmarks"):
-        if current is not None and not current(tsv.relative_to(results / "benchmarks")):
+    for stage, log in job_logs(results / "logs"):
+        if stage in AFTER_TIMINGS or current is not None and not current(log.relative_to(results / "logs")):
             continue
-        stage = tsv.relative_to(results / "benchmarks").parts[0].removesuffix(".tsv")
-        rec = out.setdefault(stage, {"jobs": 0, "seconds": 0.0, "max_rss_mb": 0.0})
-        rec["jobs"] += 1
-        rec["seconds"] += float(row["s"])
-        rss = row.get("max_rss", "NA")
-        if rss not in ("NA", "-", ""):
-            rec["max_rss_mb"] = max(rec["max_rss_mb"], float(rss))
+        with open(log, errors="replace") as fh:
+            rec = job_record(fh)
+        if "run_s" not in rec:
+            continue
+        s = out.setdefault(stage, {"jobs": 0, "seconds": 0.0, "max_rss_mb": 0.0})
+        s["jobs"] += 1
+        s["seconds"] = round(s["seconds"] + rec["startup_s"] + rec["run_s"], 2)
+        rss_kb = rec.get("max_rss_kb", 0) + rec.get("children_max_rss_kb", 0)
+        s["max_rss_mb"] = max(s["max_rss_mb"], round(rss_kb / 1024, 1))
     return out
 
 
 def current_jobs(districts: set[str], blocks: dict[str, set[str]], heights_blocks: set[str] = frozenset()):
-    """``current(benchmark file)``: whether it belongs to a job of this configuration, whose
+    """``current(job log)``: whether it belongs to a job of this configuration, whose
     ``districts``, perspectives' render ``blocks`` (ids by perspective) and blocks of footprints
-    (``heights_blocks``) are given. Files an earlier configuration left (a removed district or
+    (``heights_blocks``) are given. Logs an earlier configuration left (a removed district or
     perspective, a render block of another grouping) are not this run's."""
     def current(rel: Path) -> bool:
-        if len(rel.parts) == 1:                              # scene.tsv, terrain.tsv
+        if len(rel.parts) == 1:                              # scene.log, terrain.log
             return True
         if rel.parts[0] == "render":
             return rel.parts[1] in blocks and rel.stem.removeprefix("block_") in blocks[rel.parts[1]]

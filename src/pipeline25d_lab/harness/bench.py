@@ -6,7 +6,7 @@ their edges meet; 12 × 10 copies cover about 3.17 × 2.29 km, the paper's Datas
 footprint. ``decimate`` keeps that share of each copy's triangles (fast-simplification),
 e.g. 0.1 for ~5.8 M triangles instead of ~58 M. The workflow then runs with terrain from
 the model (no DTM given) and every result is written to ``bench/<name>.json``: wall time,
-per-stage job-seconds and peak RSS (from Snakemake's benchmark files), tiles, jobs, map
+per-stage job-seconds and peak RSS (from the jobs' logs), tiles, jobs, map
 megapixels and Mpx/s. Times are for comparing runs on one machine, not across machines.
 
 CLI::
@@ -33,7 +33,7 @@ import yaml
 from pipeline25d.config import validate_schema
 from pipeline25d.core.atomic import write_text
 from pipeline25d.core.errors import WorkflowRunError
-from pipeline25d.core.logsetup import JOB_TIME_LINE
+from pipeline25d.core.logsetup import job_logs, job_record
 
 REPO = Path(__file__).resolve().parents[3]
 SOURCE = REPO.parent / "shared" / "data" / "delft" / "delft_dsm_mesh.ply"
@@ -134,21 +134,25 @@ def run_workflow(workdir: Path, config: dict, cores: int | None = 2, from_scratc
 
 #: beside snakemake.log: the CPU seconds of the whole run (Snakemake, its jobs and their children)
 RUN_CPU = "snakemake.cpu.json"
-_JOB_TIME = re.compile(JOB_TIME_LINE.replace("%.2f", r"([\d.]+)"))
-
-
 def job_cpu(results: Path) -> dict[str, float]:
     """CPU seconds per stage, each job's own and its children's, from the ``job time:`` line of
-    every job log under ``results/logs`` (exact, unlike the benchmark files' sampled ``cpu_time``)."""
-    from pipeline25d_lab.harness.dataset_io import stage_logs
-
+    every job log under ``results/logs`` (exact, unlike a sampled figure)."""
     out: dict[str, float] = {}
-    for stage, log in stage_logs(results / "logs"):
-        found = _JOB_TIME.findall(log.read_text(errors="replace"))
-        if found:
-            _, _, own, kids = (float(v) for v in found[-1])
-            out[stage] = round(out.get(stage, 0.0) + own + kids, 2)
+    for stage, log in job_logs(results / "logs"):
+        with open(log, errors="replace") as fh:
+            rec = job_record(fh)
+        if "cpu_s" in rec:
+            out[stage] = round(out.get(stage, 0.0) + rec["cpu_s"] + rec["children_cpu_s"], 2)
     return out
+
+
+def job_seconds(log: Path) -> float:
+    """A job's wall seconds (start-up and the rule's function) from its log's time line."""
+    with open(log, errors="replace") as fh:
+        rec = job_record(fh)
+    if "run_s" not in rec:
+        raise WorkflowRunError(f"{log}: no job time line (the job did not finish)")
+    return rec["startup_s"] + rec["run_s"]
 
 
 def run_cpu(workdir: Path, results: Path) -> dict | None:
@@ -186,13 +190,12 @@ def collect(workdir: Path, config: dict, wall: float, cores: int = 2) -> dict:
 def render_against_plain_loop(results: Path, pid: str, samples: int) -> dict:
     """Render job-seconds per tile of one perspective beside a plain moderngl loop over the same
     tiles in one process (:mod:`pipeline25d_lab.harness.render_reference`), measured in the same run."""
-    from pipeline25d.publish.report import benchmark_rows
     from pipeline25d.stages.plan import read_plan
     from pipeline25d_lab.harness.render_reference import plain_loop_seconds
 
     plan = results / "plans" / f"{pid}.json"
     n = len(read_plan(plan).tiles)
-    job_s = sum(float(row["s"]) for _, row in benchmark_rows(results / "benchmarks" / "render" / pid))
+    job_s = sum(job_seconds(log) for log in sorted((results / "logs" / "render" / pid).glob("*.log")))
     plain = plain_loop_seconds(plan, results / "lod", samples)
     return {"perspective": pid, "tiles": n, "job_s_per_tile": round(job_s / n, 4),
             "plain_loop_s_per_tile": plain["per_tile_s"], "ratio": round(job_s / n / plain["per_tile_s"], 2)}
@@ -211,14 +214,12 @@ def tms_against_gdal2tiles_default(results: Path, pid: str, work: Path, config: 
     ``job_alone_s``: the job's own work (:func:`pipeline25d.stages.tiles.web.tms` on the map, and on
     its id map where there is one) with the workers it took in the run (its log's ``workers:``, see
     :func:`pipeline25d.core.cores.job_workers`; else the rule's threads), against ``job_s_in_run``
-    (its benchmark seconds in the run): what running beside other jobs cost it. ``cut_s``: the map's
+    (its seconds in the run, from its log): what running beside other jobs cost it. ``cut_s``: the map's
     cut alone on 1 and on 2 processes, each against gdal2tiles (``speed_up``)."""
     import shutil
 
-    from pipeline25d.publish.report import benchmark_rows
     from pipeline25d.stages.tiles.web import tms
 
-    ((_, row),) = benchmark_rows(results / "benchmarks" / "tms" / f"{pid}.tsv")
     cog, ids = results / "maps" / f"{pid}.tif", results / "maps" / f"{pid}.ids.tif"
     zooms = sorted(int(z.name) for z in (results / "tms" / pid).iterdir() if z.name.isdigit())
     zoom = f"{zooms[0]}-{zooms[-1]}"
@@ -243,7 +244,7 @@ def tms_against_gdal2tiles_default(results: Path, pid: str, work: Path, config: 
                     str(out / "default")], check=True)
     default_s = time.monotonic() - t0
     shutil.rmtree(out, ignore_errors=True)
-    in_run = float(row["s"])
+    in_run = job_seconds(results / "logs" / "tms" / f"{pid}.log")
     return {"perspective": pid, "zoom": zoom, "workers": threads, "job_s_in_run": round(in_run, 2),
             "job_alone_s": round(alone, 2), "in_run_to_alone": round(in_run / alone, 2),
             "cut_s": {str(n): round(v, 2) for n, v in cut.items()}, "gdal2tiles_default_s": round(default_s, 2),

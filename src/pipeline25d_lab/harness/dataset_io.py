@@ -20,14 +20,10 @@ from __future__ import annotations
 import ctypes
 import mmap
 import os
-import re
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable
 from pathlib import Path
 
-from pipeline25d.core.logsetup import RESOURCES_LINE
-
-_LINE = re.compile(RESOURCES_LINE.replace("%d", r"(\d+)"))
-_KEYS = ("rchar", "read_bytes", "wchar", "write_bytes", "max_rss_kb", "children_max_rss_kb")
+from pipeline25d.core.logsetup import RESOURCE_KEYS, job_logs, job_record
 
 
 def dataset_files(folder: Path) -> list[Path]:
@@ -95,26 +91,15 @@ def resident(folder: Path, level_of=None) -> dict:
 
 def job_resources(lines: Iterable[str]) -> dict | None:
     """The last resources line of a job log as a dict, or None."""
-    found = None
-    for line in lines:
-        m = _LINE.search(line)
-        if m:
-            found = dict(zip(_KEYS, (int(g) for g in m.groups())))
-    return found
-
-
-def stage_logs(logs: Path) -> Iterator[tuple[str, Path]]:
-    """(stage, job log) of every job log under a run's ``logs`` folder; the stage is the log's first
-    part there (``render/<pid>/block_*.log`` -> render, ``terrain.log`` -> terrain)."""
-    for log in sorted(logs.rglob("*.log")):
-        yield log.relative_to(logs).parts[0].removesuffix(".log"), log
+    rec = job_record(lines)
+    return {k: rec[k] for k in RESOURCE_KEYS} if RESOURCE_KEYS[0] in rec else None
 
 
 def stage_resources(logs: Path) -> dict[str, dict]:
-    """Per stage (:func:`stage_logs`): jobs with a resources line, summed rchar and
+    """Per stage (:func:`pipeline25d.core.logsetup.job_logs`): jobs with a resources line, summed rchar and
     read_bytes, and the largest peak RSS of a job and of a job's child, MB."""
     out: dict[str, dict] = {}
-    for stage, log in stage_logs(logs):
+    for stage, log in job_logs(logs):
         with open(log, errors="replace") as fh:
             rec = job_resources(fh)
         if rec is None:

@@ -49,15 +49,17 @@ def new_model(path: Path) -> None:
     trimesh.Trimesh(v, np.asarray(mesh.faces)[:, ::-1], vertex_colors=colors, process=False).export(path)
 
 
-def stage_seconds(benchmarks: Path, since: float) -> dict[str, float]:
-    """Job-seconds per stage of the jobs whose benchmark file was written after ``since``."""
-    from pipeline25d.publish.report import benchmark_rows
+def stage_seconds(logs: Path, since: float) -> dict[str, float]:
+    """Job-seconds per stage of the jobs whose log was written after ``since`` (their time lines)."""
+    from pipeline25d.core.logsetup import job_logs, job_record
 
     out: dict[str, float] = {}
-    for tsv, row in benchmark_rows(benchmarks):
-        if tsv.stat().st_mtime >= since:
-            stage = tsv.relative_to(benchmarks).parts[0].removesuffix(".tsv")
-            out[stage] = round(out.get(stage, 0.0) + float(row["s"]), 1)
+    for stage, log in job_logs(logs):
+        if log.stat().st_mtime >= since:
+            with open(log, errors="replace") as fh:
+                rec = job_record(fh)
+            if "run_s" in rec:
+                out[stage] = round(out.get(stage, 0.0) + rec["startup_s"] + rec["run_s"], 1)
     return out
 
 
@@ -91,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     city = work / "city"
     full_s = run_workflow(city, config, args.cores)
     results = results_of(city, config)
-    full_job_seconds = stage_seconds(results / "benchmarks", 0.0)
+    full_job_seconds = stage_seconds(results / "logs", 0.0)
     tiles_before, web_before = file_digests(results / "tiles", "*/*.tif"), file_digests(results / "tms", "**/*")
     new_model(districts[args.district])
     started = time.time()
@@ -99,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
         update_s = run_workflow(city, config, args.cores, from_scratch=False)
     except WorkflowRunError as exc:
         raise SystemExit(f"district update: the update run failed: {exc}") from None
-    job_seconds = stage_seconds(results / "benchmarks", started)
+    job_seconds = stage_seconds(results / "logs", started)
     tiles_after, web_after = file_digests(results / "tiles", "*/*.tif"), file_digests(results / "tms", "**/*")
     report = json.loads((results / "report" / "report.json").read_text())
     fresh = work / "fresh"

@@ -4,7 +4,7 @@ For one map of a finished run (``RESULTS/tiles/<pid>``, ``mosaic/<pid>.vrt``, ``
 it times, in this process and on this machine, with each step's median of ``--repeat`` runs:
 
 - the render tiles' GeoTIFF decode and encode (the tile write of the render job; the GL
-  readback itself is in the render job's own seconds, ``benchmarks/render``);
+  readback itself is in the render job's own seconds, ``logs/render``);
 - the map: the mosaic copied into the kept, tiled map with its overviews
   (:func:`pipeline25d.stages.maps.patch.patched_map`, no warp) and its COG encode;
 - the web-tile cut, by sub-step: the web-mercator blocks' warp (decode COG, warp, encode),
