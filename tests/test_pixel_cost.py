@@ -50,10 +50,11 @@ def test_read_upsampled_equals_gdals_upsampled_read_of_one_raster(tmp_path):
                               .reshape(buf[1], buf[0]))
 
 
-@pytest.mark.parametrize("tile_format", ["png", "webp"])
-def test_base_tiles_are_gdal2tiles_own_bytes(tmp_path, tile_format):
+@pytest.mark.parametrize(("tile_format", "webp_method"), [("png", None), ("webp", None), ("webp", 4)])
+def test_base_tiles_are_gdal2tiles_own_bytes(tmp_path, tile_format, webp_method):
     """Every base tile of a map in web mercator (one raster: no block seams), cut by
-    create_base_tile and by gdal2tiles' own create_base_tile, has the same sha256."""
+    create_base_tile and by gdal2tiles' own create_base_tile, has the same sha256 (WEBP at
+    libwebp's default effort, or told 4, that default)."""
     from osgeo_utils import gdal2tiles as g2t
 
     from pipeline25d.stages.tiles.web import _gdal2tiles_args
@@ -65,6 +66,8 @@ def test_base_tiles_are_gdal2tiles_own_bytes(tmp_path, tile_format):
     for name, fn in [("ours", create_base_tile), ("g2t", g2t.create_base_tile)]:
         out = tmp_path / name
         _, _, options = g2t.process_args([*_gdal2tiles_args("auto", 1, tile_format, 85, True), str(src), str(out)])
+        if name == "ours":
+            options.webp_method = webp_method
         conf, details = g2t.worker_tile_details(str(src), str(out), options)
         assert details and details[0].querysize == 4 * conf.tile_size    # the scaled query the fast read replaces
         for d in details:
@@ -75,19 +78,23 @@ def test_base_tiles_are_gdal2tiles_own_bytes(tmp_path, tile_format):
 
 
 def test_the_web_tile_job_cuts_the_map_and_its_ids_with_the_jobs_workers(monkeypatch, tmp_path):
-    """tms_job cuts the map and the id map each on the job's workers (core.cores.job_workers)."""
+    """tms_job cuts the map and the id map each on the job's workers (core.cores.job_workers), each
+    free to grow to the cores it may use; the map's tiles at the configured WEBP effort."""
     from pipeline25d import jobs
     from pipeline25d.stages.tiles import web
 
     cuts = []
-    monkeypatch.setattr(web, "tms", lambda source, zoom, out, **k: cuts.append((source, k["processes"])) or {})
+    monkeypatch.setattr(web, "tms", lambda source, zoom, out, **k: cuts.append(
+        (source, k["processes"], k["most"], k.get("webp_method"))) or {})
     monkeypatch.setattr(jobs, "job_workers", lambda threads: threads + 1)
+    monkeypatch.setattr(jobs, "allowed_cores", lambda: 4)
     job = SimpleNamespace(input=SimpleNamespace(cog="m.tif", ids="m.ids.tif"), threads=1,
                           output=SimpleNamespace(tiles="t", stats=str(tmp_path / "s.json"), id_tiles="i",
                                                  id_stats=str(tmp_path / "i.json")),
-                          params=SimpleNamespace(zoom="14-18", tile_format="webp", quality=85, work="w", id_work="iw"))
+                          params=SimpleNamespace(zoom="14-18", tile_format="webp", quality=85, webp_method=2, work="w",
+                                                 id_work="iw"))
     jobs.tms_job(job)
-    assert cuts == [("m.tif", 2), ("m.ids.tif", 2)]
+    assert cuts == [("m.tif", 2, 4, 2), ("m.ids.tif", 2, 4, None)]
 
 
 def test_the_map_service_job_makes_its_id_layers_on_the_jobs_workers(monkeypatch):

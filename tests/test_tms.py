@@ -107,6 +107,34 @@ def test_webp_tiles_are_the_png_tiles_lossy_and_keep_transparency(tmp_path):
     assert np.concatenate(errs).mean() < 3.0                                # lossy, but the same picture
 
 
+def test_a_faster_webp_effort_reaches_every_tile_and_keeps_the_picture(tmp_path):
+    """tms.webp_method (libwebp's METHOD, which gdal2tiles cannot set) is used for the base tiles
+    and for every zoom above them, in this process and in forked workers alike; the tiles lie
+    where libwebp's default puts them and show the same picture as the lossless cut."""
+    _smooth_map(tmp_path / "map.tif")
+    tms(tmp_path / "map.tif", "auto", tmp_path / "png", tile_format="png")
+    cuts = {name: tmp_path / name for name in ("default", "fast", "fast2")}
+    tms(tmp_path / "map.tif", "auto", cuts["default"], tile_format="webp", quality=85)
+    tms(tmp_path / "map.tif", "auto", cuts["fast"], tile_format="webp", quality=85, webp_method=0)
+    tms(tmp_path / "map.tif", "auto", cuts["fast2"], tile_format="webp", quality=85, webp_method=0, processes=2)
+    names = {k: sorted(p.relative_to(d) for p in d.rglob("*.webp")) for k, d in cuts.items()}
+    assert names["default"] and names["fast"] == names["default"] == names["fast2"]
+    zooms = {t.parts[0] for t in names["fast"]}
+    assert len(zooms) >= 3
+    for z in zooms:                                    # METHOD=0 changed the bytes at every zoom
+        same = [(cuts["fast"] / t).read_bytes() == (cuts["default"] / t).read_bytes() for t in names["fast"]
+                if t.parts[0] == z]
+        assert not all(same), z
+    assert all((cuts["fast"] / t).read_bytes() == (cuts["fast2"] / t).read_bytes() for t in names["fast"])
+    errs = []
+    for t in names["fast"]:
+        a = np.asarray(Image.open((tmp_path / "png" / t).with_suffix(".png")).convert("RGBA"), float)
+        b = np.asarray(Image.open(cuts["fast"] / t).convert("RGBA"), float)
+        assert np.abs(a[..., 3] - b[..., 3]).mean() < 1.0
+        errs.append(np.abs(a[..., :3] - b[..., :3])[a[..., 3] == 255].ravel())
+    assert np.concatenate(errs).mean() < 3.0
+
+
 def test_jpeg_maps_keep_their_transparency_as_a_mask_that_the_readers_use(tmp_path):
     from osgeo import gdal
 

@@ -115,7 +115,7 @@ def tms_job(job: Job) -> None:
     processes = job_workers(job.threads)             # the cut on the cores idle now too,
     most = allowed_cores()                           # and on those that fall idle while it runs
     stats = tms(job.input.cog, p.zoom, o.tiles, processes=processes, tile_format=p.tile_format,
-                quality=p.quality, work_dir=p.work, most=most)
+                quality=p.quality, work_dir=p.work, most=most, webp_method=p.webp_method)
     write_json(o.stats, stats)
     if hasattr(o, "id_tiles"):                       # objects.enabled: the id map's tiles, same positions
         stats = tms(job.input.ids, p.zoom, o.id_tiles, processes=processes, tile_format="ids", quality=0,

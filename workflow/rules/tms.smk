@@ -16,6 +16,7 @@ rule tms:
         zoom=config["tms"]["zoom"],
         tile_format=config["tms"]["format"],
         quality=config["tms"]["quality"],
+        webp_method=config["tms"]["webp_method"],
         work=f"{RESULTS}/work/tms/{{pid}}",
         id_work=f"{RESULTS}/work/idtiles/{{pid}}",
     # one core (a job holding two waited for both to be free), and the cores idle when it starts

@@ -231,7 +231,8 @@ def tms_against_gdal2tiles_default(results: Path, pid: str, work: Path, config: 
     def timed(source: Path, processes: int, tile_format: str, quality: int) -> float:
         shutil.rmtree(out, ignore_errors=True)
         t0 = time.monotonic()
-        tms(source, zoom, out / "ours", processes=processes, tile_format=tile_format, quality=quality)
+        tms(source, zoom, out / "ours", processes=processes, tile_format=tile_format, quality=quality,
+            webp_method=cfg["webp_method"])
         return time.monotonic() - t0
 
     cut = {n: timed(cog, n, cfg["format"], cfg["quality"]) for n in (1, 2)}

@@ -99,13 +99,34 @@ def close_source() -> None:
     _local.ds = _local.key = None
 
 
+def gdal2tiles():
+    """``osgeo_utils.gdal2tiles``, its tile encoder's options extended by the WEBP ``METHOD`` that a
+    gdal2tiles options object carries as ``webp_method`` (gdal2tiles has no switch for it: its
+    tiles use libwebp's default, 4). Without ``webp_method`` the options, and so the tiles, are
+    gdal2tiles' own. A cut calls this before it forks its workers, which inherit the module so."""
+    from osgeo_utils import gdal2tiles as g2t
+
+    if not getattr(g2t._get_creation_options, "webp_method", False):
+        plain = g2t._get_creation_options
+
+        def creation_options(options) -> list[str]:
+            opts = plain(options)
+            method = getattr(options, "webp_method", None)
+            if options.tiledriver == "WEBP" and not options.webp_lossless and method is not None:
+                opts = [*opts, f"METHOD={int(method)}"]
+            return opts
+
+        creation_options.webp_method = True
+        g2t._get_creation_options = creation_options
+    return g2t
+
+
 def create_base_tile(tile_job_info, tile_detail) -> None:
     """gdal2tiles' ``create_base_tile`` for a scaled query (resampling other than near and
     antialias): the window read once (:func:`read_window`), averaged by :func:`average_tile`
     (other resamplings: upsampled, then gdal2tiles' ``scale_query_to_tile``); other settings go
     to gdal2tiles' own."""
-    from osgeo_utils import gdal2tiles as g2t
-
+    g2t = gdal2tiles()
     options, d = tile_job_info.options, tile_detail
     if d.querysize == tile_job_info.tile_size or options.resampling == "antialias" or tile_job_info.kml:
         g2t.create_base_tile(tile_job_info, tile_detail)

@@ -43,7 +43,7 @@ from pipeline25d.core.raster import cells_grid_of, gdal, map_cells
 from pipeline25d.stages.maps.mosaic_sources import plain_sources
 from pipeline25d.stages.maps.parts import box_outline
 from pipeline25d.stages.tiles import ids as id_tiles
-from pipeline25d.stages.tiles.base import close_source, create_base_tile
+from pipeline25d.stages.tiles.base import close_source, create_base_tile, gdal2tiles
 
 log = logging.getLogger(__name__)
 
@@ -57,10 +57,12 @@ STATE_VERSION = 1
 
 
 def tms(cog: str | Path, zoom: str, out_dir: str | Path, processes: int = 1, tile_format: str = "png",
-        quality: int = 85, work_dir: str | Path | None = None, most: int | None = None) -> dict:
+        quality: int = 85, work_dir: str | Path | None = None, most: int | None = None,
+        webp_method: int | None = None) -> dict:
     """The gdal2tiles XYZ pyramid (web mercator) of a map at ``out_dir``, published atomically.
 
-    ``tile_format`` png or webp (lossy at ``quality``, with alpha), or ids (``cog`` is then an
+    ``tile_format`` png or webp (lossy at ``quality``, with alpha; ``webp_method``: libwebp's
+    effort, 0-6, None its default 4, which gdal2tiles uses), or ids (``cog`` is then an
     object-id raster: :mod:`pipeline25d.stages.tiles.ids`). ``work_dir`` keeps the
     pyramid, its blocks and its state between runs, so that the next call redoes only what
     changed in the map; without it the pyramid is cut from scratch. Returns the cut's
@@ -77,13 +79,13 @@ def tms(cog: str | Path, zoom: str, out_dir: str | Path, processes: int = 1, til
             stale.unlink()
     if work_dir is not None:
         with _space_checked(Path(work_dir)):
-            stats = update_pyramid(cog, zoom, Path(work_dir), processes, tile_format, quality, most)
+            stats = update_pyramid(cog, zoom, Path(work_dir), processes, tile_format, quality, most, webp_method)
         publish(Path(work_dir) / "tiles", out_dir)
         return stats
     tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
     try:
         with _space_checked(tmp):
-            stats = update_pyramid(cog, zoom, tmp / "work", processes, tile_format, quality, most)
+            stats = update_pyramid(cog, zoom, tmp / "work", processes, tile_format, quality, most, webp_method)
         publish(tmp / "work" / "tiles", out_dir)
         return stats
     finally:
@@ -122,8 +124,9 @@ def publish(tiles: Path, out_dir: Path) -> None:
 
 
 def update_pyramid(cog: str | Path, zoom: str, work: Path, processes: int = 1, tile_format: str = "png",
-                   quality: int = 85, most: int | None = None) -> dict:
+                   quality: int = 85, most: int | None = None, webp_method: int | None = None) -> dict:
     """Bring the pyramid kept in ``work`` (``tiles/``, ``blocks/``, ``state.json``) up to the map ``cog``."""
+    gdal2tiles()                       # before the workers fork: they inherit its tile options
     g = gdal()
     ds = g.Open(str(cog))
     wkt = ds.GetProjection()
@@ -131,7 +134,8 @@ def update_pyramid(cog: str | Path, zoom: str, work: Path, processes: int = 1, t
     grid, zooms = tile_grid(cog, zoom, halved=tile_format != "ids")
     width, height = grid.width, grid.height
     key = {"version": STATE_VERSION, "grid": [*grid.geotransform, width, height], "zooms": zooms, "format": tile_format,
-           "quality": int(quality) if tile_format == "webp" else None, "block_tiles": BLOCK_TILES}
+           "quality": int(quality) if tile_format == "webp" else None, "block_tiles": BLOCK_TILES,
+           **({"webp_method": webp_method} if tile_format == "webp" and webp_method is not None else {})}
     map_grid, cells = map_cells(cog)
     key["map"] = map_grid
     state = read_state(work)
@@ -152,7 +156,7 @@ def update_pyramid(cog: str | Path, zoom: str, work: Path, processes: int = 1, t
     with Workers(processes, most) as workers:
         workers.map(partial(_warp_block, str(cog), str(work / "blocks"), grid, tile_format == "ids"), jobs)
         redone = cut(sorted((work / "blocks").glob("*.tif")), work / "tiles", grid, zooms, reach,
-                     workers, tile_format, quality)
+                     workers, tile_format, quality, webp_method)
     write_state(work, {"key": key, "cells": cells, "dirty": []})
     stats = {"full": full, "map_cells_changed": len(changed), "blocks_warped": len(jobs),
              "web_tiles_redone": redone, "web_tiles": sum(1 for p in (work / "tiles").rglob("*") if p.is_file()),
@@ -236,13 +240,12 @@ def _warp_block(cog: str, blocks_dir: str, grid: Grid, ids: bool, job: tuple[tup
 
 
 def cut(blocks: list[Path], tiles: Path, grid: Grid, zooms: str, windows: list[Window], workers: Workers,
-        tile_format: str, quality: int) -> int:
+        tile_format: str, quality: int, webp_method: int | None = None) -> int:
     """Cut again, with gdal2tiles' own tile functions, every web tile that ``windows`` (pixel
     windows of the web-mercator grid whose blocks were warped again) reach: the base tiles
     whose read window meets one, and all tiles above them. Their old files are deleted first,
     so a tile that now holds nothing is gone. Returns how many tiles were written."""
-    from osgeo_utils import gdal2tiles as g2t
-
+    g2t = gdal2tiles()
     if not windows:
         return 0
     tiles.mkdir(parents=True, exist_ok=True)
@@ -259,6 +262,7 @@ def cut(blocks: list[Path], tiles: Path, grid: Grid, zooms: str, windows: list[W
         gdal().Translate(str(layout), str(vrt), format="VRT", outputType=gdal().GDT_Byte)
     _, _, options = g2t.process_args([*_gdal2tiles_args(zooms, workers.processes, tile_format, quality, True),
                                       str(layout), str(tiles)])
+    options.webp_method = webp_method             # read by the tile encoder (tiles.base.gdal2tiles)
     conf, details = g2t.worker_tile_details(str(layout), str(tiles), options)
     try:
         reads = np.array([[d.rx, d.ry, d.rx + d.rxsize, d.ry + d.rysize] for d in details]).reshape(-1, 1, 4)
