@@ -87,7 +87,7 @@ def test_a_cut_takes_a_worker_more_only_while_a_core_is_idle(tmp_path, idle, at_
     says a core was idle (None: the meter cannot tell); every item runs once, in a worker."""
     from functools import partial
 
-    from pipeline25d.stages.tiles.web import Workers
+    from pipeline25d.stages.tiles.workers import Workers
 
     with Workers(1, most=2, idle=lambda: idle) as workers:
         workers.map(partial(_note_times, str(tmp_path)), list(range(32)))

@@ -26,9 +26,8 @@ from __future__ import annotations
 import logging
 import os
 import shutil
-import signal
 import tempfile
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from functools import partial
 from pathlib import Path
@@ -44,6 +43,7 @@ from pipeline25d.stages.maps.mosaic_sources import plain_sources
 from pipeline25d.stages.maps.parts import box_outline
 from pipeline25d.stages.tiles import ids as id_tiles
 from pipeline25d.stages.tiles.base import close_source, create_base_tile, gdal2tiles
+from pipeline25d.stages.tiles.workers import Workers
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +52,6 @@ GDAL2TILES_TILE = 256
 BLOCK_TILES = 4        # a web-mercator block is 4 x 4 tiles of the highest zoom (1024 x 1024 px)
 MARGIN_PX = 2          # a changed map cell reaches this far (web-mercator px) beyond its reprojected outline
 EDGE_SAMPLES = 5       # points per cell edge reprojected (a cell is small: the reprojection is near affine)
-IDLE_TO_GROW = 0.75    # a cut takes one more worker after a piece of work in which this many cores were idle
 STATE_VERSION = 1
 
 
@@ -304,85 +303,6 @@ def _cut_ids(vrt: str, tiles: Path, base: list, reach: dict[int, set], conf, wor
     workers.map(partial(id_tiles.base_tile, vrt, str(tiles)), base)
     for z in range(conf.tmaxz - 1, conf.tminz - 1, -1):
         workers.map(partial(id_tiles.overview_tile, str(tiles)), sorted((z, x, y) for x, y in reach[z]))
-
-
-class Workers:
-    """One pool of forked worker processes (as gdal2tiles' own) for every stage of a cut, started
-    at the first stage with more than one item; a stage runs in this process where neither
-    ``processes`` nor ``most`` exceeds one.
-    Each stage starts on ``processes`` workers and takes one more, up to ``most``, whenever the
-    machine had a core idle since the last piece of work ended (``idle``: cores idle since the
-    previous call, :class:`pipeline25d.core.cores.IdleMeter`): a cut that started beside another
-    job takes the core that job leaves. The tiles do not depend on the count.
-    A worker dies on SIGTERM (it would otherwise, with the job's SystemExit handler, fail one
-    tile and take the next), and leaving on an exception kills the workers at once.
-
-    concurrent.futures, not multiprocessing.Pool: the pool's exit terminates its workers,
-    which can leave one waiting for a queue lock a terminated sibling held (seen: a hung job).
-    """
-
-    def __init__(self, processes: int, most: int | None = None, idle: Callable[[], float | None] | None = None):
-        self.processes = max(1, processes)
-        self.most = max(self.processes, most or 1)
-        self.idle = idle
-        self.pool = None
-        self.grown = 0            # workers taken beyond ``processes``, summed over the stages
-
-    def __enter__(self) -> "Workers":
-        return self
-
-    def __exit__(self, exc_type, *exc) -> None:
-        if self.pool is None:
-            return
-        if exc_type is None:
-            self.pool.shutdown()
-            return
-        # stopping (an error, or SIGTERM's SystemExit): the tiles in flight are not waited for;
-        # the state's journal has them cut again by the next run
-        for proc in list(self.pool._processes.values()):        # no public way before Python 3.14
-            proc.kill()
-        self.pool.shutdown(wait=False, cancel_futures=True)
-
-    def map(self, fn, items: list) -> None:
-        """``fn`` over ``items``; their results are not kept."""
-        if self.most <= 1 or len(items) <= 1:
-            for item in items:
-                fn(item)
-            return
-        if self.pool is None:
-            import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor
-
-            from pipeline25d.core.cores import IdleMeter
-
-            self.idle = self.idle or IdleMeter()
-            self.pool = ProcessPoolExecutor(self.most, mp_context=multiprocessing.get_context("fork"),
-                                            initializer=signal.signal, initargs=(signal.SIGTERM, signal.SIG_DFL))
-        from concurrent.futures import FIRST_COMPLETED, wait
-
-        size = max(1, min(16, len(items) // (8 * self.most)))
-        pieces = iter([items[i:i + size] for i in range(0, len(items), size)])
-        limit, pending = self.processes, set()
-        self.idle()                                   # this stage's idle time counts from here
-        while True:
-            while len(pending) < limit and (piece := next(pieces, None)) is not None:
-                pending.add(self.pool.submit(_each, fn, piece))
-            if not pending:
-                break
-            done, pending = wait(pending, return_when=FIRST_COMPLETED)
-            for future in done:
-                future.result()
-            idle = self.idle()
-            if limit < self.most and idle is not None and idle >= IDLE_TO_GROW:
-                limit += 1
-                self.grown += 1
-                log.debug("web tiles: a worker more, %d of at most %d (%.1f cores idle)", limit, self.most, idle)
-
-
-def _each(fn, items: list) -> None:
-    """``fn`` over one piece of a stage's items (in a worker)."""
-    for item in items:
-        fn(item)
 
 
 def _mercator_args(threads: int, extra: list[str] | None = None, alpha: bool = True) -> list[str]:
