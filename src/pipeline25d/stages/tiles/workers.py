@@ -74,7 +74,7 @@ class Workers:
         size = max(1, min(16, len(items) // (8 * self.most)))
         pieces = iter([items[i:i + size] for i in range(0, len(items), size)])
         limit, pending = self.processes, set()
-        self.idle()                                   # this stage's idle time counts from here
+        self.idle()                     # a reading now (if 0.25 s have passed): the next covers this stage only
         while True:
             while len(pending) < limit and (piece := next(pieces, None)) is not None:
                 pending.add(self.pool.submit(_each, fn, piece))
