@@ -6,7 +6,7 @@ import re
 import subprocess
 import sys
 
-from pipeline25d.core.logsetup import JOB_TIME_LINE, job_logs, job_record
+from pipeline25d.core.logsetup import JOB_TIME_LINE, job_logs, job_record, read_job_record, wall_seconds
 
 SCRIPT = """
 import time, subprocess, sys
@@ -53,3 +53,5 @@ def test_a_job_record_is_what_the_log_says_its_last_run_took(tmp_path):
     assert rec["max_rss_kb"] > 10_000 and rec["children_max_rss_kb"] > 1_000
     assert list(job_logs(tmp_path / "logs")) == [("render", log)]
     assert job_record(["nothing here"]) == {}
+    assert read_job_record(log) == rec and wall_seconds(rec) == last[0] + last[1]
+    assert wall_seconds(job_record(["nothing here"])) is None

@@ -51,7 +51,12 @@ def idle_cores(interval: float = SAMPLE_S) -> float | None:
         return None
     time.sleep(interval)
     second = _cpu_times()
-    if second is None or second[1] <= first[1]:
+    return None if second is None else _idle_between(first, second)
+
+
+def _idle_between(first: tuple[float, float], second: tuple[float, float]) -> float | None:
+    """Cores idle between two :func:`_cpu_times` readings; None if no time passed between them."""
+    if second[1] <= first[1]:
         return None
     return (os.cpu_count() or 1) * (second[0] - first[0]) / (second[1] - first[1])
 
@@ -83,10 +88,8 @@ class IdleMeter:
         if now is None or self._last is None:
             self._last = self._last or now
             return None
-        cpus = os.cpu_count() or 1
         ticks = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
-        if now[1] - self._last[1] < METER_MIN_S * ticks * cpus:
+        if now[1] - self._last[1] < METER_MIN_S * ticks * (os.cpu_count() or 1):
             return None
-        idle = cpus * (now[0] - self._last[0]) / (now[1] - self._last[1])
-        self._last = now
+        idle, self._last = _idle_between(self._last, now), now
         return idle

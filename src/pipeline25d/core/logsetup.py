@@ -86,6 +86,18 @@ def job_record(lines: Iterable[str]) -> dict:
     return rec
 
 
+def read_job_record(log: Path) -> dict:
+    """:func:`job_record` of the job log at ``log``."""
+    with open(log, errors="replace") as fh:
+        return job_record(fh)
+
+
+def wall_seconds(record: dict) -> float | None:
+    """A job's wall seconds from its :func:`job_record`: start-up and the rule's function; None
+    without a time line (a job still running, or killed)."""
+    return record["startup_s"] + record["run_s"] if "run_s" in record else None
+
+
 def job_logs(logs: Path) -> Iterator[tuple[str, Path]]:
     """(stage, job log) of every job log under a run's ``logs`` folder; the stage is the log's first
     part there (``render/<pid>/block_*.log`` -> render, ``terrain.log`` -> terrain)."""

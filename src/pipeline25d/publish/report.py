@@ -38,19 +38,19 @@ def stage_timings(results: Path, current=None) -> dict[str, dict]:
     job's process and its largest child together; with ``current(path relative to logs/)``, only
     the logs it accepts (see :func:`current_jobs`). A log without a time line (a job still running,
     or killed) does not count."""
-    from pipeline25d.core.logsetup import job_logs, job_record
+    from pipeline25d.core.logsetup import job_logs, read_job_record, wall_seconds
 
     out: dict[str, dict] = {}
     for stage, log in job_logs(results / "logs"):
         if stage in AFTER_TIMINGS or current is not None and not current(log.relative_to(results / "logs")):
             continue
-        with open(log, errors="replace") as fh:
-            rec = job_record(fh)
-        if "run_s" not in rec:
+        rec = read_job_record(log)
+        seconds = wall_seconds(rec)
+        if seconds is None:
             continue
         s = out.setdefault(stage, {"jobs": 0, "seconds": 0.0, "max_rss_mb": 0.0})
         s["jobs"] += 1
-        s["seconds"] = round(s["seconds"] + rec["startup_s"] + rec["run_s"], 2)
+        s["seconds"] = round(s["seconds"] + seconds, 2)
         rss_kb = rec.get("max_rss_kb", 0) + rec.get("children_max_rss_kb", 0)
         s["max_rss_mb"] = max(s["max_rss_mb"], round(rss_kb / 1024, 1))
     return out

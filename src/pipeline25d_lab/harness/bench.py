@@ -33,7 +33,7 @@ import yaml
 from pipeline25d.config import validate_schema
 from pipeline25d.core.atomic import write_text
 from pipeline25d.core.errors import WorkflowRunError
-from pipeline25d.core.logsetup import job_logs, job_record
+from pipeline25d.core.logsetup import job_logs, read_job_record, wall_seconds
 
 REPO = Path(__file__).resolve().parents[3]
 SOURCE = REPO.parent / "shared" / "data" / "delft" / "delft_dsm_mesh.ply"
@@ -134,13 +134,14 @@ def run_workflow(workdir: Path, config: dict, cores: int | None = 2, from_scratc
 
 #: beside snakemake.log: the CPU seconds of the whole run (Snakemake, its jobs and their children)
 RUN_CPU = "snakemake.cpu.json"
+
+
 def job_cpu(results: Path) -> dict[str, float]:
     """CPU seconds per stage, each job's own and its children's, from the ``job time:`` line of
     every job log under ``results/logs`` (exact, unlike a sampled figure)."""
     out: dict[str, float] = {}
     for stage, log in job_logs(results / "logs"):
-        with open(log, errors="replace") as fh:
-            rec = job_record(fh)
+        rec = read_job_record(log)
         if "cpu_s" in rec:
             out[stage] = round(out.get(stage, 0.0) + rec["cpu_s"] + rec["children_cpu_s"], 2)
     return out
@@ -148,11 +149,10 @@ def job_cpu(results: Path) -> dict[str, float]:
 
 def job_seconds(log: Path) -> float:
     """A job's wall seconds (start-up and the rule's function) from its log's time line."""
-    with open(log, errors="replace") as fh:
-        rec = job_record(fh)
-    if "run_s" not in rec:
+    seconds = wall_seconds(read_job_record(log))
+    if seconds is None:
         raise WorkflowRunError(f"{log}: no job time line (the job did not finish)")
-    return rec["startup_s"] + rec["run_s"]
+    return seconds
 
 
 def run_cpu(workdir: Path, results: Path) -> dict | None:

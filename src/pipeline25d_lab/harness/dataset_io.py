@@ -23,7 +23,7 @@ import os
 from collections.abc import Iterable
 from pathlib import Path
 
-from pipeline25d.core.logsetup import RESOURCE_KEYS, job_logs, job_record
+from pipeline25d.core.logsetup import RESOURCE_KEYS, job_logs, job_record, read_job_record
 
 
 def dataset_files(folder: Path) -> list[Path]:
@@ -100,9 +100,8 @@ def stage_resources(logs: Path) -> dict[str, dict]:
     read_bytes, and the largest peak RSS of a job and of a job's child, MB."""
     out: dict[str, dict] = {}
     for stage, log in job_logs(logs):
-        with open(log, errors="replace") as fh:
-            rec = job_resources(fh)
-        if rec is None:
+        rec = read_job_record(log)
+        if RESOURCE_KEYS[0] not in rec:            # no resources line
             continue
         s = out.setdefault(stage, {"jobs": 0, "rchar": 0, "read_bytes": 0, "peak_rss_mb": 0.0,
                                    "child_peak_rss_mb": 0.0})

@@ -51,15 +51,13 @@ def new_model(path: Path) -> None:
 
 def stage_seconds(logs: Path, since: float) -> dict[str, float]:
     """Job-seconds per stage of the jobs whose log was written after ``since`` (their time lines)."""
-    from pipeline25d.core.logsetup import job_logs, job_record
+    from pipeline25d.core.logsetup import job_logs, read_job_record, wall_seconds
 
     out: dict[str, float] = {}
     for stage, log in job_logs(logs):
-        if log.stat().st_mtime >= since:
-            with open(log, errors="replace") as fh:
-                rec = job_record(fh)
-            if "run_s" in rec:
-                out[stage] = round(out.get(stage, 0.0) + rec["startup_s"] + rec["run_s"], 1)
+        seconds = wall_seconds(read_job_record(log)) if log.stat().st_mtime >= since else None
+        if seconds is not None:
+            out[stage] = round(out.get(stage, 0.0) + seconds, 1)
     return out
 
 
