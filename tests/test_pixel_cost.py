@@ -112,31 +112,35 @@ def test_the_map_service_job_makes_its_id_layers_on_the_jobs_workers(monkeypatch
     assert given == [1] and seen == {"objects": "objects.csv", "threads": 2}
 
 
-def test_the_cog_is_compressed_with_the_jobs_threads(monkeypatch, tmp_path):
-    """warp_job hands the job's workers (its threads, or the cores idle when it starts:
-    core.cores.job_workers) to the warp, and the COG encode asks GDAL for them."""
+def test_each_cog_encode_takes_the_cores_idle_when_it_runs(monkeypatch, tmp_path):
+    """warp_job hands the job's threads to the warp; each COG encode (the map's here; the id map's
+    calls the same warp.encode_options) asks GDAL for those or for the cores idle at that moment
+    where more (core.cores.job_workers, measured then, not when the job started)."""
     from pipeline25d import jobs
     from pipeline25d.stages.maps import warp
 
-    seen, given = {}, []
+    seen = {}
     monkeypatch.setattr(warp, "warp", lambda *a, **k: seen.update(k))
-    monkeypatch.setattr(jobs, "job_workers", lambda threads: given.append(threads) or threads + 1)
     job = SimpleNamespace(input=SimpleNamespace(mosaic="m.vrt", gcps="g.csv", plan="p.json"),
                           output=SimpleNamespace(cog="c.tif", meta="c.json"),
                           params=SimpleNamespace(warp={}, maps={}, work="w"), threads=2)
     jobs.warp_job(job)
-    assert given == [2] and seen["threads"] == 3
+    assert seen["threads"] == 2
 
-    calls = []
+    idle = iter([1, 3])                     # the cores idle at the first encode, then at the second
+    given, calls = [], []
+    monkeypatch.setattr(warp, "job_workers", lambda threads: given.append(threads) or max(threads, next(idle)))
     monkeypatch.setattr(warp, "run_tool", lambda args: calls.append(args) or gdal().Translate(
         args[-1], args[-2], format="COG"))
     mosaic = tmp_path / "map.tif"
     write_rgba_geotiff(mosaic, _rgba(64, 64), Grid.north_up(691000.0, 5334000.0, 0.5, 64, 64),
                        horizontal_wkt("EPSG:25832"))
     plan = SimpleNamespace(crs="EPSG:25832", gsd=0.5)
-    warp.warp_to_cog(mosaic, [], {"method": "none", "order": 0}, plan, tmp_path / "cog.tif", threads=3)
-    (args,) = calls
-    assert args[:4] == ["gdal_translate", "-q", "-of", "COG"] and "NUM_THREADS=3" in args
+    for k in range(2):
+        warp.warp_to_cog(mosaic, [], {"method": "none", "order": 0}, plan, tmp_path / f"cog{k}.tif", threads=2)
+    assert given == [2, 2] and [a[:4] for a in calls] == [["gdal_translate", "-q", "-of", "COG"]] * 2
+    assert [[o for o in a if o.startswith("NUM_THREADS")] for a in calls] == [["NUM_THREADS=2"], ["NUM_THREADS=3"]]
+    assert gdal().Open(str(tmp_path / "cog0.tif")).ReadRaster() == gdal().Open(str(tmp_path / "cog1.tif")).ReadRaster()
 
 
 def _tiny_run(root, pid="p"):

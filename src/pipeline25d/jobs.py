@@ -96,7 +96,7 @@ def warp_job(job: Job) -> None:
     from pipeline25d.stages.maps import warp
 
     p, i, o = job.params, job.input, job.output
-    threads = job_workers(job.threads)               # the COG encode on the cores idle now too
+    threads = job.threads                            # each COG encode adds the cores idle when it runs
     cells: dict = {}                                 # the mosaic's digests, made once for both maps
     warp.warp(i.mosaic, i.gcps, i.plan, dict(p.warp), o.cog, o.meta, dict(p.maps), work_dir=p.work, threads=threads,
               cells_memo=cells)

@@ -9,11 +9,15 @@ from pathlib import Path
 from pipeline25d.config import check_semantics, chunk_size, perspectives, render_settings, validate_schema
 from pipeline25d.analysis.height_sources import plan as heights_plan
 from pipeline25d.core.logsetup import stop_on_error
+from pipeline25d.core.snakemake_wakeups import one_pending_wakeup
 from pipeline25d.geometry.perspectives import ID_PATTERN
 from pipeline25d.stages import budget
 from pipeline25d.stages.objects import district_slots
 from pipeline25d.stages.extent import cheap_extent
 from pipeline25d.stages.plan import block_spec_hash, plan_block, read_plan, read_plan_blocks
+
+# the scheduler's wake-ups: one pending at a time, not one chain per job event (core.snakemake_wakeups)
+one_pending_wakeup()
 
 
 def parse_guard(func):

@@ -21,9 +21,9 @@ rule warp:
         work=f"{RESULTS}/work/warp/{{pid}}",
         id_work=f"{RESULTS}/work/ids/{{pid}}",
     # one core: the warp used 1.13 of two and, holding two, kept render jobs off the other (with the
-    # web tiles on one core too: a 3 x 3 Delft city 126 s -> 101 and 111 s in two runs); the cores idle
-    # when it starts too (core.cores); on a cluster profiles/slurm gives it two (GDAL's NUM_THREADS
-    # compresses the COG's blocks on all: the same bytes)
+    # web tiles on one core too: a 3 x 3 Delft city 126 s -> 101 and 111 s in two runs); each COG
+    # encode takes the cores idle when it runs too (stages.maps.warp.encode_options); on a cluster
+    # profiles/slurm gives it two (GDAL's NUM_THREADS compresses the COG's blocks on all: the same bytes)
     threads: 1
     log:
         f"{RESULTS}/logs/warp/{{pid}}.log",

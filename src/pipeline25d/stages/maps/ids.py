@@ -60,7 +60,7 @@ def id_map(ids_vrt: str | Path, mosaic_vrt: str | Path, gcps_csv: str | Path, ma
     """Write ``out`` (UInt32 COG, nodata 0) from the id mosaic ``ids_vrt`` with the warp the map
     ``map_cog`` was made with (``map_json``; its GCPs in ``gcps_csv``), and its figures to
     ``stats_json``: the fixes at edges, agreement with the map's alpha, bytes against the map's."""
-    from pipeline25d.stages.maps.warp import gcp_source, raster_grid, run_tool
+    from pipeline25d.stages.maps.warp import encode_options, gcp_source, raster_grid, run_tool
 
     record = json.loads(Path(map_json).read_text())
     choice = {"method": record["method"], "order": record["order"]}
@@ -70,7 +70,7 @@ def id_map(ids_vrt: str | Path, mosaic_vrt: str | Path, gcps_csv: str | Path, ma
     if raster_grid(ids_vrt) != raster_grid(mosaic_vrt):
         raise ValueError(f"{ids_vrt}: the id mosaic's grid is not the colour mosaic's ({mosaic_vrt})")
     factors = overview_factors(grid.width, grid.height)
-    codec = [*ID_COG, f"NUM_THREADS={int(threads)}"]
+    codec = ID_COG
     with atomic_path(out) as tmp:
         gcp_vrt = Path(tmp).with_suffix(".gcps.vrt")
         try:
@@ -79,13 +79,13 @@ def id_map(ids_vrt: str | Path, mosaic_vrt: str | Path, gcps_csv: str | Path, ma
                 source = gcp_source(ids_vrt, read_observations(gcps_csv), crs, gcp_vrt)
             maker = _Blocks(source, choice, crs, grid, map_cog, factors)
             if len(record["parts"]) > 1:
-                stats = _sparse(maker, [_window_of(grid, Extent(*b)) for b in record["parts"]], tmp, codec)
+                stats = _sparse(maker, [_window_of(grid, Extent(*b)) for b in record["parts"]], tmp, codec, threads)
             else:
                 kept_dir = Path(work_dir) if work_dir else Path(tmp).with_suffix(".blocks")
                 try:
                     kept, stats = _patched(maker, ids_vrt, mosaic_vrt, kept_dir, cells_memo)
-                    run_tool(["gdal_translate", "-q", "-of", "COG", *[o for c in codec for o in ("-co", c)],
-                              str(kept), str(tmp)])
+                    cog = [o for c in encode_options(codec, threads) for o in ("-co", c)]
+                    run_tool(["gdal_translate", "-q", "-of", "COG", *cog, str(kept), str(tmp)])
                 finally:
                     if not work_dir:
                         shutil.rmtree(kept_dir, ignore_errors=True)
@@ -166,9 +166,11 @@ def conform(ids: np.ndarray, alpha: np.ndarray) -> tuple[np.ndarray, np.ndarray,
     return ids, filled & (ids != 0), cleared
 
 
-def _sparse(maker: _Blocks, windows: list[Window], out: Path, codec: list[str]) -> dict:
-    """A sparse map's id map: each part's window (transparent at its edges) made whole, then assembled."""
+def _sparse(maker: _Blocks, windows: list[Window], out: Path, codec: list[str], threads: int) -> dict:
+    """A sparse map's id map: each part's window (transparent at its edges) made whole, then assembled
+    (``codec`` encoded by :func:`.warp.encode_options` with the job's ``threads``)."""
     from pipeline25d.stages.maps.parts import assemble_sparse_cog
+    from pipeline25d.stages.maps.warp import encode_options
 
     g, files, filled, cleared = gdal(), [], 0, 0
     try:
@@ -182,7 +184,7 @@ def _sparse(maker: _Blocks, windows: list[Window], out: Path, codec: list[str]) 
                 ds = g.Open(str(path), 1)
                 ds.BuildOverviews("NEAREST", maker.factors)
                 ds = None
-        assemble_sparse_cog(files, maker.grid, maker.crs, out, codec, ids=True)
+        assemble_sparse_cog(files, maker.grid, maker.crs, out, encode_options(codec, threads), ids=True)
     finally:
         for path, _ in files:
             path.unlink(missing_ok=True)

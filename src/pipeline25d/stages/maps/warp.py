@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline25d.core.atomic import atomic_path, write_json
+from pipeline25d.core.cores import job_workers
 from pipeline25d.core.errors import GdalToolError
 from pipeline25d.core.grid import Grid
 from pipeline25d.core.raster import gdal, tool_env
@@ -226,6 +227,13 @@ def cog_options(compression: str, quality: int) -> list[str]:
     return [*cog_codec(compression, quality), *overviews]
 
 
+def encode_options(options: list[str], threads: int) -> list[str]:
+    """The COG driver's ``options`` and the threads it compresses blocks with: the job's ``threads``,
+    or the cores idle at this moment where more (:func:`~pipeline25d.core.cores.job_workers`), so
+    a map encoded while the other jobs have ended takes their cores (same bytes)."""
+    return [*options, f"NUM_THREADS={job_workers(threads)}"]
+
+
 def warp_to_cog(mosaic: str | Path, obs: Sequence[Observation], choice: dict, plan: Plan, out: str | Path,
                 compression: str = "deflate", quality: int = 85,
                 parts: list[tuple[int, int, int, int]] | None = None,
@@ -239,13 +247,13 @@ def warp_to_cog(mosaic: str | Path, obs: Sequence[Observation], choice: dict, pl
     part (see :mod:`pipeline25d.stages.maps.parts`). Returns each part's bounds [xmin, ymin, xmax, ymax]
     on the map (one part: the whole map's). A dense map is kept in ``work_dir`` with its
     overviews and patched where the mosaic changed (:mod:`pipeline25d.stages.maps.patch`).
-    ``threads``: the job's threads, with which GDAL compresses the COG's blocks (same bytes).
+    ``threads``: the job's threads, with which GDAL compresses the COG's blocks, or the cores idle
+    when it does where more (:func:`encode_options`; same bytes).
     """
     from pipeline25d.core.crs import horizontal_wkt
 
     crs = horizontal_wkt(plan.crs)
-    codec = [*cog_options(compression, quality), f"NUM_THREADS={int(threads)}"]
-    cog = [opt for c in codec for opt in ("-co", c)]
+    codec = cog_options(compression, quality)
     with atomic_path(out) as tmp:
         gcp_vrt = Path(tmp).with_suffix(".gcps.vrt")
         try:
@@ -253,12 +261,13 @@ def warp_to_cog(mosaic: str | Path, obs: Sequence[Observation], choice: dict, pl
             if choice["method"] != "none":
                 source = gcp_source(mosaic, obs, crs, gcp_vrt)
             if parts and len(parts) > 1:
-                return _warp_parts(source, mosaic, choice, plan, crs, parts, tmp, codec)
+                return _warp_parts(source, mosaic, choice, plan, crs, parts, tmp, codec, threads)
             from pipeline25d.stages.maps.patch import patched_map
 
             kept_dir = Path(work_dir) if work_dir else Path(tmp).with_suffix(".blocks")
             try:
                 kept, _ = patched_map(mosaic, source, choice, crs, plan.gsd, kept_dir, cells_memo)
+                cog = [opt for c in encode_options(codec, threads) for opt in ("-co", c)]
                 run_tool(["gdal_translate", "-q", "-of", "COG", *cog, str(kept), str(tmp)])
             finally:
                 if not work_dir:
@@ -270,9 +279,10 @@ def warp_to_cog(mosaic: str | Path, obs: Sequence[Observation], choice: dict, pl
 
 
 def _warp_parts(source: Path, mosaic: str | Path, choice: dict, plan: Plan, crs: str,
-                parts: list[tuple[int, int, int, int]], out: Path, codec: list[str]) -> list[list[float]]:
+                parts: list[tuple[int, int, int, int]], out: Path, codec: list[str],
+                threads: int) -> list[list[float]]:
     """A sparse COG: each part warped onto the map grid with its overviews, then assembled
-    (``codec``: the COG driver's options, :func:`cog_options` and its threads)."""
+    (``codec``: the COG driver's options, :func:`cog_options`, encoded by :func:`encode_options`)."""
     from pipeline25d.stages.maps.parts import (
         assemble_sparse_cog,
         map_grid,
@@ -315,7 +325,7 @@ def _warp_parts(source: Path, mosaic: str | Path, choice: dict, plan: Plan, crs:
             ds = None
         log.info("sparse map: %d parts, %d x %d px, %.1f%% of it in parts", len(windows), width, height,
                  100 * sum(w.width * w.height for w in windows) / (width * height))
-        assemble_sparse_cog(part_files, grid, crs, out, codec)
+        assemble_sparse_cog(part_files, grid, crs, out, encode_options(codec, threads))
     finally:
         for path, _ in part_files:
             path.unlink(missing_ok=True)
