@@ -238,6 +238,26 @@ def test_dtm_read_through_a_window_samples_the_same_heights_with_a_fraction_of_t
     np.testing.assert_array_equal(part.sample(xy[:, 0], xy[:, 1]), whole.sample(xy[:, 0], xy[:, 1]))
 
 
+def test_a_dtm_whose_nodata_is_nan_fills_its_holes_alike_through_any_window(tmp_path):
+    """NaN nodata (GDAL's float rasters, write_float_geotiff): a hole is filled from the whole
+    raster's nearest valid cell, not the window's, so two render blocks cannot disagree."""
+    from pipeline25d.core.crs import horizontal_wkt
+    from pipeline25d.core.geotiff import write_float_geotiff
+    from pipeline25d.core.grid import Grid
+    from pipeline25d.core.raster import DTM
+
+    grid = Grid.north_up(0.0, 400.0, 1.0, 400, 400)
+    cols, _ = np.meshgrid(np.arange(400), np.arange(400))
+    values = 0.1 * cols
+    values[100:300, 100:300] = np.nan                 # a hole 200 m across
+    write_float_geotiff(tmp_path / "dtm.tif", values, grid, horizontal_wkt("EPSG:28992"))
+    x, y = np.array([160.5]), np.array([199.5])       # 61 cells from the hole's west edge, 141 from its east
+    whole = DTM(tmp_path / "dtm.tif", "EPSG:28992", continuous=True)
+    part = DTM(tmp_path / "dtm.tif", "EPSG:28992", continuous=True, window=(150, 150, 305, 250))
+    assert whole.sample(x, y)[0] == pytest.approx(9.9, abs=1e-5)      # col 99's height
+    assert part.sample(x, y)[0] == whole.sample(x, y)[0]
+
+
 @needs_data
 def test_offset_on_a_self_georeferenced_format_is_an_error_not_ignored():
     from pipeline25d.core.errors import ConfigError

@@ -104,14 +104,19 @@ class DTM:
         self.scene_crs = scene_crs
         win = Window(0, 0, grid.width, grid.height) if window is None else self._pixel_window(Extent(*window), grid)
         nodata = band.GetNoDataValue()
-        self.values = band.ReadAsArray(win.col0, win.row0, win.width, win.height).astype(np.float64)
-        if continuous and nodata is not None and (self.values == nodata).any():
+
+        def read(w: Window) -> np.ndarray:      # nodata (a number, or NaN itself) as NaN
+            values = band.ReadAsArray(w.col0, w.row0, w.width, w.height).astype(np.float64)
+            if nodata is not None:
+                values[values == nodata] = np.nan
+            return values
+
+        self.values = read(win)
+        if continuous and window is not None and not np.isfinite(self.values).all():
             # holes are filled from the nearest valid cell, which may lie outside the window:
             # read everything, so every tile fills them alike (no seams)
             win = Window(0, 0, grid.width, grid.height)
-            self.values = band.ReadAsArray().astype(np.float64)
-        if nodata is not None:
-            self.values[self.values == nodata] = np.nan
+            self.values = read(win)
         self.grid = grid.window(*win.slices)
         self.continuous = continuous
         if continuous:
