@@ -4,9 +4,9 @@ Snakemake 9's scheduler ends every pass over the ready jobs by starting a ``thre
 that wakes it again after the job-rate limit's timespan (``--max-jobs-per-timespan``, 100/1s by
 default). The pass that timer wakes starts another, so each job event (a start, an end) begins a
 chain of wake-ups that never stops while jobs wait for cores, and each pass stats the inputs of
-every ready job. During ``make bench`` the scheduler held 126 such timer threads after 364 jobs
-and used 0.16 of a core while render jobs ran; its own CPU was 302 CPU-seconds of the run's
-2,354, and more per job the more jobs a run has (a similar report upstream:
+every ready job. In one ``make bench`` run (2026-11-27) the scheduler held 126 such timer threads
+after 364 jobs, used 0.16 of a core while render jobs ran, and took 203 of the run's 1,904
+CPU-seconds; with one timer pending, 42 of 1,858 in the run after it (a similar report upstream:
 snakemake/snakemake#3955).
 
 :func:`one_pending_wakeup` keeps Snakemake's own behaviour (the same passes, the same rate limit)

@@ -91,7 +91,11 @@ def resident(folder: Path, level_of=None) -> dict:
 
 def job_resources(lines: Iterable[str]) -> dict | None:
     """The last resources line of a job log as a dict, or None."""
-    rec = job_record(lines)
+    return _resources(job_record(lines))
+
+
+def _resources(rec: dict) -> dict | None:
+    """The resources of a :func:`~pipeline25d.core.logsetup.job_record`, or None without that line."""
     return {k: rec[k] for k in RESOURCE_KEYS} if RESOURCE_KEYS[0] in rec else None
 
 
@@ -100,8 +104,8 @@ def stage_resources(logs: Path) -> dict[str, dict]:
     read_bytes, and the largest peak RSS of a job and of a job's child, MB."""
     out: dict[str, dict] = {}
     for stage, log in job_logs(logs):
-        rec = read_job_record(log)
-        if RESOURCE_KEYS[0] not in rec:            # no resources line
+        rec = _resources(read_job_record(log))
+        if rec is None:
             continue
         s = out.setdefault(stage, {"jobs": 0, "rchar": 0, "read_bytes": 0, "peak_rss_mb": 0.0,
                                    "child_peak_rss_mb": 0.0})
