@@ -76,6 +76,23 @@ def test_district_lod_rebuilds_only_changed_chunks_and_removes_stale_ones(tmp_pa
     assert all(third[k] != second[k] for k in third)
 
 
+def test_district_lod_on_two_processes_writes_the_same_files(tmp_path):
+    """A district's chunks built by two forked workers: the same index and LOD files, byte for
+    byte, as one process builds (a city that is one district uses both cores)."""
+    from pipeline25d.stages.lod import build_lod
+
+    chunks = tmp_path / "chunks"
+    write_chunks(Mesh([grid_part(bump=2.0)]), "a", 25.0, chunks, chunks / "index.json")
+    built = {}
+    for processes in (1, 2):
+        lod = tmp_path / f"lod{processes}"
+        index = build_lod(chunks / "index.json", lod / "index.json", 0.5, 4, processes=processes)
+        assert len(index["chunks"]) == 16
+        built[processes] = {p.name: p.read_bytes() for p in sorted(lod.iterdir())}
+    assert built[1].keys() == built[2].keys() and len(built[1]) == 16 + 2    # npz files, index, hashes
+    assert all(built[1][k] == built[2][k] for k in built[1])
+
+
 def test_lod_errors_are_measured_and_levels_chosen_by_pixel_size():
     flat = build_levels(Mesh([grid_part(bump=0.0)]), max_error=0.1, max_levels=5)
     assert len(flat) >= 3 and all(e < 1e-6 for _, e in flat)          # a plane simplifies exactly

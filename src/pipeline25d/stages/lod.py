@@ -195,7 +195,8 @@ def choose_level(errors: list[float], max_error: float) -> int:
     return max(ok) if ok else 0
 
 
-def build_lod(chunk_index: str | Path, out_index: str | Path, max_error: float, max_levels: int) -> dict:
+def build_lod(chunk_index: str | Path, out_index: str | Path, max_error: float, max_levels: int,
+              processes: int = 1) -> dict:
     """Write the LOD pyramid of every chunk of a district beside ``out_index``, then the index.
 
     ``chunk_index``: the district's ingest index (its chunk npz files beside it). One npz per
@@ -203,6 +204,8 @@ def build_lod(chunk_index: str | Path, out_index: str | Path, max_error: float, 
     the previous run keeps its file (and mtime), so no tile drawing it re-runs. The previous
     run's entries live in ``index.hashes.json``, which is no declared output: Snakemake deletes
     the index itself before the job. Files of chunks no longer in the district are removed.
+    ``processes``: chunks built at once, each in a forked worker (a city that is one district,
+    as one photogrammetry model is, then uses every core it is given); the files are the same.
     Returns the index: {district, max_error, max_levels, chunks: {id: {bounds, errors, triangles, hash}}}.
     """
     chunk_index, out_index = Path(chunk_index), Path(out_index)
@@ -211,10 +214,11 @@ def build_lod(chunk_index: str | Path, out_index: str | Path, max_error: float, 
     sidecar = out_index.with_suffix(".hashes.json")
     kept = _reusable_lods(sidecar, params, ingested["chunks"], out_index.parent)
     write_json(sidecar, {"params": params, "chunks": kept})   # before any npz is rewritten: no false record survives a crash
-    record = {}
-    for cid, info in sorted(ingested["chunks"].items()):
-        record[cid] = kept.get(cid) or {"source": info["hash"], **build_chunk_lod(
-            chunk_index.parent / f"{cid}.npz", out_index.parent / f"{cid}.npz", max_error, max_levels)}
+    todo = [cid for cid in sorted(ingested["chunks"]) if cid not in kept]
+    built = _built_chunks([(chunk_index.parent / f"{cid}.npz", out_index.parent / f"{cid}.npz") for cid in todo],
+                          max_error, max_levels, processes)
+    record = {cid: kept.get(cid) or {"source": info["hash"], **built[cid]}
+              for cid, info in sorted(ingested["chunks"].items())}
     _remove_stale_lods(out_index.parent, record)
     write_json(sidecar, {"params": params, "chunks": record})
     index = {"district": ingested["district"], **params,
@@ -222,6 +226,29 @@ def build_lod(chunk_index: str | Path, out_index: str | Path, max_error: float, 
     write_json(out_index, index)
     log.info("%s: %d chunk LODs built, %d unchanged", ingested["district"], len(record) - len(kept), len(kept))
     return index
+
+
+def _built_chunks(paths: list[tuple[Path, Path]], max_error: float, max_levels: int,
+                  processes: int) -> dict[str, dict]:
+    """{chunk id: :func:`build_chunk_lod`'s entry} of each (ingested npz, LOD npz) pair, in
+    ``processes`` forked workers where more than one chunk and one process."""
+    from functools import partial
+
+    build = partial(_build_pair, max_error=max_error, max_levels=max_levels)
+    processes = min(processes, len(paths))
+    if processes <= 1:
+        return dict(map(build, paths))
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    log.info("%d chunks on %d processes", len(paths), processes)
+    with ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("fork")) as pool:
+        return dict(pool.map(build, paths))
+
+
+def _build_pair(paths: tuple[Path, Path], max_error: float, max_levels: int) -> tuple[str, dict]:
+    source, out = paths
+    return source.stem, build_chunk_lod(source, out, max_error, max_levels)
 
 
 def _reusable_lods(sidecar: Path, params: dict, chunks: dict[str, dict], out_dir: Path) -> dict[str, dict]:
