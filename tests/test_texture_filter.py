@@ -80,6 +80,46 @@ def test_mip_levels_are_unbiased_area_means():
     assert abs(odd[1].mean() - odd[0].mean()) < 0.05
 
 
+@pytest.mark.parametrize("shape", [(64, 128), (255, 100)])
+def test_uploaded_texture_holds_each_exact_mip_level(gl_ctx, shape):
+    """Every level GL holds is :func:`mip_levels`' own (read back from the texture), the chain complete
+    down to 1 x 1: each defined by glTexImage2D, none computed by the driver."""
+    import io
+
+    from PIL import Image
+
+    from pipeline25d.stages.textures import upload
+
+    rng = np.random.default_rng(5)
+    img = rng.integers(0, 256, (*shape, 4), dtype=np.uint8)
+    img[..., 3] = 255
+    png = io.BytesIO()
+    Image.fromarray(img).save(png, format="PNG")
+    tex = upload(gl_ctx, png.getvalue(), 1.0)
+    levels = mip_levels(np.ascontiguousarray(img[::-1]))          # GL's order: row 0 at the bottom
+    assert len(levels) == int(np.log2(max(shape))) + 1
+    for k, level in enumerate(levels):
+        assert np.array_equal(_level_of(tex, k, level.shape), level), k
+    tex.release()
+
+
+def _level_of(tex, k: int, shape: tuple) -> np.ndarray:
+    """Level ``k`` of a GL texture by glGetTexImage (moderngl reads only the levels it made)."""
+    import ctypes
+
+    egl = ctypes.CDLL("libEGL.so.1")
+    egl.eglGetProcAddress.restype = ctypes.c_void_p
+    egl.eglGetProcAddress.argtypes = [ctypes.c_char_p]
+    get = ctypes.CFUNCTYPE(None, ctypes.c_uint, ctypes.c_int, ctypes.c_uint, ctypes.c_uint, ctypes.c_void_p)(
+        egl.eglGetProcAddress(b"glGetTexImage"))
+    pack = ctypes.CFUNCTYPE(None, ctypes.c_uint, ctypes.c_int)(egl.eglGetProcAddress(b"glPixelStorei"))
+    out = np.zeros(shape, np.uint8)
+    tex.use(0)
+    pack(0x0D05, 1)                                        # GL_PACK_ALIGNMENT
+    get(0x0DE1, k, 0x1908, 0x1401, out.ctypes.data)        # GL_TEXTURE_2D, GL_RGBA, GL_UNSIGNED_BYTE
+    return out
+
+
 class _Ctx:
     def __init__(self, renderer: str, max_anisotropy: float):
         self.info, self.max_anisotropy = {"GL_RENDERER": renderer}, max_anisotropy
