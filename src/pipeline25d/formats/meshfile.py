@@ -1,8 +1,10 @@
 """OBJ, PLY and DAE model files through trimesh: one MeshPart per material/geometry, an OBJ's faces on their `o`.
 
-trimesh keeps OBJ/glTF UVs with v = 0 at the image bottom (our convention); textures are
-re-encoded as PNG once per image; vertex colours and material colours become RGBA per
-vertex. Coordinates are float64 as the file stores them.
+trimesh keeps OBJ/glTF UVs with v = 0 at the image bottom (our convention); a texture keeps the
+bytes of its PNG or JPEG file (an OSGB tile's, which osgconv writes as PNG, too), any other image
+is encoded as PNG, once per image (re-encoding every texture as PNG was 62 % of an OSGB city's
+ingest); vertex colours and material colours become RGBA per vertex. Coordinates are float64 as the
+file stores them.
 """
 
 from __future__ import annotations
@@ -48,7 +50,7 @@ def load_mesh_file(path: str | Path) -> Mesh:
         vertices = np.asarray(geom.vertices, dtype=np.float64)
         if not np.allclose(transform, np.eye(4)):
             vertices = trimesh.transformations.transform_points(vertices, transform)
-        parts.append(_part(geom, vertices, str(name), encoded))
+        parts.append(_part(geom, vertices, str(name), encoded, files.asked))
     if not parts:
         raise InputFileError(path, "contains no triangles")
     return Mesh(_objects_joined(parts, path) if split else parts, source=str(path))
@@ -132,7 +134,8 @@ def _check_dae(path: Path) -> bytes | None:
     return None if data is original else data
 
 
-def _part(geom, vertices: np.ndarray, name: str, encoded: dict[int, bytes]) -> MeshPart:
+def _part(geom, vertices: np.ndarray, name: str, encoded: dict[int, bytes],
+          served: dict[str, bytes | None]) -> MeshPart:
     visual = geom.visual
     faces = np.asarray(geom.faces, dtype=np.int64)
     if visual.kind == "texture":
@@ -141,15 +144,25 @@ def _part(geom, vertices: np.ndarray, name: str, encoded: dict[int, bytes]) -> M
         if image is not None and visual.uv is not None and len(visual.uv) == len(vertices):
             key = id(image)
             if key not in encoded:
-                buf = io.BytesIO()
-                image.save(buf, format="PNG")
-                encoded[key] = buf.getvalue()
+                encoded[key] = _texture_bytes(image, served)
             return MeshPart(vertices, faces, uv=np.asarray(visual.uv), texture=encoded[key], name=name)
         colour = np.asarray(getattr(material, "main_color", [180, 180, 180, 255]), dtype=np.uint8)
         return MeshPart(vertices, faces, colors=np.tile(colour, (len(vertices), 1)), name=name)
     if visual.kind in ("vertex", "face"):
         return MeshPart(vertices, faces, colors=np.asarray(visual.vertex_colors)[:, :4], name=name)
     return MeshPart(vertices, faces, name=name)
+
+
+def _texture_bytes(image, served: dict[str, bytes | None]) -> bytes:
+    """The encoded bytes of a texture trimesh decoded: those of its file where that is a PNG or JPEG
+    (trimesh records the file in ``image.info["file_path"]``; ``served``: what the resolver read,
+    by name), else the image encoded as PNG."""
+    data = served.get(image.info.get("file_path"))
+    if data is not None and (data[:8] == b"\x89PNG\r\n\x1a\n" or data[:3] == b"\xff\xd8\xff"):
+        return data
+    buf = io.BytesIO()
+    image.save(buf, format="PNG")
+    return buf.getvalue()
 
 
 class _Files(trimesh.resolvers.FilePathResolver):
