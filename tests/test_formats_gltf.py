@@ -144,6 +144,24 @@ def test_embedded_texture_uv_flipped(tmp_path):
     assert sorted(np.round(uv[:, 0], 6).tolist()) == [0.0, 0.0, 1.0]
 
 
+def test_a_truncated_embedded_image_warns_and_drops_texture(tmp_path):
+    """A JPEG cut short passes its magic bytes: it is decoded when read, so the render job that
+    would have failed on it never gets it."""
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(np.random.default_rng(2).integers(0, 256, (32, 32, 3), dtype=np.uint8)).save(buf, format="JPEG")
+    jpeg = buf.getvalue()[:300]
+    doc, binary = _gltf(material={"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}})
+    doc["bufferViews"].append({"buffer": 0, "byteOffset": len(binary), "byteLength": len(jpeg)})
+    doc["buffers"][0]["byteLength"] = len(binary) + len(jpeg)
+    doc["images"] = [{"bufferView": 3, "mimeType": "image/jpeg"}]
+    doc["textures"] = [{"source": 0}]
+    with pytest.warns(UserWarning, match=r"t\.glb: image 0 cannot be read"):
+        part = parse_gltf_bytes(_glb(doc, binary + jpeg), tmp_path / "t.glb")[0]
+    assert part.texture is None
+
+
 def test_data_uri_and_external_image(tmp_path):
     png = _png_bytes()
     material = {"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}

@@ -58,26 +58,43 @@ def read_text(path: Path, what: str) -> str:
         raise InputFileError(path, f"cannot read {what}: {exc}") from None
 
 
-def texture_image(model: Path, image: str, problem: str | None = None) -> bytes | None:
-    """The encoded bytes of texture image file ``image``, or None with a MissingTextureWarning
-    ("<model>: texture image <image> <problem>; ...") when it is missing, not an image or
-    unreadable, or when the caller already knows its ``problem``."""
+def image_problem(data: bytes) -> str | None:
+    """What keeps encoded image bytes from being drawn ("is not an image", "cannot be read (...)":
+    truncated, corrupt), or None. A PNG is read to its end, every chunk's checksum checked; a JPEG,
+    whose checks read none of its data, is decoded (a 512 px atlas in a few ms), so a texture
+    that would stop the render job is found when its file is read."""
     import io
 
     from PIL import Image, UnidentifiedImageError
 
+    try:
+        with Image.open(io.BytesIO(data)) as img:
+            kind = img.format
+            img.verify()
+        if kind == "JPEG":
+            with Image.open(io.BytesIO(data)) as img:
+                img.load()
+    except UnidentifiedImageError:
+        return "is not an image"
+    except (OSError, SyntaxError, ValueError) as exc:
+        return f"cannot be read ({exc})"
+    return None
+
+
+def texture_image(model: Path, image: str, problem: str | None = None) -> bytes | None:
+    """The encoded bytes of texture image file ``image``, or None with a MissingTextureWarning
+    ("<model>: texture image <image> <problem>; ...") when it is missing, not an image or
+    unreadable (:func:`image_problem`), or when the caller already knows its ``problem``."""
     data = None
     if problem is None:
         try:
             data = Path(image).read_bytes()
-            with Image.open(io.BytesIO(data)) as img:
-                img.verify()
         except FileNotFoundError:
             problem = "is missing"
-        except UnidentifiedImageError:
-            problem = "is not an image"
-        except (OSError, SyntaxError) as exc:
+        except OSError as exc:
             problem = f"cannot be read ({exc})"
+        else:
+            problem = image_problem(data)
     if problem:
         warnings.warn(f"{model}: texture image {image} {problem}; its parts are drawn untextured",
                       MissingTextureWarning, stacklevel=3)

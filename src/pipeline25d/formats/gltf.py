@@ -13,7 +13,8 @@ factor and ``COLOR_0`` as vertex colours of untextured parts. Only triangle list
 
 One :class:`MeshPart` per primitive instance, its vertices compacted to the ones its
 triangles use; its faces' objects are the feature ids (``_BATCHID``, ``EXT_mesh_features``) and
-their attributes the ``EXT_structural_metadata`` property table's rows (:mod:`pipeline25d.formats.feature_info`). UVs are flipped to the GL convention (v = 0 is the bottom image row).
+their attributes the ``EXT_structural_metadata`` property table's rows (:mod:`pipeline25d.formats.feature_info`).
+UVs are flipped to the GL convention (v = 0 is the bottom image row).
 Colours are the 8-bit values of the glTF factors as written (no linear->sRGB step),
 which is how generators such as pg2b3dm author them.
 
@@ -37,7 +38,7 @@ import numpy as np
 from pipeline25d.core.errors import InputFileError, MissingTextureWarning, UnsupportedFeatureError
 from pipeline25d.core.mesh import MeshPart
 from pipeline25d.formats.attributes import Limiter
-from pipeline25d.formats.common import side_file
+from pipeline25d.formats.common import image_problem, side_file
 from pipeline25d.formats.feature_info import feature_prefix, feature_properties
 
 #: Extensions this reader honours (or may safely ignore) when a file lists them as required.
@@ -256,6 +257,10 @@ class _Document:
             if data is not None and not (data[:8] == b"\x89PNG\r\n\x1a\n" or data[:3] == b"\xff\xd8\xff"):
                 warnings.warn(f"{self.path}: image {index} is neither PNG nor JPEG (not an image); "
                               "its parts are drawn untextured", MissingTextureWarning, stacklevel=4)
+                data = None
+            elif data is not None and (problem := image_problem(data)) is not None:
+                warnings.warn(f"{self.path}: image {index} {problem}; its parts are drawn untextured",
+                              MissingTextureWarning, stacklevel=4)
                 data = None
             self._images[index] = data
         return self._images[index]

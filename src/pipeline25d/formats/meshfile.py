@@ -141,11 +141,11 @@ def _part(geom, vertices: np.ndarray, name: str, encoded: dict[int, bytes],
     if visual.kind == "texture":
         material = visual.material
         image = getattr(material, "image", None) or getattr(material, "baseColorTexture", None)
-        if image is not None and visual.uv is not None and len(visual.uv) == len(vertices):
-            key = id(image)
-            if key not in encoded:
-                encoded[key] = _texture_bytes(image, served)
-            return MeshPart(vertices, faces, uv=np.asarray(visual.uv), texture=encoded[key], name=name)
+        usable = image is not None and visual.uv is not None and len(visual.uv) == len(vertices)
+        if usable and id(image) not in encoded:
+            encoded[id(image)] = _texture_bytes(image, served)
+        if usable and encoded[id(image)] is not None:
+            return MeshPart(vertices, faces, uv=np.asarray(visual.uv), texture=encoded[id(image)], name=name)
         colour = np.asarray(getattr(material, "main_color", [180, 180, 180, 255]), dtype=np.uint8)
         return MeshPart(vertices, faces, colors=np.tile(colour, (len(vertices), 1)), name=name)
     if visual.kind in ("vertex", "face"):
@@ -153,15 +153,24 @@ def _part(geom, vertices: np.ndarray, name: str, encoded: dict[int, bytes],
     return MeshPart(vertices, faces, name=name)
 
 
-def _texture_bytes(image, served: dict[str, bytes | None]) -> bytes:
-    """The encoded bytes of a texture trimesh decoded: those of its file where that is a PNG or JPEG
+def _texture_bytes(image, served: dict[str, bytes | None]) -> bytes | None:
+    """The encoded bytes of a texture trimesh opened: those of its file where that is a PNG or JPEG
     (trimesh records the file in ``image.info["file_path"]``; ``served``: what the resolver read,
-    by name), else the image encoded as PNG."""
-    data = served.get(image.info.get("file_path"))
+    by name, None for a file :meth:`_Files.check` found missing or broken), else the image encoded
+    as PNG; None where it cannot be (already warned of, or warned of here)."""
+    name = image.info.get("file_path")
+    data = served.get(name)
+    if name in served and data is None:
+        return None
     if data is not None and (data[:8] == b"\x89PNG\r\n\x1a\n" or data[:3] == b"\xff\xd8\xff"):
         return data
     buf = io.BytesIO()
-    image.save(buf, format="PNG")
+    try:
+        image.save(buf, format="PNG")
+    except (OSError, SyntaxError, ValueError) as exc:
+        warnings.warn(f"texture {name or image.format!r} cannot be read ({exc}); its parts are drawn untextured",
+                      MissingTextureWarning, stacklevel=4)
+        return None
     return buf.getvalue()
 
 
@@ -192,19 +201,17 @@ class _Files(trimesh.resolvers.FilePathResolver):
         return data
 
     def check(self, model: Path) -> None:
-        """Warn of each material library or texture that was missing or is not an image."""
-        from PIL import Image, UnidentifiedImageError
+        """Warn of each material library or texture that was missing or cannot be drawn (not an
+        image, truncated, corrupt: :func:`~pipeline25d.formats.common.image_problem`); such a
+        texture's file is served as None from then on, so its parts are drawn untextured."""
+        from pipeline25d.formats.common import image_problem
 
         if self.outside is not None:
             raise self.outside
         for name, data in self.asked.items():
             what = "material library" if name.lower().endswith(".mtl") else "texture"
-            if data is None:
-                warnings.warn(f"{model}: {what} {name!r} is missing; its parts are drawn untextured",
+            problem = "is missing" if data is None else image_problem(data) if what == "texture" else None
+            if problem is not None:
+                self.asked[name] = None
+                warnings.warn(f"{model}: {what} {name!r} {problem}; its parts are drawn untextured",
                               MissingTextureWarning, stacklevel=3)
-            elif what == "texture":
-                try:
-                    Image.open(io.BytesIO(data)).verify()
-                except (UnidentifiedImageError, OSError, SyntaxError, ValueError):
-                    warnings.warn(f"{model}: texture {name!r} is not an image; its parts are drawn untextured",
-                                  MissingTextureWarning, stacklevel=3)

@@ -215,8 +215,8 @@ def build_lod(chunk_index: str | Path, out_index: str | Path, max_error: float, 
     kept = _reusable_lods(sidecar, params, ingested["chunks"], out_index.parent)
     write_json(sidecar, {"params": params, "chunks": kept})   # before any npz is rewritten: no false record survives a crash
     todo = [cid for cid in sorted(ingested["chunks"]) if cid not in kept]
-    built = _built_chunks([(chunk_index.parent / f"{cid}.npz", out_index.parent / f"{cid}.npz") for cid in todo],
-                          max_error, max_levels, processes)
+    pairs = [(chunk_index.parent / f"{cid}.npz", out_index.parent / f"{cid}.npz") for cid in todo]
+    built = _built_chunks(pairs, max_error, max_levels, processes)
     record = {cid: kept.get(cid) or {"source": info["hash"], **built[cid]}
               for cid, info in sorted(ingested["chunks"].items())}
     _remove_stale_lods(out_index.parent, record)
