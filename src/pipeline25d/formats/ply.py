@@ -25,7 +25,7 @@ TRIANGLE_LISTS = {"face": {"vertex_indices": 3, "vertex_index": 3}}
 
 def load_ply(path: str | Path) -> Mesh:
     """Read a PLY mesh; falls back to trimesh for textured or unusual files."""
-    from plyfile import PlyData, PlyElementParseError, PlyParseError
+    from plyfile import PlyElementParseError, PlyParseError
 
     path = Path(path)
     try:
