@@ -190,7 +190,8 @@ def describe_levels(levels: Counter) -> str:
 
 
 #: what OpenSceneGraph prints for an image file it cannot load -> the problem, as other readers word it
-_IMAGE_PROBLEMS = {"file not found": "is missing", "file not handled": "is not an image"}
+_IMAGE_PROBLEMS = {"file not found": "is missing", "file not handled": "is not an image",
+                   "read error": "cannot be read (truncated or corrupt)"}
 
 
 def osgconv(src: Path, dst: Path, options: list[str], cwd: Path, what: Path) -> None:
@@ -201,7 +202,8 @@ def osgconv(src: Path, dst: Path, options: list[str], cwd: Path, what: Path) -> 
     """
     args = [OSGCONV] + (["-O", " ".join(options)] if options else []) + [str(src), str(dst)]
     said = run_converter(args, cwd, dst, what, "openscenegraph", OSG_ENV)
-    for problem, image in re.findall(r"readImage\(\): (file not found|file not handled), filename: (.+)", said):
+    for problem, image in re.findall(r"readImage\(\): (file not found|file not handled|read error), filename: (.+)",
+                                     said):
         warnings.warn(f"{what}: texture '{image.strip()}' {_IMAGE_PROBLEMS[problem]}; its parts are drawn "
                       "untextured", MissingTextureWarning, stacklevel=2)
 

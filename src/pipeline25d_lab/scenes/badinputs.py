@@ -58,7 +58,7 @@ PHRASES = {"truncated": "truncated", "corrupt-header": "cannot read", "empty": "
            "degenerate": "dropped 2 of 4 triangles that are degenerate",
            "all-degenerate": "all 2 triangles are degenerate", "index-out-of-range": "out of range",
            "absurd-coordinates": "beyond any place on Earth", "missing-texture": "is missing",
-           "texture-not-an-image": "not an image"}
+           "texture-not-an-image": "not an image", "texture-truncated": "cannot be read"}
 
 
 @dataclass(frozen=True)
@@ -113,6 +113,17 @@ def _texture_file(fmt: Format, data: bytes | None) -> Callable[[Path], None]:
     return write
 
 
+def _cut_png() -> bytes:
+    """A 32 x 32 px PNG of noise cut off halfway: its signature and header are whole, its pixels not."""
+    import io
+
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(np.random.default_rng(27).integers(0, 256, (32, 32, 3), dtype=np.uint8)).save(buf, format="PNG")
+    return buf.getvalue()[:len(buf.getvalue()) // 2]
+
+
 def common_cases(fmt: Format) -> list[Case]:
     """The cases every format has, made with its writer."""
     d, s = fmt.folder, fmt.suffix
@@ -135,6 +146,7 @@ def common_cases(fmt: Format) -> list[Case]:
     if fmt.textures:
         writers["missing-texture"] = _texture_file(fmt, None)
         writers["texture-not-an-image"] = _texture_file(fmt, b"GIF? no.\n")
+        writers["texture-truncated"] = _texture_file(fmt, _cut_png())
     phrases = {**PHRASES, **fmt.phrases}
     cases = [Case(f"{d}/{kind}{s}", phrases[kind], write, None if kind == "degenerate" else InputFileError)
              for kind, write in writers.items() if kind not in fmt.without]
