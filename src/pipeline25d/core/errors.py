@@ -37,7 +37,7 @@ class OutputError(FileProblem):
 
 
 class MissingTextureWarning(UserWarning):
-    """A model's texture is missing or not an image; its parts would be drawn untextured.
+    """A model's texture is missing, not an image or undecodable; its parts would be drawn untextured.
     Ingest makes it an error unless the input says ``missing_textures: untextured``."""
 
 

@@ -159,8 +159,8 @@ def load_district(spec: dict, scene_crs: str, max_geometric_error: float | None 
     """Read one configured input (``inputs.<name>``) into the scene CRS, float64.
 
     ``spec`` keys: path, format, crs, offset, metadata, lod, missing_textures, missing_children,
-    side_folders (see config/schema.yaml). A texture that is missing or not an image is an InputFileError
-    unless ``missing_textures`` is ``untextured`` (then its parts are drawn without it).
+    side_folders (see config/schema.yaml). A texture that is missing, not an image or undecodable is an
+    InputFileError unless ``missing_textures`` is ``untextured`` (then its parts are drawn without it).
     """
     (mesh,) = district_pieces(spec, scene_crs, max_geometric_error, base_dir, gsd, whole=True)
     return mesh

@@ -25,7 +25,7 @@ from pipeline25d.formats.common import side_file
 
 def load_mesh_file(path: str | Path) -> Mesh:
     """Read ``path`` with trimesh; InputFileError naming the file on any failure, a
-    :class:`MissingTextureWarning` per material library or texture missing or not an image."""
+    :class:`MissingTextureWarning` per material library or texture missing, not an image or undecodable."""
     path = Path(path)
     kind = path.suffix.lstrip(".").upper()
     model = f"{'an' if kind[:1] in 'AEIOU' else 'a'} {kind} model"
