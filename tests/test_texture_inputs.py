@@ -56,6 +56,20 @@ def test_a_truncated_image_is_a_problem_a_whole_one_is_not(fmt):
     assert image_problem(b"not an image at all") == "is not an image"
 
 
+def test_a_png_with_a_wrong_checksum_but_whole_data_is_drawn():
+    """Only the CRC of its pixel data (IDAT) wrong: PIL's check refuses it, but the PNG decodes (as the
+    renderer's decoder reads it), so it is no problem; its pixels cut short are."""
+    from PIL import Image
+
+    data = bytearray(_image("PNG"))
+    at = data.find(b"IDAT")
+    data[at + 4 + int.from_bytes(data[at - 4:at], "big")] ^= 0xFF       # the first byte of its CRC
+    with pytest.raises(SyntaxError, match="checksum"):
+        Image.open(io.BytesIO(bytes(data))).verify()
+    assert image_problem(bytes(data)) is None
+    assert image_problem(bytes(data[: len(data) // 2])) is not None
+
+
 @pytest.mark.parametrize("fmt, ext", [("JPEG", "jpg"), ("PNG", "png")])
 def test_an_obj_with_a_truncated_texture_names_it_at_ingest(tmp_path, fmt, ext):
     data = _image(fmt)

@@ -60,9 +60,10 @@ def read_text(path: Path, what: str) -> str:
 
 def image_problem(data: bytes) -> str | None:
     """What keeps encoded image bytes from being drawn ("is not an image", "cannot be read (...)":
-    truncated, corrupt), or None. A PNG is read to its end, every chunk's checksum checked; a JPEG,
-    whose checks read none of its data, is decoded (a 512 px atlas in a few ms), so a texture
-    that would stop the render job is found when its file is read."""
+    truncated, corrupt), or None: what the render job's decoder would meet, found when the file is
+    read. A PNG whose chunks all check out (read to its end, a fraction of a decode) is whole; a
+    JPEG, whose check reads none of its data, and a PNG that fails its check are decoded (a PNG
+    with a wrong checksum but whole data decodes, and is drawn, as the renderer would draw it)."""
     import io
 
     from PIL import Image, UnidentifiedImageError
@@ -70,8 +71,12 @@ def image_problem(data: bytes) -> str | None:
     try:
         with Image.open(io.BytesIO(data)) as img:
             kind = img.format
-            img.verify()
-        if kind == "JPEG":
+            try:
+                img.verify()
+                checked = kind != "JPEG"
+            except (OSError, SyntaxError, ValueError):
+                checked = False
+        if not checked:
             with Image.open(io.BytesIO(data)) as img:
                 img.load()
     except UnidentifiedImageError:

@@ -22,8 +22,9 @@ SQUARE_FACES = np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int64)
 #: Two more vertices and two triangles with no area: a repeated vertex, three on one line.
 DEGENERATE = np.array([[5, 5, 0], [20, 20, 0]], dtype=np.float64)
 DEGENERATE_FACES = np.array([[0, 0, 1], [0, 4, 5]], dtype=np.int64)
+#: a 1 x 1 white RGBA PNG that decodes (its zlib data and checksums whole)
 PNG_1PX = bytes.fromhex("89504e470d0a1a0a0000000d4948445200000001000000010806000000"
-                        "1f15c4890000000d49444154789c63f8cfc0f01f0005000201a5d6b2cb"
+                        "1f15c4890000000d49444154789c63f8ffffff7f0009fb03fd2a86e38a"
                         "0000000049454e44ae426082")
 
 
