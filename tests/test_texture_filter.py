@@ -107,12 +107,10 @@ def _level_of(tex, k: int, shape: tuple) -> np.ndarray:
     """Level ``k`` of a GL texture by glGetTexImage (moderngl reads only the levels it made)."""
     import ctypes
 
-    egl = ctypes.CDLL("libEGL.so.1")
-    egl.eglGetProcAddress.restype = ctypes.c_void_p
-    egl.eglGetProcAddress.argtypes = [ctypes.c_char_p]
-    get = ctypes.CFUNCTYPE(None, ctypes.c_uint, ctypes.c_int, ctypes.c_uint, ctypes.c_uint, ctypes.c_void_p)(
-        egl.eglGetProcAddress(b"glGetTexImage"))
-    pack = ctypes.CFUNCTYPE(None, ctypes.c_uint, ctypes.c_int)(egl.eglGetProcAddress(b"glPixelStorei"))
+    from pipeline25d.stages.textures import gl_function
+
+    get = gl_function("glGetTexImage", ctypes.c_uint, ctypes.c_int, ctypes.c_uint, ctypes.c_uint, ctypes.c_void_p)
+    pack = gl_function("glPixelStorei", ctypes.c_uint, ctypes.c_int)
     out = np.zeros(shape, np.uint8)
     tex.use(0)
     pack(0x0D05, 1)                                        # GL_PACK_ALIGNMENT

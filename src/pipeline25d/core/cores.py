@@ -5,9 +5,9 @@ web-tile jobs declare one: holding two, each waited until both cores were free a
 and 1.6 of them, while render jobs waited. Alone at the end of a run (the last map, nothing else
 ready) one core leaves the other idle. :func:`job_workers` lets such a job take, when it starts
 (the web tiles; the LOD job of a city that is one district, alone after its ingest) or when a
-step of it starts (the warp's COG encodes), the cores that are idle at that moment as well; :class:`IdleMeter` lets a job that works in pieces take one more as a core
-falls idle later (the web-tile cut: its workers grow). What a job writes does not depend on the
-count.
+step of it starts (the warp's COG encodes), the cores that are idle at that moment as well;
+:class:`IdleMeter` lets a job that works in pieces take one more as a core falls idle later (the
+web-tile cut: its workers grow). What a job writes does not depend on the count.
 """
 
 from __future__ import annotations

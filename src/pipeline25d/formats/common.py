@@ -58,6 +58,11 @@ def read_text(path: Path, what: str) -> str:
         raise InputFileError(path, f"cannot read {what}: {exc}") from None
 
 
+def png_or_jpeg(data: bytes) -> bool:
+    """Whether encoded image bytes begin as a PNG or a JPEG does (the two the renderer is given)."""
+    return data[:8] == b"\x89PNG\r\n\x1a\n" or data[:3] == b"\xff\xd8\xff"
+
+
 def image_problem(data: bytes) -> str | None:
     """What keeps encoded image bytes from being drawn ("is not an image", "cannot be read (...)":
     truncated, corrupt), or None: what the render job's decoder would meet, found when the file is

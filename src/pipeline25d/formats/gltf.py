@@ -38,7 +38,7 @@ import numpy as np
 from pipeline25d.core.errors import InputFileError, MissingTextureWarning, UnsupportedFeatureError
 from pipeline25d.core.mesh import MeshPart
 from pipeline25d.formats.attributes import Limiter
-from pipeline25d.formats.common import image_problem, side_file
+from pipeline25d.formats.common import image_problem, png_or_jpeg, side_file
 from pipeline25d.formats.feature_info import feature_prefix, feature_properties
 
 #: Extensions this reader honours (or may safely ignore) when a file lists them as required.
@@ -254,7 +254,7 @@ class _Document:
                 if data is None:
                     warnings.warn(f"{self.path}: image {unquote(img.get('uri', ''))!r} is missing; "
                                   "its parts are drawn untextured", MissingTextureWarning, stacklevel=4)
-            if data is not None and not (data[:8] == b"\x89PNG\r\n\x1a\n" or data[:3] == b"\xff\xd8\xff"):
+            if data is not None and not png_or_jpeg(data):
                 warnings.warn(f"{self.path}: image {index} is neither PNG nor JPEG (not an image); "
                               "its parts are drawn untextured", MissingTextureWarning, stacklevel=4)
                 data = None

@@ -20,7 +20,7 @@ import trimesh
 
 from pipeline25d.core.errors import InputFileError, MissingTextureWarning
 from pipeline25d.core.mesh import Mesh, MeshPart, joined
-from pipeline25d.formats.common import side_file
+from pipeline25d.formats.common import image_problem, png_or_jpeg, side_file
 
 
 def load_mesh_file(path: str | Path) -> Mesh:
@@ -162,7 +162,7 @@ def _texture_bytes(image, served: dict[str, bytes | None]) -> bytes | None:
     data = served.get(name)
     if name in served and data is None:
         return None
-    if data is not None and (data[:8] == b"\x89PNG\r\n\x1a\n" or data[:3] == b"\xff\xd8\xff"):
+    if data is not None and png_or_jpeg(data):
         return data
     buf = io.BytesIO()
     try:
@@ -204,8 +204,6 @@ class _Files(trimesh.resolvers.FilePathResolver):
         """Warn of each material library or texture that was missing or cannot be drawn (not an
         image, truncated, corrupt: :func:`~pipeline25d.formats.common.image_problem`); such a
         texture's file is served as None from then on, so its parts are drawn untextured."""
-        from pipeline25d.formats.common import image_problem
-
         if self.outside is not None:
             raise self.outside
         for name, data in self.asked.items():
