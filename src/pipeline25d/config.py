@@ -85,6 +85,18 @@ def check_semantics(config: dict[str, Any], base_dir: Path = Path(".")) -> None:
             _check_readable(base_dir / heights[key], f"heights.{key}")
 
 
+def objects_enabled(config: dict[str, Any]) -> bool:
+    """``objects.enabled`` with ``auto`` resolved: on where any input names objects to identify
+    (:func:`~pipeline25d.formats.has_objects.input_has_objects`), off for a scene of surfaces
+    alone (PLY, OSGB photogrammetry, a tileset without feature ids)."""
+    enabled = config["objects"]["enabled"]
+    if enabled != "auto":
+        return bool(enabled)
+    from pipeline25d.formats.has_objects import input_has_objects
+
+    return any(input_has_objects(spec) for spec in config["inputs"].values())
+
+
 def render_settings(config: dict[str, Any]) -> dict[str, Any]:
     """What changes a tile's pixels (the render block size does not): the render and marker
     settings, and the ``shadows`` block only when shadows are enabled, so a config without

@@ -6,7 +6,8 @@
 from functools import wraps
 from pathlib import Path
 
-from pipeline25d.config import check_semantics, chunk_size, perspectives, render_settings, validate_schema
+from pipeline25d.config import (check_semantics, chunk_size, objects_enabled, perspectives, render_settings,
+                                validate_schema)
 from pipeline25d.analysis.height_sources import plan as heights_plan
 from pipeline25d.core.logsetup import stop_on_error
 from pipeline25d.core.snakemake_wakeups import one_pending_wakeup
@@ -39,7 +40,7 @@ with stop_on_error(log=False):
     OBJECT_SLOTS = district_slots(DISTRICTS)       # each district's object ids (stages.objects)
     PERSPECTIVE_IDS = [p.id for p in perspectives(config)]
     # which object each map pixel shows: id tiles beside the render tiles, an id map beside each map
-    OBJECTS = config["objects"]["enabled"]
+    OBJECTS = objects_enabled(config)             # auto: where an input names objects (formats.has_objects)
     ID_MOSAIC = f"{RESULTS}/mosaic/{{pid}}.ids.vrt"
     ID_MAP = f"{RESULTS}/maps/{{pid}}.ids.tif"
     ID_MAPS = expand(ID_MAP, pid=PERSPECTIVE_IDS) if OBJECTS else []

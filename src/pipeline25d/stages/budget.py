@@ -79,12 +79,12 @@ class Work:
 
 def settings(config: dict[str, Any]) -> dict[str, Any]:
     """What :func:`estimate` and :func:`check` read of a validated config (a rule's params)."""
-    from pipeline25d.config import chunk_size
+    from pipeline25d.config import chunk_size, objects_enabled
 
     return {"gsd": config["gsd"], "tile_size": config["tile_size"], "perspectives": config["perspectives"],
             "projection": config["projection"], "block": config["render"]["block"], "chunk_size": chunk_size(config),
             "ground": {k: config["ground"][k] for k in ("resolution", "cloth_resolution")},
-            "objects": config["objects"]["enabled"],
+            "objects": objects_enabled(config),
             "limits": dict(config["limits"])}
 
 
