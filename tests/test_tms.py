@@ -14,6 +14,7 @@ from PIL import Image
 from pipeline25d.core.crs import transform_points
 from pipeline25d.core.geotiff import write_rgba_geotiff
 from pipeline25d.core.grid import Grid
+from pipeline25d.core.raster import gdal
 from pipeline25d.stages.tiles.web import BLOCK_TILES, WEB_MERCATOR, tms
 
 
@@ -289,3 +290,47 @@ def test_sigterm_stops_a_cut_at_once_and_the_next_cut_finishes_it(tmp_path):
     assert sorted(got) == sorted(want) and len(want) > 50
     assert [k for k in want if hashlib.sha256(got[k].read_bytes()).digest()
             != hashlib.sha256(want[k].read_bytes()).digest()] == []
+
+
+def test_blocks_kept_averaged_to_the_tile_pixels_cut_the_same_tiles_as_blocks_kept_as_warped(tmp_path, monkeypatch):
+    """A map of noise (every pixel its own colour) with the alphas of 4x MSAA edges: the blocks kept at
+    the tiles' pixels (box_mean) give the pyramid that blocks kept on the finer warp grid give, where each
+    base tile averages its window as gdal2tiles does (base.average_tile), byte for byte at every zoom."""
+    from pipeline25d.core.crs import horizontal_wkt
+    from pipeline25d.stages.tiles import web
+
+    rng = np.random.default_rng(7)
+    h, w = 700, 900
+    rgba = rng.integers(0, 256, (h, w, 4), dtype=np.uint8)
+    rgba[..., 3] = rng.choice(np.array([0, 64, 128, 191, 255], np.uint8), (h, w), p=[0.1, 0.1, 0.1, 0.1, 0.6])
+    rgba[rgba[..., 3] == 0, :3] = 0                    # the renderer's transparent pixels are black
+    rgba[:120, :160] = 0
+    write_rgba_geotiff(tmp_path / "map.tif", rgba, Grid.north_up(691000.0, 5334000.0, 0.25, w, h),
+                       horizontal_wkt("EPSG:25832"))
+    grid, zooms = web.tile_grid(tmp_path / "map.tif", "auto")
+    assert web.stored_factor(grid, int(zooms.split("-")[1])) == 2          # the map's warp grid is halved once
+    kept = web.tms(tmp_path / "map.tif", "auto", tmp_path / "kept", tile_format="png", work_dir=tmp_path / "kw")
+    assert {p.name for p in (tmp_path / "kw" / "blocks").iterdir()}
+    for block in (tmp_path / "kw" / "blocks").glob("*.tif"):             # kept on the tiles' own pixels
+        ds = gdal().Open(str(block))
+        assert abs(ds.GetGeoTransform()[1] - 2 * grid.transform.a) < 1e-9 * grid.transform.a
+    monkeypatch.setattr(web, "STORED_FACTORS", ())
+    warped = web.tms(tmp_path / "map.tif", "auto", tmp_path / "warped", tile_format="png")
+    files = sorted(p.relative_to(tmp_path / "kept") for p in (tmp_path / "kept").rglob("*.png"))
+    assert kept["web_tiles"] == warped["web_tiles"] == len(files) > 10
+    assert files == sorted(p.relative_to(tmp_path / "warped") for p in (tmp_path / "warped").rglob("*.png"))
+    assert all((tmp_path / "kept" / f).read_bytes() == (tmp_path / "warped" / f).read_bytes() for f in files)
+
+
+def test_box_mean_rounds_half_up_like_the_average_of_a_query():
+    """box_mean against average_tile on a whole window (the query each base tile is averaged from)."""
+    from pipeline25d.stages.tiles.base import average_tile, nearest_index
+    from pipeline25d.stages.tiles.web import box_mean
+
+    rng = np.random.default_rng(3)
+    for f in (2, 4):
+        window = rng.integers(0, 256, (4, 256 * f, 256 * f), dtype=np.uint8)
+        idx = nearest_index(256 * f, 1024)
+        np.testing.assert_array_equal(box_mean(window, f), average_tile(window, idx, idx, 0, 0, 1024, 256))
+    assert box_mean(np.array([[[1, 2], [2, 1]]], np.uint8), 2)[0, 0, 0] == 2          # 6/4 = 1.5 -> 2
+    assert box_mean(np.array([[[1, 1], [2, 1]]], np.uint8), 2)[0, 0, 0] == 1          # 5/4 = 1.25 -> 1

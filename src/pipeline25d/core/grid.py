@@ -68,6 +68,12 @@ class Window(NamedTuple):
     def of_slices(cls, rows: slice, cols: slice) -> "Window":
         return cls(cols.start, rows.start, cols.stop, rows.stop)
 
+    def scaled_down(self, factor: int) -> "Window":
+        """The window of a grid with pixels ``factor`` times as wide that covers this one."""
+        if factor == 1:
+            return self
+        return Window(self.col0 // factor, self.row0 // factor, -(-self.col1 // factor), -(-self.row1 // factor))
+
 
 @dataclass(frozen=True)
 class Grid:

@@ -125,6 +125,8 @@ def tms_rows(cog: Path, work: Path, map_mpx: float, repeat: int, tile_format: st
     g = gdal()
     grid, zooms = web.tile_grid(cog, "auto")
     max_zoom = int(zooms.split("-")[-1])
+    factor = web.stored_factor(grid, max_zoom)
+    kept = web.stored_grid(grid, factor)
     blocks = work / "blocks"
     jobs = [(b, w) for b, w in ((b, web.block_window(b, grid, max_zoom))
             for b in sorted(web.blocks_meeting(Window(0, 0, grid.width, grid.height), grid, max_zoom))) if w]
@@ -133,13 +135,13 @@ def tms_rows(cog: Path, work: Path, map_mpx: float, repeat: int, tile_format: st
         shutil.rmtree(blocks, ignore_errors=True)
         blocks.mkdir(parents=True)
         for job in jobs:
-            web._warp_block(str(cog), str(blocks), grid, False, job)
+            web._warp_block(str(cog), str(blocks), grid, False, factor, job)
 
     warp_s = median_time(warp_blocks, repeat)
     block_mpx = sum(w.width * w.height for _, w in jobs) / 1e6
     vrt, tiles = work / "blocks.vrt", work / "tiles"
-    g.BuildVRT(str(vrt), [str(b) for b in sorted(blocks.glob("*.tif"))], outputBounds=grid.bounds,
-               xRes=grid.transform.a, yRes=-grid.transform.e)
+    g.BuildVRT(str(vrt), [str(b) for b in sorted(blocks.glob("*.tif"))], outputBounds=kept.bounds,
+               xRes=kept.transform.a, yRes=-kept.transform.e)
     shutil.rmtree(tiles, ignore_errors=True)
     _, _, options = g2t.process_args([*web._gdal2tiles_args(zooms, 1, tile_format, quality, True), str(vrt), str(tiles)])
     conf, details = g2t.worker_tile_details(str(vrt), str(tiles), options)
@@ -153,7 +155,8 @@ def tms_rows(cog: Path, work: Path, map_mpx: float, repeat: int, tile_format: st
     n_over = sum(1 for p in tiles.rglob(f"*.{conf.tile_extension}") if int(p.parts[-3]) < conf.tmaxz)
     tile_mpx, query_mpx = n_base * 256 ** 2 / 1e6, steps.pop("query_mpx")
     read_mpx, over_mpx = steps.pop("read_mpx"), n_over * 256 ** 2 / 1e6
-    return [row("tms: blocks warp (decode COG, warp, ZSTD encode)", warp_s, block_mpx, map_mpx, "decode+copy+encode"),
+    return [row("tms: blocks warp (decode COG, warp, average to tile pixels, ZSTD encode)", warp_s, block_mpx, map_mpx,
+                "decode+copy+encode"),
             row("tms base: read (decode blocks, native size)", steps["read"], read_mpx, map_mpx, "decode"),
             row("tms base: average window -> tile (numpy, no query)", steps["average"], tile_mpx * 16, map_mpx, "copy"),
             row("tms base: (was) GDAL upsampled read of the VRT", steps["vrt_read"], query_mpx, map_mpx, "decode+copy"),

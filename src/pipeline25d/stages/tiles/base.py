@@ -139,7 +139,8 @@ def create_base_tile(tile_job_info, tile_detail) -> None:
     if d.rxsize and d.rysize and d.wxsize and d.wysize:
         data, alpha = read_window(ds, d.rx, d.ry, d.rxsize, d.rysize, bands)
         rows, cols = nearest_index(d.rysize, d.wysize), nearest_index(d.rxsize, d.wxsize)
-        if tile_job_info.exclude_transparent and not alpha[rows][:, cols].any():
+        # the pixels the query repeats, each once: gdal2tiles' test of its whole query, without making it
+        if tile_job_info.exclude_transparent and not alpha[np.ix_(np.unique(rows), np.unique(cols))].any():
             return
         if options.resampling == "average" and d.querysize % size == 0:
             window = np.concatenate([data, alpha[None]])

@@ -3,7 +3,11 @@
 The map is reprojected to EPSG:3857 in *blocks*: squares of :data:`BLOCK_TILES` x
 :data:`BLOCK_TILES` web tiles of the highest zoom, each warped by gdalwarp in C onto the
 whole map's web-mercator grid (on the tile grid's pixels: :func:`tile_grid`), with the
-nearest-neighbour resampling of gdal2tiles' own warped VRT (transform exact to 0.01 px). gdal2tiles then cuts a VRT of the blocks with its
+nearest-neighbour resampling of gdal2tiles' own warped VRT (transform exact to 0.01 px). Where that
+grid is finer than the tiles' (a map's: 2 or 4 of its pixels a side to a tile pixel), a block is kept
+as the average that gdal2tiles' base tile takes of it (:func:`box_mean`, its rounding), on the
+tiles' own pixels: a quarter of the pixels to compress, keep and read again, the same tiles.
+gdal2tiles then cuts a VRT of the blocks with its
 own tile functions: base tiles by ``create_base_tile`` (its read made fast, same bytes: see
 :mod:`pipeline25d.stages.tiles.base`), overview tiles from their children by ``create_overview_tile``. It reads plain windows instead of re-warping for every tile,
 and only tiles that hold data are written, so a sparse map costs its districts, not its
@@ -52,7 +56,9 @@ GDAL2TILES_TILE = 256
 BLOCK_TILES = 4        # a web-mercator block is 4 x 4 tiles of the highest zoom (1024 x 1024 px)
 MARGIN_PX = 2          # a changed map cell reaches this far (web-mercator px) beyond its reprojected outline
 EDGE_SAMPLES = 5       # points per cell edge reprojected (a cell is small: the reprojection is near affine)
-STATE_VERSION = 1
+STATE_VERSION = 2      # 2: blocks kept averaged to the tiles' pixels (STORED_FACTORS)
+STORED_FACTORS = (2, 4)  # warp pixels a side to a tile pixel that a block is averaged by before it is kept
+BLOCK_OPTIONS = ["TILED=YES", "COMPRESS=ZSTD", "ZSTD_LEVEL=1"]
 
 
 def tms(cog: str | Path, zoom: str, out_dir: str | Path, processes: int = 1, tile_format: str = "png",
@@ -132,6 +138,8 @@ def update_pyramid(cog: str | Path, zoom: str, work: Path, processes: int = 1, t
     ds = None
     grid, zooms = tile_grid(cog, zoom, halved=tile_format != "ids")
     width, height = grid.width, grid.height
+    max_zoom = int(zooms.split("-")[-1])
+    factor = stored_factor(grid, max_zoom)
     key = {"version": STATE_VERSION, "grid": [*grid.geotransform, width, height], "zooms": zooms, "format": tile_format,
            "quality": int(quality) if tile_format == "webp" else None, "block_tiles": BLOCK_TILES,
            **({"webp_method": webp_method} if tile_format == "webp" and webp_method is not None else {})}
@@ -145,7 +153,6 @@ def update_pyramid(cog: str | Path, zoom: str, work: Path, processes: int = 1, t
     (work / "blocks").mkdir(parents=True, exist_ok=True)
     old = state["cells"]
     changed = [cell_bounds(c, map_grid) for c in sorted(cells.keys() | old.keys()) if cells.get(c) != old.get(c)]
-    max_zoom = int(zooms.split("-")[-1])
     # journal first: a killed update is redone by the next one, whatever the map is by then
     reach = [Window(0, 0, width, height)] if full else \
         [Window(*w) for w in state["dirty"]] + mercator_reach(changed, wkt, grid)
@@ -153,9 +160,9 @@ def update_pyramid(cog: str | Path, zoom: str, work: Path, processes: int = 1, t
     todo = sorted({b for w in reach for b in blocks_meeting(w, grid, max_zoom)})
     jobs = [(b, w) for b, w in ((b, block_window(b, grid, max_zoom)) for b in todo) if w is not None]
     with Workers(processes, most) as workers:
-        workers.map(partial(_warp_block, str(cog), str(work / "blocks"), grid, tile_format == "ids"), jobs)
-        redone = cut(sorted((work / "blocks").glob("*.tif")), work / "tiles", grid, zooms, reach,
-                     workers, tile_format, quality, webp_method)
+        workers.map(partial(_warp_block, str(cog), str(work / "blocks"), grid, tile_format == "ids", factor), jobs)
+        redone = cut(sorted((work / "blocks").glob("*.tif")), work / "tiles", stored_grid(grid, factor), zooms,
+                     [w.scaled_down(factor) for w in reach], workers, tile_format, quality, webp_method)
     write_state(work, {"key": key, "cells": cells, "dirty": []})
     stats = {"full": full, "map_cells_changed": len(changed), "blocks_warped": len(jobs),
              "web_tiles_redone": redone, "web_tiles": sum(1 for p in (work / "tiles").rglob("*") if p.is_file()),
@@ -228,14 +235,64 @@ def block_window(block: tuple[int, int], grid: Grid, max_zoom: int) -> Window | 
     return Window(c0, r0, c1, r1) if c1 > c0 and r1 > r0 else None
 
 
-def _warp_block(cog: str, blocks_dir: str, grid: Grid, ids: bool, job: tuple[tuple[int, int], Window]) -> None:
-    """Warp the map (``ids``: its id raster) onto one block's window of its web-mercator grid
-    (written atomically)."""
+def stored_factor(grid: Grid, max_zoom: int) -> int:
+    """The warp grid's pixels a side to a tile pixel of ``max_zoom`` that a block is averaged by
+    before it is kept: 2 or 4 (:data:`STORED_FACTORS`), else 1 (kept as warped: an id raster's grid,
+    which is the tiles', or a map's grid more than 4 times finer, whose base tiles gdal2tiles reads
+    through a query coarser than the window, not by averaging all of it)."""
+    _, tile = _tile_metres(max_zoom)
+    factor = round(tile / GDAL2TILES_TILE / grid.transform.a)
+    return factor if factor in STORED_FACTORS else 1
+
+
+def stored_grid(grid: Grid, factor: int) -> Grid:
+    """The grid the blocks are kept on: ``grid`` with pixels ``factor`` times as wide (its edges are
+    the tiles' edges, so the sizes divide)."""
+    if factor == 1:
+        return grid
+    x0, _, _, y1 = grid.bounds
+    return Grid.north_up(x0, y1, grid.transform.a * factor, grid.width // factor, grid.height // factor)
+
+
+def box_mean(bands: np.ndarray, factor: int) -> np.ndarray:
+    """(b, h/f, w/f) uint8: each band's mean over ``factor`` x ``factor`` pixels, rounded half up as
+    gdal2tiles' average of a base tile's query rounds it (:func:`~.base.average_tile`: a window f
+    times finer than the tile is each of its pixels repeated 4/f times in the 4x query, whose 4 x 4
+    sums are then (16/f² · S + 8) // 16 = (S + f²/2) // f²)."""
+    rows = bands[:, 0::factor].astype(np.uint16)           # strided adds: 7x a reshaped sum's speed
+    for k in range(1, factor):
+        rows += bands[:, k::factor]
+    sums = rows[:, :, 0::factor].copy()
+    for k in range(1, factor):
+        sums += rows[:, :, k::factor]
+    sums += factor * factor // 2
+    sums //= factor * factor
+    return sums.astype(np.uint8)
+
+
+def _warp_block(cog: str, blocks_dir: str, grid: Grid, ids: bool, factor: int,
+                job: tuple[tuple[int, int], Window]) -> None:
+    """Warp the map (``ids``: its id raster) onto one block's window of its web-mercator grid and
+    keep it, averaged by ``factor`` (:func:`stored_factor`), written atomically."""
     block, window = job
     bounds = grid.window_bounds(Window(*window))
     extra = ["-tr", repr(grid.transform.a), repr(-grid.transform.e), "-te", *map(repr, bounds)]
+    g = gdal()
     with atomic_path(Path(blocks_dir) / f"{block[0]}_{block[1]}.tif") as tmp:
-        gdal().Warp(str(tmp), cog, options=_mercator_args(1, extra, alpha=not ids))
+        if factor == 1:
+            options = _mercator_args(1, extra, alpha=not ids) + [a for o in BLOCK_OPTIONS for a in ("-co", o)]
+            g.Warp(str(tmp), cog, options=options)
+            return
+        warped = g.Warp("", cog, options=["-of", "MEM", *_mercator_args(1, extra)])
+        kept = g.GetDriverByName("MEM").Create("", warped.RasterXSize // factor, warped.RasterYSize // factor,
+                                               warped.RasterCount)
+        x0, res, _, y1, _, _ = warped.GetGeoTransform()
+        kept.SetGeoTransform((x0, res * factor, 0.0, y1, 0.0, -res * factor))
+        kept.SetProjection(warped.GetProjection())
+        kept.WriteRaster(0, 0, kept.RasterXSize, kept.RasterYSize, box_mean(warped.ReadAsArray(), factor).tobytes())
+        for i in range(1, warped.RasterCount + 1):
+            kept.GetRasterBand(i).SetColorInterpretation(warped.GetRasterBand(i).GetColorInterpretation())
+        g.GetDriverByName("GTiff").CreateCopy(str(tmp), kept, options=BLOCK_OPTIONS)
 
 
 def cut(blocks: list[Path], tiles: Path, grid: Grid, zooms: str, windows: list[Window], workers: Workers,
@@ -309,8 +366,7 @@ def _mercator_args(threads: int, extra: list[str] | None = None, alpha: bool = T
     """gdalwarp's arguments; ``alpha`` False (an id raster): its nodata 0 kept instead of an alpha band."""
     return ["-q", "-overwrite", "-t_srs", WEB_MERCATOR, "-r", "near", "-et", "0.01",
             *(["-dstalpha"] if alpha else ["-srcnodata", "0", "-dstnodata", "0"]), "-multi",
-            "-wo", f"NUM_THREADS={threads}", "-co", "TILED=YES", "-co", "COMPRESS=ZSTD", "-co", "ZSTD_LEVEL=1",
-            *(extra or [])]
+            "-wo", f"NUM_THREADS={threads}", *(extra or [])]
 
 
 def _gdal2tiles_args(zoom: str, processes: int, tile_format: str, quality: int, exclude_empty: bool) -> list[str]:
