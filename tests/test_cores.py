@@ -98,3 +98,25 @@ def test_a_cut_takes_a_worker_more_only_while_a_core_is_idle(tmp_path, idle, at_
     running = np.cumsum([step for _, step in edges])
     assert running.max() == at_once
     assert workers.grown == (1 if idle else 0)
+
+
+def test_map_ahead_keeps_order_and_reads_no_further_than_ahead():
+    """Results in the order of the arguments, on forked workers or here; the argument generator (a
+    job's data reads) is drawn at most ``ahead`` calls before the results taken."""
+    from pipeline25d.core.cores import fork_pool, map_ahead
+
+    drawn = []
+
+    def args():
+        for i in range(12):
+            drawn.append(i)
+            yield i, 3
+
+    here = list(map_ahead(None, pow, args(), 4))
+    drawn.clear()
+    with fork_pool(2) as pool:
+        out = []
+        for value in map_ahead(pool, pow, args(), 3):
+            assert len(drawn) <= len(out) + 3
+            out.append(value)
+    assert out == here == [i ** 3 for i in range(12)]

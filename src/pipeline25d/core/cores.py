@@ -15,6 +15,10 @@ from __future__ import annotations
 import logging
 import os
 import time
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Executor
+from contextlib import contextmanager
 
 log = logging.getLogger(__name__)
 
@@ -94,3 +98,34 @@ class IdleMeter:
             return None
         idle, self._last = _idle_between(self._last, now), now
         return idle
+
+
+@contextmanager
+def fork_pool(processes: int) -> Iterator[Executor]:
+    """``processes`` worker processes, forked now, all of them: a job that makes them before it grows
+    keeps their memory small, as a forked child's resident pages count again in the job's process
+    tree; what they run is inherited, not imported again."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("fork")) as pool:
+        list(pool.map(abs, range(processes)))          # a fork pool starts all its workers at its first task
+        yield pool
+
+
+def map_ahead(pool: Executor | None, func: Callable, args: Iterable[tuple], ahead: int) -> Iterator:
+    """``func(*a)`` for each ``a`` of ``args``, in order: on ``pool`` with at most ``ahead`` calls in
+    flight, so that ``args`` (a generator reading each call's data) is drawn no further than that
+    ahead of the results; without a pool, here, one after another."""
+    if pool is None:
+        for a in args:
+            yield func(*a)
+        return
+    pending: deque = deque()
+    for a in args:
+        pending.append(pool.submit(func, *a))
+        del a
+        if len(pending) >= ahead:
+            yield pending.popleft().result()
+    while pending:
+        yield pending.popleft().result()

@@ -213,7 +213,8 @@ def build_lod(chunk_index: str | Path, out_index: str | Path, max_error: float, 
     params = {"max_error": max_error, "max_levels": max_levels}
     sidecar = out_index.with_suffix(".hashes.json")
     kept = _reusable_lods(sidecar, params, ingested["chunks"], out_index.parent)
-    write_json(sidecar, {"params": params, "chunks": kept})   # before any npz is rewritten: no false record survives a crash
+    # before any npz is rewritten: no false record survives a crash
+    write_json(sidecar, {"params": params, "chunks": kept})
     todo = [cid for cid in sorted(ingested["chunks"]) if cid not in kept]
     pairs = [(chunk_index.parent / f"{cid}.npz", out_index.parent / f"{cid}.npz") for cid in todo]
     built = _built_chunks(pairs, max_error, max_levels, processes)
@@ -238,11 +239,10 @@ def _built_chunks(paths: list[tuple[Path, Path]], max_error: float, max_levels: 
     processes = min(processes, len(paths))
     if processes <= 1:
         return dict(map(build, paths))
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
+    from pipeline25d.core.cores import fork_pool
 
     log.info("%d chunks on %d processes", len(paths), processes)
-    with ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("fork")) as pool:
+    with fork_pool(processes) as pool:
         return dict(pool.map(build, paths))
 
 

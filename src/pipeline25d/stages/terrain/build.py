@@ -18,8 +18,9 @@ from pipeline25d.stages.records import LodChunk
 log = logging.getLogger(__name__)
 
 
-def build_terrain(chunks: Sequence[LodChunk], inputs: dict, scene_crs: str, gsd: float, terrain: str, ground_cfg: dict,
-                  out_dsm: str | Path, out_ground: str | Path | None, out_json: str | Path, processes: int = 1) -> dict:
+def build_terrain(chunks: Sequence[LodChunk], inputs: dict, scene_crs: str, gsd: float, terrain: str,
+                  ground_cfg: dict, out_dsm: str | Path, out_ground: str | Path | None, out_json: str | Path,
+                  processes: int = 1) -> dict:
     """Render the DSM of the LOD ``chunks``; with ``terrain: auto`` also find its ground cells (see :mod:`pipeline25d.stages.terrain`).
 
     ``out_ground`` holds the ground heights (NaN elsewhere); the scene stage interpolates
@@ -27,11 +28,11 @@ def build_terrain(chunks: Sequence[LodChunk], inputs: dict, scene_crs: str, gsd:
     rasters are written block by block: memory follows a block, not the scene. ``processes``:
     how many blocks the ground filter runs at once (the same ground whatever the count).
     """
+    from pipeline25d.core.cores import fork_pool
     from pipeline25d.core.crs import horizontal_wkt
     from pipeline25d.core.geotiff import float_geotiff_writer
     from pipeline25d.core.grid import Grid, cell_blocks
     from pipeline25d.stages.terrain.dsm import auto_resolution, height_map_tiles
-    from pipeline25d.stages.terrain.ground import ground_pool
 
     _, lo, hi = scene_bounds(chunks)
     bounds_xy = (lo[0], lo[1], hi[0], hi[1])
@@ -44,7 +45,7 @@ def build_terrain(chunks: Sequence[LodChunk], inputs: dict, scene_crs: str, gsd:
     with ExitStack() as stack:
         # the ground filter's workers where it has blocks to share, forked before the DSM render makes this job large
         several = terrain == "auto" and processes > 1 and len(cell_blocks(grid.height, grid.width, 0)) > 1
-        pool = stack.enter_context(ground_pool(processes)) if several else None
+        pool = stack.enter_context(fork_pool(processes)) if several else None
         with float_geotiff_writer(out_dsm, grid, wkt) as write:
             for row, col, heights in height_map_tiles(chunk_loaders(chunks, res / 4), grid):
                 write(heights, row, col)

@@ -6,10 +6,11 @@ import logging
 import math
 from collections.abc import Callable, Iterator
 from concurrent.futures import Executor
-from contextlib import contextmanager, nullcontext
+from contextlib import nullcontext
 
 import numpy as np
 
+from pipeline25d.core.cores import fork_pool, map_ahead
 from pipeline25d.core.grid import BLOCK_CELLS, Block, Grid, cell_blocks, widen
 from pipeline25d.core.raster import fill_nearest
 
@@ -146,7 +147,7 @@ def ground_blocks(read: Callable[[slice, slice], np.ndarray], grid: Grid, max_ob
     whole in it, with ground beyond it for the cloth to rest on); the DSM is read wider still,
     by :func:`envelope_reach`, so the detrended heights equal the whole grid's on the window.
     With ``processes`` > 1 the blocks are filtered that many at a time in worker processes, those
-    of ``pool`` (see :func:`ground_pool`) or forked now (the DSM is read here, at most
+    of ``pool`` (:func:`~pipeline25d.core.cores.fork_pool`) or forked now (the DSM is read here, at most
     ``processes`` blocks ahead); each block's ground is its own, so the result does not depend
     on the count.
     """
@@ -159,38 +160,12 @@ def ground_blocks(read: Callable[[slice, slice], np.ndarray], grid: Grid, max_ob
     def windows():
         for block in blocks:
             wide = tuple(widen(s, k - 1 + g, n) for s, n in zip(block.window, grid.shape))
-            yield block, read(*wide), wide
+            yield block, read(*wide), wide, *args
 
-    if processes <= 1 or len(blocks) < 2:
-        for block, dsm, wide in windows():
-            yield block, *_block_ground(block, dsm, wide, *args)
-        return
-    from collections import deque
-
-    with ground_pool(processes) if pool is None else nullcontext(pool) as workers:
-        pending: deque = deque()
-        for block, dsm, wide in windows():
-            pending.append((block, workers.submit(_block_ground, block, dsm, wide, *args)))
-            del dsm
-            if len(pending) >= processes:
-                block, done = pending.popleft()
-                yield block, *done.result()
-        while pending:
-            block, done = pending.popleft()
-            yield block, *done.result()
-
-
-@contextmanager
-def ground_pool(processes: int) -> Iterator[Executor]:
-    """``processes`` worker processes for :func:`ground_blocks`, forked now: a job that makes them
-    before it grows (the terrain job, before its DSM render) keeps their memory small, as a
-    forked child's resident pages count again in the job's process tree."""
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
-
-    with ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("fork")) as pool:
-        list(pool.map(abs, range(processes)))          # a fork pool starts all its workers at its first task
-        yield pool
+    several = processes > 1 and len(blocks) > 1
+    with (fork_pool(processes) if pool is None else nullcontext(pool)) if several else nullcontext() as workers:
+        for block, result in zip(blocks, map_ahead(workers, _block_ground, windows(), processes)):
+            yield block, *result
 
 
 def _block_ground(block: Block, dsm: np.ndarray, wide: tuple[slice, slice], grid: Grid, max_object_m: float,
