@@ -14,7 +14,8 @@ from pipeline25d.core.crs import horizontal_wkt, transform_points
 from pipeline25d.core.geotiff import write_geotiff, write_rgba_geotiff
 from pipeline25d.core.grid import Grid
 from pipeline25d.stages.tiles import ids as id_tiles
-from pipeline25d.stages.tiles.web import WEB_MERCATOR, tms
+from pipeline25d.stages.tiles.blocks import WEB_MERCATOR
+from pipeline25d.stages.tiles.web import tms
 
 GRID = Grid.north_up(691000.0, 5334000.0, 0.5, 700, 500)
 WORLD = 2 * 20037508.342789244

@@ -169,14 +169,15 @@ def test_web_tiles_of_a_sparse_map_are_gdal2tiles_cut_where_there_is_data(two_to
     from PIL import Image
 
     from pipeline25d.core.raster import gdal
-    from pipeline25d.stages.tiles.web import _mercator_args, tile_grid, tms
+    from pipeline25d.stages.tiles.blocks import mercator_args
+    from pipeline25d.stages.tiles.web import tile_grid, tms
 
     d, plan, cells = two_towns
     warp_to_cog(d / "mosaic.vrt", [], {"method": "none", "order": 0}, plan, tmp_path / "map.tif",
                 parts=tile_parts(cells))
     stats = tms(tmp_path / "map.tif", "auto", tmp_path / "ours", processes=2)
     grid, zooms = tile_grid(tmp_path / "map.tif", "auto")
-    gdal().Warp(str(tmp_path / "whole.tif"), str(tmp_path / "map.tif"), options=_mercator_args(
+    gdal().Warp(str(tmp_path / "whole.tif"), str(tmp_path / "map.tif"), options=mercator_args(
         1, ["-tr", repr(grid.transform.a), repr(-grid.transform.e), "-te", *map(repr, grid.bounds)]))
     subprocess.run([sys.executable, "-m", "osgeo_utils.gdal2tiles", "-q", "--xyz", "-w", "none", "-r", "average",
                     "-z", zooms, str(tmp_path / "whole.tif"), str(tmp_path / "whole")], check=True)

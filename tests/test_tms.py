@@ -15,7 +15,8 @@ from pipeline25d.core.crs import transform_points
 from pipeline25d.core.geotiff import write_rgba_geotiff
 from pipeline25d.core.grid import Grid
 from pipeline25d.core.raster import gdal
-from pipeline25d.stages.tiles.web import BLOCK_TILES, WEB_MERCATOR, tms
+from pipeline25d.stages.tiles.blocks import WEB_MERCATOR
+from pipeline25d.stages.tiles.web import BLOCK_TILES, tms
 
 
 def tile_offsets(tiles, zoom: int, f, wkt: str) -> np.ndarray:
@@ -297,7 +298,7 @@ def test_blocks_kept_averaged_to_the_tile_pixels_cut_the_same_tiles_as_blocks_ke
     the tiles' pixels (box_mean) give the pyramid that blocks kept on the finer warp grid give, where each
     base tile averages its window as gdal2tiles does (base.average_tile), byte for byte at every zoom."""
     from pipeline25d.core.crs import horizontal_wkt
-    from pipeline25d.stages.tiles import web
+    from pipeline25d.stages.tiles import blocks, web
 
     rng = np.random.default_rng(7)
     h, w = 700, 900
@@ -308,13 +309,13 @@ def test_blocks_kept_averaged_to_the_tile_pixels_cut_the_same_tiles_as_blocks_ke
     write_rgba_geotiff(tmp_path / "map.tif", rgba, Grid.north_up(691000.0, 5334000.0, 0.25, w, h),
                        horizontal_wkt("EPSG:25832"))
     grid, zooms = web.tile_grid(tmp_path / "map.tif", "auto")
-    assert web.stored_factor(grid, int(zooms.split("-")[1])) == 2          # the map's warp grid is halved once
+    assert blocks.stored_factor(grid, int(zooms.split("-")[1])) == 2          # the map's warp grid is halved once
     kept = web.tms(tmp_path / "map.tif", "auto", tmp_path / "kept", tile_format="png", work_dir=tmp_path / "kw")
     assert {p.name for p in (tmp_path / "kw" / "blocks").iterdir()}
-    for block in (tmp_path / "kw" / "blocks").glob("*.tif"):             # kept on the tiles' own pixels
-        ds = gdal().Open(str(block))
+    for kept_block in (tmp_path / "kw" / "blocks").glob("*.tif"):        # kept on the tiles' own pixels
+        ds = gdal().Open(str(kept_block))
         assert abs(ds.GetGeoTransform()[1] - 2 * grid.transform.a) < 1e-9 * grid.transform.a
-    monkeypatch.setattr(web, "STORED_FACTORS", ())
+    monkeypatch.setattr(blocks, "STORED_FACTORS", ())
     warped = web.tms(tmp_path / "map.tif", "auto", tmp_path / "warped", tile_format="png")
     files = sorted(p.relative_to(tmp_path / "kept") for p in (tmp_path / "kept").rglob("*.png"))
     assert kept["web_tiles"] == warped["web_tiles"] == len(files) > 10
@@ -325,7 +326,7 @@ def test_blocks_kept_averaged_to_the_tile_pixels_cut_the_same_tiles_as_blocks_ke
 def test_box_mean_rounds_half_up_like_the_average_of_a_query():
     """box_mean against average_tile on a whole window (the query each base tile is averaged from)."""
     from pipeline25d.stages.tiles.base import average_tile, nearest_index
-    from pipeline25d.stages.tiles.web import box_mean
+    from pipeline25d.stages.tiles.blocks import box_mean
 
     rng = np.random.default_rng(3)
     for f in (2, 4):

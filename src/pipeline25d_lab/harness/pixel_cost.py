@@ -121,12 +121,13 @@ def tms_rows(cog: Path, work: Path, map_mpx: float, repeat: int, tile_format: st
     from osgeo_utils import gdal2tiles as g2t
 
     from pipeline25d.stages.tiles import base, web
+    from pipeline25d.stages.tiles import blocks as blocks_mod
 
     g = gdal()
     grid, zooms = web.tile_grid(cog, "auto")
     max_zoom = int(zooms.split("-")[-1])
-    factor = web.stored_factor(grid, max_zoom)
-    kept = web.stored_grid(grid, factor)
+    factor = blocks_mod.stored_factor(grid, max_zoom)
+    kept = blocks_mod.stored_grid(grid, factor)
     blocks = work / "blocks"
     jobs = [(b, w) for b, w in ((b, web.block_window(b, grid, max_zoom))
             for b in sorted(web.blocks_meeting(Window(0, 0, grid.width, grid.height), grid, max_zoom))) if w]
@@ -135,7 +136,7 @@ def tms_rows(cog: Path, work: Path, map_mpx: float, repeat: int, tile_format: st
         shutil.rmtree(blocks, ignore_errors=True)
         blocks.mkdir(parents=True)
         for job in jobs:
-            web._warp_block(str(cog), str(blocks), grid, False, factor, job)
+            blocks_mod.warp_block(str(cog), str(blocks), grid, False, factor, job)
 
     warp_s = median_time(warp_blocks, repeat)
     block_mpx = sum(w.width * w.height for _, w in jobs) / 1e6

@@ -5,11 +5,12 @@ The map is reprojected to EPSG:3857 in *blocks*: squares of :data:`BLOCK_TILES` 
 whole map's web-mercator grid (on the tile grid's pixels: :func:`tile_grid`), with the
 nearest-neighbour resampling of gdal2tiles' own warped VRT (transform exact to 0.01 px). Where that
 grid is finer than the tiles' (a map's: 2 or 4 of its pixels a side to a tile pixel), a block is kept
-as the average that gdal2tiles' base tile takes of it (:func:`box_mean`, its rounding), on the
+as the average that gdal2tiles' base tile takes of it (:mod:`.blocks`), on the
 tiles' own pixels: a quarter of the pixels to compress, keep and read again, the same tiles.
 gdal2tiles then cuts a VRT of the blocks with its
 own tile functions: base tiles by ``create_base_tile`` (its read made fast, same bytes: see
-:mod:`pipeline25d.stages.tiles.base`), overview tiles from their children by ``create_overview_tile``. It reads plain windows instead of re-warping for every tile,
+:mod:`pipeline25d.stages.tiles.base`), overview tiles from their children by
+``create_overview_tile``. It reads plain windows instead of re-warping for every tile,
 and only tiles that hold data are written, so a sparse map costs its districts, not its
 bounding box.
 
@@ -38,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline25d.core.atomic import atomic_path, device_full, replace_dir
+from pipeline25d.core.atomic import device_full, replace_dir
 from pipeline25d.core.errors import OutputError
 from pipeline25d.core.grid import Extent, Grid, Window
 from pipeline25d.core.journal import read_state, write_state
@@ -46,19 +47,17 @@ from pipeline25d.core.raster import cells_grid_of, gdal, map_cells
 from pipeline25d.stages.maps.mosaic_sources import plain_sources
 from pipeline25d.stages.maps.parts import box_outline
 from pipeline25d.stages.tiles import ids as id_tiles
+from pipeline25d.stages.tiles.blocks import (GDAL2TILES_TILE, WEB_MERCATOR, stored_factor, stored_grid, tile_metres,
+                                             warp_block)
 from pipeline25d.stages.tiles.base import close_source, create_base_tile, gdal2tiles
 from pipeline25d.stages.tiles.workers import Workers
 
 log = logging.getLogger(__name__)
 
-WEB_MERCATOR = "EPSG:3857"
-GDAL2TILES_TILE = 256
 BLOCK_TILES = 4        # a web-mercator block is 4 x 4 tiles of the highest zoom (1024 x 1024 px)
 MARGIN_PX = 2          # a changed map cell reaches this far (web-mercator px) beyond its reprojected outline
 EDGE_SAMPLES = 5       # points per cell edge reprojected (a cell is small: the reprojection is near affine)
-STATE_VERSION = 2      # 2: blocks kept averaged to the tiles' pixels (STORED_FACTORS)
-STORED_FACTORS = (2, 4)  # warp pixels a side to a tile pixel that a block is averaged by before it is kept
-BLOCK_OPTIONS = ["TILED=YES", "COMPRESS=ZSTD", "ZSTD_LEVEL=1"]
+STATE_VERSION = 2      # 2: blocks kept averaged to the tiles' pixels (blocks.STORED_FACTORS)
 
 
 def tms(cog: str | Path, zoom: str, out_dir: str | Path, processes: int = 1, tile_format: str = "png",
@@ -160,7 +159,7 @@ def update_pyramid(cog: str | Path, zoom: str, work: Path, processes: int = 1, t
     todo = sorted({b for w in reach for b in blocks_meeting(w, grid, max_zoom)})
     jobs = [(b, w) for b, w in ((b, block_window(b, grid, max_zoom)) for b in todo) if w is not None]
     with Workers(processes, most) as workers:
-        workers.map(partial(_warp_block, str(cog), str(work / "blocks"), grid, tile_format == "ids", factor), jobs)
+        workers.map(partial(warp_block, str(cog), str(work / "blocks"), grid, tile_format == "ids", factor), jobs)
         redone = cut(sorted((work / "blocks").glob("*.tif")), work / "tiles", stored_grid(grid, factor), zooms,
                      [w.scaled_down(factor) for w in reach], workers, tile_format, quality, webp_method)
     write_state(work, {"key": key, "cells": cells, "dirty": []})
@@ -181,16 +180,8 @@ def cell_bounds(cell_id: str, cells_grid: list) -> Extent:
     return grid.window_bounds(Window(c0, r0, min(c0 + cell, grid.width), min(r0 + cell, grid.height)))
 
 
-def _tile_metres(max_zoom: int) -> tuple[float, float]:
-    """(origin, tile): the web-tile grid starts at (-origin, -origin); a tile of ``max_zoom`` is tile m wide."""
-    from osgeo_utils.gdal2tiles import GlobalMercator
-
-    origin = GlobalMercator(GDAL2TILES_TILE).originShift
-    return origin, 2 * origin / 2 ** max_zoom
-
-
 def _block_metres(max_zoom: int) -> tuple[float, float]:
-    origin, tile = _tile_metres(max_zoom)
+    origin, tile = tile_metres(max_zoom)
     return origin, BLOCK_TILES * tile
 
 
@@ -233,66 +224,6 @@ def block_window(block: tuple[int, int], grid: Grid, max_zoom: int) -> Window | 
     c1, r1 = grid.colrow(x0 + size, y0)
     c0, r0, c1, r1 = max(round(c0), 0), max(round(r0), 0), min(round(c1), grid.width), min(round(r1), grid.height)
     return Window(c0, r0, c1, r1) if c1 > c0 and r1 > r0 else None
-
-
-def stored_factor(grid: Grid, max_zoom: int) -> int:
-    """The warp grid's pixels a side to a tile pixel of ``max_zoom`` that a block is averaged by
-    before it is kept: 2 or 4 (:data:`STORED_FACTORS`), else 1 (kept as warped: an id raster's grid,
-    which is the tiles', or a map's grid more than 4 times finer, whose base tiles gdal2tiles reads
-    through a query coarser than the window, not by averaging all of it)."""
-    _, tile = _tile_metres(max_zoom)
-    factor = round(tile / GDAL2TILES_TILE / grid.transform.a)
-    return factor if factor in STORED_FACTORS else 1
-
-
-def stored_grid(grid: Grid, factor: int) -> Grid:
-    """The grid the blocks are kept on: ``grid`` with pixels ``factor`` times as wide (its edges are
-    the tiles' edges, so the sizes divide)."""
-    if factor == 1:
-        return grid
-    x0, _, _, y1 = grid.bounds
-    return Grid.north_up(x0, y1, grid.transform.a * factor, grid.width // factor, grid.height // factor)
-
-
-def box_mean(bands: np.ndarray, factor: int) -> np.ndarray:
-    """(b, h/f, w/f) uint8: each band's mean over ``factor`` x ``factor`` pixels, rounded half up as
-    gdal2tiles' average of a base tile's query rounds it (:func:`~.base.average_tile`: a window f
-    times finer than the tile is each of its pixels repeated 4/f times in the 4x query, whose 4 x 4
-    sums are then (16/f² · S + 8) // 16 = (S + f²/2) // f²)."""
-    rows = bands[:, 0::factor].astype(np.uint16)           # strided adds: 7x a reshaped sum's speed
-    for k in range(1, factor):
-        rows += bands[:, k::factor]
-    sums = rows[:, :, 0::factor].copy()
-    for k in range(1, factor):
-        sums += rows[:, :, k::factor]
-    sums += factor * factor // 2
-    sums //= factor * factor
-    return sums.astype(np.uint8)
-
-
-def _warp_block(cog: str, blocks_dir: str, grid: Grid, ids: bool, factor: int,
-                job: tuple[tuple[int, int], Window]) -> None:
-    """Warp the map (``ids``: its id raster) onto one block's window of its web-mercator grid and
-    keep it, averaged by ``factor`` (:func:`stored_factor`), written atomically."""
-    block, window = job
-    bounds = grid.window_bounds(Window(*window))
-    extra = ["-tr", repr(grid.transform.a), repr(-grid.transform.e), "-te", *map(repr, bounds)]
-    g = gdal()
-    with atomic_path(Path(blocks_dir) / f"{block[0]}_{block[1]}.tif") as tmp:
-        if factor == 1:
-            options = _mercator_args(1, extra, alpha=not ids) + [a for o in BLOCK_OPTIONS for a in ("-co", o)]
-            g.Warp(str(tmp), cog, options=options)
-            return
-        warped = g.Warp("", cog, options=["-of", "MEM", *_mercator_args(1, extra)])
-        kept = g.GetDriverByName("MEM").Create("", warped.RasterXSize // factor, warped.RasterYSize // factor,
-                                               warped.RasterCount)
-        x0, res, _, y1, _, _ = warped.GetGeoTransform()
-        kept.SetGeoTransform((x0, res * factor, 0.0, y1, 0.0, -res * factor))
-        kept.SetProjection(warped.GetProjection())
-        kept.WriteRaster(0, 0, kept.RasterXSize, kept.RasterYSize, box_mean(warped.ReadAsArray(), factor).tobytes())
-        for i in range(1, warped.RasterCount + 1):
-            kept.GetRasterBand(i).SetColorInterpretation(warped.GetRasterBand(i).GetColorInterpretation())
-        g.GetDriverByName("GTiff").CreateCopy(str(tmp), kept, options=BLOCK_OPTIONS)
 
 
 def cut(blocks: list[Path], tiles: Path, grid: Grid, zooms: str, windows: list[Window], workers: Workers,
@@ -362,13 +293,6 @@ def _cut_ids(vrt: str, tiles: Path, base: list, reach: dict[int, set], conf, wor
         workers.map(partial(id_tiles.overview_tile, str(tiles)), sorted((z, x, y) for x, y in reach[z]))
 
 
-def _mercator_args(threads: int, extra: list[str] | None = None, alpha: bool = True) -> list[str]:
-    """gdalwarp's arguments; ``alpha`` False (an id raster): its nodata 0 kept instead of an alpha band."""
-    return ["-q", "-overwrite", "-t_srs", WEB_MERCATOR, "-r", "near", "-et", "0.01",
-            *(["-dstalpha"] if alpha else ["-srcnodata", "0", "-dstnodata", "0"]), "-multi",
-            "-wo", f"NUM_THREADS={threads}", *(extra or [])]
-
-
 def _gdal2tiles_args(zoom: str, processes: int, tile_format: str, quality: int, exclude_empty: bool) -> list[str]:
     args = ["-q", "--xyz", "-w", "none", "-r", "near" if tile_format == "ids" else "average", f"--processes={processes}",
             *(["--exclude"] if exclude_empty else [])]
@@ -398,7 +322,7 @@ def tile_grid(cog: str | Path, zoom: str, halved: bool = True) -> tuple[Grid, st
     the grid's left or top edge by one more."""
     native = mercator_grid(cog)
     zooms = zoom_range(native) if zoom == "auto" else zoom
-    origin, tile = _tile_metres(int(zooms.split("-")[-1]))            # the highest zoom's tile, metres
+    origin, tile = tile_metres(int(zooms.split("-")[-1]))            # the highest zoom's tile, metres
     size = tile / GDAL2TILES_TILE
     while halved and size > native.transform.a * (1 + 1e-9):
         size /= 2
