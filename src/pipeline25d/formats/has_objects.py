@@ -50,9 +50,9 @@ def input_has_objects(spec: dict) -> bool:
 
 
 def _first_content(tileset: Path) -> Path | None:
-    """The first renderable content the tile tree reaches, breadth first through external
-    tilesets (an implicit tileset's: its root tile's); None where there is none to peek at (no
-    content, too many tiles)."""
+    """The first renderable content the tile tree reaches, breadth first, an external tileset
+    entered as soon as it is met (an implicit tileset's: its root tile's); None where there is
+    none to peek at (no content, too many tiles)."""
     from pipeline25d.formats.tileset_tree import _content_list, read_json, resolve
 
     folder = tileset.parent
@@ -67,8 +67,8 @@ def _first_content(tileset: Path) -> Path | None:
             if implicit:             # the template's root tile: level 0 at 0, 0(, 0)
                 uri = uri.format(level=0, x=0, y=0, z=0)
             path = resolve(uri, base, folder)
-            if path.suffix.lower() == ".json":
-                queue.append((read_json(path)["root"], path))
+            if path.suffix.lower() == ".json":      # entered before the tile's siblings: one file, not all
+                queue.appendleft((read_json(path)["root"], path))
             elif path.is_file():
                 return path
         if not implicit:

@@ -68,7 +68,7 @@ def box_mean(bands: np.ndarray, factor: int) -> np.ndarray:
 
 
 def warp_block(cog: str, blocks_dir: str, grid: Grid, ids: bool, factor: int,
-                job: tuple[tuple[int, int], Window]) -> None:
+               job: tuple[tuple[int, int], Window]) -> None:
     """Warp the map (``ids``: its id raster) onto one block's window of its web-mercator grid and
     keep it, averaged by ``factor`` (:func:`stored_factor`), written atomically."""
     block, window = job
