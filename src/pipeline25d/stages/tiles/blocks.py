@@ -17,6 +17,7 @@ import numpy as np
 from pipeline25d.core.atomic import atomic_path
 from pipeline25d.core.grid import Grid, Window
 from pipeline25d.core.raster import gdal
+from pipeline25d.stages.tiles.base import box_sums
 
 WEB_MERCATOR = "EPSG:3857"
 GDAL2TILES_TILE = 256
@@ -56,15 +57,7 @@ def box_mean(bands: np.ndarray, factor: int) -> np.ndarray:
     gdal2tiles' average of a base tile's query rounds it (:func:`~.base.average_tile`: a window f
     times finer than the tile is each of its pixels repeated 4/f times in the 4x query, whose 4 x 4
     sums are then (16/f² · S + 8) // 16 = (S + f²/2) // f²)."""
-    rows = bands[:, 0::factor].astype(np.uint16)           # strided adds: 7x a reshaped sum's speed
-    for k in range(1, factor):
-        rows += bands[:, k::factor]
-    sums = rows[:, :, 0::factor].copy()
-    for k in range(1, factor):
-        sums += rows[:, :, k::factor]
-    sums += factor * factor // 2
-    sums //= factor * factor
-    return sums.astype(np.uint8)
+    return ((box_sums(bands, factor) + factor * factor // 2) // (factor * factor)).astype(np.uint8)
 
 
 def warp_block(cog: str, blocks_dir: str, grid: Grid, ids: bool, factor: int,
