@@ -24,7 +24,6 @@ from pipeline25d.core.errors import Pipeline25dError
 #: formats whose files never name an object (see the module docstring)
 SURFACE_FORMATS = frozenset({"ply", "osgb"})
 MAX_PEEK_TILES = 10_000     # tiles visited, external tilesets included, before the peek gives up (answers yes)
-_GLB_JSON = 0x4E4F534A
 _FEATURE_ATTRIBUTES = ("_BATCHID", "BATCHID")
 
 
@@ -96,8 +95,9 @@ def _content_has_features(data: bytes) -> bool:
             pos += length
         return False
     if magic == b"glTF":
-        length, kind = struct.unpack_from("<II", data, 12)
-        return kind == _GLB_JSON and _gltf_has_features(json.loads(data[20:20 + length]))
+        from pipeline25d.formats.gltf import _split_glb
+
+        return _gltf_has_features(_split_glb(data, Path("content"))[0])
     return _gltf_has_features(json.loads(data))
 
 
