@@ -127,3 +127,35 @@ def test_anisotropy_on_gpus_off_on_software_rasterisers():
     assert texture_anisotropy(_Ctx("NVIDIA H100 80GB HBM3/PCIe/SSE2", 16.0)) == 16.0
     assert texture_anisotropy(_Ctx("llvmpipe (LLVM 15.0.6, 256 bits)", 16.0)) == 1.0
     assert texture_anisotropy(_Ctx("AMD Radeon", 0.0)) == 1.0
+
+
+def test_texture_cache_uploads_once_and_trims_least_recent_between_tiles(gl_ctx):
+    """Each image is uploaded once while held; :meth:`TextureCache.trim` releases the least recently
+    used until the held bytes (RGBA and mip chain, 4/3 of level 0) fit the budget, never the ones
+    a later ``get`` touched; an image released is uploaded again when asked for."""
+    import io
+
+    from PIL import Image
+
+    from pipeline25d.stages.textures import TextureCache, texture_bytes
+
+    def png(seed: int) -> bytes:
+        out = io.BytesIO()
+        Image.fromarray(np.full((64, 64, 3), seed, np.uint8)).save(out, format="PNG")
+        return out.getvalue()
+
+    images = [png(k) for k in range(5)]
+    one = 64 * 64 * 4 * 4 // 3
+    cache = TextureCache(gl_ctx, 1.0, budget=2 * one)
+    texs = [cache.get(d) for d in images[:3]]
+    assert cache.get(images[0]) is texs[0] and cache.uploads == 3       # held: not uploaded again
+    assert cache.held_bytes == 3 * one == sum(texture_bytes(t) for t in texs)
+    cache.trim()                                                         # over budget: 1 goes (0 was used last)
+    assert cache.held_bytes == 2 * one
+    assert cache.get(images[0]) is texs[0] and cache.get(images[2]) is texs[2] and cache.uploads == 3
+    again = cache.get(images[1])                                         # released, so uploaded anew
+    assert again is not texs[1] and cache.uploads == 4
+    cache.trim()
+    assert cache.held_bytes == 2 * one and cache.get(images[1]) is again and cache.uploads == 4
+    assert cache.get(images[2]) is texs[2] and cache.uploads == 4
+    assert cache.get(images[0]) is not texs[0] and cache.uploads == 5    # 0 was the least recent

@@ -15,6 +15,7 @@ import pytest
 import yaml
 from conftest import REPO
 
+from pipeline25d.config import validate_schema
 from pipeline25d.stages.plan import plan_blocks, read_plan
 from pipeline25d_lab.scenes.demo import generate_demo_city
 
@@ -75,7 +76,8 @@ def test_dry_run_of_the_default_config_counts_jobs_per_rule(tmp_path):
     counts = job_counts(snakemake(tmp_path, "-n").stdout)
     plans = [read_plan(p) for p in (tmp_path / "results" / "demo" / "plans").glob("*.json")]
     assert len(plans) == 9
-    assert counts["render_block"] == sum(len(plan_blocks(p, 4)) for p in plans)
+    block = validate_schema(config)["render"]["block"]
+    assert counts["render_block"] == sum(len(plan_blocks(p, block)) for p in plans)
     assert sum(p.n_tiles_skipped for p in plans) > 0      # the demo's empty blocks
 
 

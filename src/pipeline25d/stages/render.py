@@ -47,10 +47,11 @@ from pipeline25d.geometry.camera import clip_matrix
 from pipeline25d.geometry.perspectives import Perspective
 from pipeline25d.geometry.sun import SunFrame
 from pipeline25d.stages.textures import texture_anisotropy
-from pipeline25d.stages.textures import upload as upload_texture
+from pipeline25d.stages.textures import TextureCache
 
 LIGHT_DIRECTION = np.array([0.45, 0.65, -0.62]) / np.linalg.norm([0.45, 0.65, -0.62])
 MARKER_SEGMENTS = 32
+TEXTURE_BUDGET = 256 << 20   # bytes of model textures a renderer holds between tiles (textures.TextureCache)
 
 
 
@@ -205,7 +206,7 @@ class TileRenderer:
         self.prog = ctx.program(vertex_shader=_variant(VERTEX_SHADER, *defines),
                                 fragment_shader=_variant(FRAGMENT_SHADER, *defines))
         self._set(u_faces=FACE_UNIT)     # its own unit: never a colour texture's (sampler types differ)
-        self._textures: dict[bytes, object] = {}
+        self._textures = TextureCache(ctx, self.anisotropy, TEXTURE_BUDGET)
         self._targets: dict[str, tuple[tuple, dict]] = {}
 
     # -- resources -----------------------------------------------------------
@@ -224,10 +225,8 @@ class TileRenderer:
         return made
 
     def _texture(self, data: bytes):
-        """A GL texture for encoded image bytes, uploaded once per distinct image (:mod:`.textures`)."""
-        if data not in self._textures:
-            self._textures[data] = upload_texture(self.ctx, data, self.anisotropy)
-        return self._textures[data]
+        """A GL texture for encoded image bytes, uploaded once while it is among those held (:class:`~pipeline25d.stages.textures.TextureCache`)."""
+        return self._textures.get(data)
 
     def _vao(self, positions: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None,
              uv: np.ndarray | None = None, ground: np.ndarray | None = None) -> "_GpuMesh":
@@ -337,6 +336,7 @@ class TileRenderer:
         if shadow is not None and not self.shadows:
             raise RenderError("sun shadows need a TileRenderer made with shadows=True")
         ctx, (w, h) = self.ctx, view.size
+        self._textures.trim()                   # between tiles: the last tile's textures first in line
         with self._geometry(chunks, view) as geometry:
             shadow_map = None
             if shadow is not None:

@@ -22,6 +22,7 @@ from __future__ import annotations
 import ctypes
 import functools
 import io
+from collections import OrderedDict
 
 import numpy as np
 
@@ -112,6 +113,46 @@ def upload(ctx, data: bytes, anisotropy: float):
     tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
     tex.anisotropy = anisotropy
     return tex
+
+
+class TextureCache:
+    """GL textures of encoded images, each uploaded once and held until :meth:`trim` finds the held
+    ones (RGBA and mip chain) over ``budget`` bytes and releases the least recently used.
+
+    A render job's tiles lie side by side, so the textures one tile draws are mostly those of the
+    tiles before it; trimming between tiles (never within one, which would upload a texture twice
+    in a pass) bounds a job's memory by the budget plus one tile's textures, whatever the job's size.
+    """
+
+    def __init__(self, ctx, anisotropy: float, budget: int):
+        self.ctx, self.anisotropy, self.budget = ctx, anisotropy, budget
+        self._held: OrderedDict[bytes, object] = OrderedDict()
+        self.held_bytes = 0
+        self.uploads = 0
+
+    def get(self, data: bytes):
+        """The texture of ``data``, uploaded now unless held."""
+        tex = self._held.get(data)
+        if tex is not None:
+            self._held.move_to_end(data)
+            return tex
+        tex = upload(self.ctx, data, self.anisotropy)
+        self.uploads += 1
+        self._held[data] = tex
+        self.held_bytes += texture_bytes(tex)
+        return tex
+
+    def trim(self) -> None:
+        """Release the least recently used textures until those held fit the budget."""
+        while self.held_bytes > self.budget and self._held:
+            _, old = self._held.popitem(last=False)
+            self.held_bytes -= texture_bytes(old)
+            old.release()
+
+
+def texture_bytes(tex) -> int:
+    """Bytes an RGBA8 texture and its mip chain hold (4/3 of level 0)."""
+    return tex.width * tex.height * 4 * 4 // 3
 
 
 GL_TEXTURE_2D, GL_RGBA8, GL_RGBA, GL_UNSIGNED_BYTE = 0x0DE1, 0x8058, 0x1908, 0x1401
