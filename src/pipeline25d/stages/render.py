@@ -225,7 +225,7 @@ class TileRenderer:
         return made
 
     def _texture(self, data: bytes):
-        """A GL texture for encoded image bytes, uploaded once while it is among those held (:class:`~pipeline25d.stages.textures.TextureCache`)."""
+        """A GL texture for encoded image bytes, uploaded once while held (:class:`.textures.TextureCache`)."""
         return self._textures.get(data)
 
     def _vao(self, positions: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None,
