@@ -173,3 +173,51 @@ def test_the_cog_of_a_patched_warp_equals_a_fresh_one_byte_for_byte(tmp_path, mo
     warp_to_cog(d / "mosaic.vrt", obs, none, plan, tmp_path / "b.tif")
     assert (tmp_path / "a.tif").read_bytes() == (tmp_path / "b.tif").read_bytes()
     shutil.rmtree(d)
+
+
+def test_the_digests_taken_from_the_blocks_are_map_cells_own(tmp_path, monkeypatch):
+    """The map's digests, taken from each block as it is made, equal map_cells read from the kept map,
+    and, for a copied map made whole, the mosaic's (so its warp reads the mosaic once): whole, warped,
+    and after a patch that replaced one block's. The note a lossless COG gets equals map_cells of the
+    COG and is refused once the COG is another version of it."""
+    from pipeline25d.core.raster import map_cells, noted_cells
+
+    monkeypatch.setattr(map_patch, "BLOCK_PX", BLOCK)
+    d = tmp_path / "tiles"
+    d.mkdir()
+    cells = [(r, c) for r in range(5) for c in range(6) if (r, c) != (2, 2)]      # a hole
+    for r, c in cells:
+        _write_tile(d, r, c)
+    rgba = _pixels(0, 0, seed=3)
+    rgba[40:90, 10:128, 3] = 0                                                   # a tile half see-through
+    write_rgba_geotiff(d / "0_0.tif", rgba, Grid.north_up(0, ROWS * TILE * GSD, GSD, TILE, TILE), horizontal_wkt(CRS))
+    crs = horizontal_wkt(CRS)
+    for choice in ({"method": "none", "order": 0}, {"method": "polynomial", "order": 1}):
+        work = tmp_path / choice["method"]
+        mosaic, src = _source(d, _observations())
+        memo: dict = {}
+        kept, made = patched_map(mosaic, src, choice, crs, GSD, work, memo)
+        grid, own = made["map_cells"]
+        assert made["full"] and (grid, own) == map_cells(kept) and len(own) > 20
+        mosaic_cells = map_cells(mosaic)
+        assert memo[(mosaic, 128)] == mosaic_cells and map_patch.read_state(work)["cells"] == mosaic_cells[1]
+        if choice["method"] == "none":
+            assert own == mosaic_cells[1]
+        _write_tile(d, 3, 4, seed=4)
+        mosaic, src = _source(d, _observations())
+        kept, patch = patched_map(mosaic, src, choice, crs, GSD, work)
+        assert not patch["full"] and 1 <= patch["blocks_redone"] < patch["blocks"]
+        assert patch["map_cells"] == map_cells(kept) and patch["map_cells"][1] != own
+        _write_tile(d, 3, 4)
+
+    plan = grid_plan(cells, GSD, TILE, CRS)
+    note = tmp_path / "note.json"
+    warp_to_cog(d / "mosaic.vrt", _observations(), {"method": "none", "order": 0}, plan, tmp_path / "a.tif",
+                work_dir=tmp_path / "kept", cells_note=note)
+    assert noted_cells(note, tmp_path / "a.tif") == map_cells(tmp_path / "a.tif")
+    shutil.copy(tmp_path / "a.tif", tmp_path / "b.tif")                           # another version of the file
+    (tmp_path / "b.tif").replace(tmp_path / "a.tif")
+    assert noted_cells(note, tmp_path / "a.tif") is None and noted_cells(None, tmp_path / "a.tif") is None
+    warp_to_cog(d / "mosaic.vrt", _observations(), {"method": "none", "order": 0}, plan, tmp_path / "a.tif",
+                compression="webp", work_dir=tmp_path / "kept", cells_note=note)
+    assert not note.exists()                                                       # lossy: the COG is not the map

@@ -85,16 +85,16 @@ def test_the_web_tile_job_cuts_the_map_and_its_ids_with_the_jobs_workers(monkeyp
 
     cuts = []
     monkeypatch.setattr(web, "tms", lambda source, zoom, out, **k: cuts.append(
-        (source, k["processes"], k["most"], k.get("webp_method"))) or {})
+        (source, k["processes"], k["most"], k.get("webp_method"), k.get("cells_note"))) or {})
     monkeypatch.setattr(jobs, "job_workers", lambda threads: threads + 1)
     monkeypatch.setattr(jobs, "allowed_cores", lambda: 4)
     job = SimpleNamespace(input=SimpleNamespace(cog="m.tif", ids="m.ids.tif"), threads=1,
                           output=SimpleNamespace(tiles="t", stats=str(tmp_path / "s.json"), id_tiles="i",
                                                  id_stats=str(tmp_path / "i.json")),
                           params=SimpleNamespace(zoom="14-18", tile_format="webp", quality=85, webp_method=2, work="w",
-                                                 id_work="iw"))
+                                                 id_work="iw", cells_note="n.json"))
     jobs.tms_job(job)
-    assert cuts == [("m.tif", 2, 4, 2), ("m.ids.tif", 2, 4, None)]
+    assert cuts == [("m.tif", 2, 4, 2, "n.json"), ("m.ids.tif", 2, 4, None, None)]    # the map's digests noted
 
 
 def test_the_map_service_job_makes_its_id_layers_on_the_jobs_workers(monkeypatch):
@@ -123,9 +123,9 @@ def test_each_cog_encode_takes_the_cores_idle_when_it_runs(monkeypatch, tmp_path
     monkeypatch.setattr(warp, "warp", lambda *a, **k: seen.update(k))
     job = SimpleNamespace(input=SimpleNamespace(mosaic="m.vrt", gcps="g.csv", plan="p.json"),
                           output=SimpleNamespace(cog="c.tif", meta="c.json"),
-                          params=SimpleNamespace(warp={}, maps={}, work="w"), threads=2)
+                          params=SimpleNamespace(warp={}, maps={}, work="w", cells_note="n.json"), threads=2)
     jobs.warp_job(job)
-    assert seen["threads"] == 2
+    assert seen["threads"] == 2 and seen["cells_note"] == "n.json"
 
     idle = iter([1, 3])                     # the cores idle at the first encode, then at the second
     given, calls = [], []

@@ -100,7 +100,7 @@ def warp_job(job: Job) -> None:
     threads = job.threads                            # each COG encode adds the cores idle when it runs
     cells: dict = {}                                 # the mosaic's digests, made once for both maps
     warp.warp(i.mosaic, i.gcps, i.plan, dict(p.warp), o.cog, o.meta, dict(p.maps), work_dir=p.work, threads=threads,
-              cells_memo=cells)
+              cells_memo=cells, cells_note=p.cells_note)
     if hasattr(o, "ids"):                            # objects.enabled: the id map, by the warp just chosen
         from pipeline25d.stages.maps.ids import id_map
 
@@ -116,7 +116,7 @@ def tms_job(job: Job) -> None:
     processes = job_workers(job.threads)             # the cut on the cores idle now too,
     most = allowed_cores()                           # and on those that fall idle while it runs
     stats = tms(job.input.cog, p.zoom, o.tiles, processes=processes, tile_format=p.tile_format,
-                quality=p.quality, work_dir=p.work, most=most, webp_method=p.webp_method)
+                quality=p.quality, work_dir=p.work, most=most, webp_method=p.webp_method, cells_note=p.cells_note)
     write_json(o.stats, stats)
     if hasattr(o, "id_tiles"):                       # objects.enabled: the id map's tiles, same positions
         stats = tms(job.input.ids, p.zoom, o.id_tiles, processes=processes, tile_format="ids", quality=0,

@@ -43,6 +43,8 @@ with stop_on_error(log=False):
     OBJECTS = objects_enabled(config)             # auto: where an input names objects (formats.has_objects)
     ID_MOSAIC = f"{RESULTS}/mosaic/{{pid}}.ids.vrt"
     ID_MAP = f"{RESULTS}/maps/{{pid}}.ids.tif"
+    # the map's digests as its warp job made them, which its web-tile cut reads instead of the map
+    MAP_CELLS_NOTE = f"{RESULTS}/work/warp/{{pid}}/map_cells.json"
     ID_MAPS = expand(ID_MAP, pid=PERSPECTIVE_IDS) if OBJECTS else []
     ID_STAT = f"{RESULTS}/work/ids/{{pid}}.json"
     ID_STATS = expand(ID_STAT, pid=PERSPECTIVE_IDS) if OBJECTS else []

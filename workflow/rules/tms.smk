@@ -18,6 +18,7 @@ rule tms:
         quality=config["tms"]["quality"],
         webp_method=config["tms"]["webp_method"],
         work=f"{RESULTS}/work/tms/{{pid}}",
+        cells_note=MAP_CELLS_NOTE,
         id_work=f"{RESULTS}/work/idtiles/{{pid}}",
     # one core (a job holding two waited for both to be free), and the cores idle when it starts
     # (core.cores); on a cluster profiles/slurm gives it two

@@ -19,6 +19,7 @@ rule warp:
         warp=config["warp"],
         maps=config["maps"],
         work=f"{RESULTS}/work/warp/{{pid}}",
+        cells_note=MAP_CELLS_NOTE,
         id_work=f"{RESULTS}/work/ids/{{pid}}",
     # one core: the warp used 1.13 of two and, holding two, kept render jobs off the other (with the
     # web tiles on one core too: a 3 x 3 Delft city 126 s -> 101 and 111 s in two runs); each COG

@@ -208,36 +208,76 @@ def map_cells(cog: str | Path, cell: int = CELL_PX, memo: dict | None = None) ->
             memo[key] = map_cells(cog, cell)
         return memo[key]
     ds = gdal().Open(str(cog))
-    grid = Grid.of_dataset(ds)
-    width, height = grid.width, grid.height
-    band = ds.GetRasterBand(1)
-    mask = band.GetMaskBand()
-    # an alpha band is its own mask: read once (a VRT reads each band's sources per window)
-    alpha_band = ds.RasterCount > 1 and band.GetMaskFlags() == gdal().GMF_ALPHA | gdal().GMF_PER_DATASET
-    bw, bh = band.GetBlockSize()
+    width, height = ds.RasterXSize, ds.RasterYSize
+    bw, bh = ds.GetRasterBand(1).GetBlockSize()
     # windows of whole blocks and cells, at least READ_ROWS rows (a VRT's 128-px blocks cost a read each)
     step_y = max(cell, bh // cell * cell, READ_ROWS // cell * cell)
     step_x = max(cell, bw // cell * cell, READ_PX // step_y // cell * cell)
     digests = {}
     for r in range(0, height, step_y):
         for c in range(0, width, step_x):
-            w, h = min(step_x, width - c), min(step_y, height - r)
-            if alpha_band:
-                bands = ds.ReadAsArray(c, r, w, h)
-                alpha = bands[-1]
-            else:
-                alpha = mask.ReadAsArray(c, r, w, h)
-            if not alpha.any():
-                continue
-            if not alpha_band:
-                bands = ds.ReadAsArray(c, r, w, h)
-            pixels = np.concatenate([bands.reshape(-1, h, w), alpha[None]])
-            for y in range(0, h, cell):
-                for x in range(0, w, cell):
-                    if alpha[y:y + cell, x:x + cell].any():
-                        digest = hashlib.sha256(np.ascontiguousarray(pixels[:, y:y + cell, x:x + cell])).hexdigest()
-                        digests[f"{(c + x) // cell}_{(r + y) // cell}"] = digest[:16]
-    return [*grid.geotransform, width, height, cell], digests
+            digests.update(window_cells(ds, Window(c, r, min(c + step_x, width), min(r + step_y, height)), cell))
+    return cells_grid(Grid.of_dataset(ds), cell), digests
+
+
+def write_cells_note(note: str | Path, raster: str | Path, grid: list, digests: dict[str, str]) -> None:
+    """Keep :func:`map_cells`' result for ``raster`` (a map whose writer digested its pixels as it made
+    them) in ``note``, with the raster's size and mtime, so a later reader skips reading it again."""
+    from pipeline25d.core.atomic import write_json
+
+    st = os.stat(raster)
+    write_json(note, {"raster": [st.st_size, st.st_mtime_ns], "grid": grid, "cells": digests}, indent=None)
+
+
+def noted_cells(note: str | Path | None, raster: str | Path) -> tuple[list, dict[str, str]] | None:
+    """:func:`map_cells` of ``raster`` as :func:`write_cells_note` kept it, or None where there is no
+    note or it is of another version of the raster (size or mtime differ)."""
+    import json
+
+    if note is None or not Path(note).is_file():
+        return None
+    st = os.stat(raster)
+    try:
+        kept = json.loads(Path(note).read_text())
+    except (OSError, ValueError):
+        return None
+    if kept.get("raster") != [st.st_size, st.st_mtime_ns]:
+        return None
+    return kept["grid"], kept["cells"]
+
+
+def cells_grid(grid: Grid, cell: int = CELL_PX) -> list:
+    """:func:`map_cells`' grid [*geotransform, width, height, cell] of a map on ``grid``."""
+    return [*grid.geotransform, grid.width, grid.height, cell]
+
+
+def window_cells(ds, win: Window, cell: int = CELL_PX, at: tuple[int, int] = (0, 0)) -> dict[str, str]:
+    """:func:`map_cells`' digests of the squares in window ``win`` of the open dataset ``ds``, whose
+    pixel (0, 0) is pixel ``at`` (col, row) of the map. ``win`` and ``at`` start on whole cells, so
+    a map's digests are the same whether read at once or window by window (a block of it, say)."""
+    g = gdal()
+    c, r, w, h = win.col0, win.row0, win.width, win.height
+    band = ds.GetRasterBand(1)
+    # an alpha band is its own mask: read once (a VRT reads each band's sources per window)
+    alpha_band = ds.RasterCount > 1 and band.GetMaskFlags() == g.GMF_ALPHA | g.GMF_PER_DATASET
+    if alpha_band:
+        bands = ds.ReadAsArray(c, r, w, h)
+        alpha = bands[-1]
+    else:
+        alpha = band.GetMaskBand().ReadAsArray(c, r, w, h)
+    if not alpha.any():
+        return {}
+    if not alpha_band:
+        bands = ds.ReadAsArray(c, r, w, h)
+    pixels = np.concatenate([bands.reshape(-1, h, w), alpha[None]])
+    col0, row0 = at[0] + c, at[1] + r
+    digests = {}
+    for y in range(0, h, cell):
+        for x in range(0, w, cell):
+            if alpha[y:y + cell, x:x + cell].any():
+                digest = hashlib.sha256(np.ascontiguousarray(pixels[:, y:y + cell, x:x + cell])).hexdigest()
+                digests[f"{(col0 + x) // cell}_{(row0 + y) // cell}"] = digest[:16]
+    return digests
 
 
 def cells_grid_of(cells_grid: list) -> Grid:

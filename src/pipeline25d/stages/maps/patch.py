@@ -77,8 +77,10 @@ def patched_map(mosaic: str | Path, source: str | Path, choice: dict, crs: str, 
                 work: Path, cells_memo: dict | None = None) -> tuple[Path, dict]:
     """Bring the map kept in ``work`` up to the ``mosaic``: copied where ``choice`` is no warp,
     else warped from ``source`` (a VRT of the mosaic with its GCPs). Returns the kept GeoTIFF,
-    with its overviews, and the run's figures (full or not, squares changed, blocks redone)."""
-    from pipeline25d.core.raster import map_cells
+    with its overviews, and the run's figures (full or not, squares changed, blocks redone) with
+    ``map_cells``: the kept map's own digests (:func:`~pipeline25d.core.raster.map_cells`), taken
+    from the blocks as they are written (None where an older state has none for the blocks kept)."""
+    from pipeline25d.core.raster import CELL_PX, cells_grid, map_cells
     from pipeline25d.stages.maps.parts import overview_factors
 
     g = gdal()
@@ -92,10 +94,12 @@ def patched_map(mosaic: str | Path, source: str | Path, choice: dict, crs: str, 
     key = {"version": STATE_VERSION, "method": choice["method"], "order": choice.get("order"), "crs": crs,
            "gcps": gcps_digest(source) if warped else None, "grid": [*grid.geotransform, width, height], "block": size,
            "overviews": factors}
-    mosaic_grid, cells = map_cells(mosaic, memo=cells_memo)
+    mosaic_grid = cells_grid(Grid.of_dataset(g.Open(str(mosaic))))
     key["mosaic"] = mosaic_grid
     state = read_state(work)
     full = state is None or state["key"] != key or not (work / KEPT).is_file()
+    # a copied map is its mosaic pixel for pixel: made whole, the blocks give the mosaic's digests as they go
+    cells = None if full and not warped else map_cells(mosaic, memo=cells_memo)[1]
     nx, ny = -(-width // size), -(-height // size)
     if full:
         shutil.rmtree(work, ignore_errors=True)
@@ -109,6 +113,7 @@ def patched_map(mosaic: str | Path, source: str | Path, choice: dict, crs: str, 
         todo = {tuple(b) for b in state["dirty"]} | blocks_reached(changed, mosaic_grid, to_map, grid, size,
                                                                    MARGIN_PX if warped else 0)
     todo = sorted(todo)
+    own = {} if full else state.get("map_cells")            # the kept map's digests, block by block
     write_state(work, {"key": key, "cells": {} if full else state["cells"], "dirty": todo})    # journal first
     with kept_dataset(work / KEPT, full, grid, crs, factors, bands=bands) as kept:
         for bx, by in todo:
@@ -120,11 +125,28 @@ def patched_map(mosaic: str | Path, source: str | Path, choice: dict, crs: str, 
             else:
                 block = g.Translate("", str(mosaic), format="MEM", srcWin=[win.col0, win.row0, win.width, win.height])
             write_block(kept, block, win, factors)
-    write_state(work, {"key": key, "cells": cells, "dirty": []})
-    stats = {"full": full, "mosaic_cells_changed": len(changed), "blocks_redone": len(todo), "blocks": nx * ny}
+            if own is not None:
+                _redigest(own, block, win, CELL_PX)
+    if cells is None:
+        cells = own
+        if cells_memo is not None:
+            cells_memo[(str(mosaic), CELL_PX)] = (mosaic_grid, cells)
+    write_state(work, {"key": key, "cells": cells, "dirty": [], "map_cells": own})
+    stats = {"full": full, "mosaic_cells_changed": len(changed), "blocks_redone": len(todo), "blocks": nx * ny,
+             "map_cells": None if own is None else (cells_grid(grid), own)}
     log.info("map: %s; %d mosaic squares changed, %d of %d map blocks %s", "full" if full else "patch",
              len(changed), len(todo), nx * ny, "warped" if warped else "copied")
     return work / KEPT, stats
+
+
+def _redigest(digests: dict[str, str], block, win: Window, cell: int) -> None:
+    """Replace the digests of the squares of map window ``win`` by those of its new pixels ``block``."""
+    from pipeline25d.core.raster import window_cells
+
+    for cy in range(win.row0 // cell, -(-win.row1 // cell)):
+        for cx in range(win.col0 // cell, -(-win.col1 // cell)):
+            digests.pop(f"{cx}_{cy}", None)
+    digests.update(window_cells(block, Window(0, 0, win.width, win.height), cell, at=(win.col0, win.row0)))
 
 
 def write_block(kept, block, win: Window, factors: list[int], resampling: str = "AVERAGE") -> None:

@@ -238,7 +238,7 @@ def warp_to_cog(mosaic: str | Path, obs: Sequence[Observation], choice: dict, pl
                 compression: str = "deflate", quality: int = 85,
                 parts: list[tuple[int, int, int, int]] | None = None,
                 work_dir: str | Path | None = None, threads: int = 1,
-                cells_memo: dict | None = None) -> list[list[float]]:
+                cells_memo: dict | None = None, cells_note: str | Path | None = None) -> list[list[float]]:
     """Write the north-up COG: the mosaic warped with the chosen GCP warp, or a plain copy for none.
 
     ``compression``: deflate (lossless RGBA), jpeg (RGB + the alpha as a mask, which the COG
@@ -248,12 +248,17 @@ def warp_to_cog(mosaic: str | Path, obs: Sequence[Observation], choice: dict, pl
     on the map (one part: the whole map's). A dense map is kept in ``work_dir`` with its
     overviews and patched where the mosaic changed (:mod:`pipeline25d.stages.maps.patch`).
     ``threads``: the job's threads, with which GDAL compresses the COG's blocks, or the cores idle
-    when it does where more (:func:`encode_options`; same bytes).
+    when it does where more (:func:`encode_options`; same bytes). ``cells_note``: where a dense,
+    lossless map's digests (taken as its blocks were made) are kept for its web tiles
+    (:func:`pipeline25d.core.raster.write_cells_note`).
     """
     from pipeline25d.core.crs import horizontal_wkt
+    from pipeline25d.core.raster import write_cells_note
 
     crs = horizontal_wkt(plan.crs)
     codec = cog_options(compression, quality)
+    if cells_note:
+        Path(cells_note).unlink(missing_ok=True)
     with atomic_path(out) as tmp:
         gcp_vrt = Path(tmp).with_suffix(".gcps.vrt")
         try:
@@ -266,16 +271,18 @@ def warp_to_cog(mosaic: str | Path, obs: Sequence[Observation], choice: dict, pl
 
             kept_dir = Path(work_dir) if work_dir else Path(tmp).with_suffix(".blocks")
             try:
-                kept, _ = patched_map(mosaic, source, choice, crs, plan.gsd, kept_dir, cells_memo)
+                kept, stats = patched_map(mosaic, source, choice, crs, plan.gsd, kept_dir, cells_memo)
                 cog = [opt for c in encode_options(codec, threads) for opt in ("-co", c)]
                 run_tool(["gdal_translate", "-q", "-of", "COG", *cog, str(kept), str(tmp)])
             finally:
                 if not work_dir:
                     shutil.rmtree(kept_dir, ignore_errors=True)
-            ds = gdal().Open(str(tmp))
-            return [list(Grid.of_dataset(ds).bounds)]
+            bounds = [list(Grid.of_dataset(gdal().Open(str(tmp))).bounds)]
         finally:
             gcp_vrt.unlink(missing_ok=True)
+    if cells_note and compression == "deflate" and stats["map_cells"] is not None:    # the COG holds the same pixels
+        write_cells_note(cells_note, out, *stats["map_cells"])
+    return bounds
 
 
 def _warp_parts(source: Path, mosaic: str | Path, choice: dict, plan: Plan, crs: str,
@@ -339,10 +346,12 @@ def raster_grid(path: str | Path) -> Grid:
 
 def warp(mosaic_vrt: str | Path, gcps_csv: str | Path, plan_path: str | Path, warp_cfg: dict,
          out_cog: str | Path, out_json: str | Path, maps_cfg: dict | None = None,
-         work_dir: str | Path | None = None, threads: int = 1, cells_memo: dict | None = None) -> dict:
+         work_dir: str | Path | None = None, threads: int = 1, cells_memo: dict | None = None,
+         cells_note: str | Path | None = None) -> dict:
     """Choose the warp by cross-validation on the GCPs, write the COG, and record the check-point
     scores. ``work_dir`` keeps the warped map for the next run to patch; ``threads`` encode the COG;
-    ``cells_memo``: the job's mosaic digests (:func:`pipeline25d.core.raster.map_cells`), kept for its id map."""
+    ``cells_memo``: the job's mosaic digests (:func:`pipeline25d.core.raster.map_cells`), kept for its id map;
+    ``cells_note``: where the map's own digests are kept for its web tiles (:func:`warp_to_cog`)."""
     from pipeline25d.stages.maps.parts import tile_parts
 
     pl = read_plan(plan_path)
@@ -351,7 +360,7 @@ def warp(mosaic_vrt: str | Path, gcps_csv: str | Path, plan_path: str | Path, wa
     choice = choose(obs, pl, grid, warp_cfg["method"], warp_cfg["order"])
     parts = tile_parts((t.row, t.col) for t in pl.tiles)
     bounds = warp_to_cog(mosaic_vrt, obs, choice, pl, out_cog, parts=parts, work_dir=work_dir, threads=threads,
-                         cells_memo=cells_memo, **(maps_cfg or {}))   # compression, quality
+                         cells_memo=cells_memo, cells_note=cells_note, **(maps_cfg or {}))   # compression, quality
     p = pl.perspective
     record = {"perspective": {"id": p.id, "azimuth": p.azimuth, "elevation": p.elevation}, **choice, "n_observed": len(obs), "parts": bounds,
               "paper_method": paper_method_on(obs, pl, grid) if pl.projection == "terrain" else None}

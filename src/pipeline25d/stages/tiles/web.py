@@ -43,7 +43,7 @@ from pipeline25d.core.atomic import device_full, replace_dir
 from pipeline25d.core.errors import OutputError
 from pipeline25d.core.grid import Extent, Grid, Window
 from pipeline25d.core.journal import read_state, write_state
-from pipeline25d.core.raster import cells_grid_of, gdal, map_cells
+from pipeline25d.core.raster import cells_grid_of, gdal, map_cells, noted_cells
 from pipeline25d.stages.maps.mosaic_sources import plain_sources
 from pipeline25d.stages.maps.parts import box_outline
 from pipeline25d.stages.tiles import ids as id_tiles
@@ -62,7 +62,7 @@ STATE_VERSION = 2      # 2: blocks kept averaged to the tiles' pixels (blocks.ST
 
 def tms(cog: str | Path, zoom: str, out_dir: str | Path, processes: int = 1, tile_format: str = "png",
         quality: int = 85, work_dir: str | Path | None = None, most: int | None = None,
-        webp_method: int | None = None) -> dict:
+        webp_method: int | None = None, cells_note: str | Path | None = None) -> dict:
     """The gdal2tiles XYZ pyramid (web mercator) of a map at ``out_dir``, published atomically.
 
     ``tile_format`` png or webp (lossy at ``quality``, with alpha; ``webp_method``: libwebp's
@@ -72,7 +72,9 @@ def tms(cog: str | Path, zoom: str, out_dir: str | Path, processes: int = 1, til
     changed in the map; without it the pyramid is cut from scratch. Returns the cut's
     figures: web tiles in all, web tiles redone, blocks warped, and whether it was a full cut.
     ``processes``: the worker processes each stage of the cut starts with; ``most``: those it may
-    grow to while cores are idle (:class:`Workers`; default ``processes``).
+    grow to while cores are idle (:class:`Workers`; default ``processes``). ``cells_note``: the
+    map's digests as its warp kept them (:func:`~pipeline25d.core.raster.noted_cells`), read
+    instead of the map where they are of this version of it.
     """
     out_dir = Path(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
@@ -83,13 +85,15 @@ def tms(cog: str | Path, zoom: str, out_dir: str | Path, processes: int = 1, til
             stale.unlink()
     if work_dir is not None:
         with _space_checked(Path(work_dir)):
-            stats = update_pyramid(cog, zoom, Path(work_dir), processes, tile_format, quality, most, webp_method)
+            stats = update_pyramid(cog, zoom, Path(work_dir), processes, tile_format, quality, most, webp_method,
+                                   cells_note)
         publish(Path(work_dir) / "tiles", out_dir)
         return stats
     tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
     try:
         with _space_checked(tmp):
-            stats = update_pyramid(cog, zoom, tmp / "work", processes, tile_format, quality, most, webp_method)
+            stats = update_pyramid(cog, zoom, tmp / "work", processes, tile_format, quality, most, webp_method,
+                                   cells_note)
         publish(tmp / "work" / "tiles", out_dir)
         return stats
     finally:
@@ -128,8 +132,10 @@ def publish(tiles: Path, out_dir: Path) -> None:
 
 
 def update_pyramid(cog: str | Path, zoom: str, work: Path, processes: int = 1, tile_format: str = "png",
-                   quality: int = 85, most: int | None = None, webp_method: int | None = None) -> dict:
-    """Bring the pyramid kept in ``work`` (``tiles/``, ``blocks/``, ``state.json``) up to the map ``cog``."""
+                   quality: int = 85, most: int | None = None, webp_method: int | None = None,
+                   cells_note: str | Path | None = None) -> dict:
+    """Bring the pyramid kept in ``work`` (``tiles/``, ``blocks/``, ``state.json``) up to the map ``cog``
+    (its digests from ``cells_note`` where it has them: :func:`tms`)."""
     gdal2tiles()                       # before the workers fork: they inherit its tile options
     g = gdal()
     ds = g.Open(str(cog))
@@ -142,7 +148,9 @@ def update_pyramid(cog: str | Path, zoom: str, work: Path, processes: int = 1, t
     key = {"version": STATE_VERSION, "grid": [*grid.geotransform, width, height], "zooms": zooms, "format": tile_format,
            "quality": int(quality) if tile_format == "webp" else None, "block_tiles": BLOCK_TILES,
            **({"webp_method": webp_method} if tile_format == "webp" and webp_method is not None else {})}
-    map_grid, cells = map_cells(cog)
+    noted = noted_cells(cells_note, cog)
+    map_grid, cells = noted or map_cells(cog)
+    log.info("map digests: %s", "as its warp job made them" if noted else "read from the map")
     key["map"] = map_grid
     state = read_state(work)
     full = state is None or state["key"] != key
