@@ -222,28 +222,33 @@ def map_cells(cog: str | Path, cell: int = CELL_PX, memo: dict | None = None) ->
 
 def write_cells_note(note: str | Path, raster: str | Path, grid: list, digests: dict[str, str]) -> None:
     """Keep :func:`map_cells`' result for ``raster`` (a map whose writer digested its pixels as it made
-    them) in ``note``, with the raster's size and mtime, so a later reader skips reading it again."""
+    them) in ``note``, with the file's size and sha256, so a later reader need not decode it again."""
     from pipeline25d.core.atomic import write_json
 
-    st = os.stat(raster)
-    write_json(note, {"raster": [st.st_size, st.st_mtime_ns], "grid": grid, "cells": digests}, indent=None)
+    write_json(note, {"raster": file_fingerprint(raster), "grid": grid, "cells": digests}, indent=None)
 
 
 def noted_cells(note: str | Path | None, raster: str | Path) -> tuple[list, dict[str, str]] | None:
     """:func:`map_cells` of ``raster`` as :func:`write_cells_note` kept it, or None where there is no
-    note or it is of another version of the raster (size or mtime differ)."""
+    note or it is of another file (its size or sha256 differ: hashing the file costs a fifth of
+    decoding it; its mtime would not do, as Snakemake touches a job's outputs when it ends)."""
     import json
 
     if note is None or not Path(note).is_file():
         return None
-    st = os.stat(raster)
     try:
         kept = json.loads(Path(note).read_text())
     except (OSError, ValueError):
         return None
-    if kept.get("raster") != [st.st_size, st.st_mtime_ns]:
+    if kept.get("raster") != file_fingerprint(raster):
         return None
     return kept["grid"], kept["cells"]
+
+
+def file_fingerprint(path: str | Path) -> list:
+    """[size, sha256 hex] of a file."""
+    with open(path, "rb") as fh:
+        return [os.fstat(fh.fileno()).st_size, hashlib.file_digest(fh, "sha256").hexdigest()]
 
 
 def cells_grid(grid: Grid, cell: int = CELL_PX) -> list:
