@@ -137,19 +137,20 @@ def test_textures_come_through_with_their_colours(tiles_at, gsd):
     assert checked >= 10 * len(parts)
 
 
-def test_textures_are_the_fast_pngs_osgconv_wrote(tiles_at):
-    """The chunks keep osgconv's PNGs as they are, written at zlib level 1 (PNG_FAST: the zlib header's
-    FLEVEL 0, "fastest"; libpng's default level 6 writes 2). Their pixels: the test above."""
-    part = next(p for t in tiles_at(1.0) for p in t.parts if p.texture is not None)
-    data = part.texture
-    assert data[:8] == b"\x89PNG\r\n\x1a\n"
-    pos, idat = 8, b""
-    while pos < len(data):                          # the chunks: length, type, data, CRC
-        length, kind = int.from_bytes(data[pos:pos + 4], "big"), data[pos + 4:pos + 8]
-        if kind == b"IDAT":
-            idat += data[pos + 8:pos + 8 + length]
-        pos += 12 + length
-    assert idat[1] >> 6 == 0                        # FLEVEL of the zlib stream: compressor used level 0-1
+def test_textures_are_the_uncompressed_tgas_osgconv_wrote(tiles_at):
+    """The chunks keep osgconv's textures as it wrote them: uncompressed true-colour TGA (image type 2,
+    no colour map), 18 header bytes and then every texel, which the render job reads without
+    decoding. Their pixels: the test above."""
+    parts = [p for t in tiles_at(1.0) for p in t.parts if p.texture is not None]
+    assert parts
+    for part in parts:
+        data = part.texture
+        assert data[1] == 0 and data[2] == 2 and data[16] in (24, 32)
+        width, height = int.from_bytes(data[12:14], "little"), int.from_bytes(data[14:16], "little")
+        with Image.open(io.BytesIO(data)) as img:
+            assert img.format == "TGA" and img.size == (width, height)
+        texels = width * height * data[16] // 8
+        assert len(data) in (18 + data[0] + texels, 18 + data[0] + texels + 26)     # with its footer or not
 
 
 def test_detect_format_and_single_file_with_metadata(dataset):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import zipfile
+
 import numpy as np
 import pytest
 import trimesh
@@ -9,6 +11,7 @@ from conftest import DATA, box_part
 
 from pipeline25d.core.mesh import Mesh, MeshPart
 from pipeline25d.formats import load_district
+from pipeline25d.stages.chunks import load_npz, pack_parts, save_npz, unpack_parts
 from pipeline25d.stages.ingest import split_into_chunks, write_chunks
 from pipeline25d.stages.lod import _simplify, build_levels, choose_level, surface_error, texture_drift
 
@@ -42,6 +45,23 @@ def test_unchanged_chunks_keep_their_files(tmp_path):
     write_chunks(moved, "a", 25.0, tmp_path, tmp_path / "index.json")
     changed = [p.name for p in tmp_path.glob("c*.npz") if p.stat().st_mtime_ns != mtimes[p.name]]
     assert len(changed) == 1
+
+
+def test_a_chunks_textures_are_stored_as_they_are_and_its_geometry_compressed(tmp_path):
+    """A texture's bytes (a PNG, a JPEG, an uncompressed TGA) go into the npz uncompressed: the
+    image is compressed already or kept raw to be read without decoding; the rest is deflated."""
+    rng = np.random.default_rng(5)
+    texture = bytes(18) + rng.integers(0, 256, 4096, dtype=np.uint8).tobytes()
+    part = grid_part()
+    part = MeshPart(part.vertices, part.faces, uv=np.zeros((len(part.vertices), 2)), texture=texture)
+    save_npz(tmp_path / "c.npz", pack_parts([part], np.zeros(3)))
+    with zipfile.ZipFile(tmp_path / "c.npz") as zf:
+        kinds = {i.filename: i.compress_type for i in zf.infolist()}
+    assert kinds.pop("p0_tex.npy") == zipfile.ZIP_STORED
+    assert set(kinds.values()) == {zipfile.ZIP_DEFLATED}
+    (back,) = unpack_parts(load_npz(tmp_path / "c.npz"), np.zeros(3))
+    assert back.texture == texture
+    np.testing.assert_array_equal(back.faces, part.faces)
 
 
 def test_district_lod_rebuilds_only_changed_chunks_and_removes_stale_ones(tmp_path):

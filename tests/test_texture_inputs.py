@@ -15,6 +15,7 @@ from pipeline25d.core.errors import InputFileError, MissingTextureWarning
 from pipeline25d.formats import load_district
 from pipeline25d.formats.common import image_problem
 from pipeline25d.formats.meshfile import load_mesh_file
+from pipeline25d.stages.textures import decode
 
 
 def _textured_obj(folder, image_name: str) -> object:
@@ -24,22 +25,25 @@ def _textured_obj(folder, image_name: str) -> object:
     return folder / "m.obj"
 
 
-@pytest.mark.parametrize("fmt, ext", [("JPEG", "jpg"), ("PNG", "png"), ("BMP", "bmp")])
-def test_texture_bytes_are_the_files_own_where_png_or_jpeg(tmp_path, fmt, ext):
+@pytest.mark.parametrize("fmt, ext, options", [("JPEG", "jpg", {}), ("PNG", "png", {}), ("TGA", "tga", {}),
+                                               ("BMP", "bmp", {}), ("TGA", "tga", {"compression": "tga_rle"})])
+def test_texture_bytes_are_the_files_own_where_png_jpeg_or_raw_tga(tmp_path, fmt, ext, options):
     rng = np.random.default_rng(3)
     pixels = rng.integers(0, 256, (32, 48, 3), dtype=np.uint8)
     buf = io.BytesIO()
-    Image.fromarray(pixels).save(buf, format=fmt)
+    Image.fromarray(pixels).save(buf, format=fmt, **options)
     (tmp_path / f"t.{ext}").write_bytes(buf.getvalue())
     mesh = load_mesh_file(_textured_obj(tmp_path, f"t.{ext}"))
     textures = {p.texture for p in mesh.parts}
     assert len(textures) == 1
     texture = textures.pop()
-    if fmt == "BMP":       # neither PNG nor JPEG: encoded as PNG, the same pixels
+    if fmt == "BMP" or options:       # a BMP, a run-length TGA: encoded as PNG, the same pixels
         assert texture[:8] == b"\x89PNG\r\n\x1a\n"
         assert np.array_equal(np.asarray(Image.open(io.BytesIO(texture)).convert("RGB")), pixels)
     else:
         assert texture == buf.getvalue()
+        if fmt != "JPEG":           # lossless: the render job reads the file's pixels
+            assert np.array_equal(decode(texture)[::-1, :, :3], pixels)
 
 
 def _image(fmt: str) -> bytes:
@@ -48,7 +52,7 @@ def _image(fmt: str) -> bytes:
     return buf.getvalue()
 
 
-@pytest.mark.parametrize("fmt", ["JPEG", "PNG"])
+@pytest.mark.parametrize("fmt", ["JPEG", "PNG", "TGA"])
 def test_a_truncated_image_is_a_problem_a_whole_one_is_not(fmt):
     data = _image(fmt)
     assert image_problem(data) is None

@@ -1,9 +1,9 @@
 """OBJ, PLY and DAE model files through trimesh: one MeshPart per material/geometry, an OBJ's faces on their `o`.
 
 trimesh keeps OBJ/glTF UVs with v = 0 at the image bottom (our convention); a texture keeps the
-bytes of its PNG or JPEG file (an OSGB tile's, which osgconv writes as PNG, too), any other image
-is encoded as PNG, once per image (re-encoding every texture as PNG was 62 % of an OSGB city's
-ingest); vertex colours and material colours become RGBA per vertex. Coordinates are float64 as the
+bytes of its PNG, JPEG or uncompressed TGA file (an OSGB tile's, which osgconv writes as TGA), any
+other image is encoded as PNG, once per image (re-encoding every texture as PNG was 62 % of an OSGB
+city's ingest); vertex colours and material colours become RGBA per vertex. Coordinates are float64 as the
 file stores them.
 """
 
@@ -20,7 +20,7 @@ import trimesh
 
 from pipeline25d.core.errors import InputFileError, MissingTextureWarning
 from pipeline25d.core.mesh import Mesh, MeshPart, joined
-from pipeline25d.formats.common import image_problem, png_or_jpeg, side_file
+from pipeline25d.formats.common import drawn_as_is, image_problem, side_file
 
 
 def load_mesh_file(path: str | Path) -> Mesh:
@@ -154,15 +154,15 @@ def _part(geom, vertices: np.ndarray, name: str, encoded: dict[int, bytes],
 
 
 def _texture_bytes(image, served: dict[str, bytes | None]) -> bytes | None:
-    """The encoded bytes of a texture trimesh opened: those of its file where that is a PNG or JPEG
-    (trimesh records the file in ``image.info["file_path"]``; ``served``: what the resolver read,
+    """The encoded bytes of a texture trimesh opened: those of its file where that is a PNG, a JPEG
+    or an uncompressed TGA (trimesh records the file in ``image.info["file_path"]``; ``served``: what the resolver read,
     by name, None for a file :meth:`_Files.check` found missing or broken), else the image encoded
     as PNG; None where it cannot be (already warned of, or warned of here)."""
     name = image.info.get("file_path")
     data = served.get(name)
     if name in served and data is None:
         return None
-    if data is not None and png_or_jpeg(data):
+    if data is not None and drawn_as_is(data):
         return data
     buf = io.BytesIO()
     try:

@@ -11,7 +11,7 @@ PagedLOD/LOD nodes this module parses (range mode, range list, child file names,
 centre and radius, enclosing MatrixTransforms). The file is written back as .osgt with every
 LOD node replaced by a Group of the children drawn at the map's pixel size and every image
 renamed to a safe file name, and ``osgconv -O OutputTextureFiles`` turns that into OBJ + MTL +
-PNG textures (zlib level 1: :data:`PNG_FAST`), read with trimesh (:mod:`pipeline25d.formats.meshfile`).
+uncompressed TGA textures (:data:`TEXTURE_SUFFIX`), read with trimesh (:mod:`pipeline25d.formats.meshfile`).
 
 **Level rule.** In an orthographic map of ``gsd`` metres per pixel a node whose bounding
 sphere has radius r covers 2·r/gsd pixels (OpenSceneGraph's ``CullStack::clampedPixelSize``
@@ -67,10 +67,10 @@ OSGCONV = "osgconv"
 WORKERS = max(1, min(4, len(os.sched_getaffinity(0))))   # tiles converted at once (each runs osgconv)
 # the scene graph exactly as stored (osgconv optimizes by default), no display, warnings only
 OSG_ENV = {"OSG_OPTIMIZER": "OFF", "OSG_NOTIFY_LEVEL": "WARN", "OSG_FILE_PATH": ""}
-# the textures osgconv writes beside the OBJ, which the chunks keep as they are: at zlib level 1 a tile
-# of four 512 px textures converted in 0.25 s against 0.45 s at libpng's default (6), 4 % more bytes,
-# the same pixels
-PNG_FAST = ["PNG_COMPRESSION", "1"]
+# the textures osgconv writes beside the OBJ, which the chunks keep as they are: uncompressed TGA (RGB
+# or RGBA as the image is), which every render job that draws the chunk reads in 1-2 ms for 512 x 512
+# texels, against 10-15 ms to decode the PNG osgconv wrote before (at zlib level 1); twice the bytes
+TEXTURE_SUFFIX = ".tga"
 _LOD_CLASSES = ("osg::PagedLOD", "osg::LOD")
 _TRANSFORM_CLASSES = ("osg::PositionAttitudeTransform", "osg::AutoTransform", "osg::Camera", "osg::Transform",
                       "osgSim::DOFTransform", "osg::Billboard")
@@ -275,7 +275,7 @@ def _read_file(child: _Child, gsd: float | None, work: Path, folder: Path, stric
     if "osg::Geometry" not in pruned:
         return _Walked([], walker.children, walker.missing)
     (work / "sel.osgt").write_text(pruned)
-    osgconv(Path("sel.osgt"), Path("sel.obj"), ["OutputTextureFiles", *PNG_FAST], work, path)
+    osgconv(Path("sel.osgt"), Path("sel.obj"), ["OutputTextureFiles"], work, path)
     return _Walked(_obj_parts(work / "sel.obj", path, child.matrix), walker.children, walker.missing)
 
 
@@ -438,7 +438,7 @@ class _Walker:
         if stored and (self.path.parent / stored).exists():   # osgconv loaded it: it must be ours
             side_file(stored, self.path.parent, self.folder, self.path, "texture file", url=False)
         head = self.text[image.start:name.start]
-        return f'{head}FileName "img{self.images}.png"{self.text[name.end:image.end]}'
+        return f'{head}FileName "img{self.images}{TEXTURE_SUFFIX}"{self.text[name.end:image.end]}'
 
     def _matrix(self, node: Block) -> np.ndarray:
         block = node.block("Matrix")

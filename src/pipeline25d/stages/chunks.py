@@ -89,12 +89,23 @@ NPZ_LEVEL = 1
 
 
 def save_npz(path: str | Path, arrays: dict[str, np.ndarray]) -> None:
-    """Write a compressed npz atomically (what ``np.savez_compressed`` writes, at :data:`NPZ_LEVEL`)."""
+    """Write a compressed npz atomically (what ``np.savez_compressed`` writes, at :data:`NPZ_LEVEL`),
+    but textures (``*_tex``) stored as they are: a PNG or JPEG is compressed already, and an
+    uncompressed TGA is kept so to be read without decoding (:func:`stored_as_is`)."""
     with atomic_path(path, suffix=".tmp") as tmp:
         with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=NPZ_LEVEL, allowZip64=True) as zf:
             for name, value in arrays.items():
-                with zf.open(f"{name}.npy", "w", force_zip64=True) as fh:
+                member: str | zipfile.ZipInfo = f"{name}.npy"
+                if stored_as_is(name):
+                    member = zipfile.ZipInfo(member)
+                    member.compress_type = zipfile.ZIP_STORED
+                with zf.open(member, "w", force_zip64=True) as fh:
                     np.lib.format.write_array(fh, np.asanyarray(value), allow_pickle=False)
+
+
+def stored_as_is(name: str) -> bool:
+    """Whether the npz member of array ``name`` is stored uncompressed: a part's texture bytes."""
+    return name.endswith("_tex")
 
 
 def load_npz(path: str | Path):
