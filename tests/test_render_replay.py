@@ -47,3 +47,19 @@ def test_the_replay_draws_the_runs_tiles_and_gcps_without_gdal(small_run, tmp_pa
             assert np.allclose(seen[gid], [x / pl.pixel_size, y / pl.pixel_size], atol=1e-6), gid
     same = render_replay.compare(tmp_path / "out", tmp_path / "out")
     assert all(r["tile_max_abs"] == 0 and r["gcp_max_px"] == 0 for r in same.values()), json.dumps(same)
+
+
+def test_a_sample_of_a_plans_tiles_is_a_compact_block_around_its_middle():
+    """A plan's tiles in row order, 4 rows of 11: four tiles taken in list order from the middle
+    run from one row's end to the next row's start (10 columns apart); the sample is the four
+    nearest the middle (row 1.5, column 5) instead, in the plan's order: within 2 rows and 3 columns."""
+    positions = [(row, col) for row in range(4) for col in range(11)]
+    mid = (len(positions) - 4) // 2
+    in_order = positions[mid:mid + 4]
+    assert max(c for _, c in in_order) - min(c for _, c in in_order) == 10
+    keep = render_replay.middle_tiles(positions, 4)
+    assert keep == sorted(keep) and len(keep) == 4
+    picked = [positions[i] for i in keep]
+    assert {r for r, _ in picked} == {1, 2} and {c for _, c in picked} <= {4, 5, 6}
+    assert {(1, 5), (2, 5)} <= set(picked)
+    assert render_replay.middle_tiles(positions, 100) == list(range(44))

@@ -33,7 +33,7 @@ def pack(results: Path, out: Path, workdir: Path, max_tiles: int | None = None,
          perspectives: set[str] | None = None, ground_float32: bool = False) -> dict:
     """Copy ``results``' plans and the LOD chunks they draw into ``out``, with each terrain-mode
     plan's DTM window pickled (``workdir``: where the plans' relative DTM paths start);
-    ``max_tiles``: keep only that many tiles from the middle of each plan, ``perspectives`` only
+    ``max_tiles``: keep only that many tiles from the middle of each plan (:func:`middle_tiles`), ``perspectives`` only
     those plans, ``ground_float32``: the DTM heights in float32 (half the bytes; 2 µm at 30 m) for a
     sample that must travel light."""
     from pyproj import CRS
@@ -55,8 +55,8 @@ def pack(results: Path, out: Path, workdir: Path, max_tiles: int | None = None,
         pl = read_plan(path)
         if max_tiles is not None and len(pl.tiles) > max_tiles:
             data = json.loads(path.read_text())
-            mid = (len(pl.tiles) - max_tiles) // 2
-            data["tiles"] = data["tiles"][mid:mid + max_tiles]
+            keep = middle_tiles([(t["row"], t["col"]) for t in data["tiles"]], max_tiles)
+            data["tiles"] = [data["tiles"][i] for i in keep]
             write_json(out / "plans" / path.name, data)
             pl = read_plan(out / "plans" / path.name)
         else:
@@ -87,6 +87,15 @@ def pack(results: Path, out: Path, workdir: Path, max_tiles: int | None = None,
         shutil.copyfile(results / "lod" / rel, out / "lod" / rel)
     size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
     return {"plans": len(list((out / "plans").glob("*.json"))), "chunks": len(chunks), "bytes": size}
+
+
+def middle_tiles(positions: list[tuple[int, int]], n: int) -> list[int]:
+    """The indices, in their order, of the ``n`` tile ``positions`` (row, col) nearest the middle of
+    them all: a compact block, whose chunks and DTM window are as small as a sample of ``n`` tiles'
+    can be (``n`` tiles in list order would run along a row, or wrap from its end to the next)."""
+    rc = np.array(positions, dtype=np.float64).reshape(-1, 2)
+    distance = np.hypot(*(rc - rc.mean(axis=0)).T)
+    return sorted(np.argsort(distance, kind="stable")[:n].tolist())
 
 
 def replay(packed: Path, out: Path, objects: bool = True) -> dict:
