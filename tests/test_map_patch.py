@@ -225,3 +225,31 @@ def test_the_digests_taken_from_the_blocks_are_map_cells_own(tmp_path, monkeypat
     warp_to_cog(d / "mosaic.vrt", _observations(), {"method": "none", "order": 0}, plan, tmp_path / "a.tif",
                 compression="webp", work_dir=tmp_path / "kept", cells_note=note)
     assert not note.exists()                                                       # lossy: the COG is not the map
+
+
+def test_blocks_made_by_worker_processes_give_the_same_map_as_made_here(tmp_path, monkeypatch):
+    """The blocks of a map made by two forked workers (the last map of a run, with a core idle)
+    and here, one after another: the same pixels and overviews, warped or copied, the same COG,
+    the same digests. GDAL's warp threads are in this process, not in a forked one: the
+    workers warp on one thread each, and the warp here (its thread pool started) must not hang them."""
+    d = _tiles(tmp_path, monkeypatch)
+    crs = horizontal_wkt(CRS)
+    mosaic, src = _source(d, _observations())
+    cells = [(r, c) for r in range(ROWS) for c in range(COLS)]
+    plan = grid_plan(cells, GSD, TILE, CRS)
+    gdal().Warp("", src, format="MEM", **map_patch.warp_options({"method": "polynomial", "order": 1}, crs, GSD))
+    for choice in ({"method": "polynomial", "order": 1}, {"method": "none", "order": 0}):
+        made = {}
+        for workers in (1, 2):
+            monkeypatch.setattr(map_patch, "job_workers", lambda threads, n=workers: n)
+            out = tmp_path / f"{choice['method']}{workers}"
+            kept, stats = patched_map(mosaic, src, choice, crs, GSD, out / "kept")
+            assert stats["full"] and stats["blocks_redone"] == stats["blocks"] >= 30
+            warp_to_cog(mosaic, _observations(), choice, plan, out / "map.tif", work_dir=out / "cog")
+            made[workers] = (_pixels_of(kept), [_overview(kept, k) for k in range(2)], stats["map_cells"],
+                             (out / "map.tif").read_bytes())
+        np.testing.assert_array_equal(made[1][0], made[2][0])
+        for a, b in zip(made[1][1], made[2][1]):
+            np.testing.assert_array_equal(a, b)
+        assert made[1][2] == made[2][2] and made[1][3] == made[2][3]
+        assert made[1][0][3].any() and len(made[1][3]) > 10_000

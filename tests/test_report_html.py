@@ -42,6 +42,17 @@ def test_the_html_report_shows_a_thumbnail_of_every_map(small_run):
     assert '<img id="heights"' in page
 
 
+def test_the_page_is_the_same_whether_its_figures_are_drawn_here_or_by_two_workers(small_run):
+    from pipeline25d.publish.report_html import render_html
+
+    _, results = small_run
+    report = json.loads((results / "report" / "report.json").read_text())
+    assert len(report["perspectives"]) > 1
+    here = render_html(report, results)
+    assert render_html(report, results, processes=2) == here
+    assert here.count('<img class="residuals"') == len(report["perspectives"])
+
+
 def test_residual_arrows_are_the_check_points_errors_from_the_csv(small_run):
     """The arrows start at each check point's true (x, y) of gcps/<id>.csv and are its map position minus
     that: for the demo's warp "none" exactly (map_x − x, map_y − y); for an order-1 polynomial fitted on the

@@ -169,7 +169,8 @@ def report_job(job: Job) -> None:
     from pipeline25d.publish.report_html import write_html
 
     rep = write_report(dict(job.params.config), job.params.results, job.output.json, job.output.md)
-    write_html(rep, job.params.results, job.output.html)
+    # last in a run, alone: its figures on the cores idle too
+    write_html(rep, job.params.results, job.output.html, processes=job_workers(job.threads))
 
 
 def viewer_job(job: Job) -> None:

@@ -87,8 +87,9 @@ def _heights(rep: dict, results: Path) -> list[str]:
                   f'src="{data_uri(heights_plot(pts), "image/png")}">']
 
 
-def render_html(rep: dict, results: str | Path) -> str:
-    """The page for the report ``rep`` (report.json's content) of the run under ``results``."""
+def render_html(rep: dict, results: str | Path, processes: int = 1) -> str:
+    """The page for the report ``rep`` (report.json's content) of the run under ``results``;
+    ``processes``: how many maps' figures are drawn at once (the same page whatever the count)."""
     results = Path(results)
     title = f"pipeline25d report: {html.escape(rep['scene'])}"
     s = rep["sizes"]
@@ -99,7 +100,7 @@ def render_html(rep: dict, results: str | Path) -> str:
              " Check points are held out: never used to fit or choose the warp.</p>",
              "<h2>Accuracy at check points</h2>", *_accuracy_table(rep),
              "<h2>Maps and their check-point residuals</h2>", '<div class="maps">']
-    parts += [_map_figure(results, p, rep["gsd"]) for p in rep["perspectives"]]
+    parts += _map_figures(results, rep, processes)
     parts += ["</div>", *_heights(rep, results),
               "<h2>Sizes</h2>", f"<p class=note>model inputs {s['model_bytes'] / 1e6:.2f} MB, maps (COG)"
               f" {s['maps_bytes'] / 1e6:.2f} MB, web tiles {s['tms_bytes'] / 1e6:.2f} MB.</p>",
@@ -107,6 +108,19 @@ def render_html(rep: dict, results: str | Path) -> str:
     return "\n".join(parts) + "\n"
 
 
-def write_html(rep: dict, results: str | Path, out_html: str | Path) -> None:
-    """Write report.html for ``rep`` atomically."""
-    write_text(out_html, render_html(rep, results))
+def _map_figures(results: Path, rep: dict, processes: int) -> list[str]:
+    """:func:`_map_figure` of every perspective, in order, ``processes`` at a time (forked workers)."""
+    from contextlib import nullcontext
+
+    from matplotlib.figure import Figure  # noqa: F401  (imported once, before the workers fork)
+
+    from pipeline25d.core.cores import fork_pool, map_ahead
+
+    several = processes > 1 and len(rep["perspectives"]) > 1
+    with fork_pool(processes) if several else nullcontext() as pool:
+        return list(map_ahead(pool, _map_figure, ((results, p, rep["gsd"]) for p in rep["perspectives"]), processes))
+
+
+def write_html(rep: dict, results: str | Path, out_html: str | Path, processes: int = 1) -> None:
+    """Write report.html for ``rep`` atomically (``processes``: see :func:`render_html`)."""
+    write_text(out_html, render_html(rep, results, processes))

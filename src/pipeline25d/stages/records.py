@@ -75,11 +75,7 @@ class GcpCandidate:
     @classmethod
     def from_row(cls, row: Mapping[str, Any]):
         """From a CSV row (numbers as text; an empty cell is 0) or a JSON object."""
-        values = {}
-        for f in fields(cls):
-            v = row[f.name]
-            values[f.name] = str(v) if f.name in cls.TEXT else _number(v, f.type)
-        return cls(**values)
+        return cls(*[parse(row[name]) for name, parse in _parsers(cls)])
 
     from_json = from_row
 
@@ -100,10 +96,25 @@ class Observation(GcpCandidate):
     FIELDS: ClassVar[tuple[str, ...]] = GcpCandidate.FIELDS + ("map_x", "map_y", "n_pixels")
 
 
-def _number(value: Any, kind: Any) -> float | int:
-    if value in ("", None):
-        value = 0
-    return int(float(value)) if kind in ("int", int) else float(value)
+def _float(value: Any) -> float:
+    return 0.0 if value in ("", None) else float(value)
+
+
+def _int(value: Any) -> int:
+    return 0 if value in ("", None) else int(float(value))
+
+
+_PARSERS: dict[type, tuple[tuple[str, Any], ...]] = {}
+
+
+def _parsers(cls: type) -> tuple[tuple[str, Any], ...]:
+    """(field, text -> value) of a GCP record class, in field order, made once per class (a plan's
+    tiles hold thousands of candidates and every render job reads them all)."""
+    got = _PARSERS.get(cls)
+    if got is None:
+        got = _PARSERS[cls] = tuple(
+            (f.name, str if f.name in cls.TEXT else _int if f.type in ("int", int) else _float) for f in fields(cls))
+    return got
 
 
 # --------------------------------------------------------------------------- chunks and scene

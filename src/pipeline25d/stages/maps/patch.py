@@ -19,13 +19,15 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import os
 import shutil
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from pathlib import Path
 
 import numpy as np
 
+from pipeline25d.core.cores import fork_pool, job_workers, map_ahead
 from pipeline25d.core.geotiff import geotiff_dataset
 from pipeline25d.core.grid import Grid, Window
 from pipeline25d.core.journal import read_state, write_state
@@ -74,12 +76,15 @@ def source_to_map(source: str | Path, choice: dict):
 
 
 def patched_map(mosaic: str | Path, source: str | Path, choice: dict, crs: str, gsd: float,
-                work: Path, cells_memo: dict | None = None) -> tuple[Path, dict]:
+                work: Path, cells_memo: dict | None = None, threads: int = 1) -> tuple[Path, dict]:
     """Bring the map kept in ``work`` up to the ``mosaic``: copied where ``choice`` is no warp,
     else warped from ``source`` (a VRT of the mosaic with its GCPs). Returns the kept GeoTIFF,
     with its overviews, and the run's figures (full or not, squares changed, blocks redone) with
     ``map_cells``: the kept map's own digests (:func:`~pipeline25d.core.raster.map_cells`), taken
-    from the blocks as they are written (None where an older state has none for the blocks kept)."""
+    from the blocks as they are written (None where an older state has none for the blocks kept).
+    ``threads``: the job's threads; the blocks are made by that many worker processes, or by as
+    many as there are cores idle when it starts (:func:`~pipeline25d.core.cores.job_workers`: the
+    last map of a run, alone), and written here in order (the same bytes whatever the count)."""
     from pipeline25d.core.raster import CELL_PX, cells_grid, map_cells
     from pipeline25d.stages.maps.parts import overview_factors
 
@@ -115,18 +120,20 @@ def patched_map(mosaic: str | Path, source: str | Path, choice: dict, crs: str, 
     todo = sorted(todo)
     own = {} if full else state.get("map_cells")            # the kept map's digests, block by block
     write_state(work, {"key": key, "cells": {} if full else state["cells"], "dirty": todo})    # journal first
-    with kept_dataset(work / KEPT, full, grid, crs, factors, bands=bands) as kept:
-        for bx, by in todo:
-            win = block_window(bx, by, width, height, size)
-            if warped:
-                opts = {k: v for k, v in window_warp_options(choice, crs, gsd).items() if k not in ("xRes", "yRes")}
-                block = g.Warp("", str(source), format="MEM", outputBounds=grid.window_bounds(win), width=win.width,
-                               height=win.height, **opts)
-            else:
-                block = g.Translate("", str(mosaic), format="MEM", srcWin=[win.col0, win.row0, win.width, win.height])
-            write_block(kept, block, win, factors)
+    wins = [block_window(bx, by, width, height, size) for bx, by in todo]
+    workers = job_workers(threads) if len(wins) > 1 else 1
+    opts = {k: v for k, v in window_warp_options(choice, crs, gsd).items() if k not in ("xRes", "yRes")}
+    if workers > 1:      # a forked worker has no GDAL thread pool (its threads stay in this process): one thread each
+        opts = {k: v for k, v in opts.items() if k not in ("multithread", "warpOptions")}
+    made = ((str(source) if warped else str(mosaic), opts if warped else None, grid.window_bounds(win), win, factors,
+             own is not None) for win in wins)
+    # the workers are forked before the kept file is opened: none of them holds it
+    with fork_pool(workers) if workers > 1 else nullcontext() as pool, \
+            kept_dataset(work / KEPT, full, grid, crs, factors, bands=bands) as kept:
+        for win, (levels, digests) in zip(wins, map_ahead(pool, block_levels, made, workers)):
+            write_levels(kept, levels, win, factors)
             if own is not None:
-                _redigest(own, block, win, CELL_PX)
+                _redigest(own, digests, win, CELL_PX)
     if cells is None:
         cells = own
         if cells_memo is not None:
@@ -139,14 +146,30 @@ def patched_map(mosaic: str | Path, source: str | Path, choice: dict, crs: str, 
     return work / KEPT, stats
 
 
-def _redigest(digests: dict[str, str], block, win: Window, cell: int) -> None:
-    """Replace the digests of the squares of map window ``win`` by those of its new pixels ``block``."""
-    from pipeline25d.core.raster import window_cells
+def block_levels(source: str, warp: dict | None, bounds: tuple[float, float, float, float], win: Window,
+                 factors: list[int], digest: bool) -> tuple[list[list[bytes]], dict[str, str] | None]:
+    """One block of the map, made on its own window: warped from ``source`` with the gdal.Warp
+    keywords ``warp``, or copied from it (None); returns each band's pixels and overview levels
+    (:func:`write_levels`) and, with ``digest``, its squares' digests. Runs in a worker process
+    where the job has idle cores: it opens everything it reads."""
+    from pipeline25d.core.raster import CELL_PX, window_cells
 
+    g = gdal()
+    if warp is not None:
+        block = g.Warp("", source, format="MEM", outputBounds=bounds, width=win.width, height=win.height, **warp)
+    else:
+        block = g.Translate("", source, format="MEM", srcWin=[win.col0, win.row0, win.width, win.height])
+    digests = window_cells(block, Window(0, 0, win.width, win.height), CELL_PX, at=(win.col0, win.row0)) \
+        if digest else None
+    return block_overviews(block, factors, _read_levels), digests
+
+
+def _redigest(digests: dict[str, str], new: dict[str, str], win: Window, cell: int) -> None:
+    """Replace the digests of the squares of map window ``win`` by ``new``, those of its new pixels."""
     for cy in range(win.row0 // cell, -(-win.row1 // cell)):
         for cx in range(win.col0 // cell, -(-win.col1 // cell)):
             digests.pop(f"{cx}_{cy}", None)
-    digests.update(window_cells(block, Window(0, 0, win.width, win.height), cell, at=(win.col0, win.row0)))
+    digests.update(new)
 
 
 def write_block(kept, block, win: Window, factors: list[int], resampling: str = "AVERAGE") -> None:
@@ -155,25 +178,40 @@ def write_block(kept, block, win: Window, factors: list[int], resampling: str = 
     at once with the alpha as their mask, as for a sparse map's parts (the in-memory driver's
     per-band path weights partly transparent pixels otherwise); ``resampling``: GDAL's overview
     method (NEAREST for object ids)."""
-    if factors:
-        path = f"/vsimem/map_patch_{id(block)}.tif"
-        block = gdal().GetDriverByName("GTiff").CreateCopy(path, block)
-        block.BuildOverviews(resampling, factors)
+    write_levels(kept, block_overviews(block, factors, _read_levels, resampling), win, factors)
+
+
+def block_overviews(block, factors: list[int], use, resampling: str = "AVERAGE"):
+    """``use(dataset)`` on ``block`` with its overviews built (see :func:`write_block`)."""
+    if not factors:
+        return use(block)
+    path = f"/vsimem/map_patch_{os.getpid()}_{id(block)}.tif"
+    block = gdal().GetDriverByName("GTiff").CreateCopy(path, block)
     try:
-        _copy_levels(kept, block, win, factors)
+        block.BuildOverviews(resampling, factors)
+        return use(block)
     finally:
-        if factors:
-            block = None
-            gdal().Unlink(path)
+        block = None
+        gdal().Unlink(path)
 
 
-def _copy_levels(kept, block, win: Window, factors: list[int]) -> None:
-    for b in range(1, kept.RasterCount + 1):
-        src, dst = block.GetRasterBand(b), kept.GetRasterBand(b)
-        dst.WriteRaster(win.col0, win.row0, win.width, win.height, src.ReadRaster())
-        for level, f in enumerate(factors):
-            o = src.GetOverview(level)
-            dst.GetOverview(level).WriteRaster(win.col0 // f, win.row0 // f, o.XSize, o.YSize, o.ReadRaster())
+def _read_levels(block) -> list[list[tuple[int, int, bytes]]]:
+    """Each band's (width, height, pixels), then its overviews', finest first."""
+    levels = []
+    for b in range(1, block.RasterCount + 1):
+        band = block.GetRasterBand(b)
+        levels.append([(o.XSize, o.YSize, o.ReadRaster())
+                       for o in (band, *(band.GetOverview(k) for k in range(band.GetOverviewCount())))])
+    return levels
+
+
+def write_levels(kept, levels: list[list[tuple[int, int, bytes]]], win: Window, factors: list[int]) -> None:
+    """A block's :func:`_read_levels` into the kept GeoTIFF at map window ``win``."""
+    for b, ((w, h, pixels), *overviews) in enumerate(levels, start=1):
+        dst = kept.GetRasterBand(b)
+        dst.WriteRaster(win.col0, win.row0, w, h, pixels)
+        for level, (f, (w, h, data)) in enumerate(zip(factors, overviews)):
+            dst.GetOverview(level).WriteRaster(win.col0 // f, win.row0 // f, w, h, data)
 
 
 def gcps_digest(source: str | Path) -> str:

@@ -271,7 +271,7 @@ def warp_to_cog(mosaic: str | Path, obs: Sequence[Observation], choice: dict, pl
 
             kept_dir = Path(work_dir) if work_dir else Path(tmp).with_suffix(".blocks")
             try:
-                kept, stats = patched_map(mosaic, source, choice, crs, plan.gsd, kept_dir, cells_memo)
+                kept, stats = patched_map(mosaic, source, choice, crs, plan.gsd, kept_dir, cells_memo, threads)
                 cog = [opt for c in encode_options(codec, threads) for opt in ("-co", c)]
                 run_tool(["gdal_translate", "-q", "-of", "COG", *cog, str(kept), str(tmp)])
             finally:
