@@ -113,6 +113,30 @@ def test_district_lod_on_two_processes_writes_the_same_files(tmp_path):
     assert all(built[1][k] == built[2][k] for k in built[1])
 
 
+def test_the_worker_count_is_asked_for_only_where_a_district_has_enough_triangles(tmp_path, monkeypatch):
+    """Counting idle cores sleeps 0.1 s: a small district (most of a tiled city's) is built here
+    without asking; one of POOL_TRIANGLES or more asks, and gets the count it is given."""
+    import json
+
+    from pipeline25d.stages import lod as lod_stage
+
+    chunks = tmp_path / "chunks"
+    write_chunks(Mesh([grid_part(bump=2.0)]), "a", 25.0, chunks, chunks / "index.json")
+    triangles = sum(c["n_triangles"] for c in json.loads((chunks / "index.json").read_text())["chunks"].values())
+    asked = []
+
+    def workers() -> int:
+        asked.append(True)
+        return 2
+
+    for threshold, expect in ((triangles + 1, []), (triangles, [True])):
+        monkeypatch.setattr(lod_stage, "POOL_TRIANGLES", threshold)
+        asked.clear()
+        out = tmp_path / f"lod{threshold}"
+        lod_stage.build_lod(chunks / "index.json", out / "index.json", 0.5, 4, processes=workers)
+        assert asked == expect and len(list(out.glob("*.npz"))) == 16
+
+
 def test_lod_errors_are_measured_and_levels_chosen_by_pixel_size():
     flat = build_levels(Mesh([grid_part(bump=0.0)]), max_error=0.1, max_levels=5)
     assert len(flat) >= 3 and all(e < 1e-6 for _, e in flat)          # a plane simplifies exactly

@@ -43,7 +43,7 @@ def lod_job(job: Job) -> None:
     from pipeline25d.stages import lod
 
     lod.build_lod(job.input[0], job.output.index, job.params.max_error, job.params.max_levels,
-                  processes=job_workers(job.threads))
+                  processes=lambda: job_workers(job.threads))
 
 
 def terrain_job(job: Job) -> None:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -195,8 +196,13 @@ def choose_level(errors: list[float], max_error: float) -> int:
     return max(ok) if ok else 0
 
 
+#: the fewest triangles to build for which a district's chunks go to worker processes: less is about
+#: a second of work (a 48k-triangle district took 0.27 s), done here sooner than workers are counted and forked
+POOL_TRIANGLES = 200_000
+
+
 def build_lod(chunk_index: str | Path, out_index: str | Path, max_error: float, max_levels: int,
-              processes: int = 1) -> dict:
+              processes: int | Callable[[], int] = 1) -> dict:
     """Write the LOD pyramid of every chunk of a district beside ``out_index``, then the index.
 
     ``chunk_index``: the district's ingest index (its chunk npz files beside it). One npz per
@@ -206,6 +212,8 @@ def build_lod(chunk_index: str | Path, out_index: str | Path, max_error: float, 
     the index itself before the job. Files of chunks no longer in the district are removed.
     ``processes``: chunks built at once, each in a forked worker (a city that is one district,
     as one photogrammetry model is, then uses every core it is given); the files are the same.
+    A function giving that count is asked only where the chunks to build hold at least
+    :data:`POOL_TRIANGLES` (:func:`~pipeline25d.core.cores.job_workers` samples the machine for 0.1 s).
     Returns the index: {district, max_error, max_levels, chunks: {id: {bounds, errors, triangles, hash}}}.
     """
     chunk_index, out_index = Path(chunk_index), Path(out_index)
@@ -217,6 +225,9 @@ def build_lod(chunk_index: str | Path, out_index: str | Path, max_error: float, 
     write_json(sidecar, {"params": params, "chunks": kept})
     todo = [cid for cid in sorted(ingested["chunks"]) if cid not in kept]
     pairs = [(chunk_index.parent / f"{cid}.npz", out_index.parent / f"{cid}.npz") for cid in todo]
+    if callable(processes):
+        small = sum(ingested["chunks"][cid].get("n_triangles", POOL_TRIANGLES) for cid in todo) < POOL_TRIANGLES
+        processes = 1 if small or len(pairs) < 2 else processes()
     built = _built_chunks(pairs, max_error, max_levels, processes)
     record = {cid: kept.get(cid) or {"source": info["hash"], **built[cid]}
               for cid, info in sorted(ingested["chunks"].items())}
