@@ -349,3 +349,44 @@ def test_texture_drift_on_a_flat_textured_grid_is_the_analytic_shift():
     textured = build_levels(Mesh([part]), max_error=0.01, max_levels=5)
     assert len(untextured) >= 3 and len(textured) < len(untextured)   # the drift stops the pyramid
     assert all(e <= 0.01 for _, e in textured)
+
+
+_DSM_TWO_WAYS = """
+import sys, numpy as np
+sys.path.insert(0, sys.argv[1])
+from pathlib import Path
+from test_ingest_lod import grid_part
+from pipeline25d.core.cores import fork_pool
+from pipeline25d.core.grid import Grid
+from pipeline25d.core.mesh import Mesh
+from pipeline25d.stages.ingest import write_chunks
+from pipeline25d.stages.lod import build_lod, chunk_loaders, lod_chunks
+from pipeline25d.stages.terrain.dsm import height_map_tiles
+out = Path(sys.argv[2])
+write_chunks(Mesh([grid_part(bump=2.0)]), "a", 25.0, out / "chunks", out / "chunks" / "index.json")
+build_lod(out / "chunks" / "index.json", out / "lod" / "index.json", 0.5, 4)
+loaders = chunk_loaders(lod_chunks([str(out / "lod" / "index.json")]), 0.1)
+grid = Grid.covering((499990.0, 5799990.0, 500090.0, 5800090.0), 0.5)
+with fork_pool(2) as pool:        # forked before this process makes a GL context, as the terrain job does
+    there = list(height_map_tiles(loaders, grid, tile_px=64, pool=pool, ahead=2))
+here = list(height_map_tiles(loaders, grid, tile_px=64))
+np.save(out / "there.npy", np.concatenate([np.nan_to_num(h, nan=-1).ravel() for *_, h in there]))
+np.save(out / "here.npy", np.concatenate([np.nan_to_num(h, nan=-1).ravel() for *_, h in here]))
+print(len(here), [(r, c) for r, c, _ in here] == [(r, c) for r, c, _ in there])
+"""
+
+
+def test_the_dsm_rendered_by_forked_workers_equals_the_one_rendered_here(tmp_path):
+    """The terrain job's DSM tiles on two forked workers (each its own GL context) and here on one:
+    the same heights, tile for tile, in the same order (a fresh process: no GL context before the fork)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    run = subprocess.run([sys.executable, "-c", _DSM_TWO_WAYS, str(Path(__file__).parent), str(tmp_path)],
+                         check=True, capture_output=True, text=True, timeout=300)
+    assert run.stdout.split() == ["16", "True"], run.stdout + run.stderr      # 200 x 200 cells in 64-cell tiles
+    here, there = np.load(tmp_path / "here.npy"), np.load(tmp_path / "there.npy")
+    assert np.array_equal(here, there)
+    drawn = here[here != -1]
+    assert drawn.size > 0.5 * 78 ** 2 * 4 and 7.9 < drawn.min() and drawn.max() < 12.1    # the 78 m mesh, z 10 ± 2

@@ -287,3 +287,29 @@ def test_islands_are_the_groups_of_model_gap_cells_apart():
     alone = list(islands(valid[:30, :20], 5))
     assert len(alone) == 1 and alone[0][1].sum() == 144 and alone[0][1].shape == (20, 15)   # whole coarse cells
     assert list(islands(np.zeros((9, 9), bool), 5)) == []
+
+
+def test_dtm_heights_at_points_equal_each_points_own_window_sampled_alone():
+    """The scene stage samples the DTM at every candidate: at once where a point's 5 x 5 cells are
+    inside the grid and whole, one window at a time elsewhere; every height equals the one its own
+    window gives as a continuous DTM (the holes filled from the window), bit for bit."""
+    from pipeline25d.core.raster import DTM
+    from pipeline25d.stages.scene import _sample_continuous
+
+    rng = np.random.default_rng(5)
+    grid = Grid.north_up(84000.25, 447000.75, 0.5, 90, 70)
+    values = (3 + rng.normal(0, 2, grid.shape)).astype(np.float32)
+    values[rng.random(grid.shape) < 0.02] = np.nan                    # holes a window fills from its own cells
+    values[:, :4] = np.nan
+    x = rng.uniform(grid.xmin - 1.0, grid.xmin + grid.width * 0.5 + 1.0, 3000)
+    y = rng.uniform(grid.ymax - grid.height * 0.5 - 1.0, grid.ymax + 1.0, 3000)
+    xy = np.column_stack([x, y])
+    got = _sample_continuous(values, grid, xy)
+    want = np.empty(len(xy))
+    for i, (px, py) in enumerate(xy):
+        col, row = grid.cell_of(px, py)
+        rows, cols = slice(max(row - 2, 0), min(row + 3, grid.height)), slice(max(col - 2, 0), min(col + 3, grid.width))
+        window = DTM.from_array(values[rows, cols], grid.window(rows, cols), continuous=True)
+        want[i] = window.sample(np.array([px]), np.array([py]))[0]
+    assert np.isfinite(want).sum() > 2500          # NaN: a window wholly in the empty columns
+    np.testing.assert_array_equal(got, want)

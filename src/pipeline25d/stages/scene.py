@@ -210,13 +210,40 @@ def _median(values: np.ndarray) -> float:
 
 def _sample_continuous(values: np.ndarray, grid, xy: np.ndarray) -> np.ndarray:
     """Bilinear heights at (n, 2) points, as ``DTM.from_array(values, continuous=True)`` gives them,
-    each from the few cells around it (no float64 copy of the grid)."""
+    each from the 5 x 5 cells around it (no float64 copy of the grid).
+
+    The points whose 5 x 5 cells lie inside the grid and hold heights (nearly all) are sampled
+    at once, by the same arithmetic as such a window's :meth:`~pipeline25d.core.raster.DTM.sample`;
+    the others (at the grid's edge, or with a hole to fill) one window at a time."""
     from pipeline25d.core.raster import DTM
 
-    out = np.empty(len(xy))
-    for i, (x, y) in enumerate(xy):
-        col, row = grid.cell_of(x, y)
-        rows, cols = slice(max(row - 2, 0), min(row + 3, grid.height)), slice(max(col - 2, 0), min(col + 3, grid.width))
+    n, t = len(xy), grid.transform
+    out = np.empty(n)
+    if not n:
+        return out
+    col, row = grid.colrow(xy[:, 0], xy[:, 1])
+    c = np.clip(col.astype(np.int64), 0, grid.width - 1) - 2          # each window's first column and row
+    r = np.clip(row.astype(np.int64), 0, grid.height - 1) - 2
+    inside = (c >= 0) & (r >= 0) & (c + 5 <= grid.width) & (r + 5 <= grid.height) if t.b == 0 and t.d == 0 \
+        else np.zeros(n, bool)
+    k = np.flatnonzero(inside)
+    cells = values[r[k, None, None] + np.arange(5)[:, None], c[k, None, None] + np.arange(5)].astype(np.float64)
+    whole = np.isfinite(cells).all(axis=(1, 2))
+    k, cells = k[whole], cells[whole]
+    # the window's grid is t @ translation(c, r): its origin a·c + c0, e·r + f0, as Affine computes it
+    wc = (xy[k, 0] - (t.a * c[k] + t.b * r[k] + t.c)) / t.a - 0.5
+    wr = (xy[k, 1] - (t.d * c[k] + t.e * r[k] + t.f)) / t.e - 0.5
+    wc, wr = np.clip(wc, 0, 5 - 1.000001), np.clip(wr, 0, 5 - 1.000001)
+    c0, r0 = np.floor(wc).astype(int), np.floor(wr).astype(int)
+    fc, fr, j = wc - c0, wr - r0, np.arange(len(k))
+    out[k] = ((cells[j, r0, c0] * (1 - fc) + cells[j, r0, c0 + 1] * fc) * (1 - fr)
+              + (cells[j, r0 + 1, c0] * (1 - fc) + cells[j, r0 + 1, c0 + 1] * fc) * fr)
+    done = np.zeros(n, bool)
+    done[k] = True
+    for i in np.flatnonzero(~done):
+        x, y = xy[i]
+        cc, rr = grid.cell_of(x, y)
+        rows, cols = slice(max(rr - 2, 0), min(rr + 3, grid.height)), slice(max(cc - 2, 0), min(cc + 3, grid.width))
         window = DTM.from_array(values[rows, cols], grid.window(rows, cols), continuous=True)
         out[i] = window.sample(np.array([x]), np.array([y]))[0]
     return out

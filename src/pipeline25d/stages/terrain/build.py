@@ -26,13 +26,13 @@ def build_terrain(chunks: Sequence[LodChunk], inputs: dict, scene_crs: str, gsd:
     ``out_ground`` holds the ground heights (NaN elsewhere); the scene stage interpolates
     the DTM from it once it knows the check points, which it holds out of the DTM. Both
     rasters are written block by block: memory follows a block, not the scene. ``processes``:
-    how many blocks the ground filter runs at once (the same ground whatever the count).
+    how many DSM render tiles and ground-filter blocks run at once (the same rasters whatever the count).
     """
     from pipeline25d.core.cores import fork_pool
     from pipeline25d.core.crs import horizontal_wkt
     from pipeline25d.core.geotiff import float_geotiff_writer
     from pipeline25d.core.grid import Grid, cell_blocks
-    from pipeline25d.stages.terrain.dsm import auto_resolution, height_map_tiles
+    from pipeline25d.stages.terrain.dsm import auto_resolution, dsm_tiles, height_map_tiles
 
     _, lo, hi = scene_bounds(chunks)
     bounds_xy = (lo[0], lo[1], hi[0], hi[1])
@@ -43,11 +43,14 @@ def build_terrain(chunks: Sequence[LodChunk], inputs: dict, scene_crs: str, gsd:
     wkt = horizontal_wkt(scene_crs)
     dsm_cells = 0
     with ExitStack() as stack:
-        # the ground filter's workers where it has blocks to share, forked before the DSM render makes this job large
-        several = terrain == "auto" and processes > 1 and len(cell_blocks(grid.height, grid.width, 0)) > 1
+        # workers where the DSM's render tiles or the ground filter's blocks can be shared, forked before
+        # the DSM render makes this job large
+        blocks = terrain == "auto" and len(cell_blocks(grid.height, grid.width, 0)) > 1
+        several = processes > 1 and (blocks or len(dsm_tiles(grid)) > 1)
         pool = stack.enter_context(fork_pool(processes)) if several else None
         with float_geotiff_writer(out_dsm, grid, wkt) as write:
-            for row, col, heights in height_map_tiles(chunk_loaders(chunks, res / 4), grid):
+            for row, col, heights in height_map_tiles(chunk_loaders(chunks, res / 4), grid, pool=pool,
+                                                      ahead=processes):
                 write(heights, row, col)
                 dsm_cells += int(np.isfinite(heights).sum())
         record = {"dsm": str(out_dsm), "resolution": res, "dsm_cells": dsm_cells}
