@@ -46,7 +46,7 @@ def run_stages(tmp_path: Path, inputs: dict, gsd: float = 0.5, edit_ground=None)
         edit_ground(t / "ground.tif")
     scene_setup(lods, t / "dsm.tif", "auto", t / "ground.tif", "auto", "auto", cfg["gcp"], CRS, gsd,
                 [p.id for p in perspectives(cfg)], tmp_path / "scene.json", tmp_path / "candidates.csv",
-                t / "dtm.tif", cfg["ground"]["max_object_size"])
+                t / "dtm.tif", cfg["ground"]["max_object_size"], t / "grounds.json")
     return record, json.loads((tmp_path / "scene.json").read_text()), t / "dtm.tif"
 
 
@@ -168,6 +168,29 @@ def test_building_only_model_gets_the_plane_it_stands_on(tmp_path, gl_ctx, fmt):
         # a site is a DSM cell's centre (jittered by up to 0.4 cell): within a cell of the limit
         assert gap >= 4.0 - record["resolution"], (c, gap)
         assert c.z == pytest.approx(float(plane(c.x, c.y)), abs=0.02)
+
+
+def test_a_plan_from_the_scenes_chunk_grounds_equals_one_that_samples_the_dtm_itself(tmp_path, gl_ctx):
+    """The scene stage samples the DTM under every chunk once (terrain/grounds.json); a plan read
+    from it is the plan that samples the DTM itself, byte for byte (tile spec hashes included)."""
+    from pipeline25d.config import render_settings
+    from pipeline25d.stages.plan import plan
+    from pipeline25d.stages.scene import read_grounds
+
+    path = write_cityjson(tmp_path / "city.json", boxes([(X0 + 20, Y0 + 20)]))
+    _, scene, _ = run_stages(tmp_path, {"city": {"path": str(path)}})
+    assert scene["projection"] == "terrain"
+    grounds = read_grounds(tmp_path / "terrain" / "grounds.json")
+    assert len(grounds) == scene["n_chunks"] >= 1
+    assert all(g.lowest < g.highest and len(g.digest) == 12 for g in grounds.values())
+    cfg = validate_schema({"scene": "t", "crs": CRS, "inputs": {"city": {"path": str(path)}}, "gsd": 0.5})
+    lods = [str(tmp_path / "lod" / "city" / "index.json")]
+    args = ("az045_el45", lods, tmp_path / "scene.json", tmp_path / "candidates.csv", 0.5, 256,
+            cfg["lod"]["max_error_px"], CRS, render_settings(cfg))
+    plan(*args, tmp_path / "read.json", grounds_json=tmp_path / "terrain" / "grounds.json")
+    plan(*args, tmp_path / "sampled.json")
+    assert (tmp_path / "read.json").read_bytes() == (tmp_path / "sampled.json").read_bytes()
+    assert b'"ground"' in (tmp_path / "read.json").read_bytes()
 
 
 def test_far_apart_clusters_stay_cheap(tmp_path, gl_ctx):

@@ -64,7 +64,7 @@ def scene_job(job: Job) -> None:
     p = job.params
     scene.scene_setup(list(job.input.lods), job.input.dsm, p.terrain, _first(job.input.terrain), p.z0, p.projection,
                       dict(p.gcp), p.crs, p.gsd, list(p.perspectives), job.output.scene, job.output.candidates,
-                      _first(job.output.dtm), p.ground["max_object_size"])
+                      _first(job.output.dtm), p.ground["max_object_size"], job.output.grounds)
 
 
 def plan_job(job: Job) -> None:
@@ -72,7 +72,8 @@ def plan_job(job: Job) -> None:
 
     p = job.params
     plan.plan(job.wildcards.pid, list(job.input.lods), job.input.scene, job.input.candidates, p.gsd, p.tile_size,
-              p.max_error_px, p.crs, dict(p.render), job.output.plan, work=dict(p.work))
+              p.max_error_px, p.crs, dict(p.render), job.output.plan, work=dict(p.work),
+              grounds_json=job.input.grounds)
 
 
 def render_block_job(job: Job) -> None:

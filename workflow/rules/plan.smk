@@ -12,6 +12,8 @@ rule scene:
         scene=f"{RESULTS}/scene.json",
         candidates=f"{RESULTS}/gcps/candidates.csv",
         dtm=[f"{RESULTS}/terrain/dtm.tif"] if config["terrain"] == "auto" else [],
+        # the DTM under each chunk, sampled once for every perspective's plan (terrain-relative mode)
+        grounds=f"{RESULTS}/terrain/grounds.json",
     params:
         terrain=config["terrain"],
         z0=config["z0"],
@@ -32,6 +34,7 @@ checkpoint plan:
         lods=all_lod_meta,
         scene=rules.scene.output.scene,
         candidates=rules.scene.output.candidates,
+        grounds=rules.scene.output.grounds,
     output:
         plan=f"{RESULTS}/plans/{{pid}}.json",
     params:

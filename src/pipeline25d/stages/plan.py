@@ -46,7 +46,7 @@ from pipeline25d.stages.records import (
     index_range,
     tile_span,
 )
-from pipeline25d.stages.scene import chunk_ground
+from pipeline25d.stages.scene import chunk_grounds, read_grounds
 
 log = logging.getLogger(__name__)
 
@@ -333,11 +333,13 @@ def block_spec_hash(tiles: Sequence[Tile]) -> str:
 
 def plan(perspective_id: str, lod_indexes: list[str], scene_json: str | Path, candidates_csv: str | Path,
          gsd: float, tile_size: int, max_error_px: float, crs: str, render: dict, out_plan: str | Path,
-         work: dict | None = None) -> Plan:
+         work: dict | None = None, grounds_json: str | Path | None = None) -> Plan:
     """Plan one perspective (see :mod:`pipeline25d.stages.plan`); ``render`` holds render + marker settings,
     and the ``shadows`` block when shadows are enabled (:func:`pipeline25d.config.render_settings`).
     ``work`` (:func:`pipeline25d.stages.budget.settings`): the map's estimated pixels and tiles are
-    checked against its limits before any tile is listed."""
+    checked against its limits before any tile is listed. ``grounds_json``: the scene stage's DTM
+    under each chunk (:func:`pipeline25d.stages.scene.write_grounds`); without it, in terrain-relative
+    mode, they are sampled here."""
     from pipeline25d.core.raster import DTM
     from pipeline25d.geometry.sun import plan_shadows
     from pipeline25d.stages import budget
@@ -349,9 +351,12 @@ def plan(perspective_id: str, lod_indexes: list[str], scene_json: str | Path, ca
     shadow_cfg = render.pop("shadows", None)
     shadows = plan_shadows(shadow_cfg, np.array(scene.bounds), crs, gsd) if shadow_cfg else None
     relative = scene.projection == "terrain"
-    dtm = DTM(scene.dtm, crs, continuous=True) if relative else None
     chunks = lod_chunks(lod_indexes)
-    grounds = {(c.district, c.id): chunk_ground(c.bounds, dtm) for c in chunks} if relative else None
+    grounds = None
+    if relative and grounds_json is not None:
+        grounds = read_grounds(grounds_json)
+    elif relative:
+        grounds = chunk_grounds(chunks, DTM(scene.dtm, crs, continuous=True))
     terrain = {"projection": scene.projection, "dtm": scene.dtm if relative else None}
     result = plan_perspective(Perspective.from_id(perspective_id), chunks, read_candidates(candidates_csv),
                               scene.z0, gsd, tile_size, max_error_px, crs, render, terrain, shadows, grounds)

@@ -29,9 +29,12 @@ GROUND_MARGIN_M = 2.0   # widens a chunk's ground range (tile assignment in terr
 def scene_setup(lod_indexes: list[str], dsm_path: str | Path, terrain: str, terrain_path: str | Path | None,
                 z0_cfg, projection: str, gcp_cfg: dict, scene_crs: str, gsd: float, perspective_ids: list[str],
                 out_scene: str | Path, out_candidates: str | Path, out_dtm: str | Path | None = None,
-                max_object_size: float = 100.0) -> dict:
+                max_object_size: float = 100.0, out_grounds: str | Path | None = None) -> dict:
     """Reference plane z0, projection mode, GCP candidates (with check-point roles) and, for
     ``terrain: auto``, the DTM.
+
+    ``out_grounds``: the DTM under each chunk (:func:`chunk_grounds`), which every perspective's
+    plan reads in terrain-relative mode (empty otherwise): sampled once here, not once per plan.
 
     ``terrain_path``: the ground heights from :func:`build_terrain` (auto) or the user's DTM.
     With auto, the ground around each check point (within :func:`holdout_radius`) is left
@@ -110,6 +113,9 @@ def scene_setup(lod_indexes: list[str], dsm_path: str | Path, terrain: str, terr
     scene = Scene(bounds=(tuple(lo.tolist()), tuple(hi.tolist())), z0=z0, terrain=terrain, projection=projection,
                   dtm=None if terrain == "flat" else str(dtm_path), n_candidates=len(cands),
                   n_check=sum(c.role == "check" for c in cands), dtm_check_holdout_m=radius, n_chunks=len(chunks))
+    if out_grounds is not None:
+        grounds = chunk_grounds(chunks, DTM(dtm_path, scene_crs, continuous=True)) if projection == "terrain" else {}
+        write_grounds(out_grounds, grounds)
     write_csv(out_candidates, cands, CANDIDATE_FIELDS)
     write_json(out_scene, scene.to_json())
     log.info("z0 %.2f m, projection %s, %d GCP candidates (%d check points)", z0, projection, len(cands),
@@ -285,6 +291,24 @@ def _cell_value(values: np.ndarray, grid, x: float, y: float) -> float:
     """The value of the grid cell holding (x, y), clamped to the grid."""
     col, row = grid.cell_of(x, y)
     return float(values[row, col])
+
+
+def chunk_grounds(chunks: list, dtm) -> dict[tuple[str, str], ChunkGround]:
+    """{(district, chunk id): :func:`chunk_ground`} of every LOD chunk."""
+    return {(c.district, c.id): chunk_ground(c.bounds, dtm) for c in chunks}
+
+
+def write_grounds(path: str | Path, grounds: dict[tuple[str, str], ChunkGround]) -> None:
+    """:func:`chunk_grounds` as JSON rows [district, chunk id, lowest, highest, digest] (floats
+    round-trip exactly)."""
+    write_json(path, [[d, c, g.lowest, g.highest, g.digest] for (d, c), g in sorted(grounds.items())], indent=None)
+
+
+def read_grounds(path: str | Path) -> dict[tuple[str, str], ChunkGround]:
+    """:func:`write_grounds`' file back."""
+    import json
+
+    return {(d, c): ChunkGround(lo, hi, digest) for d, c, lo, hi, digest in json.loads(Path(path).read_text())}
 
 
 def chunk_ground(bounds: np.ndarray, dtm) -> ChunkGround:
