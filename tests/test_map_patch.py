@@ -227,11 +227,11 @@ def test_the_digests_taken_from_the_blocks_are_map_cells_own(tmp_path, monkeypat
     assert not note.exists()                                                       # lossy: the COG is not the map
 
 
-def test_blocks_made_by_one_worker_or_two_give_the_same_map(tmp_path, monkeypatch):
+def test_blocks_made_by_worker_processes_give_the_same_map_as_made_here(tmp_path, monkeypatch):
     """The blocks of a map made by two forked workers (the last map of a run, with a core idle)
-    and by one: the same pixels and overviews, warped or copied, the same COG, the same digests.
-    GDAL's warp threads are in this process, not in a forked one: the workers warp on one thread
-    each, and the warp here (its thread pool started) must not hang them."""
+    and here, one after another: the same pixels and overviews, warped or copied, the same COG,
+    the same digests. GDAL's warp threads are in this process, not in a forked one: the
+    workers warp on one thread each, and the warp here (its thread pool started) must not hang them."""
     d = _tiles(tmp_path, monkeypatch)
     crs = horizontal_wkt(CRS)
     mosaic, src = _source(d, _observations())

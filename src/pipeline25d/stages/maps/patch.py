@@ -85,10 +85,12 @@ def patched_map(mosaic: str | Path, source: str | Path, choice: dict, crs: str, 
     ``threads``: the job's threads; the blocks are made by that many worker processes, or by as
     many as there are cores idle when it starts (:func:`~pipeline25d.core.cores.job_workers`: the
     last map of a run, alone), one block ahead, and written here in order (the same bytes whatever
-    the count). A make bench map, its blocks made in this process (the kept file's blocks and the
-    block's sharing one GDAL block cache): 21.3 s, 24.8 CPU-s; by one worker 14.5 s, 20.2 CPU-s;
-    by two 12.3 s, 21.0 CPU-s (one run each, back to back)."""
-    from pipeline25d.core.raster import CELL_PX, cells_grid, map_cells
+    the count). The kept file is flushed after each block: its written blocks then leave GDAL's
+    block cache (capped, :data:`~pipeline25d.core.raster.CACHE_MB`) as the next block's arrive,
+    rather than being pushed out of it by them (a make bench map, made here: 20.2 s and
+    23.1 CPU-s without the flush, 13.8 s and 16.8 CPU-s with it, 13.7 and 16.9 with no flush and
+    a 1 GB cache; by two workers 11.6 s, 20.2 CPU-s; one run each, back to back)."""
+    from pipeline25d.core.raster import CELL_PX, cells_grid, map_cells, window_cells
     from pipeline25d.stages.maps.parts import overview_factors
 
     g = gdal()
@@ -125,18 +127,28 @@ def patched_map(mosaic: str | Path, source: str | Path, choice: dict, crs: str, 
     write_state(work, {"key": key, "cells": {} if full else state["cells"], "dirty": todo})    # journal first
     wins = [block_window(bx, by, width, height, size) for bx, by in todo]
     workers = job_workers(threads) if len(wins) > 1 else 1
-    # a forked worker has no GDAL thread pool (its threads stay in this process): it warps on one thread
-    opts = {k: v for k, v in window_warp_options(choice, crs, gsd).items()
-            if k not in ("xRes", "yRes", "multithread", "warpOptions")}
+    opts = {k: v for k, v in window_warp_options(choice, crs, gsd).items() if k not in ("xRes", "yRes")}
+    if workers > 1:      # a forked worker has no GDAL thread pool (its threads stay in this process): one thread
+        opts = {k: v for k, v in opts.items() if k not in ("multithread", "warpOptions")}
     made = ((str(source) if warped else str(mosaic), opts if warped else None, grid.window_bounds(win), win, factors,
              own is not None) for win in wins)
     # the workers are forked before the kept file is opened: none of them holds it
-    with fork_pool(workers) if wins else nullcontext() as pool, \
+    with fork_pool(workers) if workers > 1 else nullcontext() as pool, \
             kept_dataset(work / KEPT, full, grid, crs, factors, bands=bands) as kept:
-        for win, (levels, digests) in zip(wins, map_ahead(pool, block_levels, made, workers + 1)):
-            write_levels(kept, levels, win, factors)
-            if own is not None:
-                _redigest(own, digests, win, CELL_PX)
+        if pool is None:                    # here: the block's levels go straight from its overview file
+            for source_path, warp, bounds, win, *_ in made:
+                block = make_block(source_path, warp, bounds, win)
+                write_block(kept, block, win, factors)
+                kept.FlushCache()
+                if own is not None:
+                    _redigest(own, window_cells(block, Window(0, 0, win.width, win.height), CELL_PX,
+                                                at=(win.col0, win.row0)), win, CELL_PX)
+        else:                               # by the workers, one block ahead of the writes here
+            for win, (levels, digests) in zip(wins, map_ahead(pool, block_levels, made, workers + 1)):
+                write_levels(kept, levels, win, factors)
+                kept.FlushCache()
+                if own is not None:
+                    _redigest(own, digests, win, CELL_PX)
     if cells is None:
         cells = own
         if cells_memo is not None:
@@ -157,14 +169,19 @@ def block_levels(source: str, warp: dict | None, bounds: tuple[float, float, flo
     where the job has idle cores: it opens everything it reads."""
     from pipeline25d.core.raster import CELL_PX, window_cells
 
-    g = gdal()
-    if warp is not None:
-        block = g.Warp("", source, format="MEM", outputBounds=bounds, width=win.width, height=win.height, **warp)
-    else:
-        block = g.Translate("", source, format="MEM", srcWin=[win.col0, win.row0, win.width, win.height])
+    block = make_block(source, warp, bounds, win)
     digests = window_cells(block, Window(0, 0, win.width, win.height), CELL_PX, at=(win.col0, win.row0)) \
         if digest else None
     return block_overviews(block, factors, _read_levels), digests
+
+
+def make_block(source: str, warp: dict | None, bounds: tuple[float, float, float, float], win: Window):
+    """The in-memory block of map window ``win``: warped from ``source`` with the gdal.Warp keywords
+    ``warp`` onto ``bounds``, or copied from it (None)."""
+    g = gdal()
+    if warp is not None:
+        return g.Warp("", source, format="MEM", outputBounds=bounds, width=win.width, height=win.height, **warp)
+    return g.Translate("", source, format="MEM", srcWin=[win.col0, win.row0, win.width, win.height])
 
 
 def _redigest(digests: dict[str, str], new: dict[str, str], win: Window, cell: int) -> None:
@@ -180,8 +197,17 @@ def write_block(kept, block, win: Window, factors: list[int], resampling: str = 
     are the map's) into the kept GeoTIFF. The overviews are built by the GeoTIFF driver, all bands
     at once with the alpha as their mask, as for a sparse map's parts (the in-memory driver's
     per-band path weights partly transparent pixels otherwise); ``resampling``: GDAL's overview
-    method (NEAREST for object ids)."""
-    write_levels(kept, block_overviews(block, factors, _read_levels, resampling), win, factors)
+    method (NEAREST for object ids). Each level is written as it is read, band by band."""
+    block_overviews(block, factors, lambda ds: _copy_levels(kept, ds, win, factors), resampling)
+
+
+def _copy_levels(kept, block, win: Window, factors: list[int]) -> None:
+    for b in range(1, kept.RasterCount + 1):
+        src, dst = block.GetRasterBand(b), kept.GetRasterBand(b)
+        dst.WriteRaster(win.col0, win.row0, win.width, win.height, src.ReadRaster())
+        for level, f in enumerate(factors):
+            o = src.GetOverview(level)
+            dst.GetOverview(level).WriteRaster(win.col0 // f, win.row0 // f, o.XSize, o.YSize, o.ReadRaster())
 
 
 def block_overviews(block, factors: list[int], use, resampling: str = "AVERAGE"):
