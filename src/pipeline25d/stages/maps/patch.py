@@ -162,7 +162,7 @@ def patched_map(mosaic: str | Path, source: str | Path, choice: dict, crs: str, 
 
 
 def block_levels(source: str, warp: dict | None, bounds: tuple[float, float, float, float], win: Window,
-                 factors: list[int], digest: bool) -> tuple[list[list[bytes]], dict[str, str] | None]:
+                 factors: list[int], digest: bool) -> tuple[list[list[tuple[int, int, bytes]]], dict[str, str] | None]:
     """One block of the map, made on its own window: warped from ``source`` with the gdal.Warp
     keywords ``warp``, or copied from it (None); returns each band's pixels and overview levels
     (:func:`write_levels`) and, with ``digest``, its squares' digests. Runs in a worker process
