@@ -15,6 +15,7 @@ import json
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
+from functools import cache
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any, ClassVar
@@ -104,17 +105,12 @@ def _int(value: Any) -> int:
     return 0 if value in ("", None) else int(float(value))
 
 
-_PARSERS: dict[type, tuple[tuple[str, Any], ...]] = {}
-
-
+@cache
 def _parsers(cls: type) -> tuple[tuple[str, Any], ...]:
     """(field, text -> value) of a GCP record class, in field order, made once per class (a plan's
     tiles hold thousands of candidates and every render job reads them all)."""
-    got = _PARSERS.get(cls)
-    if got is None:
-        got = _PARSERS[cls] = tuple(
-            (f.name, str if f.name in cls.TEXT else _int if f.type in ("int", int) else _float) for f in fields(cls))
-    return got
+    return tuple((f.name, str if f.name in cls.TEXT else _int if f.type in ("int", int) else _float)
+                 for f in fields(cls))
 
 
 # --------------------------------------------------------------------------- chunks and scene

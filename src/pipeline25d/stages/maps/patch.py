@@ -85,12 +85,12 @@ def patched_map(mosaic: str | Path, source: str | Path, choice: dict, crs: str, 
     ``threads``: the job's threads; the blocks are made by that many worker processes, or by as
     many as there are cores idle when it starts (:func:`~pipeline25d.core.cores.job_workers`: the
     last map of a run, alone), one block ahead, and written here in order (the same bytes whatever
-    the count). The kept file is flushed after each block: its written blocks then leave GDAL's
-    block cache (capped, :data:`~pipeline25d.core.raster.CACHE_MB`) as the next block's arrive,
-    rather than being pushed out of it by them (a make bench map, made here: 20.2 s and
+    the count). The kept file is flushed after each block (:func:`write_block`, :func:`write_levels`):
+    its written blocks then leave GDAL's block cache (capped, :data:`~pipeline25d.core.raster.CACHE_MB`)
+    as the next block's arrive, rather than being pushed out of it by them (a make bench map, made here: 20.2 s and
     23.1 CPU-s without the flush, 13.8 s and 16.8 CPU-s with it, 13.7 and 16.9 with no flush and
     a 1 GB cache; by two workers 11.6 s, 20.2 CPU-s; one run each, back to back)."""
-    from pipeline25d.core.raster import CELL_PX, cells_grid, map_cells, window_cells
+    from pipeline25d.core.raster import CELL_PX, cells_grid, map_cells
     from pipeline25d.stages.maps.parts import overview_factors
 
     g = gdal()
@@ -139,14 +139,11 @@ def patched_map(mosaic: str | Path, source: str | Path, choice: dict, crs: str, 
             for source_path, warp, bounds, win, *_ in made:
                 block = make_block(source_path, warp, bounds, win)
                 write_block(kept, block, win, factors)
-                kept.FlushCache()
                 if own is not None:
-                    _redigest(own, window_cells(block, Window(0, 0, win.width, win.height), CELL_PX,
-                                                at=(win.col0, win.row0)), win, CELL_PX)
+                    _redigest(own, block_digests(block, win), win, CELL_PX)
         else:                               # by the workers, one block ahead of the writes here
             for win, (levels, digests) in zip(wins, map_ahead(pool, block_levels, made, workers + 1)):
                 write_levels(kept, levels, win, factors)
-                kept.FlushCache()
                 if own is not None:
                     _redigest(own, digests, win, CELL_PX)
     if cells is None:
@@ -167,12 +164,15 @@ def block_levels(source: str, warp: dict | None, bounds: tuple[float, float, flo
     keywords ``warp``, or copied from it (None); returns each band's pixels and overview levels
     (:func:`write_levels`) and, with ``digest``, its squares' digests. Runs in a worker process
     where the job has idle cores: it opens everything it reads."""
+    block = make_block(source, warp, bounds, win)
+    return block_overviews(block, factors, _read_levels), block_digests(block, win) if digest else None
+
+
+def block_digests(block, win: Window) -> dict[str, str]:
+    """The digests of the squares of map window ``win`` that the in-memory ``block`` fills."""
     from pipeline25d.core.raster import CELL_PX, window_cells
 
-    block = make_block(source, warp, bounds, win)
-    digests = window_cells(block, Window(0, 0, win.width, win.height), CELL_PX, at=(win.col0, win.row0)) \
-        if digest else None
-    return block_overviews(block, factors, _read_levels), digests
+    return window_cells(block, Window(0, 0, win.width, win.height), CELL_PX, at=(win.col0, win.row0))
 
 
 def make_block(source: str, warp: dict | None, bounds: tuple[float, float, float, float], win: Window):
@@ -197,8 +197,10 @@ def write_block(kept, block, win: Window, factors: list[int], resampling: str = 
     are the map's) into the kept GeoTIFF. The overviews are built by the GeoTIFF driver, all bands
     at once with the alpha as their mask, as for a sparse map's parts (the in-memory driver's
     per-band path weights partly transparent pixels otherwise); ``resampling``: GDAL's overview
-    method (NEAREST for object ids). Each level is written as it is read, band by band."""
+    method (NEAREST for object ids). Each level is written as it is read, band by band; then the
+    block is flushed (see :func:`write_levels`)."""
     block_overviews(block, factors, lambda ds: _copy_levels(kept, ds, win, factors), resampling)
+    kept.FlushCache()
 
 
 def _copy_levels(kept, block, win: Window, factors: list[int]) -> None:
@@ -235,12 +237,15 @@ def _read_levels(block) -> list[list[tuple[int, int, bytes]]]:
 
 
 def write_levels(kept, levels: list[list[tuple[int, int, bytes]]], win: Window, factors: list[int]) -> None:
-    """A block's :func:`_read_levels` into the kept GeoTIFF at map window ``win``."""
+    """A block's :func:`_read_levels` into the kept GeoTIFF at map window ``win``, then flushed: the
+    written block leaves GDAL's capped cache now rather than being pushed out of it by the next
+    block's (see :func:`patched_map`)."""
     for b, ((w, h, pixels), *overviews) in enumerate(levels, start=1):
         dst = kept.GetRasterBand(b)
         dst.WriteRaster(win.col0, win.row0, w, h, pixels)
         for level, (f, (w, h, data)) in enumerate(zip(factors, overviews)):
             dst.GetOverview(level).WriteRaster(win.col0 // f, win.row0 // f, w, h, data)
+    kept.FlushCache()
 
 
 def gcps_digest(source: str | Path) -> str:
