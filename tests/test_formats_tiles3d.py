@@ -252,7 +252,7 @@ def test_a_tileset_read_in_pieces_holds_the_triangles_of_a_whole_read(monkeypatc
     than a piece is one piece: the parts of the whole read."""
     from pipeline25d.formats import district_pieces, load_district, tiles3d
 
-    spec = {"path": str(SAMPLES / "TilesetUniform" / "tileset.json")}
+    spec = {"path": str(_need(SAMPLES / "TilesetUniform" / "tileset.json"))}
     whole = load_district(spec, "EPSG:4978", max_geometric_error=0.0)
     one = list(district_pieces(spec, "EPSG:4978", max_geometric_error=0.0))
     assert len(one) == 1 and [p.vertices.tobytes() for p in one[0].parts] == [p.vertices.tobytes() for p in whole.parts]

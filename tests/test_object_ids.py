@@ -160,6 +160,8 @@ def test_an_obj_face_keeps_its_o_object_and_parts_stay_one_per_material():
     from pipeline25d.formats.meshfile import load_mesh_file
 
     path = DELFT.parent / "obj" / "testarea.obj"
+    if not path.is_file():
+        pytest.skip(f"{path} not present")
     mesh = load_mesh_file(path)
     truth = obj_object_triangles(path)
     materials = {w.split()[1] for w in path.read_text().splitlines() if w.startswith("usemtl ")}
