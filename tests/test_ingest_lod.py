@@ -64,6 +64,25 @@ def test_a_chunks_textures_are_stored_as_they_are_and_its_geometry_compressed(tm
     np.testing.assert_array_equal(back.faces, part.faces)
 
 
+def test_a_lod_pyramid_is_stored_uncompressed_and_reads_back_as_its_levels(tmp_path):
+    """LOD files are read by every render job that draws them: every member stored, the levels
+    and their hash what they were built from."""
+    from pipeline25d.stages.chunks import content_hash
+    from pipeline25d.stages.lod import build_chunk_lod, load_chunk_level
+
+    part = grid_part()
+    save_npz(tmp_path / "c.npz", {"origin": np.zeros(3), **pack_parts([part], np.zeros(3))})
+    info = build_chunk_lod(tmp_path / "c.npz", tmp_path / "lod.npz", 0.5, 3)
+    with zipfile.ZipFile(tmp_path / "lod.npz") as zf:
+        assert {i.compress_type for i in zf.infolist()} == {zipfile.ZIP_STORED}
+    data = load_npz(tmp_path / "lod.npz")
+    assert content_hash({k: data[k] for k in data.files}) == info["hash"]
+    origin, (finest,) = load_chunk_level(tmp_path / "lod.npz", 0)
+    np.testing.assert_array_equal(finest.faces, part.faces)
+    np.testing.assert_array_equal(finest.vertices, part.vertices)
+    assert len(info["triangles"]) == int(data["n_levels"])
+
+
 def test_district_lod_rebuilds_only_changed_chunks_and_removes_stale_ones(tmp_path):
     from pipeline25d.stages.chunks import content_hash, load_npz
     from pipeline25d.stages.lod import build_lod, lod_chunks

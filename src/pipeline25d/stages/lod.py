@@ -289,7 +289,7 @@ def build_chunk_lod(chunk_path: str | Path, out_npz: str | Path, max_error: floa
     arrays = {"origin": origin, "n_levels": np.array(len(levels))}
     for k, (parts, _) in enumerate(levels):
         arrays.update(pack_parts(parts, origin, prefix=f"L{k}_"))
-    save_npz(out_npz, arrays)
+    save_npz(out_npz, arrays, compress=False)        # read by every render job that draws it
     return {"bounds": mesh.bounds().tolist(), "errors": [e for _, e in levels],
             "triangles": [sum(p.n_triangles for p in ps) for ps, _ in levels], "hash": content_hash(arrays)}
 
