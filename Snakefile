@@ -13,7 +13,6 @@ if not workflow.overwrite_configfiles:
 
 include: "workflow/rules/common.smk"
 include: "workflow/rules/ingest.smk"
-include: "workflow/rules/lod.smk"
 include: "workflow/rules/terrain.smk"
 include: "workflow/rules/plan.smk"
 include: "workflow/rules/render.smk"

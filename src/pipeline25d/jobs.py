@@ -32,18 +32,17 @@ def _first(files) -> str | None:
 
 
 def ingest_job(job: Job) -> None:
-    from pipeline25d.stages import ingest
+    """A district's chunks, then their LOD pyramids: one job (see workflow/rules/ingest.smk)."""
+    from pipeline25d.stages import ingest, lod
 
     p = job.params
+    started = time.perf_counter()
     ingest.ingest(dict(p.spec), job.wildcards.district, p.crs, p.chunk_size, p.max_error, job.output.index,
                   gsd=p.gsd, slot=p.slot)
-
-
-def lod_job(job: Job) -> None:
-    from pipeline25d.stages import lod
-
-    lod.build_lod(job.input[0], job.output.index, job.params.max_error, job.params.max_levels,
+    chunked = time.perf_counter()
+    lod.build_lod(job.output.index, job.output.lod, p.max_error, p.max_levels,
                   processes=lambda: job_workers(job.threads))
+    log.info("chunks in %.2f s, their LOD pyramids in %.2f s", chunked - started, time.perf_counter() - chunked)
 
 
 def terrain_job(job: Job) -> None:
@@ -192,7 +191,7 @@ def wms_job(job: Job) -> None:
 
 #: rule name -> its function, in the order data moves through the workflow
 RULES: dict[str, Callable[[Job], None]] = {
-    "ingest": ingest_job, "lod": lod_job, "terrain": terrain_job, "scene": scene_job, "plan": plan_job,
+    "ingest": ingest_job, "terrain": terrain_job, "scene": scene_job, "plan": plan_job,
     "render_block": render_block_job, "mosaic": mosaic_job, "warp": warp_job, "tms": tms_job, "pmtiles": pmtiles_job,
     "objects": objects_job, "heights_blocks": heights_blocks_job, "heights_block": heights_block_job,
     "heights": heights_job, "report": report_job, "viewer": viewer_job, "wms": wms_job,

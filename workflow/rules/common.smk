@@ -86,7 +86,7 @@ def district_inputs(wildcards):
 
 def all_lod_meta(wildcards):
     """The per-district LOD indexes (each lists its chunks' LOD files, see stages.lod_chunks)."""
-    return expand(rules.lod.output.index, district=DISTRICTS)
+    return expand(rules.ingest.output.lod, district=DISTRICTS)
 
 
 @parse_guard
