@@ -115,6 +115,46 @@ def test_blockwise_dtm_equals_the_whole_grid(scene):
     np.testing.assert_array_equal(got, expected)
 
 
+def test_blockwise_dtm_by_forked_workers_equals_one_process(scene, tmp_path):
+    """The scene job's DTM blocks filled two at a time by forked workers, each reading its own
+    window of the ground raster (pickled as its path), equal those filled here bit for bit, in
+    the same order: with a hole that makes a block read again wider, with empty land left NaN,
+    and with the check points held out (the read the scene's second fill sends its workers)."""
+    import pickle
+    from functools import partial
+
+    from pipeline25d.core.cores import fork_pool
+    from pipeline25d.core.geotiff import write_float_geotiff
+    from pipeline25d.stages.records import GcpCandidate
+    from pipeline25d.stages.scene import _held_out_read, _without_check_points
+
+    grid, dsm, _, whole = scene
+    seed = np.where(whole, dsm, np.nan)
+    seed[100:420, 150:500] = np.nan
+    write_float_geotiff(tmp_path / "ground.tif", seed, grid, "")
+    raster = FloatRaster(tmp_path / "ground.tif")
+    cands = [GcpCandidate(f"c{i}", E0 + 43.0 + 90 * (i % 8), N0 + 37.0 + 90 * (i // 8), 0.0, 0.0, 0.0, 0.0,
+                          "gcp" if i % 3 else "check") for i in range(56)]
+    held_out = partial(_held_out_read, raster, grid, cands, 6.0)
+    window = (slice(40, 600), slice(30, 700))
+    np.testing.assert_array_equal(pickle.loads(pickle.dumps(held_out))(*window),
+                                  _without_check_points(raster.read(*window), grid, cands, 6.0, window))
+    assert np.isnan(held_out(*window)).sum() > np.isnan(seed[window]).sum()      # some ground was held out
+
+    def needed(core):
+        return core[1].start < 512          # the right-hand column of blocks is empty land
+
+    for read in (raster.read, held_out):
+        here = list(dtm_blocks(read, grid, 20, SMALL_BLOCKS, needed=needed, reach_cells=80))
+        with fork_pool(2) as pool:
+            forked = list(dtm_blocks(read, grid, 20, SMALL_BLOCKS, needed=needed, reach_cells=80, pool=pool, ahead=2))
+        assert [b for b, _ in here] == [b for b, _ in forked] and len(here) == 9
+        for (_, a), (_, b) in zip(here, forked):
+            np.testing.assert_array_equal(a, b)
+        assert sum(np.isfinite(v).sum() for _, v in forked) > 0.5 * 512 * 640
+        assert all(np.isnan(v).all() for b, v in forked if not needed(b.core))
+
+
 def test_blockwise_sites_equal_the_whole_grid_in_float32(scene):
     grid, dsm, _, whole = scene
     dsm32 = dsm.astype(np.float32)

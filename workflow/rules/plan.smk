@@ -23,6 +23,8 @@ rule scene:
         gsd=config["gsd"],
         perspectives=PERSPECTIVE_IDS,
         ground=config["ground"],
+    # the DTM's blocks are interpolated on both cores (nothing else can run beside this job)
+    threads: 2
     log:
         f"{RESULTS}/logs/scene.log",
     script:

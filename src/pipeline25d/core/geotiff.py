@@ -125,8 +125,13 @@ class FloatRaster:
     """A one-band float GeoTIFF read by windows, memory O(window)."""
 
     def __init__(self, path: str | Path):
-        self._ds = gdal().Open(str(path))
+        self.path = str(path)
+        self._ds = gdal().Open(self.path)
         self.grid = Grid.of_dataset(self._ds)
+
+    def __reduce__(self):
+        """Pickled as its path: a worker process opens the file again."""
+        return FloatRaster, (self.path,)
 
     def read(self, rows: slice, cols: slice, dtype: type = np.float64) -> np.ndarray:
         """The cells ``rows`` x ``cols`` (NaN nodata); GDAL's cached blocks are dropped after."""

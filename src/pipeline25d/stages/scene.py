@@ -7,8 +7,12 @@ ground around each check point held out, so check points measure ground the DTM 
 from __future__ import annotations
 
 import logging
+from concurrent.futures import Executor
+from contextlib import nullcontext
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -29,9 +33,12 @@ GROUND_MARGIN_M = 2.0   # widens a chunk's ground range (tile assignment in terr
 def scene_setup(lod_indexes: list[str], dsm_path: str | Path, terrain: str, terrain_path: str | Path | None,
                 z0_cfg, projection: str, gcp_cfg: dict, scene_crs: str, gsd: float, perspective_ids: list[str],
                 out_scene: str | Path, out_candidates: str | Path, out_dtm: str | Path | None = None,
-                max_object_size: float = 100.0, out_grounds: str | Path | None = None) -> dict:
+                max_object_size: float = 100.0, out_grounds: str | Path | None = None, processes: int = 1) -> dict:
     """Reference plane z0, projection mode, GCP candidates (with check-point roles) and, for
     ``terrain: auto``, the DTM.
+
+    ``processes``: how many of the DTM's blocks are interpolated at once, by workers forked
+    before the DSM is read (the same DTM whatever the count).
 
     ``out_grounds``: the DTM under each chunk (:func:`chunk_grounds`), which every perspective's
     plan reads in terrain-relative mode (empty otherwise): sampled once here, not once per plan.
@@ -45,6 +52,33 @@ def scene_setup(lod_indexes: list[str], dsm_path: str | Path, terrain: str, terr
     nothing (the DSM is read from its float32 GeoTIFF, GDAL's fill computes in float32);
     the DTM's interpolation and the site search run block by block.
     """
+    from pipeline25d.core.cores import fork_pool
+    from pipeline25d.core.geotiff import FloatRaster
+    from pipeline25d.core.grid import BLOCK_CELLS, cell_blocks
+
+    dsm_src = FloatRaster(dsm_path)
+    grid = dsm_src.grid
+    search = int(np.ceil(max_object_size / 2 / grid.res))
+    blocks = cell_blocks(grid.height, grid.width, max(search, 1) + 1, BLOCK_CELLS)     # the DTM's (dtm_blocks)
+    several = processes > 1 and terrain == "auto" and len(blocks) > 1
+    with fork_pool(processes) if several else nullcontext() as pool:
+        return _scene_setup(lod_indexes, dsm_src, terrain, terrain_path, z0_cfg, projection, gcp_cfg, scene_crs, gsd,
+                            perspective_ids, out_scene, out_candidates, out_dtm, search, out_grounds,
+                            DtmWorkers(pool, processes if pool else 1))
+
+
+class DtmWorkers(NamedTuple):
+    """The scene job's forked workers (None: none) and how many run at once."""
+
+    pool: Executor | None
+    count: int
+
+
+def _scene_setup(lod_indexes: list[str], dsm_src, terrain: str, terrain_path: str | Path | None, z0_cfg,
+                 projection: str, gcp_cfg: dict, scene_crs: str, gsd: float, perspective_ids: list[str],
+                 out_scene: str | Path, out_candidates: str | Path, out_dtm: str | Path | None, search: int,
+                 out_grounds: str | Path | None, workers: DtmWorkers) -> Scene:
+    """:func:`scene_setup` once its workers are forked."""
     from pipeline25d.core.crs import horizontal_wkt
     from pipeline25d.core.geotiff import FloatRaster, write_float_geotiff
     from pipeline25d.core.raster import DTM
@@ -53,18 +87,16 @@ def scene_setup(lod_indexes: list[str], dsm_path: str | Path, terrain: str, terr
 
     chunks = lod_chunks(lod_indexes)
     bounds, lo, hi = scene_bounds(chunks)
-    dsm_src = FloatRaster(dsm_path)
     grid = dsm_src.grid
     dsm = dsm_src.read_all(np.float32)
     seed_src, radius, height_fn = None, None, None
-    search = int(np.ceil(max_object_size / 2 / grid.res))
     if terrain == "flat":
         level = float(z0_cfg) if z0_cfg != "auto" else float(np.median(bounds[:, 0, 2]))
         dtm = np.broadcast_to(level, grid.shape)
     elif terrain == "auto":
         seed_src = FloatRaster(terrain_path)
         needed = _under_chunks(bounds, grid)
-        dtm = _interpolated_dtm(seed_src.read, grid, search, needed)
+        dtm = _interpolated_dtm(seed_src.read, grid, search, needed, workers)
     else:
         height_fn = DTM(terrain_path, scene_crs, continuous=True).sample
         dtm = _sampled_dtm(height_fn, grid)
@@ -92,9 +124,8 @@ def scene_setup(lod_indexes: list[str], dsm_path: str | Path, terrain: str, terr
         if seed_src is not None:
             radius = holdout_radius(rules, grid.res)
             del dtm
-            dtm = _interpolated_dtm(lambda rows, cols: _without_check_points(seed_src.read(rows, cols), grid, cands,
-                                                                              radius, (rows, cols)), grid, search,
-                                   needed)
+            dtm = _interpolated_dtm(partial(_held_out_read, seed_src, grid, cands, radius), grid, search, needed,
+                                    workers)
             _check_ground(dtm, grid, chunks, terrain_path, 4 * search * grid.res, None if whole_boxes else covered)
             xy = np.array([[c.x, c.y] for c in cands]).reshape(-1, 2)
             cands = [replace(c, ground=round(float(g), 3)) for c, g in zip(cands, _sample_continuous(dtm, grid, xy))]
@@ -138,19 +169,27 @@ def with_bare_ground(dsm: np.ndarray, dtm: np.ndarray, seed: np.ndarray) -> np.n
     return out
 
 
-def _interpolated_dtm(read, grid, search: int, needed=None) -> np.ndarray:
+def _interpolated_dtm(read, grid, search: int, needed=None, workers: DtmWorkers = DtmWorkers(None, 1)) -> np.ndarray:
     """The DTM (float32, exact: GDAL's fill computes in float32) from the ground heights ``read(rows, cols)``.
 
     With ``needed`` (a sparse scene's blocks under the model), the DTM reaches 4 x ``search``
     cells (twice the largest object) beyond the ground and is NaN elsewhere: empty land costs nothing.
+    ``workers``: its blocks filled by forked workers (``read`` then pickles), or here.
     """
     from pipeline25d.stages.terrain.dtm import dtm_blocks
 
     dtm = np.empty(grid.shape, np.float32)
     reach = None if needed is None else 4 * search
-    for block, values in dtm_blocks(read, grid, search, needed=needed, reach_cells=reach):
+    for block, values in dtm_blocks(read, grid, search, needed=needed, reach_cells=reach, pool=workers.pool,
+                                    ahead=workers.count):
         dtm[block.core] = values
     return dtm
+
+
+def _held_out_read(seed_src, grid, cands: list[GcpCandidate], radius: float, rows: slice, cols: slice) -> np.ndarray:
+    """The ground heights of (rows, cols) without those within ``radius`` of a check point
+    (:func:`_without_check_points`); a module function, so a worker can be sent it."""
+    return _without_check_points(seed_src.read(rows, cols), grid, cands, radius, (rows, cols))
 
 
 def _check_ground(dtm: np.ndarray, grid, chunks: list, ground_path, reach_m: float,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Iterator
+from concurrent.futures import Executor
 
 import numpy as np
 
@@ -87,29 +88,41 @@ def _fill_window(seed: np.ndarray, search_cells: int) -> np.ndarray:
 def dtm_blocks(read: Callable[[slice, slice], np.ndarray], grid: Grid, search_cells: int,
                max_cells: int = BLOCK_CELLS,
                needed: Callable[[tuple[slice, slice]], bool] | None = None,
-               reach_cells: float | None = None) -> Iterator[tuple[Block, np.ndarray]]:
+               reach_cells: float | None = None, pool: Executor | None = None,
+               ahead: int = 1) -> Iterator[tuple[Block, np.ndarray]]:
     """(block, DTM of its core): :func:`interpolate_dtm` of the ground heights ``read(rows, cols)``
     (float64, NaN: not ground), block by block, equal to the whole grid's.
 
     ``needed(core)``: False for a block nothing is drawn on (empty land in a sparse scene),
     which then stays NaN and costs nothing; default every block. ``reach_cells``: as in
-    :func:`interpolate_dtm`; it also bounds how wide a block is read.
+    :func:`interpolate_dtm`; it also bounds how wide a block is read. ``pool``: forked workers
+    (:func:`~pipeline25d.core.cores.fork_pool`) that fill the blocks, ``ahead`` at once, each
+    reading its own window (``read`` must then pickle); the same values, in the same order.
 
     A window reaches search + 1 cells beyond its core, so the fill is exact on the core. A core
     cell it leaves empty takes its nearest filled cell, the whole grid's when that lies within
     the window's margin less search + 1; where one does not (no ground that near), the block is
     read again with twice the margin. With ``reach_cells`` the first window sees that far.
     """
+    from pipeline25d.core.cores import map_ahead
+
+    blocks = cell_blocks(grid.height, grid.width, max(int(search_cells), 1) + 1, max_cells)
+    wanted = [needed is None or needed(block.core) for block in blocks]
+    filled = map_ahead(pool, block_dtm, ((read, grid, b.core, search_cells, reach_cells)
+                                         for b, w in zip(blocks, wanted) if w), ahead)
+    for block, w in zip(blocks, wanted):
+        yield block, next(filled) if w else np.full(tuple(s.stop - s.start for s in block.core), np.nan)
+
+
+def block_dtm(read: Callable[[slice, slice], np.ndarray], grid: Grid, core: tuple[slice, slice], search_cells: int,
+              reach_cells: float | None = None) -> np.ndarray:
+    """The DTM of one block's ``core`` (:func:`dtm_blocks`), from as wide a window as it needs."""
     reach = max(int(search_cells), 1) + 1
-    for block in cell_blocks(grid.height, grid.width, reach, max_cells):
-        if needed is not None and not needed(block.core):
-            yield block, np.full(tuple(s.stop - s.start for s in block.core), np.nan)
-            continue
-        # with a reach, the first window already sees as far as any cell may take a value from
-        margin = reach if reach_cells is None else reach + int(np.ceil(reach_cells)) + 1
-        while (values := _dtm_core(read, grid, block.core, margin, search_cells, reach_cells)) is None:
-            margin *= 2
-        yield block, values
+    # with a reach, the first window already sees as far as any cell may take a value from
+    margin = reach if reach_cells is None else reach + int(np.ceil(reach_cells)) + 1
+    while (values := _dtm_core(read, grid, core, margin, search_cells, reach_cells)) is None:
+        margin *= 2
+    return values
 
 
 def _dtm_core(read: Callable[[slice, slice], np.ndarray], grid: Grid, core: tuple[slice, slice], margin: int,
