@@ -127,8 +127,9 @@ WORKFLOW_CASES = ["obj/truncated.obj", "ply/nan.ply", "dae/index-out-of-range.da
 
 def test_the_ingest_jobs_of_hostile_files_fail_with_their_message_on_the_terminal(tmp_path):
     """Every format's case as one district of one run (--keep-going: each job runs): each failed
-    ingest job printed its file and problem and exited 1, the run exits 1, and no chunk index
-    (the ingest's output) exists for a failed district; the degenerate district is ingested."""
+    ingest job printed its file and problem and exited 1, the run exits 1, and no chunk or LOD
+    index (the ingest's outputs) exists for a failed district; the degenerate district is
+    ingested and its LOD pyramids built."""
     names = [n.split(":")[-1] for n in WORKFLOW_CASES]
     inputs = {f"d{i}": {"path": str(CORPUS / n)} for i, n in enumerate(names)}
     _config(tmp_path, inputs)
@@ -145,9 +146,13 @@ def test_the_ingest_jobs_of_hostile_files_fail_with_their_message_on_the_termina
     degenerate = tmp_path / "results" / "bad" / "chunks" / f"d{len(names) - 1}"
     index = json.loads((degenerate / "index.json").read_text())
     assert index["n_triangles"] == 2
+    lod = json.loads((tmp_path / "results" / "bad" / "lod" / degenerate.name / "index.json").read_text())
+    assert sorted(lod["chunks"]) == sorted(index["chunks"])
     assert _outputs(tmp_path) == sorted([f"chunks/{degenerate.name}/{f}"
                                          for f in ("index.json", "index.hashes.json", "objects.json", "attributes.json")]
-                                        + [f"chunks/{degenerate.name}/{c}.npz" for c in index["chunks"]])
+                                        + [f"chunks/{degenerate.name}/{c}.npz" for c in index["chunks"]]
+                                        + [f"lod/{degenerate.name}/{f}" for f in ("index.json", "index.hashes.json")]
+                                        + [f"lod/{degenerate.name}/{c}.npz" for c in index["chunks"]])
 
 
 @pytest.mark.parametrize("case, expected", [
