@@ -95,7 +95,7 @@ def save_npz(path: str | Path, arrays: dict[str, np.ndarray], compress: bool = T
 
     ``compress=False`` stores every member: for files read many times over, as a chunk's LOD
     pyramid is (by each render job that draws it, in every perspective). The 245 LOD levels a
-    ``make bench`` render job loads took 0.33 s so against 0.71-0.79 s deflated, for twice the bytes."""
+    ``make bench`` render job loads took 0.32-0.47 s stored, 0.71-0.79 s deflated, for twice the bytes."""
     method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
     with atomic_path(path, suffix=".tmp") as tmp:
         with zipfile.ZipFile(tmp, "w", method, compresslevel=NPZ_LEVEL if compress else None,
