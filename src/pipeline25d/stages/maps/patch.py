@@ -21,7 +21,7 @@ import json
 import logging
 import os
 import shutil
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager, nullcontext
 from pathlib import Path
 
@@ -199,17 +199,7 @@ def write_block(kept, block, win: Window, factors: list[int], resampling: str = 
     per-band path weights partly transparent pixels otherwise); ``resampling``: GDAL's overview
     method (NEAREST for object ids). Each level is written as it is read, band by band; then the
     block is flushed (see :func:`write_levels`)."""
-    block_overviews(block, factors, lambda ds: _copy_levels(kept, ds, win, factors), resampling)
-    kept.FlushCache()
-
-
-def _copy_levels(kept, block, win: Window, factors: list[int]) -> None:
-    for b in range(1, kept.RasterCount + 1):
-        src, dst = block.GetRasterBand(b), kept.GetRasterBand(b)
-        dst.WriteRaster(win.col0, win.row0, win.width, win.height, src.ReadRaster())
-        for level, f in enumerate(factors):
-            o = src.GetOverview(level)
-            dst.GetOverview(level).WriteRaster(win.col0 // f, win.row0 // f, o.XSize, o.YSize, o.ReadRaster())
+    block_overviews(block, factors, lambda ds: write_levels(kept, _levels(ds), win, factors), resampling)
 
 
 def block_overviews(block, factors: list[int], use, resampling: str = "AVERAGE"):
@@ -226,25 +216,29 @@ def block_overviews(block, factors: list[int], use, resampling: str = "AVERAGE")
         gdal().Unlink(path)
 
 
-def _read_levels(block) -> list[list[tuple[int, int, bytes]]]:
-    """Each band's (width, height, pixels), then its overviews', finest first."""
-    levels = []
+def _levels(block) -> Iterator[Iterator[tuple[int, int, bytes]]]:
+    """Each band's (width, height, pixels), then its overviews', finest first: each read when it
+    is drawn, so that :func:`write_levels` writes a block's levels one at a time."""
     for b in range(1, block.RasterCount + 1):
         band = block.GetRasterBand(b)
-        levels.append([(o.XSize, o.YSize, o.ReadRaster())
-                       for o in (band, *(band.GetOverview(k) for k in range(band.GetOverviewCount())))])
-    return levels
+        yield ((o.XSize, o.YSize, o.ReadRaster())
+               for o in (band, *(band.GetOverview(k) for k in range(band.GetOverviewCount()))))
 
 
-def write_levels(kept, levels: list[list[tuple[int, int, bytes]]], win: Window, factors: list[int]) -> None:
-    """A block's :func:`_read_levels` into the kept GeoTIFF at map window ``win``, then flushed: the
-    written block leaves GDAL's capped cache now rather than being pushed out of it by the next
-    block's (see :func:`patched_map`)."""
-    for b, ((w, h, pixels), *overviews) in enumerate(levels, start=1):
+def _read_levels(block) -> list[list[tuple[int, int, bytes]]]:
+    """:func:`_levels` read whole: the bytes a worker hands back."""
+    return [list(band) for band in _levels(block)]
+
+
+def write_levels(kept, levels: Iterable[Iterable[tuple[int, int, bytes]]], win: Window, factors: list[int]) -> None:
+    """A block's levels (:func:`_levels`, :func:`_read_levels`) into the kept GeoTIFF at map
+    window ``win``, then flushed: the written block leaves GDAL's capped cache now rather than
+    being pushed out of it by the next block's (see :func:`patched_map`)."""
+    for b, band_levels in enumerate(levels, start=1):
         dst = kept.GetRasterBand(b)
-        dst.WriteRaster(win.col0, win.row0, w, h, pixels)
-        for level, (f, (w, h, data)) in enumerate(zip(factors, overviews)):
-            dst.GetOverview(level).WriteRaster(win.col0 // f, win.row0 // f, w, h, data)
+        for k, (w, h, pixels) in enumerate(band_levels):
+            f = factors[k - 1] if k else 1
+            (dst.GetOverview(k - 1) if k else dst).WriteRaster(win.col0 // f, win.row0 // f, w, h, pixels)
     kept.FlushCache()
 
 
