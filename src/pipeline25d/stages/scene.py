@@ -54,13 +54,11 @@ def scene_setup(lod_indexes: list[str], dsm_path: str | Path, terrain: str, terr
     """
     from pipeline25d.core.cores import fork_pool
     from pipeline25d.core.geotiff import FloatRaster
-    from pipeline25d.core.grid import BLOCK_CELLS, cell_blocks
+    from pipeline25d.stages.terrain.dtm import dtm_layout
 
     dsm_src = FloatRaster(dsm_path)
-    grid = dsm_src.grid
-    search = int(np.ceil(max_object_size / 2 / grid.res))
-    blocks = cell_blocks(grid.height, grid.width, max(search, 1) + 1, BLOCK_CELLS)     # the DTM's (dtm_blocks)
-    several = processes > 1 and terrain == "auto" and len(blocks) > 1
+    search = int(np.ceil(max_object_size / 2 / dsm_src.grid.res))
+    several = processes > 1 and terrain == "auto" and len(dtm_layout(dsm_src.grid, search)) > 1
     with fork_pool(processes) if several else nullcontext() as pool:
         return _scene_setup(lod_indexes, dsm_src, terrain, terrain_path, z0_cfg, projection, gcp_cfg, scene_crs, gsd,
                             perspective_ids, out_scene, out_candidates, out_dtm, search, out_grounds,

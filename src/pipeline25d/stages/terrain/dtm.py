@@ -106,12 +106,17 @@ def dtm_blocks(read: Callable[[slice, slice], np.ndarray], grid: Grid, search_ce
     """
     from pipeline25d.core.cores import map_ahead
 
-    blocks = cell_blocks(grid.height, grid.width, max(int(search_cells), 1) + 1, max_cells)
+    blocks = dtm_layout(grid, search_cells, max_cells)
     wanted = [needed is None or needed(block.core) for block in blocks]
     filled = map_ahead(pool, block_dtm, ((read, grid, b.core, search_cells, reach_cells)
                                          for b, w in zip(blocks, wanted) if w), ahead)
     for block, w in zip(blocks, wanted):
         yield block, next(filled) if w else np.full(tuple(s.stop - s.start for s in block.core), np.nan)
+
+
+def dtm_layout(grid: Grid, search_cells: int, max_cells: int = BLOCK_CELLS) -> list[Block]:
+    """The blocks :func:`dtm_blocks` fills: each core's window reaches search + 1 cells beyond it."""
+    return cell_blocks(grid.height, grid.width, max(int(search_cells), 1) + 1, max_cells)
 
 
 def block_dtm(read: Callable[[slice, slice], np.ndarray], grid: Grid, core: tuple[slice, slice], search_cells: int,
