@@ -14,6 +14,13 @@ REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
 
 
+def shared_file(path: Path) -> Path:
+    """``path`` (a real dataset under ``../shared/data``), or skip the test where it is absent."""
+    if not Path(path).exists():
+        pytest.skip(f"test data {path} not present")
+    return Path(path)
+
+
 @pytest.fixture(scope="session")
 def gl_ctx():
     from pipeline25d.core.errors import RenderError

@@ -101,3 +101,12 @@ def test_stage_resources_and_report_on_recorded_runs(tmp_path):
     assert run["wall_s_per_mpx"] == 5.0
     text = markdown({"gsd": 0.25, "perspectives": "eight-45+nadir", "cores": 2, "runs": [run, {**run, "size": "half"}]})
     assert "| render | 2 | 8.0 | 2.0 | 800.0 | 0.0 | 110.0 | 1.0 |" in text and "## Scaling" in text
+
+
+def test_one_formats_report_does_not_overwrite_the_others():
+    from pipeline25d_lab.harness.bench_textured import report_name
+
+    assert report_name(["full"], ["osgb", "3dtiles"]) == "textured-full"
+    assert report_name(["full"], ["3dtiles", "osgb"]) == "textured-full"
+    assert report_name(["full"], ["osgb"]) == "textured-full-osgb"
+    assert report_name(["quarter", "half"], ["3dtiles"]) == "textured-quarter-half-3dtiles"

@@ -13,32 +13,50 @@ from pipeline25d.runner import progress_events, progress_line
 
 CLI = str(Path(sys.executable).parent / "pipeline25d")
 
-#: an excerpt of a real Snakemake 9.27 log (the demo's run), as `pipeline25d run` reads it
+#: lines of a real Snakemake 9.27.1 log (a 3 x 3 Delft run, 2026-11-27; input, output and reason lines
+#: left out), as `pipeline25d run` reads it
 SNAKEMAKE_LOG = """\
+[Fri Nov 27 21:40:26 2026]
+Finished jobid: 6 (Rule: ingest)
+9 of 52 steps (17%) done
+Select jobs to execute...
 Execute 1 jobs...
-[Wed Nov 25 18:41:22 2026]
-localrule lod:
-    input: results/demo/chunks/d3/index.json
-    output: results/demo/lod/d3/index.json
-    jobid: 10
-    wildcards: district=d3
-[Wed Nov 25 18:41:22 2026]
-Finished jobid: 5 (Rule: ingest)
-4 of 60 steps (7%) done
-Updating checkpoint dependencies.
-[Wed Nov 25 18:41:24 2026]
-Finished jobid: 10 (Rule: lod)
-5 of 60 steps (8%) done
+
+[Fri Nov 27 21:40:26 2026]
+localrule terrain:
+    jobid: 14
+[Fri Nov 27 21:40:41 2026]
+Finished jobid: 14 (Rule: terrain)
+10 of 52 steps (19%) done
+Select jobs to execute...
+Execute 2 jobs...
+
+[Fri Nov 27 21:40:44 2026]
 localcheckpoint plan:
-    jobid: 21
-Finished job 21.
-6 of 69 steps (9%) done
+    jobid: 3
+    wildcards: pid=az000_el45
+DAG of jobs will be updated after completion.
+[Fri Nov 27 21:40:45 2026]
+Finished jobid: 38 (Rule: plan)
+12 of 52 steps (23%) done
+Updating checkpoint dependencies.
+Select jobs to execute...
+Execute 1 jobs...
+
+[Fri Nov 27 21:40:45 2026]
+Finished jobid: 3 (Rule: plan)
+13 of 53 steps (25%) done
+Updating checkpoint dependencies.
 """
 
 
 def test_progress_follows_snakemake_log():
     events = list(progress_events(SNAKEMAKE_LOG.splitlines()))
-    assert events == [(4, 60, "ingest"), (5, 60, "lod"), (6, 69, "plan")]   # the total grows at checkpoints
+    # the total grows at checkpoints
+    assert events == [(9, 52, "ingest"), (10, 52, "terrain"), (12, 52, "plan"), (13, 53, "plan")]
+    # a finished line that names no rule (older Snakemake): the rule is the job id's, from its job block
+    older = ["localcheckpoint plan:", "    jobid: 21", "Finished job 21.", "6 of 69 steps (9%) done"]
+    assert list(progress_events(older)) == [(6, 69, "plan")]
 
 
 def test_progress_line_estimates_time_left_from_jobs_done():

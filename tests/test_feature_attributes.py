@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import shared_file
 
 from pipeline25d.core.mesh import merged_info as info_of
 from pipeline25d.formats.tiles3d import read_b3dm, read_content
@@ -113,8 +114,7 @@ def test_each_i3dm_instance_is_an_object_with_its_batch_table_row():
     """TilesetWithTransforms' instances.i3dm (25 instances, positions only): instance j's faces, less its
     POSITION read here from the feature table, are the same model for every j; its attributes are row j."""
     path = SHARED / "3dtiles-samples/TilesetWithTransforms/instances.i3dm"
-    if not path.is_file():
-        pytest.skip(f"{path} not present")
+    shared_file(path)
     data = path.read_bytes()
     ft_json, ft_bin, bt_json, _, _ = struct.unpack_from("<5I", data, 12)
     table = json.loads(data[32:32 + ft_json])
@@ -131,8 +131,7 @@ def test_each_i3dm_instance_is_an_object_with_its_batch_table_row():
 @pytest.mark.parametrize("tile", ["tokyo-chiyoda-b3dm/cesium-rtc-extension.b3dm", "amsterdam-3dtiles/tiles/5.b3dm"])
 def test_shared_b3dm_batch_tables(tile):
     path = SHARED / tile
-    if not path.is_file():
-        pytest.skip(f"{path} not present")
+    shared_file(path)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         loaded = read_b3dm(path, {})
@@ -234,8 +233,7 @@ def test_a_null_feature_has_no_attributes_and_a_broken_table_costs_only_its_attr
 def test_cdb_property_table():
     """The CDB sample's GSModels tile: its property table's SCALAR columns decoded here from the GLB."""
     path = SHARED / "3dtiles-samples/cdb-yemen-cut/Tiles/N12/E045/GSModels/1_1/N12E045_D300_S001_T001_LC5_U0_R0.glb"
-    if not path.is_file():
-        pytest.skip(f"{path} not present")
+    shared_file(path)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         info = info_of(read_content(path))

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import shared_file
 
 from pipeline25d.core.errors import CRSError, InputFileError
 from pipeline25d.formats.cityjson import (
@@ -24,20 +25,14 @@ DELFT = DATA / "delft" / "delft.json"
 RD = "EPSG:28992"
 
 
-def _need(path: Path) -> Path:
-    if not path.exists():
-        pytest.skip(f"test data {path} not present")
-    return path
-
-
 @pytest.fixture(scope="module")
 def delft_doc() -> dict:
-    return json.loads(_need(DELFT).read_text())
+    return json.loads(shared_file(DELFT).read_text())
 
 
 @pytest.fixture(scope="module")
 def delft_mesh():
-    return load_cityjson(_need(DELFT), RD)
+    return load_cityjson(shared_file(DELFT), RD)
 
 
 def _triangle_area(mesh) -> float:

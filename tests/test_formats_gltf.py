@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import shared_file
 
 from pipeline25d.core.errors import InputFileError, UnsupportedFeatureError
 from pipeline25d.formats.gltf import load_gltf, parse_gltf_bytes
@@ -17,11 +18,6 @@ from pipeline25d.formats.gltf import load_gltf, parse_gltf_bytes
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 SAMPLES = DATA / "3dtiles-samples"
 
-
-def _need(path: Path) -> Path:
-    if not path.exists():
-        pytest.skip(f"test data {path} not present")
-    return path
 
 
 # ----------------------------------------------------------------------------- synthetic glTF helpers
@@ -222,7 +218,7 @@ def test_broken_files(tmp_path):
 
 
 def test_feature_id_attribute_gltf():
-    parts = load_gltf(_need(SAMPLES / "FeatureIdAttribute" / "FeatureIdAttribute.gltf"))
+    parts = load_gltf(shared_file(SAMPLES / "FeatureIdAttribute" / "FeatureIdAttribute.gltf"))
     assert sum(p.n_triangles for p in parts) == 8  # SOURCE.txt
     np.testing.assert_array_equal(parts[0].colors[0], [128, 255, 128, 255])  # baseColorFactor 0.5, 1, 0.5
     b = parts[0].bounds()
@@ -230,7 +226,7 @@ def test_feature_id_attribute_gltf():
 
 
 def test_cdb_glb_with_metadata_extensions_and_missing_textures():
-    glb = _need(SAMPLES / "cdb-yemen-cut" / "Tiles" / "N12" / "E045" / "GSModels" / "1_1"
+    glb = shared_file(SAMPLES / "cdb-yemen-cut" / "Tiles" / "N12" / "E045" / "GSModels" / "1_1"
                 / "N12E045_D300_S001_T001_LC5_U0_R0.glb")
     with pytest.warns(UserWarning, match="FENCE_TEXT2.png"):
         parts = load_gltf(glb)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import DATA
+from conftest import DATA, shared_file
 
 from pipeline25d.core.errors import InputFileError
 from pipeline25d.formats.meshfile import load_mesh_file
@@ -57,8 +57,7 @@ def test_polygons_become_the_same_triangles_and_colours_as_trimesh(tmp_path):
 
 def test_a_real_binary_lidar_mesh_reads_as_trimesh_reads_it():
     path = DATA / "delft" / "delft_dsm_mesh.ply"
-    if not path.exists():
-        pytest.skip(f"{path} not available")
+    shared_file(path)
     _same(load_ply(path), load_mesh_file(path))
 
 

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import shared_file
 
 from pipeline25d.core.errors import CRSError, InputFileError, UnsupportedFeatureError
 from pipeline25d.formats.tiles3d import load_b3dm, load_tileset, read_content, read_tileset
@@ -20,12 +21,6 @@ from pipeline25d.formats.tiles3d import load_b3dm, load_tileset, read_content, r
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 SAMPLES = DATA / "3dtiles-samples"
 GEO = "EPSG:4979"
-
-
-def _need(path: Path) -> Path:
-    if not path.exists():
-        pytest.skip(f"test data {path} not present")
-    return path
 
 
 def _assert_bounds(mesh, lon, lat, h=None, deg=1e-5, metres=0.2):
@@ -40,7 +35,7 @@ def _assert_bounds(mesh, lon, lat, h=None, deg=1e-5, metres=0.2):
 
 
 def test_tileset_uniform_full_detail():
-    mesh = load_tileset(_need(SAMPLES / "TilesetUniform" / "tileset.json"), GEO)
+    mesh = load_tileset(shared_file(SAMPLES / "TilesetUniform" / "tileset.json"), GEO)
     assert mesh.n_triangles == 1836  # 8 level-1 leaves + 9 level-2 tiles, 108 each
     _assert_bounds(mesh, (-75.613179, -75.611009), (40.041697, 40.043365))
     assert mesh.bounds()[0, 2] == pytest.approx(0.0, abs=0.2)
@@ -49,12 +44,12 @@ def test_tileset_uniform_full_detail():
 @pytest.mark.parametrize("g, triangles", [(1000, 108), (120, 108), (60, 972), (59.9, 1836), (0, 1836)])
 def test_tileset_uniform_levels(g, triangles):
     """REPLACE: a refined tile is not drawn; the external tileset2.json is always entered."""
-    mesh = load_tileset(_need(SAMPLES / "TilesetUniform" / "tileset.json"), GEO, max_geometric_error=g)
+    mesh = load_tileset(shared_file(SAMPLES / "TilesetUniform" / "tileset.json"), GEO, max_geometric_error=g)
     assert mesh.n_triangles == triangles
 
 
 def test_tileset_uniform_root_level_height():
-    root = load_tileset(_need(SAMPLES / "TilesetUniform" / "tileset.json"), GEO, max_geometric_error=120)
+    root = load_tileset(shared_file(SAMPLES / "TilesetUniform" / "tileset.json"), GEO, max_geometric_error=120)
     full = load_tileset(SAMPLES / "TilesetUniform" / "tileset.json", GEO)
     lo = min(root.bounds()[0, 2], full.bounds()[0, 2])
     hi = max(root.bounds()[1, 2], full.bounds()[1, 2])
@@ -62,7 +57,7 @@ def test_tileset_uniform_root_level_height():
 
 
 def test_tileset_with_transforms():
-    path = _need(SAMPLES / "TilesetWithTransforms" / "tileset.json")
+    path = shared_file(SAMPLES / "TilesetWithTransforms" / "tileset.json")
     b3dm_only = load_tileset(path, GEO, max_geometric_error=70)  # root (ADD, ge 70) only
     assert b3dm_only.n_triangles == 120
     _assert_bounds(b3dm_only, (-75.613037, -75.610940), (40.041630, 40.043288), (0.0, 13.4), metres=0.06)
@@ -73,7 +68,7 @@ def test_tileset_with_transforms():
 
 
 def test_i3dm_instances_positions_only():
-    parts = read_content(_need(SAMPLES / "TilesetWithTransforms" / "instances.i3dm"))
+    parts = read_content(shared_file(SAMPLES / "TilesetWithTransforms" / "instances.i3dm"))
     assert sum(p.n_triangles for p in parts) == 300
     # 20 m cubes at 25 positions on a grid spanning +-80 m (tile frame, before the tile transform)
     b = np.array([np.min([p.bounds()[0] for p in parts], 0), np.max([p.bounds()[1] for p in parts], 0)])
@@ -81,7 +76,7 @@ def test_i3dm_instances_positions_only():
 
 
 def test_tileset_of_tilesets():
-    path = _need(SAMPLES / "TilesetOfTilesets" / "tileset.json")
+    path = shared_file(SAMPLES / "TilesetOfTilesets" / "tileset.json")
     mesh = load_tileset(path, GEO)
     assert mesh.n_triangles == 600
     _assert_bounds(mesh, (-75.614410, -75.610011), (40.041064, 40.044320), (0.0, 85.4), metres=0.06)
@@ -89,7 +84,7 @@ def test_tileset_of_tilesets():
 
 
 def test_batched_textured():
-    mesh = load_tileset(_need(SAMPLES / "BatchedTextured" / "tileset.json"), GEO)
+    mesh = load_tileset(shared_file(SAMPLES / "BatchedTextured" / "tileset.json"), GEO)
     assert mesh.n_triangles == 120
     textured = [p for p in mesh.parts if p.texture is not None]
     assert len(textured) == 1 and textured[0].n_triangles == 120
@@ -100,14 +95,14 @@ def test_batched_textured():
 
 def test_cdb_yemen_tolerates_missing_textures():
     with pytest.warns(UserWarning, match="missing"):
-        mesh = load_tileset(_need(SAMPLES / "cdb-yemen-cut" / "tileset.json"), GEO)
+        mesh = load_tileset(shared_file(SAMPLES / "cdb-yemen-cut" / "tileset.json"), GEO)
     assert mesh.n_triangles == 60
     assert all(p.texture is None for p in mesh.parts)
     _assert_bounds(mesh, (44.0, 45.034206), (12.832536, 14.0), (-6.6, 1.1), metres=0.06)
 
 
 def test_sparse_implicit_quadtree():
-    path = _need(SAMPLES / "SparseImplicitQuadtree" / "tileset.json")
+    path = shared_file(SAMPLES / "SparseImplicitQuadtree" / "tileset.json")
     mesh = load_tileset(path, "EPSG:4978", src_crs="EPSG:4978")  # not georeferenced: stay in ECEF
     assert mesh.n_triangles == 64  # 32 level-5 glb files, 2 triangles each
     np.testing.assert_allclose(mesh.bounds()[:, :2], [[0, 0], [1, 1]], atol=1e-9)
@@ -117,7 +112,7 @@ def test_sparse_implicit_quadtree():
 
 
 def test_feature_id_attribute_tileset():
-    mesh = load_tileset(_need(SAMPLES / "FeatureIdAttribute" / "tileset.json"), "EPSG:4978", src_crs="EPSG:4978")
+    mesh = load_tileset(shared_file(SAMPLES / "FeatureIdAttribute" / "tileset.json"), "EPSG:4978", src_crs="EPSG:4978")
     assert mesh.n_triangles == 8
 
 
@@ -125,7 +120,7 @@ def test_feature_id_attribute_tileset():
 
 
 def test_amsterdam_in_rd_new():
-    mesh = load_tileset(_need(DATA / "amsterdam-3dtiles" / "tileset.json"), "EPSG:28992")
+    mesh = load_tileset(shared_file(DATA / "amsterdam-3dtiles" / "tileset.json"), "EPSG:28992")
     assert mesh.n_triangles == 35102  # nothing clipped by the (too small) bounding boxes
     b = mesh.bounds()
     np.testing.assert_allclose(b[:, 0], [120948, 125938], atol=1.0)
@@ -133,12 +128,12 @@ def test_amsterdam_in_rd_new():
 
 
 def test_amsterdam_lonlat():
-    mesh = load_tileset(_need(DATA / "amsterdam-3dtiles" / "tileset.json"), GEO)
+    mesh = load_tileset(shared_file(DATA / "amsterdam-3dtiles" / "tileset.json"), GEO)
     _assert_bounds(mesh, (4.88713, 4.96033), (52.37090, 52.40505), (39.4, 85.3), deg=1e-5, metres=0.06)
 
 
 def test_tokyo_cesium_rtc_textured():
-    mesh = load_b3dm(_need(DATA / "tokyo-chiyoda-b3dm" / "cesium-rtc-extension.b3dm"), GEO)
+    mesh = load_b3dm(shared_file(DATA / "tokyo-chiyoda-b3dm" / "cesium-rtc-extension.b3dm"), GEO)
     assert mesh.n_triangles == 14756
     textured = [p for p in mesh.parts if p.texture is not None]
     assert len(textured) >= 28
@@ -150,7 +145,7 @@ def test_tokyo_cesium_rtc_textured():
 def test_tokyo_in_japan_plane_ix():
     from pyproj import Transformer
 
-    mesh = load_b3dm(_need(DATA / "tokyo-chiyoda-b3dm" / "cesium-rtc-extension.b3dm"), "EPSG:6677")
+    mesh = load_b3dm(shared_file(DATA / "tokyo-chiyoda-b3dm" / "cesium-rtc-extension.b3dm"), "EPSG:6677")
     to_plane = Transformer.from_crs("EPSG:4326", "EPSG:6677", always_xy=True)
     lon = np.array([139.7386, 139.7625, 139.7386, 139.7625])
     lat = np.array([35.6696, 35.6696, 35.7000, 35.7000])
@@ -164,7 +159,7 @@ def test_tokyo_in_japan_plane_ix():
 
 def test_new_york_draco():
     with pytest.warns(UserWarning, match="dropped 34 of 16762 triangles that are degenerate"):  # Draco's quantisation
-        mesh = load_b3dm(_need(SAMPLES / "NewYorkDracoB3dm" / "1.b3dm"), GEO)
+        mesh = load_b3dm(shared_file(SAMPLES / "NewYorkDracoB3dm" / "1.b3dm"), GEO)
     assert mesh.n_triangles == 16762 - 34
     assert sum(len(p.vertices) for p in mesh.parts) == 34702
     _assert_bounds(mesh, (-74.177713, -74.165637), (40.528322, 40.534266), (-24.6, 5.5), metres=0.06)
@@ -175,11 +170,11 @@ def test_new_york_draco():
 
 def test_tokyo_outside_rd_new_area():
     with pytest.raises(CRSError, match="area of use"):
-        load_b3dm(_need(DATA / "tokyo-chiyoda-b3dm" / "cesium-rtc-extension.b3dm"), "EPSG:28992")
+        load_b3dm(shared_file(DATA / "tokyo-chiyoda-b3dm" / "cesium-rtc-extension.b3dm"), "EPSG:28992")
 
 
 def test_truncated_b3dm(tmp_path):
-    data = _need(SAMPLES / "BatchedTextured" / "batchedTextured.b3dm").read_bytes()
+    data = shared_file(SAMPLES / "BatchedTextured" / "batchedTextured.b3dm").read_bytes()
     (tmp_path / "cut.b3dm").write_bytes(data[: len(data) // 2])
     with pytest.raises(InputFileError, match="truncated") as err:
         load_b3dm(tmp_path / "cut.b3dm", GEO)
@@ -193,7 +188,7 @@ def test_bad_magic(tmp_path):
 
 
 def test_missing_content_is_named(tmp_path):
-    src = _need(SAMPLES / "TilesetOfTilesets")
+    src = shared_file(SAMPLES / "TilesetOfTilesets")
     shutil.copy(src / "tileset2.json", tmp_path / "tileset2.json")
     shutil.copy(src / "parent.b3dm", tmp_path / "parent.b3dm")  # tileset3/ and the leaves are absent
     with pytest.raises(InputFileError) as err:
@@ -239,7 +234,7 @@ def test_cyclic_external_tileset(tmp_path):
 def test_composite_tile(tmp_path):
     import struct
 
-    b3dm = _need(SAMPLES / "BatchedTextured" / "batchedTextured.b3dm").read_bytes()
+    b3dm = shared_file(SAMPLES / "BatchedTextured" / "batchedTextured.b3dm").read_bytes()
     cmpt = struct.pack("<4sIII", b"cmpt", 1, 16 + 2 * len(b3dm), 2) + b3dm + b3dm
     (tmp_path / "two.cmpt").write_bytes(cmpt)
     mesh = load_b3dm(tmp_path / "two.cmpt", GEO)
@@ -252,7 +247,7 @@ def test_a_tileset_read_in_pieces_holds_the_triangles_of_a_whole_read(monkeypatc
     than a piece is one piece: the parts of the whole read."""
     from pipeline25d.formats import district_pieces, load_district, tiles3d
 
-    spec = {"path": str(_need(SAMPLES / "TilesetUniform" / "tileset.json"))}
+    spec = {"path": str(shared_file(SAMPLES / "TilesetUniform" / "tileset.json"))}
     whole = load_district(spec, "EPSG:4978", max_geometric_error=0.0)
     one = list(district_pieces(spec, "EPSG:4978", max_geometric_error=0.0))
     assert len(one) == 1 and [p.vertices.tobytes() for p in one[0].parts] == [p.vertices.tobytes() for p in whole.parts]

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from conftest import shared_file
 
 from pipeline25d.config import objects_enabled, validate_schema
 from pipeline25d.formats import READERS, detect_format
@@ -38,8 +39,7 @@ def reader_finds_features(path: Path) -> bool:
 
 @pytest.mark.parametrize("path", SHARED_TILESETS, ids=lambda p: p.parent.name)
 def test_the_peek_agrees_with_the_reader_on_the_shared_tilesets(path):
-    if not path.exists():
-        pytest.skip(f"{path} not present")
+    shared_file(path)
     peek, reader = input_has_objects({"path": str(path)}), reader_finds_features(path)
     if path.parent.name == "SparseImplicitQuadtree":     # no root content to peek at: counted as objects
         assert peek and not reader

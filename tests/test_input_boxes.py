@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from conftest import shared_file
 
 from pipeline25d.formats import load_district
 from pipeline25d.formats.boxes import input_box
@@ -93,8 +94,7 @@ def test_a_citygml_without_an_envelope_is_not_boxed(tmp_path):
 @pytest.mark.parametrize("sample, volume", [("TilesetWithTransforms", "box"), ("TilesetUniform", "region")])
 def test_a_tileset_box_holds_its_content(sample, volume):
     path = SAMPLES / sample / "tileset.json"
-    if not path.is_file():
-        pytest.skip(f"{path} not present")
+    shared_file(path)
     assert volume in json.loads(path.read_text())["root"]["boundingVolume"]
     scene = "EPSG:4978"
     extent, source = scene_box({"path": str(path)}, scene, Path("/"))
@@ -131,8 +131,7 @@ def test_a_gsd_typo_on_a_city_model_is_refused_by_a_dry_run(tmp_path, fmt):
         inputs, crs = {"a": {"path": "city.json"}}, "EPSG:28992"
     else:
         path = SAMPLES / "TilesetWithTransforms" / "tileset.json"
-        if not path.is_file():
-            pytest.skip(f"{path} not present")
+        shared_file(path)
         inputs, crs = {"a": {"path": str(path)}}, "EPSG:32618"     # UTM 18N: the samples lie near lon -75.6
     config = {"scene": "typo", "crs": crs, "inputs": inputs, "gsd": 0.00001}
     (tmp_path / "config.yaml").write_text(yaml.safe_dump(config))

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import shared_file
 
 from pipeline25d.core.mesh import MeshPart
 from pipeline25d.stages.ingest import ingest
@@ -33,8 +34,7 @@ def object_vertices(path: Path) -> dict[str, np.ndarray]:
 
 @pytest.fixture(scope="module")
 def delft(tmp_path_factory):
-    if not DELFT.is_file():
-        pytest.skip(f"{DELFT} not present")
+    shared_file(DELFT)
     out = tmp_path_factory.mktemp("ids")
     ingest({"path": str(DELFT)}, "delft", CRS, 150.0, 0.5, out / "chunks" / "index.json")
     build_lod(out / "chunks" / "index.json", out / "lod" / "index.json", 5.0, 3)
@@ -134,7 +134,6 @@ def test_an_obj_part_is_one_object_named_after_it(tmp_path):
     assert part.object_ids.tolist() == list(ids.values())
 
 
-
 def obj_object_triangles(path: Path) -> dict[str, list[tuple]]:
     """Each ``o`` object's triangles (fans of its ``f`` polygons) as sorted vertex triples, read from
     the OBJ's lines directly."""
@@ -160,8 +159,7 @@ def test_an_obj_face_keeps_its_o_object_and_parts_stay_one_per_material():
     from pipeline25d.formats.meshfile import load_mesh_file
 
     path = DELFT.parent / "obj" / "testarea.obj"
-    if not path.is_file():
-        pytest.skip(f"{path} not present")
+    shared_file(path)
     mesh = load_mesh_file(path)
     truth = obj_object_triangles(path)
     materials = {w.split()[1] for w in path.read_text().splitlines() if w.startswith("usemtl ")}
@@ -173,7 +171,6 @@ def test_an_obj_face_keeps_its_o_object_and_parts_stay_one_per_material():
             got.setdefault(part.objects[obj], []).append(tuple(sorted(map(tuple, part.vertices[face]))))
     assert len(got) == len(truth) >= 500
     assert all(sorted(got[key]) == sorted(truth[key]) for key in truth)
-
 
 
 def test_obj_quirks_faces_before_any_o_an_object_named_twice_and_underscores(tmp_path):
@@ -202,8 +199,7 @@ def test_b3dm_batch_ids_are_the_buildings_of_a_batched_tile():
     from pipeline25d.formats import load_district
 
     path = SAMPLES / "BatchedTextured" / "tileset.json"
-    if not path.is_file():
-        pytest.skip(f"{path} not present")
+    shared_file(path)
     (part,) = load_district({"path": str(path)}, "EPSG:32618").parts        # UTM 18N: x, y in plan
     assert part.objects == tuple(f"batchedTextured.b3dm#{k}" for k in range(10))
     boxes = []
@@ -226,8 +222,7 @@ def test_ext_mesh_features_ids_follow_the_feature_id_attribute():
     from pipeline25d.formats import load_district
 
     path = SAMPLES / "FeatureIdAttribute" / "FeatureIdAttribute.gltf"
-    if not path.is_file():
-        pytest.skip(f"{path} not present")
+    shared_file(path)
     doc = json.loads(path.read_text())
     uri = doc["buffers"][0]["uri"]
     data = base64.b64decode(uri.split(",", 1)[1]) if uri.startswith("data:") else (path.parent / uri).read_bytes()
