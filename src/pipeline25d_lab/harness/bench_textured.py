@@ -4,8 +4,9 @@ For each size (``quarter``, ``half``, ``full`` footprint of Dataset 2; ``tiny`` 
 dataset is generated once into ``bench/oap3d-<size>/dataset`` (kept while its manifest matches)
 and the workflow runs on its OSGB and on its 3D Tiles copy (9 maps at 25 cm by default), each
 from scratch with the dataset evicted from the page cache first. Written to
-``bench/textured-<sizes>.json`` and ``.md``: per run the wall time, per stage the job-seconds,
-rendered Mpx per job-second, peak RSS of a job (and of its largest child process), rchar and
+``bench/textured-<sizes>.json`` and ``.md`` (``textured-<sizes>-<formats>`` when ``--formats`` names
+fewer than both, so that one format's run does not overwrite the other's): per run the wall time,
+per stage the job-seconds, rendered Mpx per job-second, peak RSS of a job (and of its largest child process), rchar and
 read_bytes summed over the stage's jobs, and the dataset bytes read (the ingest jobs' read_bytes:
 ingest is the stage that opens the dataset; the dataset's pages resident after the run check
 that no other job read it) against the dataset's size and against the levels the gsd uses
@@ -154,11 +155,20 @@ def markdown(report: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+DEFAULT_FORMATS = ("osgb", "3dtiles")
+
+
+def report_name(sizes: list[str], formats: list[str]) -> str:
+    """The report's file name under ``bench/`` (no suffix): the sizes, and the formats when not both."""
+    name = f"textured-{'-'.join(sizes)}"
+    return name if sorted(formats) == sorted(DEFAULT_FORMATS) else f"{name}-{'-'.join(formats)}"
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m pipeline25d_lab.harness.bench_textured",
                                  description=__doc__.split("\n\n")[0])
     ap.add_argument("--size", default="full", help="comma-separated: tiny, quarter, half, full")
-    ap.add_argument("--formats", default="osgb,3dtiles")
+    ap.add_argument("--formats", default=",".join(DEFAULT_FORMATS))
     ap.add_argument("--gsd", type=float, default=0.25)
     ap.add_argument("--perspectives", default="eight-45+nadir")
     ap.add_argument("--cores", type=int, default=2)
@@ -191,7 +201,7 @@ def main(argv: list[str] | None = None) -> int:
         write_text(REPO / "bench" / f"textured-read-{'-'.join(sizes)}.json", json.dumps(runs, indent=1))
         return 0
     report = {"gsd": args.gsd, "perspectives": args.perspectives, "cores": args.cores, "runs": runs}
-    name = f"textured-{'-'.join(sizes)}"
+    name = report_name(sizes, formats)
     write_text(REPO / "bench" / f"{name}.json", json.dumps(report, indent=1))
     write_text(REPO / "bench" / f"{name}.md", markdown(report))
     print(markdown(report))  # noqa: T201
