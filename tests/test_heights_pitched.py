@@ -137,9 +137,9 @@ def test_two_faces_colours_give_the_rise_and_the_kind():
         img = draw(rise if two else 0.0, two)
         colour = face(q) if two else np.tile(light, (len(q), 1))
 
-        def sample(u: np.ndarray, img=img) -> np.ndarray:
-            p = q + u[:, None] * d
-            return img[((p[:, 1] - y0) / cell).astype(int), ((p[:, 0] - x0) / cell).astype(int)]
+        def sample(u: np.ndarray, img=img) -> np.ndarray:       # (k, n) moves -> (k, n, 3) colours
+            p = q + u[..., None] * d
+            return img[((p[..., 1] - y0) / cell).astype(int), ((p[..., 0] - x0) / cell).astype(int)]
 
         got = fit_rise(fp, q, colour, sample, np.full(len(q), eave * cot), cot, 30.0)
         assert got.kind == want_kind

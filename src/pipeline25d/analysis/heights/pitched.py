@@ -113,8 +113,8 @@ NO_FIT = RiseFit(math.nan, "", math.nan, math.nan)
 def fit_rise(fp: Footprint, xy: np.ndarray, colour: np.ndarray, sample_oblique: Callable[[np.ndarray], np.ndarray],
              eave_move: np.ndarray | dict[str, np.ndarray], cot: float, tol: float) -> RiseFit:
     """The rise and kind (:class:`RiseFit`) of the roof whose nadir pixels at world ``xy`` (n, 2)
-    have ``colour`` (n, 3): ``sample_oblique(u)`` gives the oblique colours (n, 3) where each pixel
-    lands when moved by u (n,) metres along d; ``eave_move`` (n,) is each pixel's move were it at
+    have ``colour`` (n, 3): ``sample_oblique(u)`` gives the oblique colours (k, n, 3) where each pixel
+    lands when moved by u (k, n) metres along d, k candidate moves at once; ``eave_move`` (n,) is each pixel's move were it at
     the eave (its eave height above the ground the map subtracted there, × cot φ), or such moves
     per roof kind (flat, gabled, hipped: the map subtracts the ground of each one's vertices,
     :func:`roof_ground`). Rise 0 and kind
@@ -122,19 +122,20 @@ def fit_rise(fp: Footprint, xy: np.ndarray, colour: np.ndarray, sample_oblique: 
     frame = roof_frame(fp)
     tol2 = tol * tol
 
-    def loss(u: np.ndarray) -> float:
-        d2 = np.sum((sample_oblique(u) - colour) ** 2, axis=-1)
-        return float(np.mean(np.minimum(d2, tol2)) / tol2)
+    def losses(moves: np.ndarray) -> np.ndarray:
+        """(k,) the loss of each of k candidate moves (k, n) of the pixels, sampled in one call."""
+        d2 = np.sum((sample_oblique(moves) - colour) ** 2, axis=-1)
+        return np.mean(np.minimum(d2, tol2), axis=-1) / tol2
 
     moves = eave_move if isinstance(eave_move, dict) else {k: eave_move for k in ("flat", *KINDS)}
-    flat = loss(moves["flat"])
+    flat = float(losses(moves["flat"][None])[0])
     best = (flat, 0.0, "flat")
     for kind in KINDS:
         share = rise_share(frame, kind, xy[:, 0], xy[:, 1])
         coarse = np.arange(COARSE_STEP_M, MAX_RISE_M + 1e-9, COARSE_STEP_M)
-        k = int(np.argmin([loss(moves[kind] + r * share * cot) for r in coarse]))
+        k = int(np.argmin(losses(moves[kind] + coarse[:, None] * share * cot)))
         rises = np.arange(max(coarse[k] - COARSE_STEP_M, RISE_STEP_M), coarse[k] + COARSE_STEP_M + 1e-9, RISE_STEP_M)
-        scores = np.array([loss(moves[kind] + r * share * cot) for r in rises])
+        scores = losses(moves[kind] + rises[:, None] * share * cot)
         k = int(np.argmin(scores))
         r = float(rises[k])
         if 0 < k < len(rises) - 1:                   # parabola through the minimum and its neighbours
@@ -316,8 +317,8 @@ def view_rise(fp: Footprint, tmpl: Template, xy: np.ndarray, obl_rgb: np.ndarray
         return NO_FIT
     bands = [obl_rgb[r0:r1, c0:c1, ch].astype(np.float64) for ch in range(3)]
 
-    def sample(u: np.ndarray) -> np.ndarray:
-        at = [rows + u * d_px[0] - r0, cols + u * d_px[1] - c0]
+    def sample(u: np.ndarray) -> np.ndarray:          # (k, n) moves -> (k, n, 3) colours
+        at = np.stack([rows + u * d_px[0] - r0, cols + u * d_px[1] - c0])
         return np.stack([ndimage.map_coordinates(b, at, order=1, mode="nearest") for b in bands], axis=-1)
 
     return fit_rise(fp, xy[deep], colour, sample, moves, cot, tol)
