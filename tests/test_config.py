@@ -30,7 +30,7 @@ def test_three_keys_run_with_every_default_filled():
                              "rigidness": 2, "class_threshold": 0.5}
     assert cfg["warp"] == {"method": "auto", "order": 3}
     assert cfg["objects"] == {"enabled": "auto"}
-    assert cfg["heights"] == {"footprints": "auto", "reference": "auto", "max_height": 200, "block_size": 500}
+    assert cfg["heights"] == {"footprints": "auto", "reference": "auto", "max_height": 200, "block_size": 250}
 
 
 @pytest.mark.parametrize("changes, key", [

@@ -37,7 +37,7 @@ log = logging.getLogger(__name__)
 
 def block_size(config: dict) -> float:
     """The side of a heights block in metres (``heights.block_size``; the schema's default where absent)."""
-    return float((config.get("heights") or {}).get("block_size", 500.0))
+    return float((config.get("heights") or {}).get("block_size", 250.0))
 
 
 def write_blocks(config: dict, nadir_map: str | Path | None, out_json: str | Path) -> dict[str, list[int]]:
