@@ -114,11 +114,11 @@ def fit_rise(fp: Footprint, xy: np.ndarray, colour: np.ndarray, sample_oblique: 
              eave_move: np.ndarray | dict[str, np.ndarray], cot: float, tol: float) -> RiseFit:
     """The rise and kind (:class:`RiseFit`) of the roof whose nadir pixels at world ``xy`` (n, 2)
     have ``colour`` (n, 3): ``sample_oblique(u)`` gives the oblique colours (k, n, 3) where each pixel
-    lands when moved by u (k, n) metres along d, k candidate moves at once; ``eave_move`` (n,) is each pixel's move were it at
-    the eave (its eave height above the ground the map subtracted there, × cot φ), or such moves
-    per roof kind (flat, gabled, hipped: the map subtracts the ground of each one's vertices,
-    :func:`roof_ground`). Rise 0 and kind
-    ``flat`` when no rise lowers the loss by MIN_GAIN of the flat roof's and MIN_LOSS_DROP."""
+    lands when moved by u (k, n) metres along d, k candidate moves at once; ``eave_move`` (n,) is
+    each pixel's move were it at the eave (its eave height above the ground the map subtracted
+    there, × cot φ), or such moves per roof kind (flat, gabled, hipped: the map subtracts the
+    ground of each one's vertices, :func:`roof_ground`). Rise 0 and kind ``flat`` when no rise
+    lowers the loss by MIN_GAIN of the flat roof's and MIN_LOSS_DROP."""
     frame = roof_frame(fp)
     tol2 = tol * tol
 
