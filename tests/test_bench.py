@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from pipeline25d_lab.harness.bench import bench_config, make_scene
+from pipeline25d_lab.harness.bench import against_gdal2tiles, bench_config, make_scene
 
 
 def test_mirrored_copies_meet_edge_to_edge_and_keep_facing_up(tmp_path):
@@ -63,3 +63,12 @@ def test_run_cpu_splits_the_run_into_jobs_per_stage_and_snakemake(tmp_path):
         "localrule tms:\n    jobid: 7\n    wildcards: pid=az000_el45\n    threads: 2\n    resources: tmpdir=/tmp\n"
         "Select jobs to execute...\n")
     assert rule_threads(tmp_path, "tms") == 2 and rule_threads(tmp_path, "render_block") == 1
+
+
+def test_a_run_against_gdal2tiles_gives_its_wall_and_the_bound_of_its_cpu_packed():
+    """The 3 x 3 run of 2026-11-27: 64.3 s, 104.14 CPU-s on 2 cores, gdal2tiles 10.68 s."""
+    run = {"wall_s": 64.3, "cores": 2, "cpu": {"total_s": 104.14},
+           "tms_vs_gdal2tiles_default": {"gdal2tiles_default_s": 10.68}}
+    assert against_gdal2tiles(run) == {"wall": round(64.3 / 10.68, 2), "cpu_packed": round(104.14 / 2 / 10.68, 2)}
+    assert against_gdal2tiles(run)["cpu_packed"] == 4.88                  # above 4 whatever the schedule
+    assert against_gdal2tiles({**run, "cpu": None})["cpu_packed"] is None

@@ -252,6 +252,16 @@ def tms_against_gdal2tiles_default(results: Path, pid: str, work: Path, config: 
             "speed_up": {str(n): round(default_s / v, 2) for n, v in cut.items()}}
 
 
+def against_gdal2tiles(result: dict) -> dict:
+    """The run's wall time in units of gdal2tiles' default cut of one of its maps (measured in the same
+    run, ``tms_vs_gdal2tiles_default``), and the least it could be on its cores: all the run's CPU
+    seconds packed without a gap, a bound no schedule beats (None for a run without its CPU figure)."""
+    g2t = result["tms_vs_gdal2tiles_default"]["gdal2tiles_default_s"]
+    cpu = (result.get("cpu") or {}).get("total_s")
+    return {"wall": round(result["wall_s"] / g2t, 2),
+            "cpu_packed": round(cpu / result["cores"] / g2t, 2) if cpu else None}
+
+
 def logged_wall(workdir: Path) -> float:
     """Wall seconds of the last run in ``workdir``, from the "Elapsed time: H:MM:SS" line Snakemake logs."""
     import re
@@ -299,9 +309,10 @@ def main(argv: list[str] | None = None) -> int:
     samples = validate_schema(config)["render"]["samples"]          # the run's own MSAA setting
     result["render_vs_plain_loop"] = render_against_plain_loop(work / "results" / name, oblique, samples)
     result["tms_vs_gdal2tiles_default"] = tms_against_gdal2tiles_default(work / "results" / name, oblique, work, config)
+    result["against_gdal2tiles"] = against_gdal2tiles(result)
     write_text(REPO / "bench" / f"{name}.json", json.dumps(result, indent=1))
     print(json.dumps({k: result[k] for k in ("wall_s", "tiles_rendered", "jobs", "peak_rss_mb", "render_vs_plain_loop",
-                                      "tms_vs_gdal2tiles_default")}))
+                                      "tms_vs_gdal2tiles_default", "against_gdal2tiles")}))
     return 0
 
 
