@@ -236,9 +236,9 @@ def write_levels(kept, levels: Iterable[Iterable[tuple[int, int, bytes]]], win: 
     being pushed out of it by the next block's (see :func:`patched_map`)."""
     for b, band_levels in enumerate(levels, start=1):
         dst = kept.GetRasterBand(b)
-        for k, (w, h, pixels) in enumerate(band_levels):
-            f = factors[k - 1] if k else 1
-            (dst.GetOverview(k - 1) if k else dst).WriteRaster(win.col0 // f, win.row0 // f, w, h, pixels)
+        targets = (dst, *(dst.GetOverview(k) for k in range(len(factors))))
+        for target, f, (w, h, pixels) in zip(targets, (1, *factors), band_levels, strict=True):
+            target.WriteRaster(win.col0 // f, win.row0 // f, w, h, pixels)
     kept.FlushCache()
 
 
