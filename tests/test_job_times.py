@@ -55,3 +55,19 @@ def test_a_job_record_is_what_the_log_says_its_last_run_took(tmp_path):
     assert job_record(["nothing here"]) == {}
     assert read_job_record(log) == rec and wall_seconds(rec) == last[0] + last[1]
     assert wall_seconds(job_record(["nothing here"])) is None
+
+
+def test_a_job_that_fails_on_a_bug_leaves_its_traceback_in_its_log(tmp_path):
+    """Snakemake shows a failed job's log; ``pipeline25d run`` keeps only the terminal's last lines,
+    so an unexpected error's traceback must be in the log (a Pipeline25dError: its message alone)."""
+    script = SCRIPT.replace("def busy(job):", "def busy(job):\n    FAIL\n")
+    for fail, expect in (("{}.not_there", "AttributeError: 'dict' object has no attribute 'not_there'"),
+                         ("from pipeline25d.core.errors import ConfigError; raise ConfigError('no such key')",
+                          "ERROR pipeline25d: no such key")):
+        log = tmp_path / f"{len(expect)}.log"
+        done = subprocess.run([sys.executable, "-c", script.replace("FAIL", fail), str(log)], capture_output=True,
+                              text=True, timeout=60)
+        text = log.read_text()
+        assert done.returncode == 1 and expect in text
+        assert ("Traceback (most recent call last)" in text) == ("Attribute" in expect)
+        assert "job time:" not in text                # no record of a run that did not finish

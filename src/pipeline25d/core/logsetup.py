@@ -47,7 +47,9 @@ def warnings_to_log() -> None:
 @contextmanager
 def stop_on_error(log: bool = True) -> Iterator[None]:
     """A Pipeline25dError ends the job with its message, in its log (``log``) and on stderr (which
-    Snakemake shows on the terminal), and exit status 1, without a traceback. The workflow's
+    Snakemake shows on the terminal), and exit status 1, without a traceback. Any other error (a
+    bug) goes on with its traceback, written to the log first: Snakemake shows a failed job's log,
+    while ``pipeline25d run`` keeps only the last lines of the terminal's. The workflow's
     parse-time checks use it with ``log=False``: no job log exists yet."""
     try:
         yield
@@ -56,6 +58,11 @@ def stop_on_error(log: bool = True) -> Iterator[None]:
             logging.getLogger("pipeline25d").error("%s", exc)
         print(f"pipeline25d: error: {exc}", file=sys.stderr)
         sys.exit(1)
+    except Exception:
+        if log:
+            logging.getLogger("pipeline25d").exception("the job stopped on an unexpected error (a bug in "
+                                                       "pipeline25d; please report it with this log)")
+        raise
 
 
 #: the line :func:`log_job_resources` writes (the benches parse it from job logs)
