@@ -13,38 +13,47 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import DATA
+from conftest import DATA, shared_file
 
 from pipeline25d.config import chunk_size, perspectives, validate_schema
 from pipeline25d.core.errors import GroundError
 from pipeline25d.core.geotiff import read_float_geotiff
 from pipeline25d.stages.terrain.bases import BASE_AGREEMENT_M, BaseTin, base_samples, with_bases
-from pipeline25d_lab.scenes.building_city import CRS, X0, Y0, boxes, plane, write_citygml_lod1, write_cityjson
+from pipeline25d_lab.scenes.building_city import (
+    CRS,
+    X0,
+    Y0,
+    boxes,
+    plane,
+    write_citygml_lod1,
+    write_cityjson,
+    write_obj,
+)
 
 
-def run_stages(tmp_path: Path, inputs: dict, gsd: float = 0.5, edit_ground=None) -> tuple[dict, dict, Path]:
+def run_stages(tmp_path: Path, inputs: dict, gsd: float = 0.5, edit_ground=None, crs: str = CRS
+               ) -> tuple[dict, dict, Path]:
     """Ingest, LOD, terrain (auto) and scene stages on ``inputs``: (terrain record, scene.json, DTM path).
     ``edit_ground(path)`` may change the terrain stage's ground heights before the scene stage."""
     from pipeline25d.stages.ingest import ingest
-    from pipeline25d.stages.lod import build_lod
+    from pipeline25d.stages.lod import build_lod, lod_chunks
     from pipeline25d.stages.scene import scene_setup
-    from pipeline25d.stages.lod import lod_chunks
     from pipeline25d.stages.terrain.build import build_terrain
 
-    cfg = validate_schema({"scene": "t", "crs": CRS, "inputs": inputs, "gsd": gsd, "lod": {"max_levels": 1}})
+    cfg = validate_schema({"scene": "t", "crs": crs, "inputs": inputs, "gsd": gsd, "lod": {"max_levels": 1}})
     max_error = gsd * cfg["lod"]["max_error_px"]
     lods = []
     for name, spec in inputs.items():
         chunks, lod = tmp_path / "chunks" / name / "index.json", tmp_path / "lod" / name / "index.json"
-        ingest(spec, name, CRS, chunk_size(cfg), max_error, chunks, gsd=gsd)
+        ingest(spec, name, crs, chunk_size(cfg), max_error, chunks, gsd=gsd)
         build_lod(chunks, lod, max_error, cfg["lod"]["max_levels"])
         lods.append(str(lod))
     t = tmp_path / "terrain"
-    record = build_terrain(lod_chunks(lods), inputs, CRS, gsd, "auto", cfg["ground"], t / "dsm.tif", t / "ground.tif",
+    record = build_terrain(lod_chunks(lods), inputs, crs, gsd, "auto", cfg["ground"], t / "dsm.tif", t / "ground.tif",
                            t / "terrain.json")
     if edit_ground is not None:
         edit_ground(t / "ground.tif")
-    scene_setup(lods, t / "dsm.tif", "auto", t / "ground.tif", "auto", "auto", cfg["gcp"], CRS, gsd,
+    scene_setup(lods, t / "dsm.tif", "auto", t / "ground.tif", "auto", "auto", cfg["gcp"], crs, gsd,
                 [p.id for p in perspectives(cfg)], tmp_path / "scene.json", tmp_path / "candidates.csv",
                 t / "dtm.tif", cfg["ground"]["max_object_size"], t / "grounds.json")
     return record, json.loads((tmp_path / "scene.json").read_text()), t / "dtm.tif"
@@ -133,16 +142,23 @@ def test_filter_cells_keep_their_height_only_where_they_agree_with_the_bases():
 # ----------------------------------------------------------------------------- the stages
 
 
-@pytest.mark.parametrize("fmt", ["cityjson", "citygml"])
-def test_building_only_model_gets_the_plane_it_stands_on(tmp_path, gl_ctx, fmt):
-    """(a) DTM under and between the buildings equals the analytic plane; z0 is its median."""
+WRITERS = {"cityjson": lambda folder, fps: write_cityjson(folder / "city.json", fps),
+           "citygml": lambda folder, fps: write_citygml_lod1(folder / "city.gml", fps),
+           "obj": lambda folder, fps: write_obj(folder / "city.obj", fps)}
+
+
+@pytest.mark.parametrize("fmt, from_floors", [("cityjson", 5), ("citygml", 9), ("obj", 3)])
+def test_building_only_model_gets_the_plane_it_stands_on(tmp_path, gl_ctx, fmt, from_floors):
+    """(a) DTM under and between the buildings equals the analytic plane; z0 is its median. The OBJ
+    names no buildings: they are found by their shape (floors facing down on 3 of them, up on 3,
+    none on 3: those give their wall bottoms)."""
     fps = boxes([(X0 + 20, Y0 + 20)])
-    path = (write_cityjson(tmp_path / "city.json", fps) if fmt == "cityjson"
-            else write_citygml_lod1(tmp_path / "city.gml", fps))
+    path = WRITERS[fmt](tmp_path, fps)
     record, scene, dtm = run_stages(tmp_path, {"city": {"path": str(path)}})
     bases = record["bases"]
     assert bases["buildings"] == 9 and bases["buildings_only"] == ["city"]
-    assert bases["from_ground_surfaces"] == (5 if fmt == "cityjson" else 9)
+    assert bases["from_ground_surfaces"] == from_floors
+    assert bases.get("by_shape", []) == (["city"] if fmt == "obj" else [])
     assert "building bases of city: 9 buildings" in record["source"] and "Cloth" not in record["source"]
     # under every building and between them (inside the hull of the bases): the plane, to the
     # file's 1 mm vertices (CityGML: posList written to 1 mm) and float32 (4e-7 m at 5 m)
@@ -168,6 +184,73 @@ def test_building_only_model_gets_the_plane_it_stands_on(tmp_path, gl_ctx, fmt):
         # a site is a DSM cell's centre (jittered by up to 0.4 cell): within a cell of the limit
         assert gap >= 4.0 - record["resolution"], (c, gap)
         assert c.z == pytest.approx(float(plane(c.x, c.y)), abs=0.02)
+
+
+def test_bare_triangles_on_their_own_terrain_keep_the_cloth_filters_ground(tmp_path, gl_ctx):
+    """The same boxes as bare triangles, on the plane drawn as a 5 m grid around them (a model that
+    draws its own ground, as a photomesh or a LiDAR mesh does): no chunk has empty land, none is
+    looked at for buildings, and the ground is the cloth filter's: the plane between the boxes."""
+    fps = boxes([(X0 + 20, Y0 + 20)])
+    path = write_obj(tmp_path / "city.obj", fps, terrain=True)
+    record, scene, dtm = run_stages(tmp_path, {"city": {"path": str(path)}})
+    assert "bases" not in record and record["source"] == "model surface (nadir DSM, Cloth Simulation Filter)"
+    x, y, z = cell_centres_in(dtm, (fps[0][0] - 15, fps[0][1] - 15, fps[-1][2] + 15, fps[-1][3] + 15))
+    between = np.array([all(max(x0 - a, a - x1, y0 - b, b - y1) > 2.0 for x0, y0, x1, y1 in fps)
+                        for a, b in zip(x, y)])
+    assert between.sum() > 2000
+    assert_plane_but_near_check_points(tmp_path, scene, x[between], y[between], z[between])
+
+
+def overhang_and_hillside_obj(path: Path, z0: float = 3.0) -> Path:
+    """An OBJ of bare triangles: a building on flat ground at ``z0`` whose upper storey overhangs
+    its ground floor by 4 m (profile in x, z: ground floor 10 m wide and 3 m high, upper storey
+    14 m wide, roof at 6 m; 8 m deep), and 20 m east of it a hillside (a 40 x 40 m grid rising
+    0.5 m per m eastwards)."""
+    x, y = X0 + 10, Y0 + 10
+    profile = [(0, 0), (10, 0), (10, 3), (14, 3), (14, 6), (0, 6)]            # (x, z), counter-clockwise
+    verts = [(x + a, y + d, z0 + c) for d in (0.0, 8.0) for a, c in profile]
+    tris = [(0, 1, 2), (0, 2, 5), (2, 4, 5), (2, 3, 4)]                       # the profile at y and y + 8
+    tris += [(6 + a, 6 + c, 6 + b) for a, b, c in tris]
+    for k in range(6):                                                        # the sides, outwards
+        a, b = k, (k + 1) % 6
+        tris += [(a, b + 6, b), (a, a + 6, b + 6)]
+    hill = [(x + 34 + 5 * i, y - 16 + 5 * j, z0 + 2.5 * i) for j in range(9) for i in range(9)]
+    base = len(verts)
+    verts += hill
+    tris += [(base + a, base + a + 1, base + a + 10) for a in (9 * j + i for j in range(8) for i in range(8))]
+    tris += [(base + a, base + a + 10, base + a + 9) for a in (9 * j + i for j in range(8) for i in range(8))]
+    lines = [f"v {a:.3f} {b:.3f} {c:.3f}" for a, b, c in verts] + [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in tris]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_an_overhang_is_no_base_and_a_hillside_no_building(tmp_path, gl_ctx):
+    """By shape: the overhanging building is a building whose ground is its floor, not the
+    overhang's underside (3 m up, also facing down); the hillside, seen from above down to its
+    lowest point, is no building, and keeps the cloth filter's ground."""
+    from pipeline25d.formats import load_district
+    from pipeline25d.stages.terrain.bases import components, welded
+
+    path = overhang_and_hillside_obj(tmp_path / "m.obj")
+    mesh = load_district({"path": str(path)}, CRS)
+    tri = np.concatenate([p.vertices[p.faces] for p in mesh.parts])
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    assert (normal[:, 2] < 0).sum() == 4                                # the floor and the underside
+    points, faces = welded(tri.reshape(-1, 3), np.arange(3 * len(tri)).reshape(-1, 3))
+    assert components(faces, len(points)).max() == 1                 # two groups, each one piece
+    record, scene, dtm = run_stages(tmp_path, {"m": {"path": str(path)}})
+    bases = record["bases"]
+    assert bases["by_shape"] == ["m"] and bases["buildings"] == 1 and bases["from_ground_surfaces"] == 1
+    assert bases["buildings_only"] == [] and "Cloth" in record["source"]
+    # under the building: its floor's height (3 m); under the overhang, which no base sample covers,
+    # the DTM's fill from the ground around (within 3 cm of it), not the underside's 6 m
+    x, y, z = cell_centres_in(dtm, (X0 + 10.5, Y0 + 10.5, X0 + 23.5, Y0 + 17.5))
+    assert len(x) >= 60
+    np.testing.assert_allclose(z[x < X0 + 20], 3.0, atol=1e-3)
+    np.testing.assert_allclose(z, 3.0, atol=0.05)
+    x, y, z = cell_centres_in(dtm, (X0 + 49, Y0 - 1, X0 + 69, Y0 + 19))                # the hillside's middle
+    assert len(x) >= 300
+    np.testing.assert_allclose(z, 3.0 + 0.5 * (x - X0 - 44), atol=0.1)
 
 
 def test_a_plan_from_the_scenes_chunk_grounds_equals_one_that_samples_the_dtm_itself(tmp_path, gl_ctx):
@@ -235,20 +318,34 @@ def test_no_ground_near_a_chunk_is_an_error_naming_the_inputs(tmp_path, gl_ctx):
 # ----------------------------------------------------------------------------- Delft
 
 
-@pytest.mark.skipif(not (DATA / "delft" / "delft.json").exists(), reason="needs /work/shared/data/delft")
-def test_delft_buildings_alone_get_the_ground_of_the_full_model(tmp_path, gl_ctx):
+def write_bare_obj(path: Path, mesh) -> Path:
+    """The mesh's triangles as an OBJ with no objects, groups or materials (vertices to 0.1 mm)."""
+    lines, base = [], 0
+    for part in mesh.parts:
+        lines += [f"v {x:.4f} {y:.4f} {z:.4f}" for x, y, z in part.vertices]
+        lines += [f"f {a} {b} {c}" for a, b, c in part.faces + base + 1]
+        base += len(part.vertices)
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.mark.parametrize("form", ["cityjson", "obj"])
+def test_delft_buildings_alone_get_the_ground_of_the_full_model(tmp_path, gl_ctx, form):
     """(b) Delft's CityJSON reduced to its Building objects: no NaN, and the DTM at the building
-    bases agrees with the full model's (whose ground is its own LandUse/Road/WaterBody objects)."""
-    doc = json.loads((DATA / "delft" / "delft.json").read_text())
+    bases agrees with the full model's (whose ground is its own LandUse/Road/WaterBody objects).
+    As an OBJ of bare triangles the buildings are found by their shape, and agree as well."""
+    from pipeline25d.formats import load_district_buildings
+
+    doc = json.loads(shared_file(DATA / "delft" / "delft.json").read_text())
     doc["CityObjects"] = {k: o for k, o in doc["CityObjects"].items() if o["type"] == "Building"}
     only = tmp_path / "buildings.json"
     only.write_text(json.dumps(doc))
-    record, scene, dtm = run_stages(tmp_path / "b", {"delft": {"path": str(only)}})
+    mesh, _ = load_district_buildings({"path": str(only)}, CRS)
+    model = only if form == "cityjson" else write_bare_obj(tmp_path / "buildings.obj", mesh)
+    record, scene, dtm = run_stages(tmp_path / "b", {"delft": {"path": str(model)}})
     full_record, _, full_dtm = run_stages(tmp_path / "f", {"delft": {"path": str(DATA / "delft" / "delft.json")}})
     assert record["bases"]["buildings_only"] == ["delft"] and "bases" not in full_record
-    from pipeline25d.formats import load_district_buildings
-
-    mesh, _ = load_district_buildings({"path": str(only)}, CRS)
+    assert record["bases"].get("by_shape", []) == (["delft"] if form == "obj" else [])
     pts = base_samples(mesh).points
     a, b = dtm_at(dtm, pts[:, 0], pts[:, 1]), dtm_at(full_dtm, pts[:, 0], pts[:, 1])
     assert np.isfinite(a).all() and np.isfinite(b).all() and np.isfinite(scene["z0"])
@@ -257,3 +354,38 @@ def test_delft_buildings_alone_get_the_ground_of_the_full_model(tmp_path, gl_ctx
           f"mean |d| {np.abs(diff).mean():.3f} m, 90% {np.quantile(np.abs(diff), 0.9):.3f} m, "
           f"max {np.abs(diff).max():.3f} m")
     assert abs(np.median(diff)) < 0.15 and np.quantile(np.abs(diff), 0.9) < 0.5
+
+
+@pytest.mark.parametrize("model, crs, gsd, features",
+                         [("tokyo-chiyoda-b3dm/cesium-rtc-extension.b3dm", "EPSG:6677", 2.0, 300),
+                          ("amsterdam-3dtiles/tileset.json", "EPSG:28992", 1.0, 200)])
+def test_real_buildings_only_3d_tiles_get_the_ground_they_stand_on(tmp_path, gl_ctx, model, crs, gsd, features):
+    """3D Tiles of buildings alone, with no terrain and no semantics a reader could ask for: PLATEAU's
+    LOD2 buildings of Chiyoda as one b3dm (300 buildings with floors), pg2b3dm's Amsterdam tileset
+    (200 blocks, no floor facing down: their wall bottoms). Found by their shape, they are the whole model, and the DTM under
+    every building is where its lowest vertex is. The cloth filter alone had taken the lowest
+    roofs for ground: on Tokyo at this gsd the scene stage then stopped (no ground near 6 of its
+    chunks), and the ground it had lay 12.3 m above the feet of the 14 buildings it reached (median)."""
+    import warnings
+
+    from pipeline25d.formats import load_district
+
+    path = shared_file(DATA / model)
+    record, _, dtm = run_stages(tmp_path, {"city": {"path": str(path)}}, gsd=gsd, crs=crs)
+    bases = record["bases"]
+    assert bases["by_shape"] == ["city"] == bases["buildings_only"] and "Cloth" not in record["source"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        mesh = load_district({"path": str(path)}, crs)
+    vertices: dict[str, list[np.ndarray]] = {}        # each building's vertices, over the parts it has faces in
+    for part in mesh.parts:
+        for j in np.unique(part.face_objects):
+            own = np.unique(part.faces[part.face_objects == j])
+            vertices.setdefault(part.objects[j], []).append(part.vertices[own])
+    feet = np.array([[*v[:, :2].mean(axis=0), v[:, 2].min()] for v in map(np.concatenate, vertices.values())])
+    under = dtm_at(dtm, feet[:, 0], feet[:, 1]) - feet[:, 2]
+    assert len(feet) == features and np.isfinite(under).all()
+    print(f"{model}: {bases['buildings']} buildings by shape; DTM at a building's middle - its lowest vertex: "
+          f"median {np.median(under):+.3f} m, 90% of |d| {np.quantile(np.abs(under), 0.9):.3f} m, "
+          f"max |d| {np.abs(under).max():.2f} m")
+    assert abs(np.median(under)) < 0.05 and np.quantile(np.abs(under), 0.9) < 0.5

@@ -3,8 +3,10 @@ no terrain objects (the commonest city models: CityJSON, CityGML LOD1/2, 3D BAG,
 
 Every bottom corner lies on :func:`plane`; a flat roof ``height`` above the highest. Written as
 CityJSON 1.1 (LOD2 MultiSurface with semantics: walls, roof, a GroundSurface on some, a window
-hole on some) or CityGML 2.0 (LOD1 solids without semantics). :func:`write_sparse_city` spreads
-clusters of them over a large empty box (``terrain: auto`` must find the ground at their bases).
+hole on some), CityGML 2.0 (LOD1 solids without semantics) or OBJ (bare triangles: no objects, no
+semantics; floors facing down, up or missing; optionally on the plane drawn as terrain).
+:func:`write_sparse_city` spreads clusters of them over a large empty box (``terrain: auto`` must
+find the ground at their bases).
 """
 
 from __future__ import annotations
@@ -99,6 +101,35 @@ def write_citygml_lod1(path: Path, footprints: Sequence[Footprint]) -> Path:
         f'<gml:boundedBy><gml:Envelope srsName="{CRS}" srsDimension="3"><gml:lowerCorner>0 0 0</gml:lowerCorner>'
         '<gml:upperCorner>1 1 1</gml:upperCorner></gml:Envelope></gml:boundedBy>'
         + "".join(members) + "</CityModel>")
+    return path
+
+
+def write_obj(path: Path, footprints: Sequence[Footprint], floor: Callable[[int], str] = lambda i: "down~up~none"
+              .split("~")[i % 3], terrain: bool = False) -> Path:
+    """An OBJ of the boxes as bare triangles (no objects, no semantics: what a glTF or 3D Tiles export
+    of buildings gives): box i's floor faces ``floor(i)``: "down", "up" (as some exporters flip
+    it) or "none" (an open shell). ``terrain``: the plane itself as one more surface, a 5 m grid
+    under and around the boxes, 20 m beyond them (a model that draws its own ground)."""
+    verts, tris = [], []
+    for i, fp in enumerate(footprints):
+        box, surfaces = box_surfaces(fp, floor(i) != "none", False)
+        base = len(verts)
+        verts += box
+        for rings, kind in surfaces:
+            ring = rings[0][::-1] if kind == "GroundSurface" and floor(i) == "up" else rings[0]
+            tris += [(base + ring[0], base + ring[k], base + ring[k + 1]) for k in (1, 2)]
+    if terrain:
+        x0, y0 = min(f[0] for f in footprints) - 20, min(f[1] for f in footprints) - 20
+        nx, ny = (int(np.ceil((max(f[j] for f in footprints) + 20 - o) / 5.0)) for j, o in ((2, x0), (3, y0)))
+        base = len(verts)
+        verts += [(x, y, float(plane(x, y)))
+                  for y in y0 + 5.0 * np.arange(ny + 1) for x in x0 + 5.0 * np.arange(nx + 1)]
+        for r in range(ny):
+            for c in range(nx):
+                a = base + r * (nx + 1) + c
+                tris += [(a, a + 1, a + nx + 2), (a, a + nx + 2, a + nx + 1)]
+    lines = [f"v {x:.4f} {y:.4f} {z:.4f}" for x, y, z in verts] + [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in tris]
+    path.write_text("\n".join(lines) + "\n")
     return path
 
 

@@ -10,8 +10,9 @@
    object, then a Gaussian), so steep relief does not tear the cloth: on a 1 km test with
    600 m of relief this lifts ground recall from 0.92–0.95 to 1.00 with no object cell
    taken as ground. Buildings standing on ground the model does not carry give it where their
-   walls end (``bases``: a TIN of their ground surfaces' vertices or wall bottoms); an input
-   made of buildings alone is not filtered (its surface holds roofs only).
+   walls end (``bases``: a TIN of their ground surfaces' vertices or wall bottoms; in formats
+   that name no buildings, ``shapes`` finds them by their shape); an input made of buildings
+   alone is not filtered (its surface holds roofs only).
 3. **DTM**: ground cells keep the DSM's height; the rest (under buildings, trees) is filled
    by GDAL's inverse-distance ``FillNodata``.
 All heights are float64 metres in the scene CRS; the rasters are written as float32 GeoTIFFs.
@@ -22,7 +23,7 @@ window reaching far enough around its core that the core comes out as on the who
 (exactly for the envelope, the edge trimming and the fill; the cloth's own edges aside).
 
 Modules: ``dsm`` (the nadir height map), ``ground`` (ground cells: the envelope and the cloth),
-``bases`` (ground from building bases),
+``bases`` (ground from building bases), ``shapes`` (buildings by their shape),
 ``dtm`` (the fill between ground cells), ``build`` (the terrain stage's job); the cell grid
 and its float GeoTIFFs are :mod:`pipeline25d.core.grid`.
 """

@@ -27,7 +27,8 @@ kept triangle's bounding box meets.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -62,10 +63,8 @@ def base_samples(mesh: Mesh) -> BaseSamples:
     faces = np.concatenate([p.faces + o for p, o in zip(parts, offsets)])
     kind = np.concatenate([np.full(p.n_triangles, p.name, dtype=object) for p in parts])
     origin = verts.min(axis=0)
-    _, first, weld = np.unique(np.round((verts - origin) / WELD_M).astype(np.int64), axis=0,
-                               return_index=True, return_inverse=True)
-    points, faces = verts[first], weld.reshape(-1)[faces]
-    label = _components(faces, len(points))
+    points, faces = welded(verts, faces)
+    label = components(faces, len(points))
     ground = faces[kind == "ground"].ravel()
     with_ground = np.unique(label[ground])
     out = [points[np.unique(ground)]]
@@ -77,7 +76,15 @@ def base_samples(mesh: Mesh) -> BaseSamples:
     return BaseSamples(samples, len(with_ground) + len(bottoms), len(with_ground))
 
 
-def _components(faces: np.ndarray, n: int) -> np.ndarray:
+def welded(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(points, faces) with the vertices within :data:`WELD_M` of each other made one."""
+    origin = vertices.min(axis=0)
+    _, first, weld = np.unique(np.round((vertices - origin) / WELD_M).astype(np.int64), axis=0,
+                               return_index=True, return_inverse=True)
+    return vertices[first], weld.reshape(-1)[faces]
+
+
+def components(faces: np.ndarray, n: int) -> np.ndarray:
     """Connected-component label of each of ``n`` vertices joined by triangles ``faces``."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
@@ -222,6 +229,7 @@ class DistrictBases:
     buildings_only: list[str]
     buildings: int = 0
     from_ground_surfaces: int = 0
+    by_shape: list[str] = field(default_factory=list)
 
     def describe(self) -> str:
         """The record's words for this ground source."""
@@ -233,12 +241,15 @@ class DistrictBases:
     def record(self) -> dict:
         return {"districts": self.districts, "buildings_only": self.buildings_only, "buildings": self.buildings,
                 "from_ground_surfaces": self.from_ground_surfaces, "samples": len(self.tin.points),
-                "triangles": self.tin.n_triangles}
+                "triangles": self.tin.n_triangles, **({"by_shape": self.by_shape} if self.by_shape else {})}
 
 
-def district_bases(inputs: dict, scene_crs: str, skip: list[str], max_edge: float) -> DistrictBases:
-    """The building bases of the inputs not in ``skip`` (those with their own terrain) whose format
-    has building objects (:func:`pipeline25d.formats.load_district_buildings`)."""
+def district_bases(inputs: dict, scene_crs: str, skip: list[str], max_edge: float,
+                   by_shape: Callable[[str], tuple[Mesh, bool] | None] | None = None) -> DistrictBases:
+    """The building bases of the inputs not in ``skip`` (those with their own terrain): of their
+    building objects where their format has some (:func:`pipeline25d.formats.load_district_buildings`),
+    else of those ``by_shape`` finds in the input of that name (the buildings' mesh and whether
+    the input draws anything else, or None: :mod:`pipeline25d.stages.terrain.shapes`)."""
     from pipeline25d.formats import load_district_buildings
 
     samples, found = [], DistrictBases(None, [], [])
@@ -246,6 +257,9 @@ def district_bases(inputs: dict, scene_crs: str, skip: list[str], max_edge: floa
         if name in skip:
             continue
         loaded = load_district_buildings(spec, scene_crs)
+        shaped = loaded is None and by_shape is not None
+        if shaped:
+            loaded = by_shape(name)
         if loaded is None:
             continue
         mesh, others = loaded
@@ -254,6 +268,8 @@ def district_bases(inputs: dict, scene_crs: str, skip: list[str], max_edge: floa
             continue
         samples.append(got.points)
         found.districts.append(name)
+        if shaped:
+            found.by_shape.append(name)
         if not others:
             found.buildings_only.append(name)
         found.buildings += got.buildings

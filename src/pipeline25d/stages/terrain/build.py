@@ -12,10 +12,13 @@ import numpy as np
 
 from pipeline25d.core.atomic import write_json
 from pipeline25d.core.errors import GroundError
+from pipeline25d.core.mesh import Mesh
 from pipeline25d.stages.lod import chunk_loaders, scene_bounds
 from pipeline25d.stages.records import LodChunk
 
 log = logging.getLogger(__name__)
+
+DSM_LOD_CELLS = 0.25      # the DSM is rendered from the coarsest LOD within this many cells of error
 
 
 def build_terrain(chunks: Sequence[LodChunk], inputs: dict, scene_crs: str, gsd: float, terrain: str,
@@ -49,13 +52,14 @@ def build_terrain(chunks: Sequence[LodChunk], inputs: dict, scene_crs: str, gsd:
         several = processes > 1 and (blocks or len(dsm_tiles(grid)) > 1)
         pool = stack.enter_context(fork_pool(processes)) if several else None
         with float_geotiff_writer(out_dsm, grid, wkt) as write:
-            for row, col, heights in height_map_tiles(chunk_loaders(chunks, res / 4), grid, pool=pool,
+            for row, col, heights in height_map_tiles(chunk_loaders(chunks, DSM_LOD_CELLS * res), grid, pool=pool,
                                                       ahead=processes):
                 write(heights, row, col)
                 dsm_cells += int(np.isfinite(heights).sum())
         record = {"dsm": str(out_dsm), "resolution": res, "dsm_cells": dsm_cells}
         if terrain == "auto":
-            record.update(_ground_from_model(inputs, scene_crs, ground_cfg, out_dsm, out_ground, wkt, processes, pool))
+            record.update(_ground_from_model(inputs, scene_crs, ground_cfg, out_dsm, out_ground, wkt, processes, pool,
+                                             chunks=chunks))
             log.info("ground from %s: %.1f%% of the model's cells, relief %.1f m", record["source"],
                      100 * record["ground_share"], record["relief_m"])
     if terrain == "flat":
@@ -67,21 +71,33 @@ def build_terrain(chunks: Sequence[LodChunk], inputs: dict, scene_crs: str, gsd:
 
 
 def _ground_from_model(inputs: dict, scene_crs: str, ground_cfg: dict, dsm_path: str | Path,
-                       out_ground: str | Path, wkt: str, processes: int = 1, pool=None) -> dict:
+                       out_ground: str | Path, wkt: str, processes: int = 1, pool=None,
+                       chunks: Sequence[LodChunk] = ()) -> dict:
     """Write the ground heights on the DSM's grid, block by block: the inputs' own terrain where
-    they carry one; elsewhere the bases of their buildings (:mod:`pipeline25d.stages.terrain.bases`)
-    and, unless every other input is made of buildings alone, the Cloth Simulation Filter's ground
-    cells of the DSM (:func:`~pipeline25d.stages.terrain.bases.with_bases` joins the two)."""
+    they carry one; elsewhere the bases of their buildings (:mod:`pipeline25d.stages.terrain.bases`;
+    in a format without building objects, those of the input's ``chunks`` found by their shape:
+    :mod:`pipeline25d.stages.terrain.shapes`) and, unless every other input is made of buildings
+    alone, the Cloth Simulation Filter's ground cells of the DSM
+    (:func:`~pipeline25d.stages.terrain.bases.with_bases` joins the two)."""
     from pipeline25d.core.geotiff import FloatRaster, float_geotiff_writer
     from pipeline25d.core.grid import cell_blocks
     from pipeline25d.stages.terrain.bases import district_bases, with_bases
     from pipeline25d.stages.terrain.dsm import render_height_map
     from pipeline25d.stages.terrain.ground import ground_blocks
+    from pipeline25d.stages.terrain.shapes import buildings_by_shape
 
     dsm_src = FloatRaster(dsm_path)
     grid = dsm_src.grid
     own = _own_terrain(inputs, scene_crs)
-    bases = district_bases(inputs, scene_crs, own["districts"], 2 * ground_cfg["max_object_size"])
+    def by_shape(name: str) -> tuple[Mesh, bool] | None:   # at the LOD the DSM was rendered from
+        own_chunks = [c for c in chunks if c.district == name]
+        found = buildings_by_shape(chunk_loaders(own_chunks, DSM_LOD_CELLS * grid.res), dsm_src)
+        log.log(logging.INFO if found.groups else logging.DEBUG,
+                "%s: %d of %d groups of triangles are buildings by their shape; %d chunks draw their own ground",
+                name, found.buildings, found.groups, found.ground_chunks)
+        return (found.mesh, found.others) if found.buildings else None
+
+    bases = district_bases(inputs, scene_crs, own["districts"], 2 * ground_cfg["max_object_size"], by_shape)
     sources = []
     if set(inputs) - set(own["districts"]) - set(bases.buildings_only):
         cloth = ground_cfg["cloth_resolution"]
