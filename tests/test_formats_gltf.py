@@ -192,6 +192,78 @@ def test_non_triangle_primitives_skipped(tmp_path):
         assert load_gltf(_write_gltf(tmp_path / "l.gltf", doc, binary)) == []
 
 
+def _with_image(doc: dict, binary: bytes, image: bytes, mime: str) -> tuple[dict, bytes]:
+    """The one-triangle glTF with ``image`` appended to its buffer as image 0."""
+    doc["bufferViews"].append({"buffer": 0, "byteOffset": len(binary), "byteLength": len(image)})
+    doc["buffers"][0]["byteLength"] = len(binary) + len(image)
+    doc["images"] = [{"bufferView": len(doc["bufferViews"]) - 1, "mimeType": mime}]
+    return doc, binary + image
+
+
+def test_texture_transform_takes_the_extensions_example_to_the_lower_left_quadrant(tmp_path):
+    """KHR_texture_transform's own example (offset [0, 1], rotation pi/2, scale 0.5): "only the lower
+    left quadrant of the source image, rotated clockwise 90 degrees". glTF's UV origin is the image's
+    top left, so that quadrant is u in [0, 0.5], v in [0.5, 1]; the part's UVs are in GL's (v up)."""
+    from pipeline25d.formats.gltf import texture_transform
+
+    example = {"offset": [0, 1], "rotation": np.pi / 2, "scale": [0.5, 0.5]}
+    corners = texture_transform(np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]]), example)
+    assert (corners[:, 0] >= -1e-12).all() and (corners[:, 0] <= 0.5 + 1e-12).all()
+    assert (corners[:, 1] >= 0.5 - 1e-12).all() and (corners[:, 1] <= 1 + 1e-12).all()
+    # the image's top-left texel goes to the unit square's (0, 1) corner: turned a quarter clockwise
+    np.testing.assert_allclose(corners, [[0, 1], [0, 0.5], [0.5, 0.5], [0.5, 1]], atol=1e-12)
+    material = {"pbrMetallicRoughness": {"baseColorTexture": {
+        "index": 0, "extensions": {"KHR_texture_transform": example}}}}
+    doc, binary = _with_image(*_gltf(material=material), _png_bytes(), "image/png")
+    doc["textures"] = [{"source": 0}]
+    doc["extensionsRequired"] = doc["extensionsUsed"] = ["KHR_texture_transform"]
+    part = parse_gltf_bytes(_glb(doc, binary), tmp_path / "t.glb")[0]
+    uv = part.uv[np.argsort(part.vertices[:, 0] + 2 * part.vertices[:, 2])]       # TRI's order: x, then up
+    expected = texture_transform(TRI_UV.astype(np.float64), example)
+    np.testing.assert_allclose(uv, np.column_stack([expected[:, 0], 1 - expected[:, 1]]), atol=1e-6)
+
+
+def test_triangle_strips_and_fans_give_the_triangles_of_a_list(tmp_path):
+    """A quad as a strip (0 1 2 3) and as a fan (0 1 3 2) gives the list's two triangles, wound the
+    same way (glTF 2.0, 3.7.2.1)."""
+    from pipeline25d.formats.gltf import triangles
+
+    strip = triangles(np.array([0, 1, 2, 3]), 5)
+    np.testing.assert_array_equal(strip, [[0, 1, 2], [1, 3, 2]])
+    np.testing.assert_array_equal(triangles(np.array([0, 1, 3, 2]), 6), [[1, 3, 0], [3, 2, 0]])
+    quad = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], dtype=np.float64)
+    for faces in (strip, triangles(np.array([0, 1, 3, 2]), 6)):
+        normal = np.cross(quad[faces[:, 1]] - quad[faces[:, 0]], quad[faces[:, 2]] - quad[faces[:, 0]])
+        assert (normal[:, 2] > 0).all()                                  # both counter-clockwise, as 0 1 2
+    assert len(triangles(np.array([0, 1]), 5)) == 0 == len(triangles(np.array([0, 1]), 6))
+    for mode in (5, 6):                                   # the one-triangle glTF read as a strip or a fan
+        doc, binary = _gltf(mode=mode)
+        parts = load_gltf(_write_gltf(tmp_path / f"m{mode}.gltf", doc, binary), y_up_to_z_up=False)
+        np.testing.assert_allclose(parts[0].vertices[parts[0].faces[0]][[0, 1, 2] if mode == 5 else [2, 0, 1]], TRI)
+
+
+def test_webp_and_ktx2_textures(tmp_path):
+    """EXT_texture_webp: the WEBP image is read (stored as PNG, the same texels: lossless WEBP); a
+    texture only KHR_texture_basisu gives (KTX2) is drawn untextured, with a warning naming it."""
+    from PIL import Image
+
+    texels = np.random.default_rng(5).integers(0, 256, (8, 8, 3), dtype=np.uint8)
+    out = io.BytesIO()
+    Image.fromarray(texels).save(out, format="WEBP", lossless=True)
+    material = {"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}
+    doc, binary = _with_image(*_gltf(material=material), out.getvalue(), "image/webp")
+    doc["textures"] = [{"extensions": {"EXT_texture_webp": {"source": 0}}}]
+    doc["extensionsRequired"] = doc["extensionsUsed"] = ["EXT_texture_webp"]
+    part = parse_gltf_bytes(_glb(doc, binary), tmp_path / "w.glb")[0]
+    assert part.texture[:8] == b"\x89PNG\r\n\x1a\n"
+    np.testing.assert_array_equal(np.asarray(Image.open(io.BytesIO(part.texture)).convert("RGB")), texels)
+    doc["textures"] = [{"extensions": {"KHR_texture_basisu": {"source": 0}}}]
+    doc["extensionsRequired"], doc["extensionsUsed"] = [], ["KHR_texture_basisu"]
+    with pytest.warns(UserWarning, match=r"k\.glb: texture 0 is a KTX2 \(Basis Universal\) image only"):
+        part = parse_gltf_bytes(_glb(doc, binary), tmp_path / "k.glb")[0]
+    assert part.texture is None and part.colors is not None
+
+
 def test_unsupported_required_extension(tmp_path):
     doc, binary = _gltf(extra={"extensionsRequired": ["KHR_texture_basisu"]})
     path = _write_gltf(tmp_path / "basis.gltf", doc, binary)

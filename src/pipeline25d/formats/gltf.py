@@ -7,9 +7,11 @@ centre, ``KHR_draco_mesh_compression`` and float64 placement of ECEF-sized offse
 What is honoured: the node hierarchy (matrix or TRS), the glTF y-up -> 3D Tiles z-up
 rotation ((x, y, z) -> (x, -z, y), optional), ``CESIUM_RTC``, Draco (DracoPy),
 ``KHR_mesh_quantization`` (normalised/integer accessors), sparse accessors, base colour
-textures (GLB buffer views, ``data:`` URIs, files relative to the glTF), base colour
-factor and ``COLOR_0`` as vertex colours of untextured parts. Only triangle lists
-(mode 4) are read; other primitive modes are skipped with a warning.
+textures (GLB buffer views, ``data:`` URIs, files relative to the glTF; PNG, JPEG, and WEBP
+by ``EXT_texture_webp``, stored as PNG), their ``KHR_texture_transform``, base colour
+factor and ``COLOR_0`` as vertex colours of untextured parts. Triangles come as lists, strips
+or fans (modes 4, 5, 6); points and lines are skipped with a warning, as are textures only a
+``KHR_texture_basisu`` (KTX2) image gives (drawn untextured).
 
 One :class:`MeshPart` per primitive instance, its vertices compacted to the ones its
 triangles use; its faces' objects are the feature ids (``_BATCHID``, ``EXT_mesh_features``) and
@@ -47,8 +49,10 @@ SUPPORTED_EXTENSIONS = frozenset({
     "KHR_draco_mesh_compression",
     "KHR_materials_unlit",
     "KHR_mesh_quantization",
+    "KHR_texture_transform",
     "EXT_mesh_features",
     "EXT_structural_metadata",
+    "EXT_texture_webp",
 })
 
 #: 3D Tiles convention: glTF is y-up, tiles are z-up; (x, y, z) -> (x, -z, y).
@@ -61,7 +65,7 @@ _COMPONENT_DTYPES = {
     5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32, 5126: np.float32,
 }
 _TYPE_SIZES = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
-_TRIANGLES = 4
+_TRIANGLES, _STRIP, _FAN = 4, 5, 6
 
 
 def load_gltf(path: str | Path, y_up_to_z_up: bool = True) -> list[MeshPart]:
@@ -99,7 +103,7 @@ def parse_gltf_bytes(data: bytes, path: str | Path, y_up_to_z_up: bool = True,
         mesh = doc.item("meshes", mesh_index)
         for k, prim in enumerate(mesh.get("primitives", [])):
             mode = int(prim.get("mode", _TRIANGLES))
-            if mode != _TRIANGLES:
+            if mode not in (_TRIANGLES, _STRIP, _FAN):
                 skipped_modes.add(mode)
                 continue
             name = mesh.get("name") or node_name or f"mesh{mesh_index}"
@@ -108,7 +112,8 @@ def parse_gltf_bytes(data: bytes, path: str | Path, y_up_to_z_up: bool = True,
                 parts.append(part)
     doc.limiter.warn()
     if skipped_modes:
-        warnings.warn(f"{path}: skipped primitives with mode {sorted(skipped_modes)} (only triangles are read)",
+        warnings.warn(f"{path}: skipped primitives with mode {sorted(skipped_modes)} (points and lines: only "
+                      "triangles are read)",
                       stacklevel=2)
     return parts
 
@@ -254,6 +259,8 @@ class _Document:
                 if data is None:
                     warnings.warn(f"{self.path}: image {unquote(img.get('uri', ''))!r} is missing; "
                                   "its parts are drawn untextured", MissingTextureWarning, stacklevel=4)
+            if data is not None and data[:4] == b"RIFF" and data[8:12] == b"WEBP":
+                data = _webp_as_png(data, self.path, index)
             if data is not None and not png_or_jpeg(data):
                 warnings.warn(f"{self.path}: image {index} is neither PNG nor JPEG (not an image); "
                               "its parts are drawn untextured", MissingTextureWarning, stacklevel=4)
@@ -279,6 +286,24 @@ class _Document:
             return None
         except OSError as exc:
             raise InputFileError(target, f"cannot read {what}: {exc.strerror or exc}") from None
+
+
+def _webp_as_png(data: bytes, path: Path, index: int) -> bytes | None:
+    """A WEBP image (``EXT_texture_webp``) as PNG bytes, which the chunks and the render job take;
+    None with a warning when it cannot be decoded."""
+    import io
+
+    from PIL import Image
+
+    try:
+        with Image.open(io.BytesIO(data)) as img:
+            out = io.BytesIO()
+            img.save(out, format="PNG", compress_level=1)
+    except (OSError, ValueError, SyntaxError) as exc:
+        warnings.warn(f"{path}: image {index} cannot be read (WEBP: {exc}); its parts are drawn untextured",
+                      MissingTextureWarning, stacklevel=5)
+        return None
+    return out.getvalue()
 
 
 def _split_glb(data: bytes, path: Path) -> tuple[dict, bytes | None]:
@@ -371,7 +396,21 @@ def _primitive_attributes(doc: _Document, prim: dict) -> tuple[dict[str, np.ndar
         indices = doc.accessor(int(prim["indices"])).reshape(-1).astype(np.int64)
     else:
         indices = np.arange(len(attrs["POSITION"]), dtype=np.int64)
-    return attrs, indices[: len(indices) - len(indices) % 3].reshape(-1, 3)
+    return attrs, triangles(indices, int(prim.get("mode", _TRIANGLES)))
+
+
+def triangles(indices: np.ndarray, mode: int) -> np.ndarray:
+    """(m, 3) triangles of a primitive's vertex indices as glTF 2.0 (3.7.2.1) defines them for
+    its mode: a list (4; a trailing partial triangle dropped), a strip (5: triangle i is
+    v[i], v[i + 1 + i % 2], v[i + 2 - i % 2], so every other one keeps its winding) or a fan
+    (6: v[i + 1], v[i + 2], v[0])."""
+    if mode == _STRIP:
+        i = np.arange(max(len(indices) - 2, 0))
+        return np.column_stack([indices[i], indices[i + 1 + i % 2], indices[i + 2 - i % 2]])
+    if mode == _FAN:
+        i = np.arange(max(len(indices) - 2, 0))
+        return np.column_stack([indices[i + 1], indices[i + 2], np.full(len(i), indices[0] if len(i) else 0)])
+    return indices[: len(indices) - len(indices) % 3].reshape(-1, 3)
 
 
 def _draco_attributes(doc: _Document, prim: dict, draco: dict) -> tuple[dict[str, np.ndarray], np.ndarray]:
@@ -461,14 +500,33 @@ def _base_color_texture(doc: _Document, pbr: dict, attrs: dict) -> tuple[bytes |
     info = pbr.get("baseColorTexture")
     if info is None:
         return None, None
-    uv = attrs.get(f"TEXCOORD_{int(info.get('texCoord', 0))}")
-    source = doc.item("textures", info["index"]).get("source")
+    transform = info.get("extensions", {}).get("KHR_texture_transform")
+    uv = attrs.get(f"TEXCOORD_{int((transform or {}).get('texCoord', info.get('texCoord', 0)))}")
+    texture = doc.item("textures", info["index"])
+    extensions = texture.get("extensions", {})
+    source = extensions.get("EXT_texture_webp", {}).get("source", texture.get("source"))
+    if source is None and "KHR_texture_basisu" in extensions:
+        warnings.warn(f"{doc.path}: texture {info['index']} is a KTX2 (Basis Universal) image only, which "
+                      "cannot be read; its parts are drawn untextured", MissingTextureWarning, stacklevel=4)
     if uv is None or source is None:
         return None, None
     image = doc.image(int(source))
     if image is None:
         return None, None
+    if transform is not None:
+        uv = texture_transform(uv, transform)
     return image, np.column_stack([uv[:, 0], 1.0 - uv[:, 1]])
+
+
+def texture_transform(uv: np.ndarray, transform: dict) -> np.ndarray:
+    """``KHR_texture_transform`` applied to (n, 2) glTF UVs: scaled, rotated by ``rotation`` radians
+    (u' = cos·u + sin·v, v' = -sin·u + cos·v: the extension's example, whose offset [0, 1], rotation
+    pi/2 and scale 0.5 take the unit square to the image's lower-left quadrant), then offset."""
+    sx, sy = (float(v) for v in transform.get("scale", (1.0, 1.0)))
+    ox, oy = (float(v) for v in transform.get("offset", (0.0, 0.0)))
+    r = float(transform.get("rotation", 0.0))
+    u, v = uv[:, 0] * sx, uv[:, 1] * sy
+    return np.column_stack([np.cos(r) * u + np.sin(r) * v + ox, -np.sin(r) * u + np.cos(r) * v + oy])
 
 
 def _vertex_colors(pbr: dict, color0: np.ndarray | None, n: int) -> np.ndarray:
