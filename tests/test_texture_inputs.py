@@ -84,3 +84,41 @@ def test_an_obj_with_a_truncated_texture_names_it_at_ingest(tmp_path, fmt, ext):
     with pytest.warns(MissingTextureWarning, match=rf"texture 't\.{ext}' cannot be read"):
         mesh = load_district({"path": str(model), "missing_textures": "untextured"}, "EPSG:28992")
     assert mesh.n_triangles == 2 and all(p.texture is None and p.colors is not None for p in mesh.parts)
+
+
+@pytest.mark.parametrize("ref, where, found", [
+    ("-s 1 1 1 -clamp on t.png", "t.png", None),                      # MTL map options before the name
+    (r"textures\t.png", "textures/t.png", None),                       # a Windows exporter's separators
+    ("my texture.png", "my texture.png", None),                         # a name with a space
+    (r"C:\Users\me\Desktop\export\t.png", "t.png", "t.png"),           # its machine's absolute path
+    (r"D:\city\textures\t.png", "textures/t.png", "textures/t.png"),   # ... whose tail lies in the folder
+    ("/home/me/export/t.png", "t.png", "t.png"),
+])
+def test_an_obj_finds_its_texture_where_exporters_name_it(tmp_path, ref, where, found):
+    """What photogrammetry and CAD exporters write in a material library, read as their own tools do:
+    the texture is drawn, and one named by a path it is not at says which file was taken instead."""
+    (tmp_path / where).parent.mkdir(parents=True, exist_ok=True)
+    data = _image("PNG")
+    (tmp_path / where).write_bytes(data)
+    model = _textured_obj(tmp_path, ref)
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        mesh = load_district({"path": str(model)}, "EPSG:28992")
+    assert {p.texture for p in mesh.parts} == {data}
+    said = [str(w.message) for w in caught]
+    if found is None:
+        assert said == []
+    else:
+        assert said == [f"{model}: texture '{ref}' is not where it says; {found} in the model's folder is used"]
+
+
+def test_an_obj_texture_outside_its_folder_is_still_refused(tmp_path):
+    """The fallback looks only inside the model's folder: a path out of it with no file of its
+    name inside stays the error it was (no file outside the input's folder is opened)."""
+    (tmp_path / "in").mkdir()
+    (tmp_path / "t.png").write_bytes(_image("PNG"))
+    model = _textured_obj(tmp_path / "in", "../t.png")
+    with pytest.raises(InputFileError, match=r"texture '\.\./t\.png' lies outside the dataset folder"):
+        load_district({"path": str(model)}, "EPSG:28992")

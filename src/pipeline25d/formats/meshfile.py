@@ -13,7 +13,7 @@ import io
 import re
 import warnings
 from dataclasses import replace
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import numpy as np
 import trimesh
@@ -174,6 +174,44 @@ def _texture_bytes(image, served: dict[str, bytes | None]) -> bytes | None:
     return buf.getvalue()
 
 
+#: the options a material library's map statement may give before its file name (MTL: -o 0.1 0.2,
+#: -clamp on ...) and how many values each takes; -o, -s and -t take one to three numbers
+MAP_OPTIONS = {"-blendu": 1, "-blendv": 1, "-bm": 1, "-boost": 1, "-cc": 1, "-clamp": 1, "-imfchan": 1,
+               "-mm": 2, "-o": 3, "-s": 3, "-t": 3, "-texres": 1, "-type": 1}
+
+
+def map_file_name(ref: str) -> str:
+    """The file an OBJ's ``mtllib`` or a material library's ``map_*`` statement names: its options
+    (:data:`MAP_OPTIONS`) dropped, ``\\`` read as ``/``; a name with spaces kept whole."""
+    tokens = ref.strip().split(" ")
+    while len(tokens) > 1 and tokens[0].lower() in MAP_OPTIONS:
+        option, tokens = tokens[0].lower(), tokens[1:]
+        numeric = option in ("-o", "-s", "-t")
+        for _ in range(MAP_OPTIONS[option]):
+            if len(tokens) > 1 and (not numeric or _is_number(tokens[0])):
+                tokens = tokens[1:]
+    return " ".join(tokens).replace("\\", "/")
+
+
+def _found_tail(ref: str, folder: Path) -> str | None:
+    """The longest tail of the path ``ref`` (``C:/work/city/tex/a.jpg``: ``work/city/tex/a.jpg`` ...
+    ``tex/a.jpg``, ``a.jpg``) that is a file inside ``folder``; None where none is."""
+    parts = [p for p in PurePosixPath(ref).parts if p not in ("/", "..", ".") and not p.endswith(":")]
+    for k in range(len(parts)):
+        tail = "/".join(parts[k:])
+        if tail != ref and (folder / tail).is_file() and (folder / tail).resolve().is_relative_to(folder.resolve()):
+            return tail
+    return None
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 class _Files(trimesh.resolvers.FilePathResolver):
     """Files next to the model, each request recorded: trimesh only logs a material library
     or texture it cannot find or decode, and draws the parts in a plain colour. A file outside
@@ -186,14 +224,28 @@ class _Files(trimesh.resolvers.FilePathResolver):
         self.outside: InputFileError | None = None
 
     def get(self, name: str) -> bytes:
+        """The file a model names: a material library's map options dropped and Windows separators
+        read as '/' (:func:`map_file_name`); where no such file lies in the model's folder (an
+        exporter's absolute path, ``C:\\Users\\...\\tex.jpg``), the one its path ends in inside that
+        folder, with a warning (:func:`_found_tail`)."""
         what = "material library" if name.lower().endswith(".mtl") else "texture"
+        folder, wanted = self.model.parent, map_file_name(name)
         try:
-            side_file(name.strip(), self.model.parent, self.model.parent, self.model, what, url=False)
+            side_file(wanted, folder, folder, self.model, what, url=False)
+            outside = None
         except InputFileError as exc:
-            self.outside = self.outside or exc
-            raise
+            outside = exc
+        if outside is not None or not (folder / wanted).is_file():
+            tail = _found_tail(wanted, folder)
+            if tail is not None:
+                warnings.warn(f"{self.model}: {what} '{name.strip()}' is not where it says; {tail} in the model's "
+                              "folder is used", stacklevel=5)
+                wanted, outside = tail, None
+        if outside is not None:
+            self.outside = self.outside or outside
+            raise outside
         try:
-            data = super().get(name)
+            data = super().get(wanted)
         except Exception:
             self.asked[name] = None
             raise
