@@ -358,7 +358,8 @@ def test_delft_buildings_alone_get_the_ground_of_the_full_model(tmp_path, gl_ctx
 
 @pytest.mark.parametrize("model, crs, gsd, features",
                          [("tokyo-chiyoda-b3dm/cesium-rtc-extension.b3dm", "EPSG:6677", 2.0, 300),
-                          ("amsterdam-3dtiles/tileset.json", "EPSG:28992", 1.0, 200)])
+                          ("amsterdam-3dtiles/tileset.json", "EPSG:28992", 1.0, 200),
+                          ("amsterdam-3dtiles/tileset.json", "EPSG:28992", 2.0, 200)])
 def test_real_buildings_only_3d_tiles_get_the_ground_they_stand_on(tmp_path, gl_ctx, model, crs, gsd, features):
     """3D Tiles of buildings alone, with no terrain and no semantics a reader could ask for: PLATEAU's
     LOD2 buildings of Chiyoda as one b3dm (300 buildings with floors), pg2b3dm's Amsterdam tileset

@@ -99,10 +99,8 @@ def _scene_setup(lod_indexes: list[str], dsm_src, terrain: str, terrain_path: st
         height_fn = DTM(terrain_path, scene_crs, continuous=True).sample
         dtm = _sampled_dtm(height_fn, grid)
     covered = np.isfinite(dsm)
-    # terrain-relative tiles sample the DTM over each chunk's box; otherwise only z0 needs it, under the model
-    whole_boxes = projection in ("auto", "terrain")
     if seed_src is not None:
-        _check_ground(dtm, grid, chunks, terrain_path, 4 * search * grid.res, None if whole_boxes else covered)
+        _check_ground(dtm, grid, chunks, terrain_path, 4 * search * grid.res, covered)
     # auto: the median ground height, rounded to whole metres so a local terrain change does not move it
     z0 = float(z0_cfg) if z0_cfg != "auto" else float(round(_median(dtm[covered]))) if covered.any() else float(lo[2])
     if projection == "auto":
@@ -124,7 +122,7 @@ def _scene_setup(lod_indexes: list[str], dsm_src, terrain: str, terrain_path: st
             del dtm
             dtm = _interpolated_dtm(partial(_held_out_read, seed_src, grid, cands, radius), grid, search, needed,
                                     workers)
-            _check_ground(dtm, grid, chunks, terrain_path, 4 * search * grid.res, None if whole_boxes else covered)
+            _check_ground(dtm, grid, chunks, terrain_path, 4 * search * grid.res, covered)
             xy = np.array([[c.x, c.y] for c in cands]).reshape(-1, 2)
             cands = [replace(c, ground=round(float(g), 3)) for c, g in zip(cands, _sample_continuous(dtm, grid, xy))]
             log.info("DTM interpolated without the ground within %.1f m of each check point", radius)
@@ -190,20 +188,21 @@ def _held_out_read(seed_src, grid, cands: list[GcpCandidate], radius: float, row
     return _without_check_points(seed_src.read(rows, cols), grid, cands, radius, (rows, cols))
 
 
-def _check_ground(dtm: np.ndarray, grid, chunks: list, ground_path, reach_m: float,
-                  covered: np.ndarray | None = None) -> None:
+def _check_ground(dtm: np.ndarray, grid, chunks: list, ground_path, reach_m: float, covered: np.ndarray) -> None:
     """GroundError naming the inputs and what to do when the DTM has no height somewhere under a
-    chunk (no ground within ``reach_m`` of it): never a NaN z0 or chunk ground range.
+    chunk (no ground within ``reach_m`` of it): never a NaN z0, vertex height or chunk ground range.
 
-    ``covered``: check only these cells (the model's, for z0) rather than each chunk's whole
-    bounding box (what terrain-relative tiles sample, :func:`chunk_ground`)."""
+    Only the cells ``covered`` (the model's: what z0 and the vertices of terrain-relative tiles
+    sample) are checked, not each chunk's whole bounding box: a sparse chunk's box may reach
+    farther from any ground than the DTM does, and the tiles read the DTM continuous (a cell
+    without a height takes the nearest one's: :class:`~pipeline25d.core.raster.DTM`)."""
     bare = []
     for c in chunks:
         (x0, y0, _), (x1, y1, _) = c.bounds
         cols = slice(max(int((x0 - grid.xmin) // grid.res), 0), min(int((x1 - grid.xmin) // grid.res) + 1, grid.width))
         rows = slice(max(int((grid.ymax - y1) // grid.res), 0), min(int((grid.ymax - y0) // grid.res) + 1, grid.height))
         missing = ~np.isfinite(dtm[rows, cols])
-        if (missing if covered is None else missing & covered[rows, cols]).any():
+        if (missing & covered[rows, cols]).any():
             bare.append(c)
     if not bare:
         return
