@@ -201,8 +201,8 @@ def test_bare_triangles_on_their_own_terrain_keep_the_cloth_filters_ground(tmp_p
     assert_plane_but_near_check_points(tmp_path, scene, x[between], y[between], z[between])
 
 
-def overhang_and_hillside_obj(path: Path, z0: float = 3.0) -> Path:
-    """An OBJ of bare triangles: a building on flat ground at ``z0`` whose upper storey overhangs
+def overhang_and_hillside_obj(path: Path, hill_path: Path, z0: float = 3.0) -> tuple[Path, Path]:
+    """Two OBJs of bare triangles: a building on flat ground at ``z0`` whose upper storey overhangs
     its ground floor by 4 m (profile in x, z: ground floor 10 m wide and 3 m high, upper storey
     14 m wide, roof at 6 m; 8 m deep), and 20 m east of it a hillside (a 40 x 40 m grid rising
     0.5 m per m eastwards)."""
@@ -215,33 +215,33 @@ def overhang_and_hillside_obj(path: Path, z0: float = 3.0) -> Path:
         a, b = k, (k + 1) % 6
         tris += [(a, b + 6, b), (a, a + 6, b + 6)]
     hill = [(x + 34 + 5 * i, y - 16 + 5 * j, z0 + 2.5 * i) for j in range(9) for i in range(9)]
-    base = len(verts)
-    verts += hill
-    tris += [(base + a, base + a + 1, base + a + 10) for a in (9 * j + i for j in range(8) for i in range(8))]
-    tris += [(base + a, base + a + 10, base + a + 9) for a in (9 * j + i for j in range(8) for i in range(8))]
-    lines = [f"v {a:.3f} {b:.3f} {c:.3f}" for a, b, c in verts] + [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in tris]
-    path.write_text("\n".join(lines) + "\n")
-    return path
+    cells = [9 * j + i for j in range(8) for i in range(8)]
+    hill_tris = [(a, a + 1, a + 10) for a in cells] + [(a, a + 10, a + 9) for a in cells]
+    for out, (v, t) in ((path, (verts, tris)), (hill_path, (hill, hill_tris))):
+        lines = [f"v {a:.3f} {b:.3f} {c:.3f}" for a, b, c in v] + [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in t]
+        out.write_text("\n".join(lines) + "\n")
+    return path, hill_path
 
 
 def test_an_overhang_is_no_base_and_a_hillside_no_building(tmp_path, gl_ctx):
-    """By shape: the overhanging building is a building whose ground is its floor, not the
-    overhang's underside (3 m up, also facing down); the hillside, seen from above down to its
-    lowest point, is no building, and keeps the cloth filter's ground."""
+    """By shape: the overhanging building (one input) is a building whose ground is its floor, not
+    the overhang's underside (3 m up, also facing down); the hillside (another), seen from above
+    down to its lowest point, is no building, and keeps the cloth filter's ground. Both in one
+    input, that input would draw its own ground, and the filter alone would give it."""
     from pipeline25d.formats import load_district
     from pipeline25d.stages.terrain.bases import components, welded
 
-    path = overhang_and_hillside_obj(tmp_path / "m.obj")
+    path, hill = overhang_and_hillside_obj(tmp_path / "m.obj", tmp_path / "h.obj")
     mesh = load_district({"path": str(path)}, CRS)
     tri = np.concatenate([p.vertices[p.faces] for p in mesh.parts])
     normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     assert (normal[:, 2] < 0).sum() == 4                                # the floor and the underside
     points, faces = welded(tri.reshape(-1, 3), np.arange(3 * len(tri)).reshape(-1, 3))
-    assert components(faces, len(points)).max() == 1                 # two groups, each one piece
-    record, scene, dtm = run_stages(tmp_path, {"m": {"path": str(path)}})
+    assert components(faces, len(points)).max() == 0                 # one group, one piece
+    record, scene, dtm = run_stages(tmp_path, {"m": {"path": str(path)}, "h": {"path": str(hill)}})
     bases = record["bases"]
     assert bases["by_shape"] == ["m"] and bases["buildings"] == 1 and bases["from_ground_surfaces"] == 1
-    assert bases["buildings_only"] == [] and "Cloth" in record["source"]
+    assert bases["buildings_only"] == ["m"] and "Cloth" in record["source"]
     # under the building: its floor's height (3 m); under the overhang, which no base sample covers,
     # the DTM's fill from the ground around (within 3 cm of it), not the underside's 6 m
     x, y, z = cell_centres_in(dtm, (X0 + 10.5, Y0 + 10.5, X0 + 23.5, Y0 + 17.5))
@@ -363,10 +363,11 @@ def test_delft_buildings_alone_get_the_ground_of_the_full_model(tmp_path, gl_ctx
 def test_real_buildings_only_3d_tiles_get_the_ground_they_stand_on(tmp_path, gl_ctx, model, crs, gsd, features):
     """3D Tiles of buildings alone, with no terrain and no semantics a reader could ask for: PLATEAU's
     LOD2 buildings of Chiyoda as one b3dm (300 buildings with floors), pg2b3dm's Amsterdam tileset
-    (200 blocks, no floor facing down: their wall bottoms). Found by their shape, they are the whole model, and the DTM under
-    every building is where its lowest vertex is. The cloth filter alone had taken the lowest
-    roofs for ground: on Tokyo at this gsd the scene stage then stopped (no ground near 6 of its
-    chunks), and the ground it had lay 12.3 m above the feet of the 14 buildings it reached (median)."""
+    (200 blocks, no floor facing down: their wall bottoms). Found by their shape, they are the whole
+    model, and the DTM under every building is where its lowest vertex is. The cloth filter alone
+    had taken the lowest roofs for ground: on Tokyo at this gsd the scene stage then stopped (no
+    ground near 6 of its chunks), and the ground it had lay 12.3 m above the feet of the 14
+    buildings it reached (median)."""
     import warnings
 
     from pipeline25d.formats import load_district

@@ -75,9 +75,9 @@ def _ground_from_model(inputs: dict, scene_crs: str, ground_cfg: dict, dsm_path:
                        chunks: Sequence[LodChunk] = ()) -> dict:
     """Write the ground heights on the DSM's grid, block by block: the inputs' own terrain where
     they carry one; elsewhere the bases of their buildings (:mod:`pipeline25d.stages.terrain.bases`;
-    in a format without building objects, those of the input's ``chunks`` found by their shape:
-    :mod:`pipeline25d.stages.terrain.shapes`) and, unless every other input is made of buildings
-    alone, the Cloth Simulation Filter's ground cells of the DSM
+    in a format without building objects, those found by their shape in an input of buildings
+    alone: :mod:`pipeline25d.stages.terrain.shapes`) and, unless every other input is made of
+    buildings alone, the Cloth Simulation Filter's ground cells of the DSM
     (:func:`~pipeline25d.stages.terrain.bases.with_bases` joins the two)."""
     from pipeline25d.core.geotiff import FloatRaster, float_geotiff_writer
     from pipeline25d.core.grid import cell_blocks
@@ -92,10 +92,13 @@ def _ground_from_model(inputs: dict, scene_crs: str, ground_cfg: dict, dsm_path:
     def by_shape(name: str) -> tuple[Mesh, bool] | None:   # at the LOD the DSM was rendered from
         own_chunks = [c for c in chunks if c.district == name]
         found = buildings_by_shape(chunk_loaders(own_chunks, DSM_LOD_CELLS * grid.res), dsm_src)
+        alone = found.buildings and not found.others
         log.log(logging.INFO if found.groups else logging.DEBUG,
-                "%s: %d of %d groups of triangles are buildings by their shape; %d chunks draw their own ground",
-                name, found.buildings, found.groups, found.ground_chunks)
-        return (found.mesh, found.others) if found.buildings else None
+                "%s: %d of %d groups of triangles are buildings by their shape, %.0f of %.0f m² seen from above "
+                "are not; %d chunks draw their own ground: %s", name, found.buildings, found.groups,
+                found.others_seen_m2, found.seen_m2, found.ground_chunks,
+                "buildings alone, their bases give the ground" if alone else "the filter finds its ground")
+        return (found.mesh, False) if alone else None
 
     bases = district_bases(inputs, scene_crs, own["districts"], 2 * ground_cfg["max_object_size"], by_shape)
     sources = []

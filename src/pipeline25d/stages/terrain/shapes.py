@@ -19,7 +19,9 @@ Cloth Simulation Filter takes its lowest roofs for ground. Its buildings are fou
    hidden under its roof, whichever way its floor faces (exporters flip some).
 4. The buildings' triangles go to :func:`~pipeline25d.stages.terrain.bases.base_samples` as
    parts named by their normals (up: roof, down: ground, else wall:
-   :func:`~pipeline25d.formats.surfaces.normal_classes`).
+   :func:`~pipeline25d.formats.surfaces.normal_classes`), where the input is buildings alone
+   (:attr:`ShapeBuildings.others`): a model that draws its own ground (terrain patches, a
+   photomesh) keeps the filter's, which measures it, rather than a TIN between wall bottoms.
 """
 
 from __future__ import annotations
