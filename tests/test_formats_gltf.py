@@ -340,3 +340,41 @@ def test_draco_primitive_by_attribute_id(tmp_path):
     # every vertex's UV is (x / 2, 1 - y / 3): UVs travel with their vertices, v flipped
     np.testing.assert_allclose(part.uv, np.column_stack([part.vertices[:, 0] / 2, 1 - part.vertices[:, 1] / 3]),
                                atol=1e-3)
+
+
+@pytest.mark.parametrize("rotation_type", ["float", "normalized short"])
+def test_gpu_instancing_repeats_the_mesh_at_each_instance(tmp_path, rotation_type):
+    """EXT_mesh_gpu_instancing: the node's mesh drawn once per instance, at T * R * S of its
+    TRANSLATION, ROTATION (float, or normalised shorts) and SCALE, then the node's own transform
+    (scipy's rotation as the independent reference); a mirroring scale keeps front faces front."""
+    from itertools import permutations
+
+    from scipy.spatial.transform import Rotation
+
+    translation = np.array([[0, 0, 0], [10, 0, 0], [0, 5, 2]], np.float32)
+    quats = Rotation.from_euler("xyz", [[0, 0, 0], [0, 0, 90], [30, 0, 45]], degrees=True).as_quat()
+    scale = np.array([[1, 1, 1], [2, 2, 2], [1, -1, 1]], np.float32)
+    rotation = (quats.astype(np.float32) if rotation_type == "float"
+                else np.round(quats * 32767).astype(np.int16))
+    doc, binary = _gltf(node={"translation": [100, 0, 0]})
+    accessors = {"TRANSLATION": (translation, 5126, "VEC3", False), "ROTATION": (rotation, 5126 if rotation_type ==
+                 "float" else 5122, "VEC4", rotation_type != "float"), "SCALE": (scale, 5126, "VEC3", False)}
+    attributes = {}
+    for name, (array, component, kind, normalized) in accessors.items():
+        doc["bufferViews"].append({"buffer": 0, "byteOffset": len(binary), "byteLength": array.nbytes})
+        doc["accessors"].append({"bufferView": len(doc["bufferViews"]) - 1, "componentType": component,
+                                 "count": 3, "type": kind, **({"normalized": True} if normalized else {})})
+        attributes[name] = len(doc["accessors"]) - 1
+        binary += array.tobytes()
+    doc["buffers"][0]["byteLength"] = len(binary)
+    doc["nodes"][0]["extensions"] = {"EXT_mesh_gpu_instancing": {"attributes": attributes}}
+    doc["extensionsUsed"] = doc["extensionsRequired"] = ["EXT_mesh_gpu_instancing"]
+    part, = parse_gltf_bytes(_glb(doc, binary), tmp_path / "i.glb", y_up_to_z_up=False)
+    assert part.n_triangles == 3
+    exact = Rotation.from_quat(rotation.astype(np.float64) / (32767 if rotation_type != "float" else 1))
+    for i in range(3):
+        expected = exact[i].apply(TRI.astype(np.float64) * scale[i]) + translation[i] + [100, 0, 0]
+        tri = part.vertices[part.faces[i]]
+        assert min(np.abs(tri[list(order)] - expected).max() for order in permutations(range(3))) < 1e-5, i
+        normal = np.cross(tri[1] - tri[0], tri[2] - tri[0])
+        assert normal @ exact[i].apply([0, 0, 1]) > 0, i     # the mirror (y -> -y) leaves the front at +z

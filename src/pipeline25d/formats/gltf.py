@@ -4,8 +4,9 @@ A small direct reader (numpy views on buffer views) rather than trimesh, because
 3D Tiles content this pipeline meets needs what trimesh ignores: the ``CESIUM_RTC``
 centre, ``KHR_draco_mesh_compression`` and float64 placement of ECEF-sized offsets.
 
-What is honoured: the node hierarchy (matrix or TRS), the glTF y-up -> 3D Tiles z-up
-rotation ((x, y, z) -> (x, -z, y), optional), ``CESIUM_RTC``, Draco (DracoPy),
+What is honoured: the node hierarchy (matrix or TRS; ``EXT_mesh_gpu_instancing`` instances),
+the glTF y-up -> 3D Tiles z-up rotation ((x, y, z) -> (x, -z, y), optional), ``CESIUM_RTC``,
+Draco (DracoPy),
 ``KHR_mesh_quantization`` (normalised/integer accessors), sparse accessors, base colour
 textures (GLB buffer views, ``data:`` URIs, files relative to the glTF; PNG, JPEG, and WEBP
 by ``EXT_texture_webp``, stored as PNG), their ``KHR_texture_transform``, base colour
@@ -51,6 +52,7 @@ SUPPORTED_EXTENSIONS = frozenset({
     "KHR_mesh_quantization",
     "KHR_texture_transform",
     "EXT_mesh_features",
+    "EXT_mesh_gpu_instancing",
     "EXT_structural_metadata",
     "EXT_texture_webp",
 })
@@ -99,7 +101,7 @@ def parse_gltf_bytes(data: bytes, path: str | Path, y_up_to_z_up: bool = True,
         world = _translation(np.asarray(rtc, dtype=np.float64)) @ world
     parts: list[MeshPart] = []
     skipped_modes: set[int] = set()
-    for mesh_index, node_matrix, node_name in doc.mesh_instances():
+    for mesh_index, node_matrix, node_name, instances in doc.mesh_instances():
         mesh = doc.item("meshes", mesh_index)
         for k, prim in enumerate(mesh.get("primitives", [])):
             mode = int(prim.get("mode", _TRIANGLES))
@@ -107,7 +109,11 @@ def parse_gltf_bytes(data: bytes, path: str | Path, y_up_to_z_up: bool = True,
                 skipped_modes.add(mode)
                 continue
             name = mesh.get("name") or node_name or f"mesh{mesh_index}"
-            part = _primitive_part(doc, prim, world @ node_matrix, f"{name}/{k}")
+            if instances is None:
+                part = _primitive_part(doc, prim, world @ node_matrix, f"{name}/{k}")
+            else:                          # EXT_mesh_gpu_instancing: each instance's TRS, then the node's
+                part = _primitive_part(doc, prim, np.eye(4), f"{name}/{k}")
+                part = None if part is None else repeated(part, world @ node_matrix @ instances)
             if part is not None:
                 parts.append(part)
     doc.limiter.warn()
@@ -161,7 +167,9 @@ class _Document:
             raise InputFileError(self.path, f"glTF references missing {kind}[{index}]") from None
 
     def mesh_instances(self):
-        """(mesh index, 4x4 world matrix, node name) for every node with a mesh in the scene."""
+        """(mesh index, 4x4 world matrix, node name, (k, 4, 4) instance matrices or None) for every
+        node with a mesh in the scene; the instances are its ``EXT_mesh_gpu_instancing``
+        (:meth:`node_instances`)."""
         scenes = self.json.get("scenes")
         if scenes:
             roots = self.item("scenes", self.json.get("scene", 0)).get("nodes", [])
@@ -177,8 +185,30 @@ class _Document:
             node = self.item("nodes", index)
             matrix = parent @ _node_matrix(node)
             if "mesh" in node:
-                yield int(node["mesh"]), matrix, node.get("name", "")
+                yield int(node["mesh"]), matrix, node.get("name", ""), self.node_instances(node)
             stack.extend((int(c), matrix, depth + 1) for c in reversed(node.get("children", [])))
+
+    def node_instances(self, node: dict) -> np.ndarray | None:
+        """(k, 4, 4) T * R * S of each instance a node's ``EXT_mesh_gpu_instancing`` gives (its
+        TRANSLATION, ROTATION (x, y, z, w; normalised integers too) and SCALE accessors, each
+        optional), in the node's frame; None without the extension."""
+        attributes = node.get("extensions", {}).get("EXT_mesh_gpu_instancing", {}).get("attributes")
+        if attributes is None:
+            return None
+        arrays = {name: _as_float(self.accessor(int(i)), self.item("accessors", int(i)))
+                  for name, i in attributes.items() if name in ("TRANSLATION", "ROTATION", "SCALE")}
+        counts = {len(a) for a in arrays.values()}
+        if len(counts) > 1:
+            raise InputFileError(self.path, f"EXT_mesh_gpu_instancing accessors of unequal counts {sorted(counts)}")
+        k = counts.pop() if counts else 0
+        m = np.tile(np.eye(4), (k, 1, 1))
+        if "SCALE" in arrays:
+            m[:, :3, :3] *= arrays["SCALE"][:, None, :3]
+        if "ROTATION" in arrays:
+            m[:, :3, :3] = _quaternion_matrices(arrays["ROTATION"][:, :4]) @ m[:, :3, :3]
+        if "TRANSLATION" in arrays:
+            m[:, :3, 3] = arrays["TRANSLATION"][:, :3]
+        return m
 
     def buffer(self, index: int) -> bytes:
         """Bytes of buffer ``index``: the GLB chunk, a data: URI or a file next to the glTF."""
@@ -346,21 +376,37 @@ def _node_matrix(node: dict) -> np.ndarray:
         m = np.diag([*map(float, node["scale"]), 1.0]) @ m
     if "rotation" in node:
         r = np.eye(4)
-        r[:3, :3] = _quaternion_matrix(np.asarray(node["rotation"], dtype=np.float64))
+        r[:3, :3] = _quaternion_matrices(np.asarray(node["rotation"], dtype=np.float64)[None])[0]
         m = r @ m
     if "translation" in node:
         m = _translation(np.asarray(node["translation"], dtype=np.float64)) @ m
     return m
 
 
-def _quaternion_matrix(q: np.ndarray) -> np.ndarray:
-    """3x3 rotation of a unit quaternion stored (x, y, z, w) as glTF does."""
-    x, y, z, w = q / (np.linalg.norm(q) or 1.0)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
+def _quaternion_matrices(q: np.ndarray) -> np.ndarray:
+    """(k, 3, 3) rotations of (k, 4) quaternions stored (x, y, z, w) as glTF does (normalised first)."""
+    norm = np.linalg.norm(q, axis=1, keepdims=True)
+    x, y, z, w = (q / np.where(norm > 0, norm, 1.0)).T
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], axis=-1),
+        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], axis=-1),
+        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=-1),
+    ], axis=1)
+
+
+def repeated(part: MeshPart, matrices: np.ndarray) -> MeshPart:
+    """One part holding ``part`` (in its own frame) under each of the (k, 4, 4) ``matrices``: its
+    vertices, faces (wound back where a matrix mirrors), colours, UVs and faces' objects repeated."""
+    k, n = len(matrices), len(part.vertices)
+    verts = np.einsum("kij,nj->kni", matrices[:, :3, :3], part.vertices) + matrices[:, None, :3, 3]
+    faces = np.repeat(part.faces[None], k, axis=0)
+    mirrored = np.linalg.det(matrices[:, :3, :3]) < 0
+    faces[mirrored] = faces[mirrored][:, :, [0, 2, 1]]
+    faces += (np.arange(k) * n)[:, None, None]
+    rep = (lambda a: None if a is None else np.tile(a, (k, 1)))
+    face_objects = None if part.face_objects is None else np.tile(part.face_objects, k)
+    return MeshPart(verts.reshape(-1, 3), faces.reshape(-1, 3), rep(part.colors), rep(part.uv), part.texture,
+                    part.name, objects=part.objects, face_objects=face_objects, object_info=part.object_info)
 
 
 def _translation(t: np.ndarray) -> np.ndarray:

@@ -39,7 +39,7 @@ from pipeline25d.core.mesh import Mesh, MeshPart, joined
 from pipeline25d.formats.batch_table import COMPONENT_TYPES, batch_table_rows
 from pipeline25d.formats.common import Detail, Loaded, in_scene
 from pipeline25d.formats.feature_info import feature_prefix, with_feature_info
-from pipeline25d.formats.gltf import parse_gltf_bytes
+from pipeline25d.formats.gltf import parse_gltf_bytes, repeated
 from pipeline25d.formats.tileset_tree import read_json, resolve, select
 
 _B3DM_HEADER = 28
@@ -283,18 +283,12 @@ def _instance_matrices(table: dict, body: bytes, path: Path) -> np.ndarray:
 def _instanced(part: MeshPart, matrices: np.ndarray, batch_ids: np.ndarray, prefix: str) -> MeshPart:
     """One part holding ``part`` repeated under each of ``matrices``; without feature ids of its own,
     instance ``j``'s faces belong to the object ``<prefix>#<batch_ids[j]>``."""
-    k, n = len(matrices), len(part.vertices)
-    verts = np.einsum("kij,nj->kni", matrices[:, :3, :3], part.vertices) + matrices[:, None, :3, 3]
-    faces = part.faces[None, :, :] + (np.arange(k) * n)[:, None, None]
-    rep = (lambda a: None if a is None else np.tile(a, (k, 1)))
-    if part.face_objects is not None:
-        keys, face_objects = part.objects, np.tile(part.face_objects, k)
-    else:
+    out = repeated(part, matrices)
+    if part.face_objects is None:
         held, inverse = np.unique(batch_ids, return_inverse=True)
-        keys, face_objects = tuple(f"{prefix}#{b}" for b in held), np.repeat(inverse, part.n_triangles)
-    return MeshPart(verts.reshape(-1, 3), faces.reshape(-1, 3), rep(part.colors), rep(part.uv),
-                    part.texture, part.name, objects=keys, face_objects=face_objects,
-                    object_info=part.object_info)
+        out = replace(out, objects=tuple(f"{prefix}#{b}" for b in held),
+                      face_objects=np.repeat(inverse, part.n_triangles))
+    return out
 
 
 def _parse_cmpt(data: bytes, path: Path, y_up: bool, root: Path) -> list[MeshPart]:
