@@ -260,3 +260,75 @@ def test_a_tileset_read_in_pieces_holds_the_triangles_of_a_whole_read(monkeypatc
 
     assert len(pieces) > 10 and np.array_equal(triangles(pieces), triangles([whole]))
     assert sum(m.n_triangles for m in pieces) == whole.n_triangles
+
+
+# ----------------------------------------------------------------------------- i3dm orientation
+
+TRI_Z_UP = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])   # test_formats_gltf's TRI, z up
+
+
+def _i3dm(table: dict, binary: bytes) -> bytes:
+    """An i3dm of the one-triangle glTF (embedded GLB) with feature ``table`` and its ``binary``."""
+    import struct
+
+    from test_formats_gltf import _glb, _gltf
+
+    glb = _glb(*_gltf())
+    ft_json = json.dumps(table).encode()
+    ft_json += b" " * (-(32 + len(ft_json)) % 8)
+    binary += b"\0" * (-len(binary) % 8)
+    total = 32 + len(ft_json) + len(binary) + len(glb)
+    return struct.pack("<4s7I", b"i3dm", 1, total, len(ft_json), len(binary), 0, 0, 1) + ft_json + binary + glb
+
+
+def _enu_reference(lon_deg: float, lat_deg: float) -> np.ndarray:
+    """East, north, up (columns) at a geodetic longitude and latitude (the textbook formulas)."""
+    lon, lat = np.radians(lon_deg), np.radians(lat_deg)
+    return np.column_stack([[-np.sin(lon), np.cos(lon), 0.0],
+                            [-np.sin(lat) * np.cos(lon), -np.sin(lat) * np.sin(lon), np.cos(lat)],
+                            [np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)]])
+
+
+def test_i3dm_east_north_up_stands_each_instance_up_where_it_is(tmp_path):
+    """EAST_NORTH_UP: each instance's axes become east, north and up at its own ECEF position (two
+    instances 40 km apart, on the ellipsoid; pyproj gives their longitude and latitude, the
+    textbook formulas the axes). Before, the flag was ignored: instances lay along ECEF's axes."""
+    from pyproj import Transformer
+
+    lonlat = np.array([[4.90, 52.37], [5.40, 52.30]])
+    ecef = np.column_stack(Transformer.from_crs("EPSG:4979", "EPSG:4978", always_xy=True).transform(
+        lonlat[:, 0], lonlat[:, 1], np.zeros(2)))
+    rtc = ecef[0]
+    table = {"INSTANCES_LENGTH": 2, "RTC_CENTER": rtc.tolist(), "POSITION": {"byteOffset": 0}, "EAST_NORTH_UP": True}
+    path = tmp_path / "trees.i3dm"
+    path.write_bytes(_i3dm(table, (ecef - rtc).astype(np.float32).tobytes()))
+    part, = read_content(path)
+    local = TRI_Z_UP
+    for i in range(2):
+        expected = (rtc + (ecef[i] - rtc).astype(np.float32)) + local @ _enu_reference(*lonlat[i]).T
+        np.testing.assert_allclose(part.vertices[part.faces[i]], expected, atol=1e-6)
+
+
+def _oct_encode(v: np.ndarray) -> np.ndarray:
+    """The octahedral encoding in 0..65535 (Cigolle et al. 2014, as 3D Tiles' *_OCT32P stores it)."""
+    p = v / np.abs(v).sum()
+    if p[2] < 0:
+        p = np.array([(1 - abs(p[1])) * (1 if p[0] >= 0 else -1), (1 - abs(p[0])) * (1 if p[1] >= 0 else -1), 0.0])
+    return np.round((p[:2] * 0.5 + 0.5) * 65535).astype(np.uint16)
+
+
+def test_i3dm_oct_encoded_normals_orient_the_instance(tmp_path):
+    """NORMAL_UP_OCT32P / NORMAL_RIGHT_OCT32P: decoded, they orient the instance as NORMAL_UP and
+    NORMAL_RIGHT would (16-bit normals: within 1e-4 on a unit triangle); an up vector below the
+    horizon exercises the octahedron's folded half. Before, they were ignored."""
+    up = np.array([1.0, -2.0, -3.0]) / np.sqrt(14.0)
+    right = np.cross(up, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    table = {"INSTANCES_LENGTH": 1, "POSITION": {"byteOffset": 0}, "NORMAL_UP_OCT32P": {"byteOffset": 12},
+             "NORMAL_RIGHT_OCT32P": {"byteOffset": 16}}
+    binary = np.zeros(3, np.float32).tobytes() + _oct_encode(up).tobytes() + _oct_encode(right).tobytes()
+    path = tmp_path / "one.i3dm"
+    path.write_bytes(_i3dm(table, binary))
+    part, = read_content(path)
+    rotation = np.column_stack([right, up, np.cross(right, up)])
+    np.testing.assert_allclose(part.vertices[part.faces[0]], TRI_Z_UP @ rotation.T, atol=1e-4)

@@ -82,3 +82,19 @@ def check_within_area_of_use(points_lonlat: np.ndarray, dst: str, where: str) ->
             f"{where}: model at lon {lon.min():.4f}..{lon.max():.4f}, lat {lat.min():.4f}..{lat.max():.4f} "
             f"lies outside the area of use of {dst} ({area.name})"
         )
+
+
+def east_north_up_axes(points: np.ndarray) -> np.ndarray:
+    """(k, 3, 3) east, north and up unit vectors (columns) at (k, 3) ECEF points, as CesiumJS's
+    ``eastNorthUpToFixedFrame`` makes them: up along the WGS 84 ellipsoid's normal by the point's
+    own coordinates (x/a², y/a², z/b²), east = z × up, north = up × east; at a pole, east is +y."""
+    from pyproj import Geod
+
+    geod = Geod(ellps="WGS84")
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    up = points / np.array([geod.a ** 2, geod.a ** 2, geod.b ** 2])
+    up /= np.linalg.norm(up, axis=1, keepdims=True)
+    east = np.column_stack([-points[:, 1], points[:, 0], np.zeros(len(points))])
+    length = np.linalg.norm(east, axis=1, keepdims=True)
+    east = np.where(length > 0, east / np.where(length > 0, length, 1.0), [0.0, 1.0, 0.0])
+    return np.stack([east, np.cross(up, east), up], axis=2)

@@ -212,9 +212,9 @@ def _parse_i3dm(data: bytes, path: Path, y_up: bool, root: Path) -> list[MeshPar
     instance an object ``<file>#<batch id>`` (``BATCH_ID``, else its index) with its row of the
     batch table as attributes (where the glTF's own faces carry no feature ids).
 
-    Supported: POSITION, POSITION_QUANTIZED, RTC_CENTER, NORMAL_UP + NORMAL_RIGHT,
-    SCALE, SCALE_NON_UNIFORM. EAST_NORTH_UP and oct-encoded normals are ignored with a
-    warning (instances keep the tile's axes).
+    Supported: POSITION, POSITION_QUANTIZED, RTC_CENTER, NORMAL_UP + NORMAL_RIGHT (or their
+    oct-encoded ``*_OCT32P``), EAST_NORTH_UP (at the instance's position in the tile's frame,
+    which such tiles give in ECEF), SCALE, SCALE_NON_UNIFORM.
     """
     length = _check_length(data, path, _I3DM_HEADER)
     ft_json, ft_bin, bt_json, bt_bin, gltf_format = struct.unpack_from("<5I", data, 12)
@@ -265,10 +265,15 @@ def _instance_matrices(table: dict, body: bytes, path: Path) -> np.ndarray:
     m[:, :3, 3] = pos + (rtc[0] if rtc is not None else 0.0)
     up = _feature_array(table, body, "NORMAL_UP", count, 3, "float32", path)
     right = _feature_array(table, body, "NORMAL_RIGHT", count, 3, "float32", path)
+    if up is None or right is None:
+        up_oct = _feature_array(table, body, "NORMAL_UP_OCT32P", count, 2, "uint16", path)
+        right_oct = _feature_array(table, body, "NORMAL_RIGHT_OCT32P", count, 2, "uint16", path)
+        if up_oct is not None and right_oct is not None:
+            up, right = oct_decoded(up_oct), oct_decoded(right_oct)
     if up is not None and right is not None:
         m[:, :3, 0], m[:, :3, 1], m[:, :3, 2] = right, up, np.cross(right, up)
-    elif any(k in table for k in ("EAST_NORTH_UP", "NORMAL_UP_OCT32P", "NORMAL_RIGHT_OCT32P")):
-        warnings.warn(f"{path}: i3dm instance orientation (EAST_NORTH_UP/oct normals) ignored", stacklevel=4)
+    elif table.get("EAST_NORTH_UP") and count:
+        m[:, :3, :3] = _east_north_up(m[:, :3, 3], path)
     scale = _feature_array(table, body, "SCALE", count, 1, "float32", path)
     non_uniform = _feature_array(table, body, "SCALE_NON_UNIFORM", count, 3, "float32", path)
     factors = np.ones((count, 3))
@@ -278,6 +283,34 @@ def _instance_matrices(table: dict, body: bytes, path: Path) -> np.ndarray:
         factors *= non_uniform
     m[:, :3, :3] *= factors[:, None, :]
     return m
+
+
+def oct_decoded(encoded: np.ndarray) -> np.ndarray:
+    """(k, 3) unit vectors of (k, 2) oct-encoded normals in 0..65535 (3D Tiles' ``*_OCT32P``, the
+    octahedral mapping CesiumJS's ``AttributeCompression.octDecodeInRange`` reads)."""
+    xy = np.asarray(encoded, dtype=np.float64) / 65535.0 * 2.0 - 1.0
+    x, y = xy[:, 0], xy[:, 1]
+    z = 1.0 - np.abs(x) - np.abs(y)
+    folded = z < 0
+    sign = (lambda v: np.where(v >= 0, 1.0, -1.0))
+    x2 = np.where(folded, (1.0 - np.abs(y)) * sign(x), x)
+    y2 = np.where(folded, (1.0 - np.abs(x)) * sign(y), y)
+    v = np.column_stack([x2, y2, z])
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def _east_north_up(positions: np.ndarray, path: Path) -> np.ndarray:
+    """(k, 3, 3) rotations taking each i3dm instance's axes to east, north, up at its position
+    (``EAST_NORTH_UP``), where the positions are ECEF as such tiles are written (their norms within
+    100 km of the Earth's radii); else the identity, with a warning."""
+    from pipeline25d.core.crs import east_north_up_axes
+
+    radius = np.linalg.norm(positions, axis=1)
+    if not ((radius > 6.25e6) & (radius < 6.48e6)).all():
+        warnings.warn(f"{path}: i3dm EAST_NORTH_UP on positions that are not Earth-centred (|p| "
+                      f"{radius.min():.0f}..{radius.max():.0f} m): the instances keep the tile's axes", stacklevel=5)
+        return np.tile(np.eye(3), (len(positions), 1, 1))
+    return east_north_up_axes(positions)
 
 
 def _instanced(part: MeshPart, matrices: np.ndarray, batch_ids: np.ndarray, prefix: str) -> MeshPart:
