@@ -6,8 +6,7 @@ centre, ``KHR_draco_mesh_compression`` and float64 placement of ECEF-sized offse
 
 What is honoured: the node hierarchy (matrix or TRS; ``EXT_mesh_gpu_instancing`` instances),
 the glTF y-up -> 3D Tiles z-up rotation ((x, y, z) -> (x, -z, y), optional), ``CESIUM_RTC``,
-Draco (DracoPy),
-``KHR_mesh_quantization`` (normalised/integer accessors), sparse accessors, base colour
+Draco (DracoPy), ``KHR_mesh_quantization`` (normalised/integer accessors), sparse accessors, base colour
 textures (GLB buffer views, ``data:`` URIs, files relative to the glTF; PNG, JPEG, and WEBP
 by ``EXT_texture_webp``, stored as PNG), their ``KHR_texture_transform``, base colour
 factor and ``COLOR_0`` as vertex colours of untextured parts. Triangles come as lists, strips
@@ -119,8 +118,7 @@ def parse_gltf_bytes(data: bytes, path: str | Path, y_up_to_z_up: bool = True,
     doc.limiter.warn()
     if skipped_modes:
         warnings.warn(f"{path}: skipped primitives with mode {sorted(skipped_modes)} (points and lines: only "
-                      "triangles are read)",
-                      stacklevel=2)
+                      "triangles are read)", stacklevel=2)
     return parts
 
 

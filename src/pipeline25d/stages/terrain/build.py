@@ -89,6 +89,7 @@ def _ground_from_model(inputs: dict, scene_crs: str, ground_cfg: dict, dsm_path:
     dsm_src = FloatRaster(dsm_path)
     grid = dsm_src.grid
     own = _own_terrain(inputs, scene_crs)
+
     def by_shape(name: str) -> tuple[Mesh, bool] | None:   # at the LOD the DSM was rendered from
         own_chunks = [c for c in chunks if c.district == name]
         found = buildings_by_shape(chunk_loaders(own_chunks, DSM_LOD_CELLS * grid.res), dsm_src)

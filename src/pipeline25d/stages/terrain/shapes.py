@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline25d.core.geotiff import FloatRaster
+from pipeline25d.core.grid import Grid
 from pipeline25d.core.mesh import Mesh, MeshPart
 
 log = logging.getLogger(__name__)
@@ -74,14 +75,14 @@ def buildings_by_shape(chunks: Sequence[ChunkLoader], dsm: FloatRaster) -> Shape
     groups = buildings = ground_chunks = 0
     others_seen = seen = 0.0
     for bounds, load in chunks:
-        shown = _dsm_window(dsm, np.asarray(bounds) + [[-AROUND_M], [AROUND_M]])
-        if shown is None:
+        window = _dsm_window(dsm, np.asarray(bounds) + [[-AROUND_M], [AROUND_M]])
+        if window is None:
             continue
-        if np.isfinite(shown).mean() >= 1.0 - EMPTY_SHARE:
+        if np.isfinite(window[0]).mean() >= 1.0 - EMPTY_SHARE:
             ground_chunks += 1
             continue
         _, parts = load()
-        found = _chunk_buildings(parts, dsm)
+        found = _chunk_buildings(parts, dsm.grid, window)
         if found is None:
             continue
         points, faces, classes, in_building, is_building, seen_area = found
@@ -94,8 +95,9 @@ def buildings_by_shape(chunks: Sequence[ChunkLoader], dsm: FloatRaster) -> Shape
                           ground_chunks)
 
 
-def _dsm_window(dsm: FloatRaster, bounds: np.ndarray) -> np.ndarray | None:
-    """The DSM's cells whose centres lie in the chunk's plan ``bounds``; None if there are none."""
+def _dsm_window(dsm: FloatRaster, bounds: np.ndarray) -> tuple[np.ndarray, int, int] | None:
+    """The DSM's cells whose centres lie in the plan ``bounds`` (a chunk's, widened) and the row and
+    column of the first; None if there are none."""
     grid = dsm.grid
     c0, r0 = grid.colrow(bounds[0][0], bounds[1][1])
     c1, r1 = grid.colrow(bounds[1][0], bounds[0][1])
@@ -103,26 +105,25 @@ def _dsm_window(dsm: FloatRaster, bounds: np.ndarray) -> np.ndarray | None:
     rows = slice(max(int(np.ceil(r0 - 0.5)), 0), min(int(np.floor(r1 - 0.5)) + 1, grid.height))
     if cols.stop <= cols.start or rows.stop <= rows.start:
         return None
-    return dsm.read(rows, cols)
+    return dsm.read(rows, cols), rows.start, cols.start
 
 
-def _chunk_buildings(parts: list[MeshPart], dsm: FloatRaster
+def _chunk_buildings(parts: list[MeshPart], grid: Grid, window: tuple[np.ndarray, int, int]
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """(points, faces, class of each face, whether its group is a building; per group: whether it is
-    a building, its plan area seen from above) of a chunk's parts.
+    a building, its plan area seen from above) of a chunk's parts, the DSM of ``grid`` read around
+    them (:func:`_dsm_window`).
 
     Classes by normal, but a downward face is "ground" only at its group's foot (within
     :data:`~pipeline25d.stages.terrain.bases.BASE_TOL_M` of its lowest point): higher, it is
     the underside of an overhang, and counts as wall."""
-    from pipeline25d.formats.surfaces import normal_classes
+    from pipeline25d.formats.surfaces import join_pieces, normal_classes
     from pipeline25d.stages.terrain.bases import BASE_TOL_M, components, welded
 
     parts = [p for p in parts if p.n_triangles]
     if not parts:
         return None
-    offsets = np.cumsum([0] + [len(p.vertices) for p in parts])
-    points, faces = welded(np.concatenate([p.vertices for p in parts]),
-                           np.concatenate([p.faces + o for p, o in zip(parts, offsets)]))
+    points, faces = welded(*join_pieces([(p.vertices, p.faces) for p in parts]))
     label = components(faces, len(points))
     n = int(label.max()) + 1
     foot = np.full(n, np.inf)
@@ -137,7 +138,7 @@ def _chunk_buildings(parts: list[MeshPart], dsm: FloatRaster
     classes[(classes == "ground") & (height > BASE_TOL_M)] = "wall"
     level = by_normal != "wall"
     above = np.full(len(faces), np.nan)
-    above[level] = _sample(dsm, centre[level, 0], centre[level, 1]) - centre[level, 2]
+    above[level] = _sample(grid, window, centre[level, 0], centre[level, 1]) - centre[level, 2]
     seen = level & np.isfinite(above) & (above < MIN_STOREY_M)
     at_foot = seen & (height < MIN_STOREY_M)
     area = np.abs(normal[:, 2]) / 2                                  # plan area
@@ -147,17 +148,14 @@ def _chunk_buildings(parts: list[MeshPart], dsm: FloatRaster
     return points, faces, classes, is_building[group], is_building, seen_area
 
 
-def _sample(dsm: FloatRaster, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """The DSM at the cells holding (x, y) (NaN outside the grid), read over their bounding window."""
+def _sample(grid: Grid, window: tuple[np.ndarray, int, int], x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """The DSM at the cells of ``grid`` holding (x, y), from the ``window`` read of it (NaN outside)."""
+    values, r0, c0 = window
+    col, row = (np.floor(v).astype(np.int64) for v in grid.colrow(x, y))
+    r, c = row - r0, col - c0
+    inside = (r >= 0) & (r < values.shape[0]) & (c >= 0) & (c < values.shape[1])
     out = np.full(len(x), np.nan)
-    if not len(x):
-        return out
-    col, row = (np.floor(v).astype(np.int64) for v in dsm.grid.colrow(x, y))
-    inside = (col >= 0) & (col < dsm.grid.width) & (row >= 0) & (row < dsm.grid.height)
-    if inside.any():
-        r0, c0 = int(row[inside].min()), int(col[inside].min())
-        window = dsm.read(slice(r0, int(row[inside].max()) + 1), slice(c0, int(col[inside].max()) + 1))
-        out[inside] = window[row[inside] - r0, col[inside] - c0]
+    out[inside] = values[r[inside], c[inside]]
     return out
 
 
