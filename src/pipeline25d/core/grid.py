@@ -18,6 +18,7 @@ import numpy as np
 from affine import Affine
 
 TIFF_TILE = 256             # GeoTIFF tile edge (GDAL's default); block cores are cut at its multiples
+HALVE_SPANS = 4             # cell_blocks(halve=True): a one-block grid this many margins long is cut in two
 
 
 # Cells of a block's window (core and margins). The CSF holds ~115 bytes a cell (cloth particles
@@ -204,7 +205,7 @@ class Block(NamedTuple):
 
 def cell_blocks(height: int, width: int, margin: int, max_cells: int = BLOCK_CELLS,
                 row_cuts: Sequence[int] | None = None, col_cuts: Sequence[int] | None = None,
-                align: int = 1) -> list[Block]:
+                align: int = 1, halve: bool = False) -> list[Block]:
     """Cores tiling a height x width grid, each with a window ``margin`` cells wider on every side.
 
     A grid of at most ``max_cells`` cells is one block (so small scenes are processed whole).
@@ -213,20 +214,38 @@ def cell_blocks(height: int, width: int, margin: int, max_cells: int = BLOCK_CEL
     of TIFF_TILE, so each block written fills whole GeoTIFF tiles). ``align``: windows start
     (columns) and end (rows, counted from the grid's bottom row) at multiples of it, which keeps
     the CSF's cloth grid, anchored at the lower-left point, where the whole grid has it.
+    ``halve``: a grid of one block whose longer side spans at least :data:`HALVE_SPANS` margins is
+    cut in two across that side, so that two cores share it (the layout still depends on the grid
+    alone): each half's window is at most 3/4 of the side.
     """
     if height * width <= max_cells:
+        if halve and max(height, width) >= HALVE_SPANS * margin:
+            return _halves(height, width, margin, align)
         whole = (slice(0, height), slice(0, width))
         return [Block(whole, whole)]
     span = max(math.isqrt(max_cells) - 2 * margin, margin, TIFF_TILE)
-    blocks = []
-    for r0, r1 in _spans(height, span, row_cuts):
-        for c0, c1 in _spans(width, span, col_cuts):
-            c_start = max(c0 - margin, 0)
-            r_stop = min(r1 + margin, height)
-            window = (slice(max(r0 - margin, 0), r_stop + (height - r_stop) % align),
-                      slice(c_start - c_start % align, min(c1 + margin, width)))
-            blocks.append(Block((slice(r0, r1), slice(c0, c1)), window))
-    return blocks
+    return [_block(r0, r1, c0, c1, height, width, margin, align)
+            for r0, r1 in _spans(height, span, row_cuts) for c0, c1 in _spans(width, span, col_cuts)]
+
+
+def _halves(height: int, width: int, margin: int, align: int = 1) -> list[Block]:
+    """Two blocks (:func:`cell_blocks`' windows) of a height x width grid, cut across its longer
+    side at the multiple of TIFF_TILE nearest its middle; one block when that side has none."""
+    rows = height > width
+    cut = _spans(height if rows else width, math.ceil(max(height, width) / 2), None)
+    if rows:
+        return [_block(r0, r1, 0, width, height, width, margin, align) for r0, r1 in cut]
+    return [_block(0, height, c0, c1, height, width, margin, align) for c0, c1 in cut]
+
+
+def _block(r0: int, r1: int, c0: int, c1: int, height: int, width: int, margin: int, align: int) -> Block:
+    """The block of core rows r0..r1, columns c0..c1: its window ``margin`` cells wider on every
+    side within the grid, aligned as :func:`cell_blocks` says."""
+    c_start = max(c0 - margin, 0)
+    r_stop = min(r1 + margin, height)
+    window = (slice(max(r0 - margin, 0), r_stop + (height - r_stop) % align),
+              slice(c_start - c_start % align, min(c1 + margin, width)))
+    return Block((slice(r0, r1), slice(c0, c1)), window)
 
 
 def _spans(length: int, span: int, cuts: Sequence[int] | None) -> list[tuple[int, int]]:

@@ -24,7 +24,8 @@ DSM_LOD_CELLS = 0.25      # the DSM is rendered from the coarsest LOD within thi
 def build_terrain(chunks: Sequence[LodChunk], inputs: dict, scene_crs: str, gsd: float, terrain: str,
                   ground_cfg: dict, out_dsm: str | Path, out_ground: str | Path | None, out_json: str | Path,
                   processes: int = 1) -> dict:
-    """Render the DSM of the LOD ``chunks``; with ``terrain: auto`` also find its ground cells (see :mod:`pipeline25d.stages.terrain`).
+    """Render the DSM of the LOD ``chunks``; with ``terrain: auto`` also find its ground cells
+    (see :mod:`pipeline25d.stages.terrain`).
 
     ``out_ground`` holds the ground heights (NaN elsewhere); the scene stage interpolates
     the DTM from it once it knows the check points, which it holds out of the DTM. Both
@@ -34,8 +35,9 @@ def build_terrain(chunks: Sequence[LodChunk], inputs: dict, scene_crs: str, gsd:
     from pipeline25d.core.cores import fork_pool
     from pipeline25d.core.crs import horizontal_wkt
     from pipeline25d.core.geotiff import float_geotiff_writer
-    from pipeline25d.core.grid import Grid, cell_blocks
+    from pipeline25d.core.grid import Grid
     from pipeline25d.stages.terrain.dsm import auto_resolution, dsm_tiles, height_map_tiles
+    from pipeline25d.stages.terrain.ground import ground_layout
 
     _, lo, hi = scene_bounds(chunks)
     bounds_xy = (lo[0], lo[1], hi[0], hi[1])
@@ -48,7 +50,8 @@ def build_terrain(chunks: Sequence[LodChunk], inputs: dict, scene_crs: str, gsd:
     with ExitStack() as stack:
         # workers where the DSM's render tiles or the ground filter's blocks can be shared, forked before
         # the DSM render makes this job large
-        blocks = terrain == "auto" and len(cell_blocks(grid.height, grid.width, 0)) > 1
+        blocks = terrain == "auto" and len(ground_layout(grid, ground_cfg["max_object_size"],
+                                                         cloth_resolution(ground_cfg, res))) > 1
         several = processes > 1 and (blocks or len(dsm_tiles(grid)) > 1)
         pool = stack.enter_context(fork_pool(processes)) if several else None
         with float_geotiff_writer(out_dsm, grid, wkt) as write:
@@ -68,6 +71,12 @@ def build_terrain(chunks: Sequence[LodChunk], inputs: dict, scene_crs: str, gsd:
         record.update({"source": f"user DTM {terrain}", "dtm": terrain})
     write_json(out_json, record)
     return record
+
+
+def cloth_resolution(ground_cfg: dict, res: float) -> float:
+    """The Cloth Simulation Filter's grid (m): the config's, or twice the DSM's cells (auto)."""
+    cloth = ground_cfg["cloth_resolution"]
+    return 2 * res if cloth == "auto" else float(cloth)
 
 
 def _ground_from_model(inputs: dict, scene_crs: str, ground_cfg: dict, dsm_path: str | Path,
@@ -104,8 +113,7 @@ def _ground_from_model(inputs: dict, scene_crs: str, ground_cfg: dict, dsm_path:
     bases = district_bases(inputs, scene_crs, own["districts"], 2 * ground_cfg["max_object_size"], by_shape)
     sources = []
     if set(inputs) - set(own["districts"]) - set(bases.buildings_only):
-        cloth = ground_cfg["cloth_resolution"]
-        cloth = 2 * grid.res if cloth == "auto" else float(cloth)
+        cloth = cloth_resolution(ground_cfg, grid.res)
         blocks = ground_blocks(dsm_src.read, grid, ground_cfg["max_object_size"], cloth, ground_cfg["rigidness"],
                                ground_cfg["class_threshold"], processes=processes, pool=pool)
         sources.append("model surface (nadir DSM, Cloth Simulation Filter)")

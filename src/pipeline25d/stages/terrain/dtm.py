@@ -115,8 +115,9 @@ def dtm_blocks(read: Callable[[slice, slice], np.ndarray], grid: Grid, search_ce
 
 
 def dtm_layout(grid: Grid, search_cells: int, max_cells: int = BLOCK_CELLS) -> list[Block]:
-    """The blocks :func:`dtm_blocks` fills: each core's window reaches search + 1 cells beyond it."""
-    return cell_blocks(grid.height, grid.width, max(int(search_cells), 1) + 1, max_cells)
+    """The blocks :func:`dtm_blocks` fills: each core's window reaches search + 1 cells beyond it
+    (a mid-sized grid halved, so that two workers share it: the fill is exact either way)."""
+    return cell_blocks(grid.height, grid.width, max(int(search_cells), 1) + 1, max_cells, halve=True)
 
 
 def block_dtm(read: Callable[[slice, slice], np.ndarray], grid: Grid, core: tuple[slice, slice], search_cells: int,
