@@ -117,15 +117,21 @@ def test_each_cog_encode_takes_the_cores_idle_when_it_runs(monkeypatch, tmp_path
     calls the same warp.encode_options) asks GDAL for those or for the cores idle at that moment
     where more (core.cores.job_workers, measured then, not when the job started)."""
     from pipeline25d import jobs
+    from pipeline25d.stages import gcps
     from pipeline25d.stages.maps import warp
 
-    seen = {}
-    monkeypatch.setattr(warp, "warp", lambda *a, **k: seen.update(k))
-    job = SimpleNamespace(input=SimpleNamespace(mosaic="m.vrt", gcps="g.csv", plan="p.json"),
-                          output=SimpleNamespace(cog="c.tif", meta="c.json"),
-                          params=SimpleNamespace(warp={}, maps={}, work="w", cells_note="n.json"), threads=2)
+    seen, gathered = {}, []
+    monkeypatch.setattr(warp, "warp", lambda *a, **k: seen.update(k, args=a))
+    monkeypatch.setattr(warp, "build_mosaic", lambda tiles, vrt: gathered.append((tiles, vrt)))
+    monkeypatch.setattr(gcps, "gather_gcps", lambda tiles, csv: gathered.append((tiles, csv)))
+    job = SimpleNamespace(input=SimpleNamespace(plan="p.json"),
+                          output=SimpleNamespace(mosaic="m.vrt", gcps="g.csv", cog="c.tif", meta="c.json"),
+                          params=SimpleNamespace(tiles=["b.tif", "a.tif"], gcp_tiles=["a.gcps.csv"], warp={}, maps={},
+                                                 work="w", cells_note="n.json"), threads=2)
     jobs.warp_job(job)
     assert seen["threads"] == 2 and seen["cells_note"] == "n.json"
+    assert gathered == [(["a.tif", "b.tif"], "m.vrt"), (["a.gcps.csv"], "g.csv")]    # the mosaic first, then the warp
+    assert seen["args"][:3] == ("m.vrt", "g.csv", "p.json")
 
     idle = iter([1, 3])                     # the cores idle at the first encode, then at the second
     given, calls = [], []

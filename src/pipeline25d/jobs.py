@@ -83,29 +83,23 @@ def render_block_job(job: Job) -> None:
                               objects=p.objects)
 
 
-def mosaic_job(job: Job) -> None:
+def warp_job(job: Job) -> None:
     from pipeline25d.stages import gcps
     from pipeline25d.stages.maps import warp
 
-    warp.build_mosaic(sorted(job.params.tiles), job.output.vrt)
-    gcps.gather_gcps(list(job.params.gcp_tiles), job.output.gcps)
-    if hasattr(job.output, "ids"):                   # objects.enabled: the tiles' object ids too
-        warp.build_mosaic(sorted(job.params.id_tiles), job.output.ids)
-
-
-def warp_job(job: Job) -> None:
-    from pipeline25d.stages.maps import warp
-
-    p, i, o = job.params, job.input, job.output
+    p, o = job.params, job.output
+    warp.build_mosaic(sorted(p.tiles), o.mosaic)
+    gcps.gather_gcps(list(p.gcp_tiles), o.gcps)
     threads = job.threads                            # each COG encode adds the cores idle when it runs
     cells: dict = {}                                 # the mosaic's digests, made once for both maps
-    warp.warp(i.mosaic, i.gcps, i.plan, dict(p.warp), o.cog, o.meta, dict(p.maps), work_dir=p.work, threads=threads,
-              cells_memo=cells, cells_note=p.cells_note)
-    if hasattr(o, "ids"):                            # objects.enabled: the id map, by the warp just chosen
+    warp.warp(o.mosaic, o.gcps, job.input.plan, dict(p.warp), o.cog, o.meta, dict(p.maps), work_dir=p.work,
+              threads=threads, cells_memo=cells, cells_note=p.cells_note)
+    if hasattr(o, "ids"):                            # objects.enabled: the tiles' object ids, by the warp just chosen
         from pipeline25d.stages.maps.ids import id_map
 
-        id_map(i.ids, i.mosaic, i.gcps, o.meta, o.cog, o.ids, o.id_stats, work_dir=p.id_work, threads=threads,
-               cells_memo=cells)
+        warp.build_mosaic(sorted(p.id_tiles), o.id_mosaic)
+        id_map(o.id_mosaic, o.mosaic, o.gcps, o.meta, o.cog, o.ids, o.id_stats, work_dir=p.id_work,
+               threads=threads, cells_memo=cells)
 
 
 def tms_job(job: Job) -> None:
@@ -192,7 +186,7 @@ def wms_job(job: Job) -> None:
 #: rule name -> its function, in the order data moves through the workflow
 RULES: dict[str, Callable[[Job], None]] = {
     "ingest": ingest_job, "terrain": terrain_job, "scene": scene_job, "plan": plan_job,
-    "render_block": render_block_job, "mosaic": mosaic_job, "warp": warp_job, "tms": tms_job, "pmtiles": pmtiles_job,
+    "render_block": render_block_job, "warp": warp_job, "tms": tms_job, "pmtiles": pmtiles_job,
     "objects": objects_job, "heights_blocks": heights_blocks_job, "heights_block": heights_block_job,
     "heights": heights_job, "report": report_job, "viewer": viewer_job, "wms": wms_job,
 }

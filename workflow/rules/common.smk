@@ -66,8 +66,8 @@ with stop_on_error(log=False):
 
 
 def with_ids(**files):
-    """A rule's named inputs, outputs or params of the id layer: the map's own jobs (mosaic, warp, tms)
-    make the ids beside the map in the same job (one start-up, not three more jobs per view), so
+    """A rule's named inputs, outputs or params of the id layer: the map's own jobs (warp, tms)
+    make the ids beside the map in the same job (one start-up, not two more jobs per view), so
     these are ``**``-added to them, and are none without objects.enabled."""
     return files if OBJECTS else {}
 
