@@ -43,14 +43,21 @@ def test_the_html_report_shows_a_thumbnail_of_every_map(small_run):
 
 
 def test_the_page_is_the_same_whether_its_figures_are_drawn_here_or_by_two_workers(small_run):
-    from pipeline25d.publish.report_html import render_html
+    """The pictures drawn here, by two forked workers, and by the run's report_figures job (before the
+    web tiles were cut) make the same page: the one the run's report job wrote."""
+    from pipeline25d.publish.report_html import draw_figures, render_html
 
     _, results = small_run
     report = json.loads((results / "report" / "report.json").read_text())
     assert len(report["perspectives"]) > 1
-    here = render_html(report, results)
-    assert render_html(report, results, processes=2) == here
-    assert here.count('<img class="residuals"') == len(report["perspectives"])
+    pids = [p["id"] for p in report["perspectives"]]
+    here = draw_figures(pids, report["gsd"], results)
+    assert draw_figures(pids, report["gsd"], results, processes=2) == here
+    assert sorted(here["maps"]) == sorted(p["id"] for p in report["perspectives"])
+    assert json.loads((results / "work" / "report" / "figures.json").read_text()) == here
+    page = render_html(report, results, here)
+    assert page == (results / "report" / "report.html").read_text()
+    assert page.count('<img class="residuals"') == len(report["perspectives"])
 
 
 def test_residual_arrows_are_the_check_points_errors_from_the_csv(small_run):

@@ -158,13 +158,20 @@ def heights_job(job: Job) -> None:
                  job.output.csv, job.output.json)
 
 
+def report_figures_job(job: Job) -> None:
+    from pipeline25d.publish.report_html import write_figures
+
+    # beside the last web-tile cuts: its maps on the cores idle too
+    p = job.params
+    write_figures(list(p.perspectives), p.gsd, p.results, job.output[0], processes=job_workers(job.threads))
+
+
 def report_job(job: Job) -> None:
     from pipeline25d.publish.report import write_report
     from pipeline25d.publish.report_html import write_html
 
     rep = write_report(dict(job.params.config), job.params.results, job.output.json, job.output.md)
-    # last in a run, alone: its figures on the cores idle too
-    write_html(rep, job.params.results, job.output.html, processes=job_workers(job.threads))
+    write_html(rep, job.params.results, job.input.figures, job.output.html)
 
 
 def viewer_job(job: Job) -> None:
@@ -188,7 +195,8 @@ RULES: dict[str, Callable[[Job], None]] = {
     "ingest": ingest_job, "terrain": terrain_job, "scene": scene_job, "plan": plan_job,
     "render_block": render_block_job, "warp": warp_job, "tms": tms_job, "pmtiles": pmtiles_job,
     "objects": objects_job, "heights_blocks": heights_blocks_job, "heights_block": heights_block_job,
-    "heights": heights_job, "report": report_job, "viewer": viewer_job, "wms": wms_job,
+    "heights": heights_job, "report_figures": report_figures_job, "report": report_job, "viewer": viewer_job,
+    "wms": wms_job,
 }
 
 

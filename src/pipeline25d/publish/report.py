@@ -115,8 +115,7 @@ def build_report(config: dict, results: str | Path) -> dict:
             "map_bytes": _size(cog), "tms_bytes": _size(results / "tms" / pid), "ids": id_layer(results, pid),
             "lonlat_bounds": lonlat_bounds(cog),
         })
-    heights_json = results / "heights.json"
-    heights = json.loads(heights_json.read_text()) if heights_json.exists() else {"skipped": "the heights step did not run"}
+    heights = read_heights(results)
     model = input_size(config)
     maps = sum(p["map_bytes"] for p in persp)
     tms = sum(p["tms_bytes"] for p in persp)
@@ -133,6 +132,12 @@ def build_report(config: dict, results: str | Path) -> dict:
         "timings": stage_timings(results, current_jobs(set(config["inputs"]), blocks, _heights_blocks(results))),
         **({"coarser": coarser} if coarser else {}),
     }
+
+
+def read_heights(results: Path) -> dict:
+    """heights.json's content, or why there is none."""
+    path = results / "heights.json"
+    return json.loads(path.read_text()) if path.exists() else {"skipped": "the heights step did not run"}
 
 
 def _heights_blocks(results: Path) -> set[str]:

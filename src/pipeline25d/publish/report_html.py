@@ -10,10 +10,13 @@ from __future__ import annotations
 
 import base64
 import html
+import json
+from collections.abc import Sequence
 from pathlib import Path
 
-from pipeline25d.core.atomic import write_text
-from pipeline25d.publish.report import fmt_measure, warp_label
+from pipeline25d.core.atomic import write_json, write_text
+from pipeline25d.geometry.perspectives import Perspective
+from pipeline25d.publish.report import fmt_measure, read_heights, warp_label
 from pipeline25d.publish.report_figures import check_residuals, exaggeration, height_points, heights_plot, \
     residual_plot, thumbnail
 
@@ -87,9 +90,9 @@ def _heights(rep: dict, results: Path) -> list[str]:
                   f'src="{data_uri(heights_plot(pts), "image/png")}">']
 
 
-def render_html(rep: dict, results: str | Path, processes: int = 1) -> str:
-    """The page for the report ``rep`` (report.json's content) of the run under ``results``;
-    ``processes``: how many maps' figures are drawn at once (the same page whatever the count)."""
+def render_html(rep: dict, results: str | Path, figures: dict) -> str:
+    """The page for the report ``rep`` (report.json's content) of the run under ``results``, with the
+    pictures ``figures`` (:func:`draw_figures`, drawn before the web tiles are cut)."""
     results = Path(results)
     title = f"pipeline25d report: {html.escape(rep['scene'])}"
     s = rep["sizes"]
@@ -100,27 +103,47 @@ def render_html(rep: dict, results: str | Path, processes: int = 1) -> str:
              " Check points are held out: never used to fit or choose the warp.</p>",
              "<h2>Accuracy at check points</h2>", *_accuracy_table(rep),
              "<h2>Maps and their check-point residuals</h2>", '<div class="maps">']
-    parts += _map_figures(results, rep, processes)
-    parts += ["</div>", *_heights(rep, results),
+    parts += [figures["maps"][p["id"]] for p in rep["perspectives"]]
+    parts += ["</div>", *figures["heights"],
               "<h2>Sizes</h2>", f"<p class=note>model inputs {s['model_bytes'] / 1e6:.2f} MB, maps (COG)"
               f" {s['maps_bytes'] / 1e6:.2f} MB, web tiles {s['tms_bytes'] / 1e6:.2f} MB.</p>",
               "</body></html>"]
     return "\n".join(parts) + "\n"
 
 
-def _map_figures(results: Path, rep: dict, processes: int) -> list[str]:
-    """:func:`_map_figure` of every perspective, in order, ``processes`` at a time (forked workers)."""
+def draw_figures(pids: Sequence[str], gsd: float, results: str | Path, processes: int = 1) -> dict:
+    """The page's pictures as HTML: the thumbnail and check-point residuals of each map ``pids`` names
+    ({"maps": {id: <figure>}}), and the heights scatter ({"heights": lines}). They need the maps, their
+    GCP tables and the heights, not the web tiles: the report_figures job draws them while the last
+    maps are cut. ``processes``: how many maps are drawn at once, by forked workers (the same
+    pictures whatever the count)."""
     from contextlib import nullcontext
 
     from matplotlib.figure import Figure  # noqa: F401  (imported once, before the workers fork)
 
     from pipeline25d.core.cores import fork_pool, map_ahead
 
-    several = processes > 1 and len(rep["perspectives"]) > 1
+    results = Path(results)
+    views = []
+    for pid in sorted(pids):
+        warp = json.loads((results / "maps" / f"{pid}.json").read_text())
+        p = Perspective.from_id(pid)
+        views.append({"id": pid, "azimuth": p.azimuth, "elevation": p.elevation, "rmsd_m": warp["rmsd_m"],
+                      "check_note": warp.get("check_note"), "warp": {"method": warp["method"], "order": warp["order"]}})
+    heights = read_heights(results)
+    several = processes > 1 and len(views) > 1
     with fork_pool(processes) if several else nullcontext() as pool:
-        return list(map_ahead(pool, _map_figure, ((results, p, rep["gsd"]) for p in rep["perspectives"]), processes))
+        maps = list(map_ahead(pool, _map_figure, ((results, p, gsd) for p in views), processes))
+    return {"maps": {p["id"]: m for p, m in zip(views, maps)},
+            "heights": _heights({"heights": heights, "perspectives": views}, results)}
 
 
-def write_html(rep: dict, results: str | Path, out_html: str | Path, processes: int = 1) -> None:
-    """Write report.html for ``rep`` atomically (``processes``: see :func:`render_html`)."""
-    write_text(out_html, render_html(rep, results, processes))
+def write_figures(pids: Sequence[str], gsd: float, results: str | Path, out_json: str | Path,
+                  processes: int = 1) -> None:
+    """Write :func:`draw_figures` as JSON, atomically."""
+    write_json(out_json, draw_figures(pids, gsd, results, processes))
+
+
+def write_html(rep: dict, results: str | Path, figures_json: str | Path, out_html: str | Path) -> None:
+    """Write report.html for ``rep`` with the pictures of ``figures_json`` (:func:`write_figures`), atomically."""
+    write_text(out_html, render_html(rep, results, json.loads(Path(figures_json).read_text())))
