@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import json
 
+import numpy as np
 import pytest
 import yaml
 from conftest import DATA, REPO
@@ -47,6 +48,34 @@ def test_delft_lidar_has_50_check_points_and_its_ground_sits_within_a_pixel_of_t
     assert res.ok.sum() >= 20, res.ok.sum()
     rms = float(((res.dx_px[res.ok] ** 2 + res.dy_px[res.ok] ** 2).mean()) ** 0.5)
     assert rms < 1.0, rms
+
+
+def test_delft_lidar_dtm_from_the_mesh_alone_matches_the_lidar_ground_returns(lidar):
+    """The DTM the pipeline derives from the surface mesh alone (DSM, cloth filter, fill) against
+    delft_dtm.tif, the mean height of the LiDAR's ground returns (class 2) on the same 0.5 m grid,
+    which the pipeline never reads: on its 118,357 ground cells (half the area; no return under a
+    roof) the median difference was +0.004 m, 95 % within 0.22 m and 99 % within 0.41 m. A flat
+    plane at the ground's median height is off by more than 0.35 m at the 95th percentile."""
+    from osgeo import gdal
+
+    from pipeline25d.core.grid import Grid
+
+    ours, truth_ds = gdal.Open(str(lidar / "terrain" / "dtm.tif")), gdal.Open(str(DELFT / "delft_dtm.tif"))
+    g, t = Grid.of_dataset(ours), Grid.of_dataset(truth_ds)
+    assert g.res == t.res == 0.5
+    col, row = g.colrow(t.xmin, t.ymax)
+    assert float(col).is_integer() and float(row).is_integer()          # the same cells
+    truth = truth_ds.ReadAsArray().astype(np.float64)
+    truth[truth == truth_ds.GetRasterBand(1).GetNoDataValue()] = np.nan
+    dtm = ours.ReadAsArray(int(col), int(row), t.width, t.height).astype(np.float64)
+    ok = np.isfinite(truth)
+    assert ok.sum() > 100_000 and np.isfinite(dtm[ok]).all()
+    d = dtm[ok] - truth[ok]
+    assert abs(np.median(d)) < 0.05, np.median(d)
+    p95, p99 = np.percentile(np.abs(d), [95, 99])
+    assert p95 < 0.35 and p99 < 0.7, (p95, p99)
+    flat = np.abs(np.median(truth[ok]) - truth[ok])
+    assert np.percentile(flat, 95) > 0.35                                  # the test tells a plane from the ground
 
 
 @pytest.fixture(scope="module")
