@@ -155,6 +155,20 @@ def test_blockwise_dtm_equals_the_whole_grid(scene):
     np.testing.assert_array_equal(got, expected)
 
 
+def test_a_one_block_dtm_is_filled_in_exact_halves(scene):
+    """The fixture's grid is one block of the default size; the fill runs on its two halves (so two
+    workers can share it) and gives the whole grid's DTM bit for bit."""
+    from pipeline25d.stages.terrain.dtm import dtm_layout
+
+    grid, dsm, _, whole = scene
+    seed = np.where(whole, dsm, np.nan)
+    assert len(dtm_layout(grid, 20)) == 2
+    got = np.full(dsm.shape, np.nan)
+    for block, values in dtm_blocks(_read(seed), grid, 20):
+        got[block.core] = values
+    np.testing.assert_array_equal(got, interpolate_dtm(seed, 20))
+
+
 def test_blockwise_dtm_by_forked_workers_equals_one_process(scene, tmp_path):
     """The scene job's DTM blocks filled two at a time by forked workers, each reading its own
     window of the ground raster (pickled as its path), equal those filled here bit for bit, in
