@@ -216,7 +216,7 @@ def cell_blocks(height: int, width: int, margin: int, max_cells: int = BLOCK_CEL
     the CSF's cloth grid, anchored at the lower-left point, where the whole grid has it.
     ``halve``: a grid of one block whose longer side spans at least :data:`HALVE_SPANS` margins is
     cut in two across that side, so that two cores share it (the layout still depends on the grid
-    alone): each half's window is at most 3/4 of the side.
+    alone); each half's window is its half and one margin across the cut.
     """
     if height * width <= max_cells:
         if halve and max(height, width) >= HALVE_SPANS * margin:

@@ -142,9 +142,9 @@ def ground_blocks(read: Callable[[slice, slice], np.ndarray], grid: Grid, max_ob
                   pool: Executor | None = None) -> Iterator[tuple[Block, np.ndarray, np.ndarray]]:
     """(block, DSM, ground mask) of each block's core: :func:`csf_ground` and :func:`trim_object_edges`
     run on the block's window, the DSM read through ``read(rows, cols)`` (float64, NaN: no model).
-    The blocks: :func:`ground_layout` (:func:`~pipeline25d.core.grid.cell_blocks` with ``halve``); a cloth's cost grows
-    with its cells, and the 3 x 3 bench's 1585 x 1375 cells (margin 200) took 1.26 x the one
-    cloth's seconds as halves in one process, 0.67-0.73 x in two.
+    The blocks: :func:`ground_layout` (:func:`~pipeline25d.core.grid.cell_blocks` with ``halve``).
+    A cloth's cost grows with its cells: the 3 x 3 bench's 1585 x 1375 cells (margin 200) took
+    1.26 x the one cloth's seconds as halves in one process, 0.67-0.73 x in two.
 
     The window reaches ``max_object_m`` beyond the core (an object cut by the core's edge lies
     whole in it, with ground beyond it for the cloth to rest on); the DSM is read wider still,
