@@ -152,6 +152,21 @@ def joined(parts: list[MeshPart], name: str) -> MeshPart:
                     object_info=merged_info(parts) or None)
 
 
+def repeated(part: MeshPart, matrices: np.ndarray) -> MeshPart:
+    """One part holding ``part`` (in its own frame) under each of the (k, 4, 4) ``matrices``: its
+    vertices, faces (wound back where a matrix mirrors), colours, UVs and faces' objects repeated."""
+    k, n = len(matrices), len(part.vertices)
+    verts = np.einsum("kij,nj->kni", matrices[:, :3, :3], part.vertices) + matrices[:, None, :3, 3]
+    faces = np.repeat(part.faces[None], k, axis=0)
+    mirrored = np.linalg.det(matrices[:, :3, :3]) < 0
+    faces[mirrored] = faces[mirrored][:, :, [0, 2, 1]]
+    faces += (np.arange(k) * n)[:, None, None]
+    rep = (lambda a: None if a is None else np.tile(a, (k, 1)))
+    face_objects = None if part.face_objects is None else np.tile(part.face_objects, k)
+    return MeshPart(verts.reshape(-1, 3), faces.reshape(-1, 3), rep(part.colors), rep(part.uv), part.texture,
+                    part.name, objects=part.objects, face_objects=face_objects, object_info=part.object_info)
+
+
 def merged_info(parts: list[MeshPart]) -> dict[str, dict]:
     """The :attr:`MeshPart.object_info` of ``parts`` in one mapping (each shared mapping once)."""
     out: dict[str, dict] = {}

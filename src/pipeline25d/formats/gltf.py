@@ -38,7 +38,7 @@ from urllib.parse import unquote
 import numpy as np
 
 from pipeline25d.core.errors import InputFileError, MissingTextureWarning, UnsupportedFeatureError
-from pipeline25d.core.mesh import MeshPart
+from pipeline25d.core.mesh import MeshPart, repeated
 from pipeline25d.formats.attributes import Limiter
 from pipeline25d.formats.common import image_problem, png_or_jpeg, side_file
 from pipeline25d.formats.feature_info import feature_prefix, feature_properties
@@ -390,21 +390,6 @@ def _quaternion_matrices(q: np.ndarray) -> np.ndarray:
         np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], axis=-1),
         np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=-1),
     ], axis=1)
-
-
-def repeated(part: MeshPart, matrices: np.ndarray) -> MeshPart:
-    """One part holding ``part`` (in its own frame) under each of the (k, 4, 4) ``matrices``: its
-    vertices, faces (wound back where a matrix mirrors), colours, UVs and faces' objects repeated."""
-    k, n = len(matrices), len(part.vertices)
-    verts = np.einsum("kij,nj->kni", matrices[:, :3, :3], part.vertices) + matrices[:, None, :3, 3]
-    faces = np.repeat(part.faces[None], k, axis=0)
-    mirrored = np.linalg.det(matrices[:, :3, :3]) < 0
-    faces[mirrored] = faces[mirrored][:, :, [0, 2, 1]]
-    faces += (np.arange(k) * n)[:, None, None]
-    rep = (lambda a: None if a is None else np.tile(a, (k, 1)))
-    face_objects = None if part.face_objects is None else np.tile(part.face_objects, k)
-    return MeshPart(verts.reshape(-1, 3), faces.reshape(-1, 3), rep(part.colors), rep(part.uv), part.texture,
-                    part.name, objects=part.objects, face_objects=face_objects, object_info=part.object_info)
 
 
 def _translation(t: np.ndarray) -> np.ndarray:

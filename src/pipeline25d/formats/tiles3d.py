@@ -35,11 +35,11 @@ from pathlib import Path
 import numpy as np
 
 from pipeline25d.core.errors import InputFileError
-from pipeline25d.core.mesh import Mesh, MeshPart, joined
+from pipeline25d.core.mesh import Mesh, MeshPart, joined, repeated
 from pipeline25d.formats.batch_table import COMPONENT_TYPES, batch_table_rows
 from pipeline25d.formats.common import Detail, Loaded, in_scene
 from pipeline25d.formats.feature_info import feature_prefix, with_feature_info
-from pipeline25d.formats.gltf import parse_gltf_bytes, repeated
+from pipeline25d.formats.gltf import parse_gltf_bytes
 from pipeline25d.formats.tileset_tree import read_json, resolve, select
 
 _B3DM_HEADER = 28
