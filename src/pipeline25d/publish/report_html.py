@@ -73,13 +73,14 @@ def _map_figure(results: Path, p: dict, gsd: float) -> str:
             f'src="{data_uri(plot, "image/png")}"></div><figcaption>{caption}</figcaption></figure>')
 
 
-def _heights(rep: dict, results: Path) -> list[str]:
-    h = rep.get("heights") or {}
+def _heights(h: dict, pids: Sequence[str], results: Path) -> list[str]:
+    """The heights section: heights.json's content ``h`` and the scatter of heights.csv over its
+    views (or the maps ``pids``)."""
     out = ["<h2>Building heights from the maps</h2>"]
     csv_path = results / "heights.csv"
     if h.get("skipped") or not csv_path.is_file():
         return out + [f"<p class=note>Not measured: {html.escape(h.get('skipped') or 'no heights.csv')}.</p>"]
-    pts = height_points(csv_path, h.get("views") or [p["id"] for p in rep["perspectives"]])
+    pts = height_points(csv_path, h.get("views") or list(pids))
     if not len(pts.ids):
         return out + ["<p class=note>No building has both a measured height and a reference height.</p>"]
     ref = h.get("reference", {})
@@ -130,12 +131,11 @@ def draw_figures(pids: Sequence[str], gsd: float, results: str | Path, processes
         p = Perspective.from_id(pid)
         views.append({"id": pid, "azimuth": p.azimuth, "elevation": p.elevation, "rmsd_m": warp["rmsd_m"],
                       "check_note": warp.get("check_note"), "warp": {"method": warp["method"], "order": warp["order"]}})
-    heights = read_heights(results)
     several = processes > 1 and len(views) > 1
     with fork_pool(processes) if several else nullcontext() as pool:
         maps = list(map_ahead(pool, _map_figure, ((results, p, gsd) for p in views), processes))
     return {"maps": {p["id"]: m for p, m in zip(views, maps)},
-            "heights": _heights({"heights": heights, "perspectives": views}, results)}
+            "heights": _heights(read_heights(results), sorted(pids), results)}
 
 
 def write_figures(pids: Sequence[str], gsd: float, results: str | Path, out_json: str | Path,
