@@ -115,7 +115,8 @@ def _ground_from_model(inputs: dict, scene_crs: str, ground_cfg: dict, dsm_path:
     if set(inputs) - set(own["districts"]) - set(bases.buildings_only):
         cloth = cloth_resolution(ground_cfg, grid.res)
         blocks = ground_blocks(dsm_src.read, grid, ground_cfg["max_object_size"], cloth, ground_cfg["rigidness"],
-                               ground_cfg["class_threshold"], processes=processes, pool=pool)
+                               ground_cfg["class_threshold"], processes=processes, pool=pool,
+                               iterations=ground_cfg["cloth_iterations"])
         sources.append("model surface (nadir DSM, Cloth Simulation Filter)")
     else:
         blocks = ((b, dsm_src.read(*b.core), np.zeros(grid.window(*b.core).shape, bool))
