@@ -33,6 +33,29 @@ def test_a_busy_process_takes_about_one_core_off_the_idle_ones():
     assert busy is not None and busy <= n - 0.6                    # the spinner held one core
 
 
+def test_a_marked_job_counts_its_own_work_since_the_mark_as_idle_and_does_not_wait():
+    """cores.mark() at a job's start: the first count covers the job's start-up, its own busy core
+    included as idle (it is the job asking), without sleeping; a busy child is not the job's own."""
+    cores.mark()
+    end = time.monotonic() + 0.3
+    while time.monotonic() < end:                                  # this process busy: its start-up
+        pass
+    asked = time.monotonic()
+    own_busy = idle_cores(0.1)
+    assert time.monotonic() - asked < 0.05                         # 0.3 s covered: no sampling sleep
+    stop = multiprocessing.Event()
+    spinner = multiprocessing.Process(target=_spin, args=(stop,))
+    spinner.start()
+    try:
+        time.sleep(0.3)
+        child_busy = idle_cores(0.1)                               # covers the time since the last count
+    finally:
+        stop.set()
+        spinner.join()
+    assert own_busy is not None and child_busy is not None
+    assert own_busy >= child_busy + 0.6, (own_busy, child_busy)
+
+
 @pytest.mark.parametrize(("threads", "allowed", "idle", "expected"), [
     (1, 2, 1.9, 2),      # alone on a 2-core machine: both cores
     (1, 2, 1.4, 1),      # the other core mostly busy: its own

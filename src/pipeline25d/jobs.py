@@ -16,6 +16,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from pipeline25d.core import cores
 from pipeline25d.core.cores import allowed_cores, job_workers
 from pipeline25d.core.logsetup import log_job_resources, log_to, process_age, stop_on_error
 
@@ -204,6 +205,7 @@ def run(job: Job) -> None:
     """Run the rule's function of a Snakemake script job, logged to its log file with its resources
     and times (start-up before the function, the function, CPU)."""
     startup, t0 = process_age(), time.monotonic()
+    cores.mark()                      # the idle cores a step asks for are read over the time since
     log_to(job.log[0])
     with stop_on_error():
         RULES[job.rule](job)

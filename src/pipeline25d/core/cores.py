@@ -22,10 +22,14 @@ from contextlib import contextmanager
 
 log = logging.getLogger(__name__)
 
-#: how long the machine's idle time is sampled before a job picks its worker count
+#: the shortest time the machine's idle time is sampled over before a job picks its worker count
 SAMPLE_S = 0.1
 #: the shortest interval an :class:`IdleMeter` reading covers (/proc/stat counts in 10 ms ticks)
 METER_MIN_S = 0.25
+#: the longest past an :func:`idle_cores` reading covers (an older mark is the machine of another moment)
+RECENT_S = 2.0
+#: the reading :func:`idle_cores` covers the time since: (/proc/stat's, this process's CPU seconds, when)
+_last: tuple[tuple[float, float] | None, float, float] | None = None
 
 
 def allowed_cores() -> int:
@@ -49,14 +53,50 @@ def _cpu_times() -> tuple[float, float] | None:
 
 
 def idle_cores(interval: float = SAMPLE_S) -> float | None:
-    """Cores idle on the machine over the next ``interval`` seconds (this process sleeps through
-    it, so its own core counts as idle); None without /proc/stat."""
-    first = _cpu_times()
-    if first is None:
+    """Cores idle on the machine, this process's own counted as idle (the job asking is what would use
+    them); None without /proc/stat.
+
+    The reading covers the time since :func:`mark` or the previous call, where that is at least
+    ``interval`` and at most :data:`RECENT_S` seconds: a job that marks its start pays no wait for
+    its first count (its start-up is the interval). Otherwise this process sleeps until ``interval``
+    is covered.
+    """
+    global _last
+    if _last is None or _last[0] is None or time.monotonic() - _last[2] > RECENT_S:
+        mark()
+    first, own, _ = _last
+    now = _cpu_times()
+    if first is None or now is None:
         return None
-    time.sleep(interval)
-    second = _cpu_times()
-    return None if second is None else _idle_between(first, second)
+    per_s = _ticks() * (os.cpu_count() or 1)                # jiffies of all CPUs in a second
+    short = interval - (now[1] - first[1]) / per_s
+    if short > 0:
+        time.sleep(short)
+        now = _cpu_times()
+        if now is None:
+            return None
+    idle = _idle_between(first, now)
+    _last = (now, _own_cpu_s(), time.monotonic())
+    if idle is None:
+        return None
+    return idle + (_last[1] - own) / ((now[1] - first[1]) / per_s)
+
+
+def mark() -> None:
+    """Start the reading the next :func:`idle_cores` covers (a job calls this when it starts)."""
+    global _last
+    _last = (_cpu_times(), _own_cpu_s(), time.monotonic())
+
+
+def _own_cpu_s() -> float:
+    """CPU seconds of this process and of the children it has waited for."""
+    t = os.times()
+    return t.user + t.system + t.children_user + t.children_system
+
+
+def _ticks() -> int:
+    """/proc/stat's jiffies per second."""
+    return os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 
 
 def _idle_between(first: tuple[float, float], second: tuple[float, float]) -> float | None:
@@ -93,8 +133,7 @@ class IdleMeter:
         if now is None or self._last is None:
             self._last = self._last or now
             return None
-        ticks = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
-        if now[1] - self._last[1] < METER_MIN_S * ticks * (os.cpu_count() or 1):
+        if now[1] - self._last[1] < METER_MIN_S * _ticks() * (os.cpu_count() or 1):
             return None
         idle, self._last = _idle_between(self._last, now), now
         return idle

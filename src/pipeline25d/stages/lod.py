@@ -213,7 +213,7 @@ def build_lod(chunk_index: str | Path, out_index: str | Path, max_error: float, 
     ``processes``: chunks built at once, each in a forked worker (a city that is one district,
     as one photogrammetry model is, then uses every core it is given); the files are the same.
     A function giving that count is asked only where the chunks to build hold at least
-    :data:`POOL_TRIANGLES` (:func:`~pipeline25d.core.cores.job_workers` samples the machine for 0.1 s).
+    :data:`POOL_TRIANGLES` (:func:`~pipeline25d.core.cores.job_workers` reads the machine's idle cores).
     Returns the index: {district, max_error, max_levels, chunks: {id: {bounds, errors, triangles, hash}}}.
     """
     chunk_index, out_index = Path(chunk_index), Path(out_index)
