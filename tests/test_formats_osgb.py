@@ -165,20 +165,26 @@ def test_detect_format_and_single_file_with_metadata(dataset):
     assert mesh.n_triangles == S.triangles(1)
 
 
-def test_matrix_transform_places_and_scales_child_files(copy, tmp_path):
-    """A root PagedLOD wrapped in a MatrixTransform (scale 2, shift): its child files are placed
-    the same, and the doubled radius moves the switch to twice the texel size."""
+def _wrap_first_tile(copy: Path, tmp_path: Path, rows: str, shift: tuple[float, float, float]) -> None:
+    """The first tile's root PagedLOD wrapped in a MatrixTransform of 3 x 3 ``rows`` (OSG's row
+    vectors) and ``shift``; the second tile removed."""
     tile = copy / "Data" / "Tile_+000_+000"
     shutil.rmtree(copy / "Data" / "Tile_+001_+000")
     root = tile / "Tile_+000_+000.osgb"
     osgconv(root.resolve(), Path("root.osgt"), ["WriteImageHint=IncludeData", "precision=17"], tmp_path, root)
     text = (tmp_path / "root.osgt").read_text()
     header, body = text.split("\n\n", 1)
-    shift = (1000.0, -500.0, 7.0)
     wrapped = (f"{header}\n\nosg::MatrixTransform {{\n UniqueID 900000\n Children 1 {{\n{body}\n }}\n"
-               f" Matrix {{\n 2 0 0 0\n 0 2 0 0\n 0 0 2 0\n {shift[0]} {shift[1]} {shift[2]} 1\n }}\n}}\n")
+               f" Matrix {{\n{rows}\n {shift[0]} {shift[1]} {shift[2]} 1\n }}\n}}\n")
     (tmp_path / "wrapped.osgt").write_text(wrapped)
     osgconv(Path("wrapped.osgt"), root.resolve(), [], tmp_path, root)
+
+
+def test_matrix_transform_places_and_scales_child_files(copy, tmp_path):
+    """A root PagedLOD wrapped in a MatrixTransform (scale 2, shift): its child files are placed
+    the same, and the doubled radius moves the switch to twice the texel size."""
+    shift = (1000.0, -500.0, 7.0)
+    _wrap_first_tile(copy, tmp_path, " 2 0 0 0\n 0 2 0 0\n 0 0 2 0", shift)
     gsd = S.TEXEL[1] * 1.5                       # level 1 unscaled; with radius x2 the pixel size says level 2
     tiles = read_tiles(copy, gsd)
     assert dict(tiles[0].levels) == {2: S.triangles(2)}
@@ -186,6 +192,24 @@ def test_matrix_transform_places_and_scales_child_files(copy, tmp_path):
     v = v[v[:, 0] <= S.TILE] * 2.0 + shift
     got = np.concatenate([p.vertices for p in tiles[0].parts])
     np.testing.assert_allclose([got.min(axis=0), got.max(axis=0)], [v.min(axis=0), v.max(axis=0)], atol=1e-4)
+
+
+def test_a_mirroring_matrix_transform_keeps_the_surface_facing_up(copy, tmp_path):
+    """x mirrored (det < 0): the vertices are mirrored and the faces wound back, so the height
+    field's faces still face up (+z), as those of the tile read unwrapped do."""
+    def up_share(parts) -> float:
+        edges = [(p.vertices[p.faces[:, 1:]] - p.vertices[p.faces[:, :1]]).transpose(1, 0, 2) for p in parts]
+        normals = np.concatenate([np.cross(a, b) for a, b in edges])
+        return float((normals[:, 2] > 0).mean())
+
+    plain = read_tiles(copy, S.TEXEL[1] * 1.5)[0]
+    _wrap_first_tile(copy, tmp_path, " -1 0 0 0\n 0 1 0 0\n 0 0 1 0", (0.0, 0.0, 0.0))
+    mirrored = read_tiles(copy, S.TEXEL[1] * 1.5)[0]
+    assert up_share(plain.parts) == 1.0
+    assert up_share(mirrored.parts) == 1.0
+    got = np.concatenate([p.vertices for p in mirrored.parts])
+    own = np.concatenate([p.vertices for p in plain.parts])
+    np.testing.assert_allclose(got[:, 0].max(), -own[:, 0].min(), atol=1e-6)
 
 
 def test_a_missing_child_file_draws_its_parents_level_there_with_a_warning(copy, tiles_at):

@@ -297,7 +297,10 @@ def _obj_parts(obj: Path, source: Path, matrix: np.ndarray) -> list[MeshPart]:
     parts = [replace(p, name=f"{source.name}:{p.name}") for p in read.parts]
     if np.allclose(matrix, np.eye(4)):
         return parts
-    return [p.transformed(lambda v: v @ matrix[:3, :3] + matrix[3, :3]) for p in parts]
+    placed = [p.transformed(lambda v: v @ matrix[:3, :3] + matrix[3, :3]) for p in parts]
+    if np.linalg.det(matrix[:3, :3]) < 0:       # a mirroring matrix: wind the faces back, front faces front
+        placed = [replace(p, faces=p.faces[:, [0, 2, 1]]) for p in placed]
+    return placed
 
 
 # --------------------------------------------------------------------------- osgt text
