@@ -9,8 +9,9 @@ ContextCapture metadata and the reprojection into the scene CRS are applied once
 CityJSON) refuses ``offset``/``metadata``; one that carries its own ground gives a
 ``terrain`` loader, and one with building objects a ``buildings`` loader, which
 ``terrain: auto`` uses (:func:`load_district_terrain`, :func:`load_district_buildings`).
-A format whose inputs come in pieces (an OSGB dataset's tiles, a tileset's contents) gives a ``pieces`` loader, which
-ingest takes a piece at a time (:func:`district_pieces`), so its memory follows a piece.
+A format whose inputs come in pieces (an OSGB dataset's tiles, a tileset's contents, a large OBJ's slabs
+of faces) gives a ``pieces`` loader, which ingest takes a piece at a time (:func:`district_pieces`), so its
+memory follows a piece.
 
 A new format plugs in with one entry in :data:`READERS` (and its suffixes in
 :data:`SUFFIXES`).
@@ -76,7 +77,7 @@ def _lazy(module: str, name: str) -> Callable:
 
 #: format name -> reader. Modules are imported on first use (trimesh alone costs seconds).
 READERS: dict[str, Reader] = {
-    "obj": Reader(_mesh_file),
+    "obj": Reader(_mesh_file, pieces=_lazy("obj_slabs", "read_obj_slabs")),
     "dae": Reader(_mesh_file),
     "ply": Reader(_ply),
     "glb": Reader(_gltf),

@@ -23,15 +23,23 @@ from pipeline25d.core.mesh import Mesh, MeshPart, joined
 from pipeline25d.formats.common import drawn_as_is, image_problem, side_file
 
 
-def load_mesh_file(path: str | Path) -> Mesh:
+def load_mesh_file(path: str | Path, text: bytes | None = None, files: "_Files | None" = None,
+                   objects: bool | None = None) -> Mesh:
     """Read ``path`` with trimesh; InputFileError naming the file on any failure, a
-    :class:`MissingTextureWarning` per material library or texture missing, not an image or undecodable."""
+    :class:`MissingTextureWarning` per material library or texture missing, not an image or undecodable.
+
+    ``text``: an OBJ's statements to read instead of the file's (a slab of a large OBJ,
+    :mod:`pipeline25d.formats.obj_slabs`), its material libraries and textures found beside
+    ``path``; ``files``: the :class:`_Files` of earlier slabs (each file read and warned of once,
+    each texture the same bytes in every slab); ``objects``: whether the whole file has two ``o``
+    objects or more (None: as ``text`` has them)."""
     path = Path(path)
     kind = path.suffix.lstrip(".").upper()
     model = f"{'an' if kind[:1] in 'AEIOU' else 'a'} {kind} model"
-    repaired = {"OBJ": _check_obj, "DAE": _check_dae}.get(kind, lambda p: None)(path)
-    files = _Files(str(path))
-    source = {"file_obj": str(path)} if repaired is None else {"file_obj": io.BytesIO(repaired), "file_type": "dae"}
+    repaired = None if text is not None else {"OBJ": _check_obj, "DAE": _check_dae}.get(kind, lambda p: None)(path)
+    files = files or _Files(str(path))
+    source = ({"file_obj": io.BytesIO(text), "file_type": "obj"} if text is not None else
+              {"file_obj": str(path)} if repaired is None else {"file_obj": io.BytesIO(repaired), "file_type": "dae"})
     split = {"split_objects": True} if kind == "OBJ" else {}      # an OBJ's `o` objects (see _objects_joined)
     try:
         scene = trimesh.load(**source, force="scene", process=False, resolver=files, **split)
@@ -53,15 +61,17 @@ def load_mesh_file(path: str | Path) -> Mesh:
         parts.append(_part(geom, vertices, str(name), encoded, files.asked))
     if not parts:
         raise InputFileError(path, "contains no triangles")
-    return Mesh(_objects_joined(parts, path) if split else parts, source=str(path))
+    statements = (text if text is not None else path.read_bytes()).decode("utf-8", "replace") if split else ""
+    return Mesh(_objects_joined(parts, path, statements, objects) if split else parts, source=str(path))
 
 
-def _objects_joined(parts: list[MeshPart], path: Path) -> list[MeshPart]:
+def _objects_joined(parts: list[MeshPart], path: Path, text: str, several: bool | None = None) -> list[MeshPart]:
     """An OBJ read object by object (trimesh names each piece ``<object>_<usemtl>``, or ``<object>``
     with one material) as one part per material again (few draw calls), each face keeping its ``o``
     object (3dfier writes one per building, road, terrain patch). An OBJ with fewer than two ``o``
-    objects is one part per material, as trimesh reads it without splitting."""
-    statements = re.findall(r"^(o|usemtl)[ \t]+(.*?)[ \t]*$", path.read_text(errors="replace"), re.M)
+    objects is one part per material, as trimesh reads it without splitting. ``text``: the OBJ's
+    statements; ``several``: whether the whole file has two objects or more (a slab's text may hold one)."""
+    statements = re.findall(r"^(o|usemtl)[ \t]+(.*?)[ \t]*$", text, re.M)
     names = {v for k, v in statements if k == "o"}
     usemtl = {v for k, v in statements if k == "usemtl"}
     groups: dict[tuple, list[tuple[str | None, MeshPart]]] = {}
@@ -73,7 +83,7 @@ def _objects_joined(parts: list[MeshPart], path: Path) -> list[MeshPart]:
         groups.setdefault(key, []).append((obj, part))
     out = []
     for (material, *_), pieces in groups.items():
-        if len(names) < 2:
+        if not (len(names) >= 2 if several is None else several):
             out += [replace(p, name=material or p.name) if len(pieces) == 1 else p for _, p in pieces]
             continue
         # faces before the first `o` are an object of their own, named as trimesh names them
@@ -222,12 +232,17 @@ class _Files(trimesh.resolvers.FilePathResolver):
         self.asked: dict[str, bytes | None] = {}
         self.model = Path(source)
         self.outside: InputFileError | None = None
+        self.checked: set[str] = set()
 
     def get(self, name: str) -> bytes:
         """The file a model names: a material library's map options dropped and Windows separators
         read as '/' (:func:`map_file_name`); where no such file lies in the model's folder (an
         exporter's absolute path, ``C:\\Users\\...\\tex.jpg``), the one its path ends in inside that
         folder, with a warning (:func:`_found_tail`)."""
+        if name in self.asked:                          # asked before (an earlier slab): the same bytes
+            if self.asked[name] is None:
+                raise FileNotFoundError(f"{name}: missing or not drawable (warned of once)")
+            return self.asked[name]
         what = "material library" if name.lower().endswith(".mtl") else "texture"
         folder, wanted = self.model.parent, map_file_name(name)
         try:
@@ -259,6 +274,9 @@ class _Files(trimesh.resolvers.FilePathResolver):
         if self.outside is not None:
             raise self.outside
         for name, data in self.asked.items():
+            if name in self.checked:                    # an earlier slab's file: checked then
+                continue
+            self.checked.add(name)
             what = "material library" if name.lower().endswith(".mtl") else "texture"
             problem = "is missing" if data is None else image_problem(data) if what == "texture" else None
             if problem is not None:

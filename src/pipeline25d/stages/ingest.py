@@ -6,11 +6,11 @@ from the global grid, so they are stable across runs and districts. A chunk whos
 content is unchanged keeps its file (and mtime), so Snakemake re-runs nothing downstream
 of it; chunks that no longer exist are removed.
 
-An input read in pieces (:func:`pipeline25d.formats.district_pieces`: an OSGB dataset's tiles)
-is chunked piece by piece; the pieces' share of each chunk waits in memory up to
-:data:`SPOOL_BYTES`, beyond that in a spool file beside the index, and each chunk is assembled
-on its own, its parts in input order as if the input had been read whole. Memory then follows a
-piece and a chunk, not the input.
+An input read in pieces (:func:`pipeline25d.formats.district_pieces`: an OSGB dataset's tiles,
+a tileset's contents, a large OBJ's slabs of faces) is chunked piece by piece; the pieces' share
+of each chunk waits in memory up to :data:`SPOOL_BYTES`, beyond that in a spool file beside the
+index, and each chunk is assembled on its own, its parts in input order as if the input had been
+read whole. Memory then follows a piece and a chunk, not the input.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline25d.core.atomic import write_json
-from pipeline25d.core.mesh import Mesh, MeshPart
+from pipeline25d.core.mesh import Mesh, MeshPart, joined
 from pipeline25d.stages.chunks import chunk_origin, content_hash, pack_parts, save_npz
 from pipeline25d.stages.objects import object_ids
 
@@ -155,10 +155,19 @@ class _Spool:
             self.folder.cleanup()
 
     def add(self, chunks: dict[str, list[MeshPart]]) -> None:
+        """One piece's share of each chunk. A textured part that continues one the chunk holds (same
+        name, same texture: a large OBJ's slabs, :mod:`pipeline25d.formats.obj_slabs`) is joined to it,
+        as one material is one part of the OBJ read whole, and the chunk stores its texture once."""
         for cid, parts in chunks.items():
-            self.held.setdefault(cid, []).extend(parts)
+            held = self.held.setdefault(cid, [])
             self.keys.update(k for p in parts for k in p.objects)
             self.held_bytes += sum(_part_bytes(p) for p in parts)
+            for part in parts:
+                same = next((i for i, h in enumerate(held) if _continues(h, part)), None)
+                if same is None:
+                    held.append(part)
+                else:
+                    held[same] = joined([held[same], part], part.name)
         if self.held_bytes > SPOOL_BYTES:
             self._spill()
 
@@ -185,6 +194,13 @@ class _Spool:
                             break
             parts.extend(self.held.pop(cid, []))
             yield cid, parts
+
+
+def _continues(last: MeshPart, part: MeshPart) -> bool:
+    """Whether ``part`` is more of ``last``: both textured with the same image, same name, same kinds
+    of vertex data (a part joined from several pieces: its faces in the pieces' order)."""
+    return (last.texture is not None and last.name == part.name and (last.colors is None) == (part.colors is None)
+            and (last.uv is None) == (part.uv is None) and last.texture == part.texture)
 
 
 def _part_bytes(part: MeshPart) -> int:
