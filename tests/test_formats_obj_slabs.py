@@ -150,3 +150,32 @@ def test_faces_with_and_without_texture_coordinates_are_refused_by_name(tmp_path
     path.write_text(path.read_text() + "f 1 2 3\n")
     with pytest.raises(InputFileError, match=r"m\.obj: mixes faces with and without texture coordinates"):
         slabs_of(path, 10_000)
+
+
+def test_a_missing_texture_in_slabs_is_an_error_naming_it_or_drawn_untextured(tmp_path, monkeypatch):
+    from pipeline25d.formats import district_pieces
+
+    path = write_obj(tmp_path, 12)
+    (tmp_path / "atlas.png").unlink()
+    monkeypatch.setattr(obj_slabs, "SLAB_FILE_BYTES", 0)
+    monkeypatch.setattr(obj_slabs, "SLAB_FACES", 50)
+    spec = {"path": str(path), "crs": "EPSG:28992"}
+    with pytest.raises(InputFileError, match=r"m\.obj: texture 'atlas\.png' is missing"):
+        list(district_pieces(spec, "EPSG:28992"))
+    pieces = list(district_pieces({**spec, "missing_textures": "untextured"}, "EPSG:28992"))
+    parts = [p for piece in pieces for p in piece.parts]
+    assert len(pieces) == -(-path.read_text().count("\nf ") // 50) == 5
+    assert sum(p.n_triangles for p in parts) == 2 * 12 * 12 + 1
+    assert all(p.texture is None for p in parts)
+
+
+def test_an_obj_with_windows_line_ends_reads_as_with_unix_ones_whole_and_in_slabs(tmp_path, slabs_of):
+    """CRLF (Windows exporters): the same objects and materials; the whole read took 'part0\\r' for
+    no object and named the faces 'part0_tex'."""
+    unix = write_obj(tmp_path / "lf", 9)
+    crlf = tmp_path / "lf" / "crlf.obj"
+    crlf.write_bytes(unix.read_bytes().replace(b"\n", b"\r\n"))
+    expected = [t[:2] + t[3:] for t in triangles(meshfile.load_mesh_file(unix).parts)]
+    for parts in (meshfile.load_mesh_file(crlf).parts, [p for piece in slabs_of(crlf, 40) for p in piece.parts]):
+        assert [t[:2] + t[3:] for t in triangles(parts)] == expected
+    assert {t[1] for t in expected} == {"part0", "part1", "part2"}

@@ -71,7 +71,7 @@ def _objects_joined(parts: list[MeshPart], path: Path, text: str, several: bool 
     object (3dfier writes one per building, road, terrain patch). An OBJ with fewer than two ``o``
     objects is one part per material, as trimesh reads it without splitting. ``text``: the OBJ's
     statements; ``several``: whether the whole file has two objects or more (a slab's text may hold one)."""
-    statements = re.findall(r"^(o|usemtl)[ \t]+(.*?)[ \t]*$", text, re.M)
+    statements = re.findall(r"^(o|usemtl)[ \t]+(.*?)[ \t\r]*$", text, re.M)    # CRLF lines too
     names = {v for k, v in statements if k == "o"}
     usemtl = {v for k, v in statements if k == "usemtl"}
     groups: dict[tuple, list[tuple[str | None, MeshPart]]] = {}
