@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterator
+from contextlib import nullcontext
 from pathlib import Path
 
 import numpy as np
@@ -45,6 +46,7 @@ STATE = (b"o", b"g", b"usemtl", b"s")
 def read_obj_slabs(path: Path, spec: dict, detail: Detail = Detail()) -> Iterator[Loaded]:
     """The OBJ at ``path`` as pieces: the whole file in one where it is under :data:`SLAB_FILE_BYTES`,
     else one piece per slab (module docstring)."""
+    from pipeline25d.core.cores import fork_pool, job_workers, map_ahead
     from pipeline25d.formats.meshfile import _check_obj, _Files, load_mesh_file
 
     if path.stat().st_size < SLAB_FILE_BYTES:
@@ -55,11 +57,25 @@ def read_obj_slabs(path: Path, spec: dict, detail: Detail = Detail()) -> Iterato
     slabs = -(-table.n_faces // SLAB_FACES)
     log.info("%s: %d vertices, %d texture coordinates, %d faces: read in %d slabs", path, len(table.v),
              len(table.vt), table.n_faces, slabs)
-    files = _Files(str(path))
-    for k, text in enumerate(slab_texts(path, table, SLAB_FACES)):
-        log.info("%s: slab %d of %d", path.name, k + 1, slabs)
-        mesh = load_mesh_file(path, text=text, files=files, objects=len(table.objects) >= 2)
-        yield Loaded(mesh.parts, spec.get("crs"))
+    global _FILES
+    _FILES = _Files(str(path))                  # before the workers fork: each reads a file once
+    workers = job_workers(1) if slabs > 1 else 1
+    texts = ((path, text, len(table.objects) >= 2) for text in slab_texts(path, table, SLAB_FACES))
+    with fork_pool(workers) if workers > 1 else nullcontext() as pool:
+        for k, parts in enumerate(map_ahead(pool, _slab_parts, texts, workers)):
+            log.info("%s: slab %d of %d read", path.name, k + 1, slabs)
+            yield Loaded(parts, spec.get("crs"))
+
+
+#: the material libraries and textures of the OBJ being read in slabs (set before the workers fork)
+_FILES = None
+
+
+def _slab_parts(path: Path, text: bytes, objects: bool) -> list:
+    """A slab's parts (trimesh on its OBJ text), in a worker or here."""
+    from pipeline25d.formats.meshfile import load_mesh_file
+
+    return load_mesh_file(path, text=text, files=_FILES, objects=objects).parts
 
 
 class VertexTable:
