@@ -15,8 +15,9 @@ file's read; normals are dropped (the renderer shades from the faces). Statement
 to a line (no ``\\`` continuations).
 
 A 402 MB OBJ of 5.12 M textured triangles, chunked by :func:`pipeline25d.stages.ingest.ingest`
-(one run each): whole, 1.53 GB at the peak in 38 s; in slabs, 0.78 GB in 84 s (the slabs' read
-alone: 0.54 GB). Memory then grows with the vertices (40-56 bytes each), not the faces.
+(one run each): whole, 1.53 GB at the peak in 38 s; in slabs on one core, 0.78 GB in 84 s (the
+slabs' read alone: 0.54 GB); on two (a slab parsed in a worker while the next is cut), 0.85 GB in
+52 s. Memory then grows with the vertices (40-56 bytes each), not the faces.
 """
 
 from __future__ import annotations
