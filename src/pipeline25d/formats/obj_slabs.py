@@ -94,13 +94,26 @@ class VertexTable:
         objects: set[bytes] = set()
         n_faces = 0
         for lines in _line_blocks(path):
-            n_faces += sum(1 for ln in lines if ln[:2] in (b"f ", b"f\t"))
-            v_rows.append(_values([ln for ln in lines if ln[:2] in (b"v ", b"v\t")], path, "v"))
-            vt_rows.append(_values([ln for ln in lines if ln[:3] in (b"vt ", b"vt\t")], path, "vt"))
+            kind = _kinds(lines)
+            n_faces += int((kind == F).sum())
+            v_rows.append(_values([lines[i] for i in np.flatnonzero(kind == V).tolist()], path, "v"))
+            vt_rows.append(_values([lines[i] for i in np.flatnonzero(kind == VT).tolist()], path, "vt"))
             mtllib += [ln.strip() for ln in lines if ln.startswith(b"mtllib")]
             objects.update(ln.split(maxsplit=1)[1].strip() for ln in lines
                            if ln[:2] in (b"o ", b"o\t") and len(ln.split()) > 1)
         return cls(Rows(v_rows), Rows(vt_rows), mtllib, objects, n_faces)
+
+
+#: line kinds: a vertex, a texture coordinate, a face, anything else
+V, VT, F, OTHER = 1, 2, 3, 0
+_KINDS = {b"v ": V, b"v\t": V, b"vt ": VT, b"vt\t": VT, b"f ": F, b"f\t": F}
+
+
+def _kinds(lines: list[bytes]) -> np.ndarray:
+    """Each line's kind (:data:`V`, :data:`VT`, :data:`F`, :data:`OTHER`) by its keyword: both passes
+    count the v and vt lines alike, so an index names the same row in each."""
+    return np.fromiter((_KINDS.get(ln[:3] if ln[:2] == b"vt" else ln[:2], OTHER) for ln in lines),
+                       dtype=np.int8, count=len(lines))
 
 
 def _line_blocks(path: Path) -> Iterator[list[bytes]]:
@@ -149,8 +162,6 @@ class Rows:
         return out
 
 
-#: the first two bytes of the lines the slabs count or take: 1 v, 2 vt, 3 f
-_KINDS = {b"v ": 1, b"v\t": 1, b"vt": 2, b"f ": 3, b"f\t": 3}
 
 
 def slab_texts(path: Path, table: VertexTable, slab_faces: int = SLAB_FACES) -> Iterator[bytes]:
@@ -159,10 +170,10 @@ def slab_texts(path: Path, table: VertexTable, slab_faces: int = SLAB_FACES) -> 
     nv = nvt = 0                                # v and vt lines so far (negative indices count back from them)
     slab = _Slab(state)
     for lines in _line_blocks(path):
-        kind = np.fromiter((_KINDS.get(ln[:2], 0) for ln in lines), dtype=np.int8, count=len(lines))
-        seen = np.column_stack([nv + np.cumsum(kind == 1), nvt + np.cumsum(kind == 2)])
-        faces = np.flatnonzero(kind == 3)
-        statements = [i for i in np.flatnonzero(kind == 0).tolist() if _word(lines[i]) in STATE]
+        kind = _kinds(lines)
+        seen = np.column_stack([nv + np.cumsum(kind == V), nvt + np.cumsum(kind == VT)])
+        faces = np.flatnonzero(kind == F)
+        statements = [i for i in np.flatnonzero(kind == OTHER).tolist() if _word(lines[i]) in STATE]
         done = 0                                # faces of this block taken
         for i in [*statements, len(lines)]:
             before = int(np.searchsorted(faces, i))
