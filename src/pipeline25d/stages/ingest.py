@@ -196,11 +196,11 @@ class _Spool:
             yield cid, parts
 
 
-def _continues(last: MeshPart, part: MeshPart) -> bool:
-    """Whether ``part`` is more of ``last``: both textured with the same image, same name, same kinds
+def _continues(held: MeshPart, part: MeshPart) -> bool:
+    """Whether ``part`` is more of ``held``: both textured with the same image, same name, same kinds
     of vertex data (a part joined from several pieces: its faces in the pieces' order)."""
-    return (last.texture is not None and last.name == part.name and (last.colors is None) == (part.colors is None)
-            and (last.uv is None) == (part.uv is None) and last.texture == part.texture)
+    return (held.texture is not None and held.name == part.name and (held.colors is None) == (part.colors is None)
+            and (held.uv is None) == (part.uv is None) and held.texture == part.texture)
 
 
 def _part_bytes(part: MeshPart) -> int:
