@@ -179,3 +179,18 @@ def test_an_obj_with_windows_line_ends_reads_as_with_unix_ones_whole_and_in_slab
     for parts in (meshfile.load_mesh_file(crlf).parts, [p for piece in slabs_of(crlf, 40) for p in piece.parts]):
         assert [t[:2] + t[3:] for t in triangles(parts)] == expected
     assert {t[1] for t in expected} == {"part0", "part1", "part2"}
+
+
+def test_a_nan_coordinate_in_slabs_is_refused_by_name_as_in_a_whole_read(tmp_path, slabs_of):
+    """NaN marks a shorter line's missing values in the slab reader's table; a NaN the file writes
+    must not pass as one (its vertex would lose a coordinate)."""
+    from pipeline25d.formats import load_district
+
+    path = write_obj(tmp_path, 6, colours=True)
+    lines = path.read_text().splitlines()
+    lines[1] = "v nan " + " ".join(lines[1].split()[2:])             # the second vertex's x
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputFileError, match=r"m\.obj.*NaN or infinite"):
+        load_district({"path": str(path), "crs": "EPSG:28992"}, "EPSG:28992")
+    with pytest.raises(InputFileError, match=r"m\.obj: has NaN or infinite coordinates"):
+        slabs_of(path, 10)

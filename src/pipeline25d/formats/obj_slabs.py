@@ -135,6 +135,8 @@ def _values(lines: list[bytes], path: Path, what: str) -> np.ndarray:
         flat = np.fromstring(text, dtype=np.float64, sep=" ")
         if flat.size != len(idx) * n:
             raise InputFileError(path, f"a '{what}' line holds something other than numbers")
+        if what == "v" and not np.isfinite(flat).all():     # as checked_parts refuses a whole read's
+            raise InputFileError(path, "has NaN or infinite coordinates")
         out[idx, :n] = flat.reshape(-1, n) if n else out[idx, :n]
     return out
 
