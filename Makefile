@@ -6,10 +6,11 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 # the viewer's JavaScript (copied beside the page, no CDN): Leaflet, its rotation plugin and the
-# PMTiles decoder, installed together (npm --no-save drops what a later install does not name)
-NPM_PACKAGES := leaflet@1.9.4 leaflet-rotate@0.2.8 pmtiles@4.5.0
+# PMTiles decoder; and gltfpack, whose meshopt-compressed files the tests read. Installed together
+# (npm --no-save drops what a later install does not name)
+NPM_PACKAGES := leaflet@1.9.4 leaflet-rotate@0.2.8 pmtiles@4.5.0 gltfpack@1.3.0
 NPM_FILES := build/node_modules/leaflet/dist/leaflet.js build/node_modules/leaflet-rotate/dist/leaflet-rotate.js \
-             build/node_modules/pmtiles/dist/pmtiles.js
+             build/node_modules/pmtiles/dist/pmtiles.js build/node_modules/gltfpack/cli.js
 APT_PACKAGES := python3-venv python3-dev build-essential gdal-bin libgdal-dev libegl1 libegl-mesa0 \
                 libgl1-mesa-dri libgles2 openscenegraph assimp-utils \
                 slurmctld slurmd slurm-client munge cgi-mapserver mapserver-bin chromium

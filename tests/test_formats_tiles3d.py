@@ -211,13 +211,13 @@ def test_invalid_tileset_json(tmp_path):
 
 
 def test_unsupported_gltf_extension_in_tileset(tmp_path):
-    gltf = {"asset": {"version": "2.0"}, "extensionsRequired": ["EXT_meshopt_compression"]}
+    gltf = {"asset": {"version": "2.0"}, "extensionsRequired": ["EXT_example_unknown"]}
     (tmp_path / "c.gltf").write_text(json.dumps(gltf))
     tileset = {"asset": {"version": "1.1"}, "geometricError": 1,
                "root": {"geometricError": 0, "refine": "ADD", "content": {"uri": "c.gltf"},
                         "boundingVolume": {"sphere": [0, 0, 0, 1]}}}
     (tmp_path / "tileset.json").write_text(json.dumps(tileset))
-    with pytest.raises(UnsupportedFeatureError, match="EXT_meshopt_compression") as err:
+    with pytest.raises(UnsupportedFeatureError, match="EXT_example_unknown") as err:
         load_tileset(tmp_path / "tileset.json", GEO)
     assert "c.gltf" in str(err.value)
 

@@ -6,12 +6,13 @@ centre, ``KHR_draco_mesh_compression`` and float64 placement of ECEF-sized offse
 
 What is honoured: the node hierarchy (matrix or TRS; ``EXT_mesh_gpu_instancing`` instances),
 the glTF y-up -> 3D Tiles z-up rotation ((x, y, z) -> (x, -z, y), optional), ``CESIUM_RTC``,
-Draco (DracoPy), ``KHR_mesh_quantization`` (normalised/integer accessors), sparse accessors, base colour
-textures (GLB buffer views, ``data:`` URIs, files relative to the glTF; PNG, JPEG, and WEBP
-by ``EXT_texture_webp``, stored as PNG), their ``KHR_texture_transform``, base colour
-factor and ``COLOR_0`` as vertex colours of untextured parts. Triangles come as lists, strips
-or fans (modes 4, 5, 6); points and lines are skipped with a warning, as are textures only a
-``KHR_texture_basisu`` (KTX2) image gives (drawn untextured).
+Draco (DracoPy), meshopt-compressed buffer views (``EXT_meshopt_compression`` and
+``KHR_meshopt_compression``, :mod:`.meshopt`), ``KHR_mesh_quantization`` (normalised/integer
+accessors), sparse accessors, base colour textures (GLB buffer views, ``data:`` URIs, files
+relative to the glTF; PNG, JPEG, and WEBP by ``EXT_texture_webp``, stored as PNG), their
+``KHR_texture_transform``, base colour factor and ``COLOR_0`` as vertex colours of untextured
+parts. Triangles come as lists, strips or fans (modes 4, 5, 6); points and lines are skipped
+with a warning, as are textures only a ``KHR_texture_basisu`` (KTX2) image gives (drawn untextured).
 
 One :class:`MeshPart` per primitive instance, its vertices compacted to the ones its
 triangles use; its faces' objects are the feature ids (``_BATCHID``, ``EXT_mesh_features``) and
@@ -37,8 +38,13 @@ from urllib.parse import unquote
 
 import numpy as np
 
-from pipeline25d.core.errors import InputFileError, MissingTextureWarning, UnsupportedFeatureError
+from pipeline25d.core.errors import (
+    InputFileError,
+    MissingTextureWarning,
+    UnsupportedFeatureError,
+)
 from pipeline25d.core.mesh import MeshPart, repeated
+from pipeline25d.formats import meshopt
 from pipeline25d.formats.attributes import Limiter
 from pipeline25d.formats.common import image_problem, png_or_jpeg, side_file
 from pipeline25d.formats.feature_info import feature_prefix, feature_properties
@@ -54,6 +60,7 @@ SUPPORTED_EXTENSIONS = frozenset({
     "EXT_mesh_gpu_instancing",
     "EXT_structural_metadata",
     "EXT_texture_webp",
+    *meshopt.EXTENSIONS,
 })
 
 #: 3D Tiles convention: glTF is y-up, tiles are z-up; (x, y, z) -> (x, -z, y).
@@ -135,6 +142,7 @@ class _Document:
     glb_bin: bytes | None
     _buffers: dict[int, bytes] = field(default_factory=dict)
     _images: dict[int, bytes | None] = field(default_factory=dict)
+    _decoded: dict[int, bytes] = field(default_factory=dict)     # meshopt-compressed views, decoded
     limiter: Limiter | None = None           # bounds the features' attributes (formats.attributes)
 
     @classmethod
@@ -213,6 +221,9 @@ class _Document:
         if index not in self._buffers:
             buf = self.item("buffers", index)
             uri = buf.get("uri")
+            if uri is None and meshopt.is_fallback(buf):
+                raise InputFileError(self.path, f"buffer {index} is a meshopt fallback without data, "
+                                                "read by a view that is not compressed")
             if uri is None:
                 if self.glb_bin is None:
                     raise InputFileError(self.path, f"buffer {index} has no uri and there is no GLB binary chunk")
@@ -230,11 +241,25 @@ class _Document:
     def view(self, index: int) -> tuple[bytes, int, int, int | None]:
         """(buffer bytes, start offset, length, byteStride) of buffer view ``index``."""
         view = self.item("bufferViews", index)
+        compression = meshopt.compression_of(view)
+        if compression is not None:
+            data = self._decompressed(index, view, *compression)
+            return data, 0, len(data), view.get("byteStride")
         data = self.buffer(int(view.get("buffer", 0)))
         start, length = int(view.get("byteOffset", 0)), int(view["byteLength"])
         if start + length > len(data):
             raise InputFileError(self.path, f"bufferView {index} reads past the end of its buffer")
         return data, start, length, view.get("byteStride")
+
+    def _decompressed(self, index: int, view: dict, name: str, ext: dict) -> bytes:
+        """Buffer view ``index``'s bytes from its meshopt stream (:mod:`.meshopt`), decoded once."""
+        if index not in self._decoded:
+            data = self.buffer(int(ext.get("buffer", 0)))
+            start, length = int(ext.get("byteOffset", 0)), int(ext.get("byteLength", 0))
+            if start < 0 or length <= 0 or start + length > len(data):
+                raise InputFileError(self.path, f"bufferView {index}'s {name} stream lies outside its buffer")
+            self._decoded[index] = meshopt.decode_view(self.path, index, view, name, ext, data[start:start + length])
+        return self._decoded[index]
 
     def view_bytes(self, index: int) -> bytes:
         data, start, length, _ = self.view(index)
