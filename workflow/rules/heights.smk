@@ -57,6 +57,7 @@ rule heights:
         config=HEIGHTS_CONFIG,
         pids=PERSPECTIVE_IDS,
         rows_dir=HEIGHTS_ROWS,
+    priority: 1
     log:
         f"{RESULTS}/logs/heights.log",
     script:

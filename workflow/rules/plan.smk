@@ -46,6 +46,7 @@ checkpoint plan:
         crs=config["crs"],
         render=RENDER_SETTINGS,
         work=WORK,
+    priority: 4
     log:
         f"{RESULTS}/logs/plan/{{pid}}.log",
     script:

@@ -19,6 +19,11 @@ rule render_block:
         block=RENDER_BLOCK,
         spec_hash=block_hash,
         objects=OBJECTS,
+    # Ready jobs run plans first, then renders, warps, the maps' figures, web tiles (priorities 4 to 0):
+    # every render is done before the web tiles, so the run does not end on one perspective's render,
+    # warp and cut in a row with a core idle (Snakemake's greedy scheduler otherwise prefers the jobs
+    # with the largest inputs: web tiles and warps). docs/running.md has the figures.
+    priority: 3
     log:
         f"{RESULTS}/logs/render/{{pid}}/block_{{block}}.log",
     script:

@@ -18,6 +18,7 @@ rule report_figures:
         perspectives=PERSPECTIVE_IDS,
         gsd=config["gsd"],
         results=RESULTS,
+    priority: 1
     log:
         f"{RESULTS}/logs/report_figures.log",
     script:

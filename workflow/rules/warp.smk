@@ -32,6 +32,7 @@ rule warp:
     # encode takes the cores idle when it runs too (stages.maps.warp.encode_options); on a cluster
     # profiles/slurm gives it two (GDAL's NUM_THREADS compresses the COG's blocks on all: the same bytes)
     threads: 1
+    priority: 2
     log:
         f"{RESULTS}/logs/warp/{{pid}}.log",
     script:

@@ -14,6 +14,7 @@ rule wms:
     # layer) on its own thread; holding two, it waited for the last web-tile job to end (make bench:
     # 12 s alone at the end of the run)
     threads: 1
+    priority: 1
     log:
         f"{RESULTS}/logs/wms.log",
     script:
