@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
+from test_formats_gltf import _glb
 
 from pipeline25d.core.errors import InputFileError, UnsupportedFeatureError
 from pipeline25d.formats.gltf import load_gltf
@@ -91,12 +92,12 @@ def _match(got: np.ndarray, want: np.ndarray, tol: float) -> np.ndarray:
     dist, idx = cKDTree(got.mean(axis=1)).query(want.mean(axis=1))
     assert dist.max() <= tol
     assert len(np.unique(idx)) == len(want)
-    for a, b in ((got[idx], want),):
-        corners = np.abs(np.sort(a.reshape(-1, 9), axis=1) - np.sort(b.reshape(-1, 9), axis=1)).max()
-        assert corners <= 2 * tol
-        na = np.cross(a[:, 1] - a[:, 0], a[:, 2] - a[:, 0])
-        nb = np.cross(b[:, 1] - b[:, 0], b[:, 2] - b[:, 0])
-        assert (np.einsum("ij,ij->i", na, nb) > 0).all()     # winding kept: the same side faces out
+    paired = got[idx]
+    corners = np.abs(np.sort(paired.reshape(-1, 9), axis=1) - np.sort(want.reshape(-1, 9), axis=1)).max()
+    assert corners <= 2 * tol
+    normal_got = np.cross(paired[:, 1] - paired[:, 0], paired[:, 2] - paired[:, 0])
+    normal_want = np.cross(want[:, 1] - want[:, 0], want[:, 2] - want[:, 0])
+    assert (np.einsum("ij,ij->i", normal_got, normal_want) > 0).all()     # winding kept: the same side faces out
     return idx
 
 
@@ -162,14 +163,6 @@ def _split(data: bytes) -> tuple[dict, bytes]:
     return doc, data[28 + n:28 + n + m]
 
 
-def _join(doc: dict, binary: bytes) -> bytes:
-    js = json.dumps(doc).encode()
-    js += b" " * (-len(js) % 4)
-    binary += b"\0" * (-len(binary) % 4)
-    return (struct.pack("<4sII", b"glTF", 2, 28 + len(js) + len(binary)) + struct.pack("<II", len(js), 0x4E4F534A)
-            + js + struct.pack("<II", len(binary), 0x004E4942) + binary)
-
-
 @pytest.fixture(scope="module")
 def packed(source, tmp_path_factory) -> tuple[dict, bytes]:
     return _split(_gltfpack(source, tmp_path_factory.mktemp("packed") / "p.glb", "-cc").read_bytes())
@@ -184,7 +177,7 @@ def _variant(packed, tmp_path, edit) -> Path:
     doc, binary = json.loads(json.dumps(packed[0])), bytearray(packed[1])
     edit(doc, binary)
     path = tmp_path / "bad.glb"
-    path.write_bytes(_join(doc, bytes(binary)))
+    path.write_bytes(_glb(doc, bytes(binary)))
     return path
 
 

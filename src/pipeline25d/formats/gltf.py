@@ -38,11 +38,7 @@ from urllib.parse import unquote
 
 import numpy as np
 
-from pipeline25d.core.errors import (
-    InputFileError,
-    MissingTextureWarning,
-    UnsupportedFeatureError,
-)
+from pipeline25d.core.errors import InputFileError, MissingTextureWarning, UnsupportedFeatureError
 from pipeline25d.core.mesh import MeshPart, repeated
 from pipeline25d.formats import meshopt
 from pipeline25d.formats.attributes import Limiter
@@ -221,10 +217,10 @@ class _Document:
         if index not in self._buffers:
             buf = self.item("buffers", index)
             uri = buf.get("uri")
-            if uri is None and meshopt.is_fallback(buf):
-                raise InputFileError(self.path, f"buffer {index} is a meshopt fallback without data, "
-                                                "read by a view that is not compressed")
             if uri is None:
+                if meshopt.is_fallback(buf):
+                    raise InputFileError(self.path, f"buffer {index} is a meshopt fallback without data, "
+                                                    "read by a view that is not compressed")
                 if self.glb_bin is None:
                     raise InputFileError(self.path, f"buffer {index} has no uri and there is no GLB binary chunk")
                 data = self.glb_bin

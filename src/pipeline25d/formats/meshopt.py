@@ -60,9 +60,7 @@ def decode_view(path: Path, index: int, view: dict, name: str, ext: dict, compre
     try:
         if mode == "ATTRIBUTES":
             out = meshoptimizer.decode_vertex_buffer(count, stride, compressed, dtype=np.dtype((np.void, stride)))
-            raw = np.frombuffer(out.tobytes(), np.uint8)
-            raw = _filtered(meshoptimizer, filt, raw, count, stride)
-            return raw.tobytes()
+            return _filtered(meshoptimizer, filt, out.view(np.uint8), count, stride).tobytes()
         decode = meshoptimizer.decode_index_buffer if mode == "TRIANGLES" else meshoptimizer.decode_index_sequence
         indices = decode(count, 4, compressed)         # the stream does not depend on the index size
         return indices.astype("<u2" if stride == 2 else "<u4").tobytes()
@@ -110,9 +108,8 @@ def color_filter(raw: np.ndarray, count: int, stride: int) -> np.ndarray:
     filter, so it is done here, vectorised."""
     bits = 8 * stride // 4
     unsigned, signed = (np.uint8, np.int8) if bits == 8 else (np.dtype("<u2"), np.dtype("<i2"))
-    y = raw.view(unsigned).reshape(count, 4)[:, 0].astype(np.int64)
-    co, cg = (raw.view(signed).reshape(count, 4)[:, k].astype(np.int64) for k in (1, 2))
-    alpha = raw.view(unsigned).reshape(count, 4)[:, 3].astype(np.int64)
+    y, _, _, alpha = raw.view(unsigned).reshape(count, 4).astype(np.int64).T
+    co, cg = raw.view(signed).reshape(count, 4)[:, 1:3].astype(np.int64).T
     top = np.floor(np.log2(np.maximum(alpha, 1))).astype(np.int64)        # the alpha's most significant bit
     scale = (1 << (top + 1)) - 1
     a = alpha & (scale >> 1)

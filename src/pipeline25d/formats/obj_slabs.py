@@ -164,8 +164,6 @@ class Rows:
         return out
 
 
-
-
 def slab_texts(path: Path, table: VertexTable, slab_faces: int = SLAB_FACES) -> Iterator[bytes]:
     """The OBJ text of each slab of ``path``'s faces (module docstring), in file order."""
     state: dict[bytes, bytes] = {}              # statement keyword -> its last line
