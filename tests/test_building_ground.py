@@ -132,6 +132,35 @@ def test_tin_is_the_plane_between_samples_and_leaves_far_ones_apart():
     assert have.sum() < 100 * 100 + 10 * 10 and have[(gx > 200) & (gx < 1400)].sum() == 0
 
 
+def box_triangles(fp, floor: bool, **kw) -> np.ndarray:
+    """(m, 3, 3) triangles of a box of :func:`box_surfaces` (its floor where ``floor``)."""
+    from pipeline25d_lab.scenes.building_city import box_surfaces
+
+    verts, surfaces = box_surfaces(fp, floor, False, **kw)
+    v = np.asarray(verts)
+    return np.array([v[[r[0], r[k], r[k + 1]]] for rings, _ in surfaces for r in rings[:1] for k in (1, 2)])
+
+
+@pytest.mark.parametrize("floors", [True, False])
+def test_a_foot_on_a_roof_stands_and_a_neighbours_corner_does_not(floors):
+    """``standing`` on boxes sharing a wall on the sloped plane (no vertex welded): the corners on the
+    shared wall stand on the neighbour's floor edge or under its roof, at the same height, and are
+    ground; a tower's feet on either box's roof stand, with a floor under them or without one
+    (the box's top within 0.5 m and the box reaching 8 m lower)."""
+    from pipeline25d.stages.terrain.bases import standing
+    from pipeline25d_lab.scenes.building_city import roof_z, tower_on
+
+    a, b = (X0, Y0, X0 + 12, Y0 + 9), (X0 + 12, Y0, X0 + 24, Y0 + 9)
+    tower = tower_on(a)
+    tris = [box_triangles(a, floors), box_triangles(b, floors),
+            box_triangles(tower, True, height=15.0, floor_z=roof_z(a))]
+    owner = np.concatenate([np.full(len(t), k) for k, t in enumerate(tris)])
+    corners = np.array([(x, y) for fp in (a, b, tower) for x in fp[::2] for y in fp[1::2]])
+    z = np.r_[plane(corners[:8, 0], corners[:8, 1]), np.full(4, roof_z(a))]
+    got = standing(np.c_[corners, z], np.repeat([0, 1, 2], 4), np.concatenate(tris), owner)
+    np.testing.assert_array_equal(got, [False] * 8 + [True] * 4)
+
+
 def test_filter_cells_keep_their_height_only_where_they_agree_with_the_bases():
     tin = np.array([10.0, 10.0, 10.0, np.nan, np.nan, 10.0])
     csf = np.array([10.4, 14.0, np.nan, 7.0, np.nan, 10.0 - BASE_AGREEMENT_M - 0.01])
@@ -391,3 +420,37 @@ def test_real_buildings_only_3d_tiles_get_the_ground_they_stand_on(tmp_path, gl_
           f"median {np.median(under):+.3f} m, 90% of |d| {np.quantile(np.abs(under), 0.9):.3f} m, "
           f"max |d| {np.abs(under).max():.2f} m")
     assert abs(np.median(under)) < 0.05 and np.quantile(np.abs(under), 0.9) < 0.5
+
+
+@pytest.mark.parametrize("fmt", ["cityjson-part", "cityjson-building", "obj"])
+def test_a_tower_on_a_roof_is_no_ground(tmp_path, gl_ctx, fmt):
+    """Towers standing on the roofs of three of the boxes, each a separate solid sharing no vertex
+    with its box (a storey set back, a penthouse, a PLATEAU or CityGML BuildingPart): as a
+    BuildingPart with its own GroundSurface on the roof, as a Building of its own (its wall bottoms
+    on the roof), or as bare triangles found by their shape. Their feet, 8 m above the ground, are
+    no ground samples: the DTM under and between the boxes is the plane, as without the towers."""
+    from pipeline25d.formats import load_district_buildings
+    from pipeline25d_lab.scenes.building_city import roof_z, tower_on
+
+    fps = boxes([(X0 + 20, Y0 + 20)])
+    towers = (0, 4, 7)
+    if fmt == "obj":
+        path = write_obj(tmp_path / "city.obj", fps, towers=towers)
+    else:
+        path = write_cityjson(tmp_path / "city.json", fps, towers=towers, tower_part=fmt == "cityjson-part")
+        mesh, _ = load_district_buildings({"path": str(path)}, CRS)
+        got = base_samples(mesh)
+        np.testing.assert_allclose(got.points[:, 2], plane(got.points[:, 0], got.points[:, 1]), atol=6e-4)
+        assert (got.buildings, got.stacked) == (9, 3)          # a connected group is a building, a part or not
+    record, scene, dtm = run_stages(tmp_path, {"city": {"path": str(path)}})
+    assert (record["bases"]["buildings"], record["bases"]["stacked"]) == (9, 3)
+    assert record["source"].endswith("; 3 standing on others")
+    hull = (fps[0][0], fps[0][1], fps[-1][2], fps[-1][3])
+    x, y, z = cell_centres_in(dtm, hull)
+    on_roofs = np.zeros(len(x), bool)
+    for i in towers:
+        t = tower_on(fps[i])
+        on_roofs |= (x > t[0]) & (x < t[2]) & (y > t[1]) & (y < t[3])
+        assert roof_z(fps[i]) - plane(t[0], t[1]) > 7.9
+    assert on_roofs.sum() > 40                                   # cell centres under the towers
+    assert_plane_but_near_check_points(tmp_path, scene, x, y, z)

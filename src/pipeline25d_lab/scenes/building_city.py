@@ -35,12 +35,14 @@ def boxes(origins: Sequence[tuple[float, float]], size=(12.0, 9.0), spacing=30.0
             for ox, oy in origins for i in range(n) for j in range(n)]
 
 
-def box_surfaces(fp: Footprint, ground: bool, window: bool, height=8.0) -> tuple[list, list]:
-    """(vertices, surfaces [(rings, semantic type)]) of a box on the plane: bottom corners on it,
-    a flat roof ``height`` above the highest; a window (hole in the south wall) if asked."""
+def box_surfaces(fp: Footprint, ground: bool, window: bool, height=8.0, floor_z: float | None = None
+                 ) -> tuple[list, list]:
+    """(vertices, surfaces [(rings, semantic type)]) of a box on the plane: bottom corners on it
+    (or all at ``floor_z``: a box standing on another's roof), a flat roof ``height`` above the
+    highest; a window (hole in the south wall) if asked."""
     x0, y0, x1, y1 = fp
     xy = [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]
-    bottom = [(x, y, float(plane(x, y))) for x, y in xy]
+    bottom = [(x, y, float(plane(x, y)) if floor_z is None else floor_z) for x, y in xy]
     roof = max(z for *_, z in bottom) + height
     verts = bottom + [(x, y, roof) for x, y in xy]
     walls = [[[k, (k + 1) % 4, 4 + (k + 1) % 4, 4 + k]] for k in range(4)]
@@ -57,21 +59,47 @@ def box_surfaces(fp: Footprint, ground: bool, window: bool, height=8.0) -> tuple
     return verts, surfaces
 
 
+TOWER_HEIGHT = 15.0
+
+
+def roof_z(fp: Footprint, height=8.0) -> float:
+    """The flat roof's height of the box on ``fp`` (:func:`box_surfaces`)."""
+    return max(float(plane(x, y)) for x in fp[::2] for y in fp[1::2]) + height
+
+
+def tower_on(fp: Footprint, inset=3.0) -> Footprint:
+    """A footprint ``inset`` inside ``fp``: a tower standing on that box's roof, sharing no vertex with it."""
+    return fp[0] + inset, fp[1] + inset, fp[2] - inset, fp[3] - inset
+
+
 def write_cityjson(path: Path, footprints: Sequence[Footprint], ground: Callable[[int], bool] = lambda i: i % 2 == 0,
-                   window: Callable[[int], bool] = lambda i: i == 1) -> Path:
+                   window: Callable[[int], bool] = lambda i: i == 1, towers: Sequence[int] = (),
+                   tower_part: bool = True) -> Path:
     """A CityJSON 1.1 file of the boxes (no terrain), vertices at 1 mm; building i has a
-    GroundSurface where ``ground(i)``, a window where ``window(i)``."""
+    GroundSurface where ``ground(i)``, a window where ``window(i)``. ``towers``: the buildings with
+    a tower (:func:`tower_on`, :data:`TOWER_HEIGHT` high) standing on their roof, a separate
+    solid: their BuildingPart with a GroundSurface of its own on the roof (``tower_part``), or a
+    Building of its own without one."""
     vertices, objects = [], {}
-    for i, fp in enumerate(footprints):
-        verts, surfaces = box_surfaces(fp, ground(i), window(i))
+
+    def add(key: str, surfaces: list, verts: list, **extra) -> None:
         base = len(vertices)
-        vertices += verts
+        vertices.extend(verts)
         types = sorted({t for _, t in surfaces})
-        objects[f"b{i}"] = {"type": "Building", "geometry": [{
+        objects[key] = {**extra, "geometry": [{
             "type": "MultiSurface", "lod": "2",
             "boundaries": [[[base + v for v in ring] for ring in rings] for rings, _ in surfaces],
             "semantics": {"surfaces": [{"type": t} for t in types], "values": [types.index(t) for _, t in surfaces]},
         }]}
+
+    for i, fp in enumerate(footprints):
+        verts, surfaces = box_surfaces(fp, ground(i), window(i))
+        add(f"b{i}", surfaces, verts, type="Building", **({"children": [f"b{i}-tower"]} if i in towers and tower_part
+                                                             else {}))
+        if i in towers:
+            verts, surfaces = box_surfaces(tower_on(fp), tower_part, False, TOWER_HEIGHT, floor_z=roof_z(fp))
+            add(f"b{i}-tower" if tower_part else f"t{i}", surfaces, verts,
+                **({"type": "BuildingPart", "parents": [f"b{i}"]} if tower_part else {"type": "Building"}))
     scale = 0.001
     ints = [[round((x - X0) / scale), round((y - Y0) / scale), round(z / scale)] for x, y, z in vertices]
     doc = {"type": "CityJSON", "version": "1.1", "transform": {"scale": [scale] * 3, "translate": [X0, Y0, 0.0]},
@@ -105,18 +133,21 @@ def write_citygml_lod1(path: Path, footprints: Sequence[Footprint]) -> Path:
 
 
 def write_obj(path: Path, footprints: Sequence[Footprint], floor: Callable[[int], str] = lambda i: "down~up~none"
-              .split("~")[i % 3], terrain: bool = False) -> Path:
+              .split("~")[i % 3], terrain: bool = False, towers: Sequence[int] = ()) -> Path:
     """An OBJ of the boxes as bare triangles (no objects, no semantics: what a glTF or 3D Tiles export
     of buildings gives): box i's floor faces ``floor(i)``: "down", "up" (as some exporters flip
     it) or "none" (an open shell). ``terrain``: the plane itself as one more surface, a 5 m grid
-    under and around the boxes, 20 m beyond them (a model that draws its own ground)."""
+    under and around the boxes, 20 m beyond them (a model that draws its own ground). ``towers``:
+    the boxes with a tower on their roof (:func:`write_cityjson`), a closed box of its own."""
     verts, tris = [], []
-    for i, fp in enumerate(footprints):
-        box, surfaces = box_surfaces(fp, floor(i) != "none", False)
+    shapes = [(fp, {}) for fp in footprints]
+    shapes += [(tower_on(footprints[i]), {"height": TOWER_HEIGHT, "floor_z": roof_z(footprints[i])}) for i in towers]
+    for i, (fp, tower) in enumerate(shapes):
+        box, surfaces = box_surfaces(fp, bool(tower) or floor(i) != "none", False, **tower)
         base = len(verts)
         verts += box
         for rings, kind in surfaces:
-            ring = rings[0][::-1] if kind == "GroundSurface" and floor(i) == "up" else rings[0]
+            ring = rings[0][::-1] if kind == "GroundSurface" and not tower and floor(i) == "up" else rings[0]
             tris += [(base + ring[0], base + ring[k], base + ring[k + 1]) for k in (1, 2)]
     if terrain:
         x0, y0 = min(f[0] for f in footprints) - 20, min(f[1] for f in footprints) - 20

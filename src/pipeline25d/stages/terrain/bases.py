@@ -11,7 +11,11 @@ ground to find. Its ground is where its walls end:
    any; else its wall bottoms: at every corner (an (x, y) holding wall vertices at two heights
    or more, to 1 cm) the lowest wall vertex, less those more than :data:`BASE_TOL_M` above the
    lower side of their convex hull (window sills, walls standing on a lower part's roof). A
-   gable's apex holds one vertex and is no corner.
+   gable's apex holds one vertex and is no corner. A sample that stands on the model is no
+   ground (:func:`standing`): one over a surface more than :data:`BASE_TOL_M` below it, or on
+   the roof of another building that reaches lower (the feet of a tower or a storey set back
+   drawn as a solid of its own, a part whose floor lies on another part). A building all of
+   whose samples stand so stands on another (``stacked``).
 3. **TIN**: the samples of all buildings (one per (x, y) to 1 cm, the lowest) are joined by
    their Delaunay triangulation in plan, less the triangles with an edge longer than
    ``max_edge`` (twice the largest object: the reach of the DTM beyond ground, so buildings
@@ -41,16 +45,19 @@ WELD_M = 0.001            # vertices this close are one (buildings' connectivity
 COLUMN_M = 0.01           # wall vertices this close in plan share a corner; heights this close are one
 BASE_TOL_M = 0.5          # a wall bottom more than this above the lower side of its building's hull is no base
 SQUARE_CELLS = 64         # cells are evaluated by squares of this edge that a triangle may cover
+EDGE_M = 0.001            # a sample this close to a surface's edge in plan stands over it
 
 
 @dataclass(frozen=True)
 class BaseSamples:
-    """Ground samples (n, 3) float64 of a model's buildings, how many buildings gave some and how
-    many of those from ground surfaces (the others from wall bottoms)."""
+    """Ground samples (n, 3) float64 of a model's buildings, how many buildings gave some, how
+    many of those from ground surfaces (the others from wall bottoms), and how many buildings
+    stand on others (all their samples on a roof: none taken)."""
 
     points: np.ndarray
     buildings: int
     from_ground_surfaces: int
+    stacked: int = 0
 
 
 def base_samples(mesh: Mesh) -> BaseSamples:
@@ -65,15 +72,70 @@ def base_samples(mesh: Mesh) -> BaseSamples:
     origin = verts.min(axis=0)
     points, faces = welded(verts, faces)
     label = components(faces, len(points))
-    ground = faces[kind == "ground"].ravel()
-    with_ground = np.unique(label[ground])
-    out = [points[np.unique(ground)]]
+    ground = np.unique(faces[kind == "ground"].ravel())
     walls = np.unique(faces[kind == "wall"].ravel())
-    walls = walls[~np.isin(label[walls], with_ground)]
-    bottoms = _wall_bottoms(points[walls], label[walls], origin)
-    out += bottoms
-    samples = np.concatenate(out)
-    return BaseSamples(samples, len(with_ground) + len(bottoms), len(with_ground))
+    walls = walls[~np.isin(label[walls], label[ground])]
+    bottoms, bottom_label = _wall_bottoms(points[walls], label[walls], origin)
+    samples, owner = np.concatenate([points[ground], bottoms]), np.r_[label[ground], bottom_label]
+    kept = ~standing(samples, owner, points[faces], label[faces[:, 0]])
+    buildings = np.unique(owner[kept])
+    return BaseSamples(samples[kept], len(buildings), len(np.unique(owner[:len(ground)][kept[:len(ground)]])),
+                       len(np.unique(owner)) - len(buildings))
+
+
+def standing(samples: np.ndarray, owner: np.ndarray, triangles: np.ndarray, tri_owner: np.ndarray,
+             tol: float = BASE_TOL_M) -> np.ndarray:
+    """(n,) bool: the samples (n, 3) of buildings ``owner`` that stand on the model rather than on the
+    ground, among ``triangles`` (m, 3, 3) of buildings ``tri_owner``. A sample stands where, over it
+    in plan (to :data:`EDGE_M`, edges included),
+
+    * a surface lies more than ``tol`` below it (a roof or a floor under a foot), or
+    * another building's top surface lies within ``tol`` of it while that building reaches more than
+      ``tol`` lower (a foot on the roof of a building drawn without a floor).
+
+    Only surfaces that face up or down are looked at (:data:`~pipeline25d.formats.surfaces.ROOF_NZ`:
+    a wall's plane, nearly vertical, says nothing of the height beside its foot). Float64;
+    candidates by an R-tree of the surfaces' plan boxes."""
+    from rtree.index import Index
+
+    from pipeline25d.formats.surfaces import ROOF_NZ
+
+    out = np.zeros(len(samples), bool)
+    normal = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
+    cross = normal[:, 2]                                                   # twice the signed plan area
+    keep = np.abs(cross) > ROOF_NZ * np.linalg.norm(normal, axis=1)
+    if not keep.any() or not len(samples):
+        return out
+    lowest = np.full(tri_owner.max() + 1, np.inf)                          # each building's lowest point
+    np.minimum.at(lowest, tri_owner, triangles[:, :, 2].min(axis=1))
+    tri, cross, tri_owner = triangles[keep], cross[keep], tri_owner[keep]
+    index = Index((np.arange(len(tri), dtype=np.int64), tri[:, :, :2].min(axis=1) - EDGE_M,
+                   tri[:, :, :2].max(axis=1) + EDGE_M))
+    ids, counts = index.intersection_v(samples[:, :2], samples[:, :2])
+    which = np.repeat(np.arange(len(samples)), counts.astype(np.int64))
+    t, p = tri[ids], samples[which]
+    # barycentric coordinates in plan; b_k · |cross| / |edge opposite k| is the distance inside that edge
+    d = p[:, :2] - t[:, 0, :2]
+    u, v = t[:, 1, :2] - t[:, 0, :2], t[:, 2, :2] - t[:, 0, :2]
+    b1 = (d[:, 0] * v[:, 1] - d[:, 1] * v[:, 0]) / cross[ids]
+    b2 = (u[:, 0] * d[:, 1] - u[:, 1] * d[:, 0]) / cross[ids]
+    b = np.c_[1.0 - b1 - b2, b1, b2]
+    opposite = np.linalg.norm(np.roll(t[:, :, :2], -1, axis=1) - np.roll(t[:, :, :2], -2, axis=1), axis=2)
+    over = (b * (np.abs(cross[ids])[:, None] / opposite) >= -EDGE_M).all(axis=1)
+    b = np.clip(b[over], 0.0, None)                     # at an edge: the edge's height, not beyond it
+    b /= b.sum(axis=1, keepdims=True)
+    which, ids, z = which[over], ids[over], np.einsum("ij,ij->i", b, t[over][:, :, 2])
+    out[which[z < samples[which, 2] - tol]] = True
+    # another building's top over the sample: the highest of its surfaces there
+    other = tri_owner[ids] != owner[which]
+    buildings = np.int64(len(lowest))
+    pair, inverse = np.unique(which[other] * buildings + tri_owner[ids][other], return_inverse=True)
+    top = np.full(len(pair), -np.inf)
+    np.maximum.at(top, inverse, z[other])
+    sample, building = np.divmod(pair, buildings)
+    height = samples[sample, 2]
+    out[sample[(np.abs(top - height) <= tol) & (lowest[building] < height - tol)]] = True
+    return out
 
 
 def welded(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -95,10 +157,12 @@ def components(faces: np.ndarray, n: int) -> np.ndarray:
     return connected_components(graph, directed=False)[1]
 
 
-def _wall_bottoms(points: np.ndarray, label: np.ndarray, origin: np.ndarray) -> list[np.ndarray]:
-    """Per building (``label``) without ground surfaces: its wall bottoms (see the module), (k, 3) each."""
+def _wall_bottoms(points: np.ndarray, label: np.ndarray, origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The wall bottoms (k, 3) of the buildings (``label``) without ground surfaces (see the module),
+    and the building of each."""
+    none = np.empty((0, 3)), np.empty(0, label.dtype)
     if not len(points):
-        return []
+        return none
     key = np.round((points - origin) / COLUMN_M).astype(np.int64)
     order = np.lexsort((key[:, 2], key[:, 1], key[:, 0], label))        # by building, corner, then height
     points, label, key = points[order], label[order], key[order]
@@ -108,10 +172,11 @@ def _wall_bottoms(points: np.ndarray, label: np.ndarray, origin: np.ndarray) -> 
     heights = np.bincount(corner_id, weights=new_height)
     lowest = np.flatnonzero(corner)[heights >= 2]                       # the first of a corner is its lowest
     if not len(lowest):
-        return []
+        return none
     points, label = points[lowest], label[lowest]
     ends = np.flatnonzero(np.r_[label[1:] != label[:-1], True]) + 1
-    return [_lower_hull(p) for p in np.split(points, ends[:-1])]
+    bottoms = [_lower_hull(p) for p in np.split(points, ends[:-1])]
+    return np.concatenate(bottoms), np.repeat(label[ends - 1], [len(b) for b in bottoms])
 
 
 def _lower_hull(points: np.ndarray) -> np.ndarray:
@@ -222,7 +287,8 @@ BASE_AGREEMENT_M = 1.0    # a CSF ground cell this close to the bases' TIN keeps
 @dataclass
 class DistrictBases:
     """The building bases of a scene's inputs: the TIN of their samples, the districts that gave
-    some, those made of buildings alone (their surface holds no ground for CSF) and the counts."""
+    some, those made of buildings alone (their surface holds no ground for CSF) and the counts
+    (``stacked``: buildings standing on others, which gave none)."""
 
     tin: BaseTin | None
     districts: list[str]
@@ -230,18 +296,20 @@ class DistrictBases:
     buildings: int = 0
     from_ground_surfaces: int = 0
     by_shape: list[str] = field(default_factory=list)
+    stacked: int = 0
 
     def describe(self) -> str:
         """The record's words for this ground source."""
         walls = self.buildings - self.from_ground_surfaces
         return (f"building bases of {', '.join(self.districts)}: {self.buildings} buildings "
                 f"({self.from_ground_surfaces} by ground surfaces, {walls} by wall bottoms), "
-                f"{len(self.tin.points)} samples")
+                f"{len(self.tin.points)} samples" + (f"; {self.stacked} standing on others" if self.stacked else ""))
 
     def record(self) -> dict:
         return {"districts": self.districts, "buildings_only": self.buildings_only, "buildings": self.buildings,
                 "from_ground_surfaces": self.from_ground_surfaces, "samples": len(self.tin.points),
-                "triangles": self.tin.n_triangles, **({"by_shape": self.by_shape} if self.by_shape else {})}
+                "triangles": self.tin.n_triangles, **({"by_shape": self.by_shape} if self.by_shape else {}),
+                **({"stacked": self.stacked} if self.stacked else {})}
 
 
 def district_bases(inputs: dict, scene_crs: str, skip: list[str], max_edge: float,
@@ -274,8 +342,9 @@ def district_bases(inputs: dict, scene_crs: str, skip: list[str], max_edge: floa
             found.buildings_only.append(name)
         found.buildings += got.buildings
         found.from_ground_surfaces += got.from_ground_surfaces
-        log.info("%s: ground from the bases of %d buildings (%d by ground surfaces), %d samples", name,
-                 got.buildings, got.from_ground_surfaces, len(got.points))
+        found.stacked += got.stacked
+        log.info("%s: ground from the bases of %d buildings (%d by ground surfaces), %d samples; %d buildings "
+                 "standing on others", name, got.buildings, got.from_ground_surfaces, len(got.points), got.stacked)
     if samples:
         found.tin = BaseTin(np.concatenate(samples), max_edge)
     return found
