@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +13,7 @@ import pytest
 from lxml import etree
 from PIL import Image
 
-from pipeline25d.core.errors import InputFileError, MissingTextureWarning
+from pipeline25d.core.errors import CRSError, InputFileError, MissingTextureWarning
 from pipeline25d.formats import detect_format, load_district, load_district_terrain
 from pipeline25d.formats.citygml import read_citygml
 from pipeline25d.formats.surfaces import PALETTE
@@ -191,6 +192,59 @@ def test_geographic_crs_lat_lon_order(tmp_path):
         np.testing.assert_allclose(v.max(axis=0), [h["x"] + W, h["y"] + D, h["z"] + HR], atol=1e-3)
     parts = {p.name: p for p in mesh.parts}
     assert _area(parts["roof"]) == pytest.approx(2 * (S * S - H * H), rel=1e-6)
+
+
+def test_longitude_first_under_a_latitude_first_crs_is_read_where_it_lies(tmp_path):
+    """A file that writes longitude first under EPSG:6697 (whose order is latitude first; the OGC's
+    own CityGML 3.0 example of the Jefferson Memorial does so under EPSG:4979): read in the CRS's
+    order it would lie outside the scene CRS's area; exchanged, it lies inside, so ``axis_order``
+    auto reads it exchanged, with a warning, and gives the correctly ordered file's mesh, faces
+    included. ``axis_order: crs`` keeps the error, and so does a scene where neither order lies."""
+    import re
+    import warnings
+
+    path, _ = _city(tmp_path / "lat", crs="EPSG:6697")
+    swapped = tmp_path / "lon" / "city.gml"
+    shutil.copytree(path.parent, swapped.parent)
+
+    def lon_first(match):
+        v = match.group(2).split()
+        return match.group(1) + " ".join(w for k in range(0, len(v), 3) for w in (v[k + 1], v[k], v[k + 2]))
+
+    text, n = re.subn(r"(<gml:pos(?:List)?[^>]*>)([^<]+)", lon_first, path.read_text(encoding="utf-8"))
+    assert n > 50
+    swapped.write_text(text, encoding="utf-8")
+    want = _load(path, TOKYO)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        got = _load(swapped, TOKYO)
+    assert any("longitude and latitude exchanged" in str(w.message) and "city.gml" in str(w.message)
+               for w in caught)
+    said = _load(swapped, TOKYO, axis_order="swapped")                  # said so: the same, without a warning
+    for mesh in (got, said):
+        assert [p.name for p in mesh.parts] == [p.name for p in want.parts]
+        for a, b in zip(mesh.parts, want.parts):
+            np.testing.assert_allclose(a.vertices, b.vertices, atol=1e-6)
+            np.testing.assert_array_equal(a.faces, b.faces)     # triangulated and faced as the right order is
+    with pytest.raises(CRSError, match=r"city\.gml: model at lon .* outside the area of use of EPSG:6697"):
+        _load(swapped, TOKYO, axis_order="crs")
+    with pytest.raises(CRSError, match=r"city\.gml: model at lon .* outside the area of use of EPSG:6697"):
+        _load(swapped, "EPSG:25832")
+
+
+@pytest.mark.parametrize("name, code", [("urn:adv:crs:ETRS89_UTM32*DE_DHHN2016_NH", "EPSG:25832+7837"),
+                                        ("urn:adv:crs:DE_DHDN_3GK4*DE_DHHN92_NH", "EPSG:31468+5783"),
+                                        ("urn:adv:crs:DE_DHDN_3GK3", "EPSG:31467"),
+                                        ("urn:adv:crs:DE_RD/83_3GK5*DE_DHHN85_NH", "EPSG:3399+5784")])
+def test_german_adv_crs_names(name, code):
+    """The AdV names German CityGML carries (state LoD2 data; the OGC's CityGML 3.0 example
+    "Building_CityGML3.0_LOD2_with_several_attributes" is in Gauss-Krüger zone 4): EPSG codes
+    pyproj knows, compound where a height system follows."""
+    from pipeline25d.core.crs import parse_crs
+    from pipeline25d.formats.common import crs_name
+
+    assert crs_name(name) == code
+    assert parse_crs(code).is_compound == ("+" in code)
 
 
 def test_terrain_loader_returns_the_tin(tmp_path):

@@ -221,7 +221,7 @@ def test_reprojection_and_area_check(tmp_path):
 
 def test_missing_crs(tmp_path):
     path = _model(tmp_path, {}, [], metadata={})
-    with pytest.raises(CRSError, match="src_crs"):
+    with pytest.raises(CRSError, match=r"no metadata.referenceSystem says its CRS \(set the input's crs key\)"):
         load_cityjson(path, RD)
     assert load_cityjson(path, RD, src_crs=RD).n_triangles == 0
 

@@ -34,6 +34,12 @@ def check_scene_crs(text: str) -> None:
         raise CRSError(f"scene crs {text!r} has axis units {sorted(units)}, not metres")
 
 
+def is_geographic(text: str) -> bool:
+    """Whether the horizontal part of ``text`` is a geographic CRS (degrees of latitude and longitude)."""
+    crs = parse_crs(text)
+    return (crs.sub_crs_list[0] if crs.is_compound else crs).is_geographic
+
+
 def horizontal_wkt(text: str) -> str:
     """WKT of the horizontal part of ``text`` (what a GeoTIFF of the map carries)."""
     crs = parse_crs(text)

@@ -187,14 +187,16 @@ def district_pieces(spec: dict, scene_crs: str, max_geometric_error: float | Non
     with warnings.catch_warnings(), side_folders(_side_folders(spec, base_dir, path)):
         if spec.get("missing_textures", "error") == "error":
             warnings.simplefilter("error", MissingTextureWarning)
+        def placed(piece: Loaded) -> Loaded:
+            parts = [p.transformed(lambda v: v + offset) for p in piece.parts] if offset.any() else piece.parts
+            return Loaded(parts, piece.crs or scene_crs, piece.coarser)
+
         try:
             if reader.pieces is None or whole:
-                loaded = [reader.load(path, spec, detail)]
-            else:
-                loaded = reader.pieces(path, spec, detail)
-            for piece in loaded:
-                parts = [p.transformed(lambda v: v + offset) for p in piece.parts] if offset.any() else piece.parts
-                yield in_scene(Loaded(parts, piece.crs or scene_crs, piece.coarser), scene_crs, path)
+                yield _in_scene_either_order(lambda s: placed(reader.load(path, s, detail)), spec, scene_crs, path)[1]
+                return
+            for piece in reader.pieces(path, spec, detail):
+                yield in_scene(placed(piece), scene_crs, path)
         except MissingTextureWarning as exc:
             raise InputFileError(path, f"{_texture_problem(str(exc), path)} (set the input's "
                                        "missing_textures: untextured to draw such parts without it)") from None
@@ -214,7 +216,7 @@ def load_district_terrain(spec: dict, scene_crs: str, base_dir: Path = Path(".")
     if reader.terrain is None:
         return None
     with side_folders(_side_folders(spec, base_dir, path)):
-        return in_scene(reader.terrain(path, dict(spec)), scene_crs, path)
+        return _in_scene_either_order(lambda s: reader.terrain(path, s), dict(spec), scene_crs, path)[1]
 
 
 def _side_folders(spec: dict, base_dir: Path, path: Path) -> list[Path]:
@@ -235,5 +237,35 @@ def load_district_buildings(spec: dict, scene_crs: str, base_dir: Path = Path(".
     if reader.buildings is None:
         return None
     with side_folders(_side_folders(spec, base_dir, path)):
-        found = reader.buildings(path, dict(spec))
-    return in_scene(found.loaded, scene_crs, path), found.others
+        found, mesh = _in_scene_either_order(lambda s: reader.buildings(path, s), dict(spec), scene_crs, path)
+    return mesh, found.others
+
+
+def _in_scene_either_order(read: Callable[[dict], "Loaded | Buildings"], spec: dict, scene_crs: str,
+                           path: Path) -> tuple["Loaded | Buildings", Mesh]:
+    """What ``read(spec)`` gives and its model in the scene CRS (:func:`~.common.in_scene`). With the
+    input's ``axis_order`` auto (or absent), a model in a geographic CRS that lies outside the scene
+    CRS's area is read again with its longitudes and latitudes exchanged (``axis_order: swapped``)
+    and taken so, with a warning, where that puts it inside: files that write longitude first
+    under a latitude-first CRS (EPSG:4326, 4979, 6697) are common."""
+    from pipeline25d.core.crs import is_geographic
+    from pipeline25d.core.errors import CRSError
+
+    first = read(spec)
+    try:
+        return first, in_scene(getattr(first, "loaded", first), scene_crs, path)
+    except CRSError:
+        crs = getattr(first, "loaded", first).crs
+        if spec.get("axis_order", "auto") != "auto" or crs is None or not is_geographic(crs):
+            raise
+        again = read({**spec, "axis_order": "swapped"})
+        try:
+            mesh = in_scene(getattr(again, "loaded", again), scene_crs, path)
+        except CRSError:
+            pass
+        else:
+            warnings.warn(f"{path}: in {crs}'s axis order the model lies outside {scene_crs}'s area; with "
+                          "longitude and latitude exchanged inside, so it is read so (set the input's axis_order: "
+                          "crs or swapped to say which)", stacklevel=3)
+            return again, mesh
+        raise

@@ -194,6 +194,7 @@ class _Reader:
         self.crs_fixed = self.crs is not None    # the input's crs key beats every srsName
         self.srs_names: dict[str, str] = {}     # srsName text -> resolved CRS name
         self.swap: bool | None = None            # latitude first (decided with the CRS)
+        self.swapped_axes = spec.get("axis_order") == "swapped"     # the file writes the CRS's axes exchanged
         self.scale = np.ones(3)                  # to near-metres, for triangulation and normals
         self.global_app = _Appearances()
         self.images: dict[str, bytes | None] = {}
@@ -308,8 +309,9 @@ class _Reader:
             self._decide_axes()
 
     def _decide_axes(self) -> None:
-        self.swap = self.crs is not None and latitude_first(self.crs)
-        if self.crs is not None and _horizontal(self.crs).is_geographic:
+        geographic = self.crs is not None and _horizontal(self.crs).is_geographic
+        self.swap = self.crs is not None and latitude_first(self.crs) != (geographic and self.swapped_axes)
+        if geographic:
             self.scale = None  # set from the first vertex (cos latitude)
 
     # -- appearances -------------------------------------------------------

@@ -204,7 +204,7 @@ def source_crs(header: dict, path: Path) -> str:
     if ref is None and isinstance(meta.get("crs"), dict) and "epsg" in meta["crs"]:
         return f"EPSG:{int(meta['crs']['epsg'])}"
     if not ref:
-        raise CRSError(f"{path}: no metadata.referenceSystem; pass src_crs")
+        raise CRSError(f"{path}: no metadata.referenceSystem says its CRS (set the input's crs key)")
     return crs_name(str(ref))
 
 

@@ -192,7 +192,9 @@ def dataset_root(path: Path) -> Path:
 #: German AdV CRS names (urn:adv:crs:ETRS89_UTM32*DE_DHHN2016_NH, in most German CityGML):
 #: horizontal and height parts, EPSG codes
 _ADV = {"ETRS89_UTM31": 25831, "ETRS89_UTM32": 25832, "ETRS89_UTM33": 25833, "ETRS89_GK3": 4647,
-        "DE_DHHN2016_NH": 7837, "DE_DHHN92_NH": 5783, "DE_DHHN12_NH": 7699}
+        "DE_DHDN_3GK2": 31466, "DE_DHDN_3GK3": 31467, "DE_DHDN_3GK4": 31468, "DE_DHDN_3GK5": 31469,
+        "DE_PD/83_3GK3": 3396, "DE_PD/83_3GK4": 3397, "DE_RD/83_3GK4": 3398, "DE_RD/83_3GK5": 3399,
+        "DE_DHHN2016_NH": 7837, "DE_DHHN92_NH": 5783, "DE_DHHN85_NH": 5784, "DE_DHHN12_NH": 7699}
 
 
 def crs_name(ref: str) -> str:
