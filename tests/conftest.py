@@ -1,7 +1,10 @@
-"""Shared fixtures: paths, the shared datasets, and a GL context (skip without EGL)."""
+"""Shared fixtures: paths, the shared datasets, a GL context (skip without EGL), and the small demo run
+served to headless Chromium (test_viewer_browser, test_viewer_identify)."""
 
 from __future__ import annotations
 
+import shutil
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -9,9 +12,11 @@ import pytest
 import trimesh
 
 from pipeline25d.core.mesh import MeshPart
+from pipeline25d.publish.serve import make_server
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
+CHROMIUM = shutil.which("chromium")
 
 
 def shared_file(path: Path) -> Path:
@@ -54,6 +59,36 @@ def small_run(tmp_path_factory):
     from test_workflow import demo_run
 
     return demo_run(tmp_path_factory, "small")
+
+
+def serve(workdir: Path, results: Path):
+    """Serve ``results`` on 127.0.0.1 (with Range support) for the duration of a fixture."""
+    if CHROMIUM is None:
+        pytest.skip("no chromium on PATH: apt-get install chromium (make sysdeps does)")
+    pytest.importorskip("playwright.sync_api", reason="the playwright package is not installed (requirements.txt)")
+    server = make_server(results, port=0)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    yield f"http://127.0.0.1:{server.server_address[1]}", workdir, results
+    server.shutdown()
+    server.server_close()
+    thread.join()
+
+
+@pytest.fixture(scope="module")
+def served(small_run):
+    """(base URL, workdir, results) with results/<scene>/ served on 127.0.0.1."""
+    yield from serve(*small_run)
+
+
+@pytest.fixture(scope="module")
+def browser(served):
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as pw:
+        chromium = pw.chromium.launch(executable_path=CHROMIUM)
+        yield chromium
+        chromium.close()
 
 
 def vertical_edge(building: dict, azimuth: float, elevation: float) -> tuple[np.ndarray, np.ndarray, float]:

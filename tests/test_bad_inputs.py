@@ -149,7 +149,8 @@ def test_the_ingest_jobs_of_hostile_files_fail_with_their_message_on_the_termina
     lod = json.loads((tmp_path / "results" / "bad" / "lod" / degenerate.name / "index.json").read_text())
     assert sorted(lod["chunks"]) == sorted(index["chunks"])
     assert _outputs(tmp_path) == sorted([f"chunks/{degenerate.name}/{f}"
-                                         for f in ("index.json", "index.hashes.json", "objects.json", "attributes.json")]
+                                         for f in ("index.json", "index.hashes.json", "objects.json",
+                                                   "attributes.json")]
                                         + [f"chunks/{degenerate.name}/{c}.npz" for c in index["chunks"]]
                                         + [f"lod/{degenerate.name}/{f}" for f in ("index.json", "index.hashes.json")]
                                         + [f"lod/{degenerate.name}/{c}.npz" for c in index["chunks"]])

@@ -108,7 +108,8 @@ def test_shadows_are_off_by_default_and_the_sun_given_one_way():
 @pytest.mark.parametrize("shadows, message", [
     ({"enabled": True}, r"shadows: .*not given: add azimuth and elevation"),
     ({"enabled": True, "azimuth": 100}, r"shadows: .*add elevation"),
-    ({"enabled": True, "azimuth": 100, "elevation": 30, "datetime": "2024-06-21T15:00:00+02:00"}, r"shadows: .*not both"),
+    ({"enabled": True, "azimuth": 100, "elevation": 30, "datetime": "2024-06-21T15:00:00+02:00"},
+     r"shadows: .*not both"),
     ({"enabled": True, "azimuth": 100, "elevation": 30, "place": {"lon": 4.3, "lat": 52.0}}, r"shadows.place"),
     ({"enabled": True, "datetime": "2024-06-21T15:00:00"}, r"shadows.datetime: .*no time zone"),
     ({"enabled": True, "datetime": "midsummer afternoon"}, r"shadows.datetime: .*no ISO 8601"),

@@ -125,7 +125,8 @@ def test_each_i3dm_instance_is_an_object_with_its_batch_table_row():
     assert part.objects == tuple(f"instances.i3dm#{j}" for j in range(n))
     shapes = [part.vertices[part.faces[part.face_objects == j]].reshape(-1, 3) - positions[j] for j in range(n)]
     assert all(np.allclose(s, shapes[0], atol=1e-4) for s in shapes)
-    assert info_of([part]) == {f"instances.i3dm#{j}": {"attributes": {k: v[j] for k, v in batch.items()}} for j in range(n)}
+    assert info_of([part]) == {f"instances.i3dm#{j}": {"attributes": {k: v[j] for k, v in batch.items()}}
+                               for j in range(n)}
 
 
 @pytest.mark.parametrize("tile", ["tokyo-chiyoda-b3dm/cesium-rtc-extension.b3dm", "amsterdam-3dtiles/tiles/5.b3dm"])
@@ -151,7 +152,8 @@ def metadata_gltf() -> tuple[dict, bytes, dict]:
     doc, binary = batched_boxes(3)
     prim = doc["meshes"][0]["primitives"][0]
     prim["attributes"] = {"POSITION": 0, "_FEATURE_ID_0": 2}
-    prim["extensions"] = {"EXT_mesh_features": {"featureIds": [{"featureCount": 3, "attribute": 0, "propertyTable": 0}]}}
+    prim["extensions"] = {"EXT_mesh_features": {
+        "featureIds": [{"featureCount": 3, "attribute": 0, "propertyTable": 0}]}}
     names = ["Hall", "Tür, 2", ""]
     strings = b"".join(s.encode() for s in names)
     string_offsets = np.cumsum([0] + [len(s.encode()) for s in names]).astype("<u4")
@@ -253,7 +255,8 @@ def test_cdb_property_table():
             if kind["type"] == "SCALAR" and not kind.get("array") and kind["componentType"] in dtypes:
                 view = doc["bufferViews"][prop["values"]]
                 value = np.frombuffer(body, dtypes[kind["componentType"]], 1,
-                                      view.get("byteOffset", 0) + row * np.dtype(dtypes[kind["componentType"]]).itemsize)
+                                      view.get("byteOffset", 0)
+                                      + row * np.dtype(dtypes[kind["componentType"]]).itemsize)
                 assert obj["attributes"][name] == value.item(), name
                 checked += 1
     assert checked >= 10

@@ -22,7 +22,8 @@ pytestmark = pytest.mark.skipif(shutil.which("assimp") is None,
                                 reason="the assimp command is not installed (Debian: assimp-utils)")
 
 KD = {"roof": (0.8, 0.2, 0.1), "wall": (0.25, 0.5, 0.75)}
-QUADRANTS = {(0, 0): (250, 20, 20), (1, 0): (20, 250, 20), (0, 1): (20, 20, 250), (1, 1): (240, 240, 40)}  # (east, north)
+QUADRANTS = {(0, 0): (250, 20, 20), (1, 0): (20, 250, 20), (0, 1): (20, 20, 250),  # (east, north)
+             (1, 1): (240, 240, 40)}
 # a textured ground square (0..40 m), a red roof triangle and a blue wall quad, z up
 GROUND = np.array([[0, 0, 0], [40, 0, 0], [40, 40, 0], [0, 40, 0]], dtype=float)
 ROOF = np.array([[10, 10, 12], [30, 10, 12], [20, 30, 18]], dtype=float)

@@ -13,14 +13,21 @@ import numpy as np
 import pytest
 import yaml
 from conftest import shared_file
+from test_workflow import job_counts, make_scene, snakemake
 
 from pipeline25d.config import objects_enabled, validate_schema
 from pipeline25d.formats import READERS, detect_format
 from pipeline25d.formats.common import Detail
 from pipeline25d.formats.has_objects import input_has_objects
-from pipeline25d_lab.scenes.model_writers import (b3dm_bytes, glb_bytes, gltf_parts, tileset, write_obj, write_ply,
-                                                  write_tileset)
-from test_workflow import job_counts, make_scene, snakemake
+from pipeline25d_lab.scenes.model_writers import (
+    b3dm_bytes,
+    glb_bytes,
+    gltf_parts,
+    tileset,
+    write_obj,
+    write_ply,
+    write_tileset,
+)
 
 SHARED = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 SHARED_TILESETS = sorted(p for p in (SHARED / "3dtiles-samples").glob("*/tileset.json")) + \

@@ -449,8 +449,7 @@ def test_footprints_in_blocks_give_the_whole_runs_rows_and_a_change_reaches_only
 
     from osgeo import gdal
 
-    from pipeline25d.analysis.heights.blocks import (blocks_of, context_of, reads_digest, row_from_json,
-                                                     row_to_json)
+    from pipeline25d.analysis.heights.blocks import blocks_of, context_of, reads_digest, row_from_json, row_to_json
     from pipeline25d.analysis.heights.results import MatchSettings
 
     fps = read_footprints(scene["gpkg"], id_field="ident")

@@ -25,7 +25,8 @@ def _house() -> Footprint:
 def test_frame_and_shares_of_a_rotated_house():
     fp = _house()
     f = roof_frame(fp)
-    assert f.centre == pytest.approx([100.0, 200.0]) and (f.half_length, f.half_width) == pytest.approx((HALF_L, HALF_W))
+    assert (f.centre == pytest.approx([100.0, 200.0])
+            and (f.half_length, f.half_width) == pytest.approx((HALF_L, HALF_W)))
     assert abs(f.along @ ALONG) == pytest.approx(1.0)
     c = np.array([100.0, 200.0])
     pts = np.array([c, c + 2.5 * ACROSS, c + 5 * ACROSS, c + 8 * ALONG, c + 10 * ALONG])
@@ -132,7 +133,8 @@ def test_two_faces_colours_give_the_rise_and_the_kind():
         return img
 
     rng = np.random.default_rng(1)
-    q = f.centre + rng.uniform(-0.9, 0.9, (400, 1)) * HALF_L * f.along + rng.uniform(-0.9, 0.9, (400, 1)) * HALF_W * f.across
+    q = (f.centre + rng.uniform(-0.9, 0.9, (400, 1)) * HALF_L * f.along
+         + rng.uniform(-0.9, 0.9, (400, 1)) * HALF_W * f.across)
     for two, want_kind, want_rise in ((True, "gabled", rise), (False, "flat", 0.0)):
         img = draw(rise if two else 0.0, two)
         colour = face(q) if two else np.tile(light, (len(q), 1))

@@ -15,8 +15,14 @@ import numpy as np
 import pytest
 
 from pipeline25d.analysis.heights.results import MatchSettings
-from pipeline25d.analysis.heights.silhouette import (area_centroid, levelled, outline_ground, plane_fit, roof_heights,
-                                                     silhouette_lines)
+from pipeline25d.analysis.heights.silhouette import (
+    area_centroid,
+    levelled,
+    outline_ground,
+    plane_fit,
+    roof_heights,
+    silhouette_lines,
+)
 from pipeline25d.core.grid import Extent, Grid
 from pipeline25d.formats.footprints import Footprint, contains
 from pipeline25d.geometry.camera import horizontal_direction, relief_factor
@@ -49,7 +55,8 @@ def _oblique(ground: np.ndarray, fp: Footprint, grid: Grid, pid: str) -> np.ndar
     xs, ys = grid.xy(np.arange(SIZE)[None, :] + 0.5, np.arange(SIZE)[:, None] + 0.5)
     xs, ys = np.broadcast_to(xs, (SIZE, SIZE)).ravel(), np.broadcast_to(ys, (SIZE, SIZE)).ravel()
     reach = 40.0 * cot
-    lo, hi = np.minimum(fp.bounds[:2], np.add(fp.bounds[:2], reach * d)), np.maximum(fp.bounds[2:], np.add(fp.bounds[2:], reach * d))
+    lo, hi = (np.minimum(fp.bounds[:2], np.add(fp.bounds[:2], reach * d)),
+              np.maximum(fp.bounds[2:], np.add(fp.bounds[2:], reach * d)))
     near = np.flatnonzero((xs >= lo[0]) & (xs <= hi[0]) & (ys >= lo[1]) & (ys <= hi[1]))
     # m − t·d inside F with t ≤ H(m − t·d)·cot: march t back along d
     hit = np.zeros(len(near), bool)
@@ -93,7 +100,8 @@ def _scene_lines(fp: Footprint):
         d_px = np.array([d[1] / t.e, d[0] / t.a])
         obl = _oblique(ground, fp, grid, pid)
         off = np.array([win.row0, win.col0], np.float64)            # both maps share the grid
-        lines[pid] = silhouette_lines(fp, grid, win, d, d_px, cot, 60.0 * cot, (obl, alpha), off, (ground, alpha), off, s)
+        lines[pid] = silhouette_lines(fp, grid, win, d, d_px, cot, 60.0 * cot, (obl, alpha), off, (ground, alpha),
+                                      off, s)
         cots[pid] = cot
     return lines, cots
 

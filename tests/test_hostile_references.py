@@ -202,7 +202,8 @@ def test_an_obj_texture_outside_its_folder_is_refused_and_never_opened(tmp_path)
 
 
 def test_a_cityjson_texture_outside_the_model_folder_is_refused(tmp_path):
-    """A CityJSON appearance image that climbs out of the model's folder is refused, even when missing textures are allowed."""
+    """A CityJSON appearance image that climbs out of the model's folder is refused, even when missing
+    textures are allowed."""
     from pipeline25d.formats.cityjson import read_cityjson
 
     model = tmp_path / "city"

@@ -20,7 +20,8 @@ def busy(job):
     t0 = time.process_time()
     while time.process_time() - t0 < 0.5:     # the rule's function: 0.5 s of CPU
         pass
-    subprocess.run([sys.executable, "-c", "import time\\nt = time.process_time()\\nwhile time.process_time() - t < 0.3: pass"])
+    subprocess.run([sys.executable, "-c",
+                    "import time\\nt = time.process_time()\\nwhile time.process_time() - t < 0.3: pass"])
 
 jobs.RULES["busy"] = busy
 jobs.run(SimpleNamespace(rule="busy", log=[sys.argv[1]]))

@@ -87,7 +87,8 @@ def two_towns(tmp_path_factory):
     for r, c in cells:
         path = d / f"{r}_{c}.tif"
         span = TILE * GSD
-        write_rgba_geotiff(path, _tile_pixels(r, c), Grid.north_up(c * span, (r + 1) * span, GSD, TILE, TILE), horizontal_wkt(CRS))
+        write_rgba_geotiff(path, _tile_pixels(r, c), Grid.north_up(c * span, (r + 1) * span, GSD, TILE, TILE),
+                           horizontal_wkt(CRS))
         paths.append(str(path))
     build_mosaic(paths, d / "mosaic.vrt")
     plan = grid_plan(cells, GSD, TILE, CRS)
@@ -142,7 +143,8 @@ def test_sparse_map_equals_the_map_warped_whole(two_towns, method, tmp_path):
     ds = gdal().Open(str(tmp_path / "sparse.tif"))
     band = ds.GetRasterBand(1)
     nx, ny = -(-ds.RasterXSize // COG_BLOCK), -(-ds.RasterYSize // COG_BLOCK)
-    stored = sum(bool(int(band.GetMetadataItem(f"BLOCK_OFFSET_{i}_{j}", "TIFF") or 0)) for i in range(nx) for j in range(ny))
+    stored = sum(bool(int(band.GetMetadataItem(f"BLOCK_OFFSET_{i}_{j}", "TIFF") or 0))
+                 for i in range(nx) for j in range(ny))
     assert stored < 0.25 * nx * ny
     # overviews: the parts' own, the same as the COG driver's over the dense map
     levels = ds.GetRasterBand(1).GetOverviewCount()

@@ -137,9 +137,8 @@ def test_an_unwarped_map_is_patched_in_the_blocks_its_changed_tile_lies_in(tmp_p
     kept, patch = patched_map(mosaic, src, none, crs, GSD, tmp_path / "kept")
     assert not patch["full"] and patch["blocks_redone"] == 1 and patch["mosaic_cells_changed"] == 1
     np.testing.assert_array_equal(_pixels_of(kept), _pixels_of(mosaic))
-    cog = gdal().Translate(str(tmp_path / "ref.tif"), mosaic, format="COG",
-                           creationOptions=["OVERVIEWS=AUTO", "RESAMPLING=AVERAGE", "COMPRESS=DEFLATE"])
-    cog = None
+    gdal().Translate(str(tmp_path / "ref.tif"), mosaic, format="COG",   # not kept: closed, so written, at once
+                     creationOptions=["OVERVIEWS=AUTO", "RESAMPLING=AVERAGE", "COMPRESS=DEFLATE"])
     ref = gdal().Open(str(tmp_path / "ref.tif"))
     levels = ref.GetRasterBand(1).GetOverviewCount()
     ref = None

@@ -17,8 +17,15 @@ from pipeline25d.formats import load_district
 from pipeline25d.formats.common import in_context, side_file, side_folders
 from pipeline25d.formats.tiles3d import read_tileset
 from pipeline25d.formats.tileset_tree import MAX_TILES
-from pipeline25d_lab.scenes.badinputs import (ECEF_ORIGIN, PNG_1PX, SCENE_CRS, SQUARE, SQUARE_FACES, write_b3dm,
-                                              write_gltf)
+from pipeline25d_lab.scenes.badinputs import (
+    ECEF_ORIGIN,
+    PNG_1PX,
+    SCENE_CRS,
+    SQUARE,
+    SQUARE_FACES,
+    write_b3dm,
+    write_gltf,
+)
 
 SPHERE = {"sphere": [*ECEF_ORIGIN, 100.0]}
 

@@ -26,7 +26,8 @@ def _tiles(d, spots: list[tuple[float, float, int, int]], ids: bool = False) -> 
         if ids:
             values = rng.integers(1, 1 << 30, (h, w), dtype=np.uint32)
             values[rng.random((h, w)) < 0.3] = 0
-            write_geotiff(path, values, grid, horizontal_wkt(CRS), "UInt32", ("COMPRESS=DEFLATE", "TILED=YES"), nodata=0)
+            write_geotiff(path, values, grid, horizontal_wkt(CRS), "UInt32", ("COMPRESS=DEFLATE", "TILED=YES"),
+                          nodata=0)
         else:
             rgba = rng.integers(0, 256, (h, w, 4), dtype=np.uint8)
             rgba[..., 3][rng.random((h, w)) < 0.3] = 0

@@ -250,7 +250,8 @@ def test_the_wms_join_table_keeps_one_line_and_eight_fields_a_row(tmp_path):
     from pipeline25d.publish.wms_ids import write_join_table
 
     rows = [SceneObject(1 << 22 | k, "d1", name, "Building", 3.0, None, {"note": note})
-            for k, (name, note) in enumerate([("a,b", 'say "hi",\nbye'), ("line\r\nbreak", "東京, 新宿"), ("plain", "")], 1)]
+            for k, (name, note) in enumerate([("a,b", 'say "hi",\nbye'), ("line\r\nbreak", "東京, 新宿"),
+                                              ("plain", "")], 1)]
     write_objects(rows, tmp_path / "objects", horizontal_wkt("EPSG:25832"))
     write_join_table(tmp_path / "objects" / "objects.csv", tmp_path)
     lines = (tmp_path / "objects.csv").read_bytes().decode("utf-8").split("\n")[:-1]

@@ -75,7 +75,8 @@ def test_the_geopackage_and_the_shards_give_the_same_rows(table):
         oid, attrs, height, env = got[r.name]
         assert oid == r.id and attrs == r.attributes and height == pytest.approx(r.model_height, abs=1e-3)
         assert env == pytest.approx((r.extent[0], r.extent[2], r.extent[1], r.extent[3]), abs=1e-3)
-    assert json.loads((tmp / "objects" / "shards" / "index.json").read_text()) == index == {"5": {"district": "d", "bits": 0}}
+    assert (json.loads((tmp / "objects" / "shards" / "index.json").read_text()) == index
+            == {"5": {"district": "d", "bits": 0}})
     for r in rows:
         shard = json.loads((tmp / "objects" / "shards" / "5" / f"{shard_of(r.id, 0)}.json").read_text())
         assert shard[str(r.id)]["name"] == r.name

@@ -42,7 +42,8 @@ def test_read_upsampled_equals_gdals_upsampled_read_of_one_raster(tmp_path):
     path = tmp_path / "map.tif"
     write_rgba_geotiff(path, rgba, Grid.north_up(0.0, 0.0, 1.0, 410, 300), horizontal_wkt("EPSG:3857"))
     ds = gdal().Open(str(path))
-    for window, buf in [((0, 0, 410, 300), (1024, 1024)), ((37, 11, 255, 257), (1024, 731)), ((5, 5, 64, 64), (64, 64))]:
+    for window, buf in [((0, 0, 410, 300), (1024, 1024)), ((37, 11, 255, 257), (1024, 731)),
+                        ((5, 5, 64, 64), (64, 64))]:
         data, alpha = read_upsampled(ds, *window, *buf, 3)
         assert np.array_equal(data, np.frombuffer(ds.ReadRaster(*window, *buf, band_list=[1, 2, 3]), np.uint8)
                               .reshape(3, buf[1], buf[0]))
@@ -167,9 +168,8 @@ def _tiny_run(root, pid="p"):
 
 
 def test_pixel_cost_counts_the_pixels_of_each_step(tmp_path):
-    from pipeline25d_lab.harness.pixel_cost import format_table, pixel_cost
-
     from pipeline25d.stages.tiles.web import tms
+    from pipeline25d_lab.harness.pixel_cost import format_table, pixel_cost
 
     results = _tiny_run(tmp_path / "results")
     work = tmp_path / "work"

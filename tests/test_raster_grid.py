@@ -75,14 +75,16 @@ def test_rgba_writer_reads_back_and_matches_direct_gdal_bytes(tmp_path):
 
     rng = np.random.default_rng(1)
     rgba = rng.integers(0, 255, (300, 270, 4), dtype=np.uint8)
-    rgba[..., 3] |= 1                  # no alpha 0: the writer clears the colour under it (tests/test_mosaic_sources.py)
+    rgba[..., 3] |= 1                  # no alpha 0: the writer clears the colour under it
+                                       # (tests/test_mosaic_sources.py)
     grid = Grid.north_up(X0, Y1, RES, 270, 300)
     wkt = horizontal_wkt("EPSG:25832")
     write_rgba_geotiff(tmp_path / "ours.tif", rgba, grid, wkt)
     # the same file written with GDAL directly, as the writer did before it was shared
     g = gdal()
     ds = g.GetDriverByName("GTiff").Create(str(tmp_path / "ref.tif"), 270, 300, 4, g.GDT_Byte,
-                                           ["COMPRESS=ZSTD", "ZSTD_LEVEL=1", "TILED=YES", "PHOTOMETRIC=RGB", "ALPHA=YES"])
+                                           ["COMPRESS=ZSTD", "ZSTD_LEVEL=1", "TILED=YES", "PHOTOMETRIC=RGB",
+                                            "ALPHA=YES"])
     ds.SetGeoTransform((X0, RES, 0.0, Y1, 0.0, -RES))
     ds.SetProjection(wkt)
     for b, interp in enumerate((g.GCI_RedBand, g.GCI_GreenBand, g.GCI_BlueBand, g.GCI_AlphaBand)):

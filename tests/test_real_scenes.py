@@ -84,7 +84,8 @@ def obj_maps(tmp_path_factory):
     config = {"scene": "delft-obj-auto", "crs": "EPSG:28992",
               "inputs": {"campus": {"path": str(DELFT / "obj" / "testarea.obj"), "crs": "EPSG:28992"}},
               "terrain": "auto", "gsd": 0.25, "tile_size": 1024, "gcp": {"spacing": 15},
-              "perspectives": [{"azimuth": 0, "elevation": 90}] + [{"azimuth": a, "elevation": 45} for a in (45, 165, 285)],
+              "perspectives": [{"azimuth": 0, "elevation": 90}]
+                              + [{"azimuth": a, "elevation": 45} for a in (45, 165, 285)],
               "tms": {"zoom": "17-17"}}
     return _run(tmp_path_factory, "obj", config)
 

@@ -14,8 +14,15 @@ import numpy as np
 from osgeo import gdal
 from PIL import Image
 
-from pipeline25d.publish.report_figures import Residuals, check_residuals, exaggeration, height_points, \
-    heights_figure, residual_figure, thumbnail
+from pipeline25d.publish.report_figures import (
+    Residuals,
+    check_residuals,
+    exaggeration,
+    height_points,
+    heights_figure,
+    residual_figure,
+    thumbnail,
+)
 
 
 def _rows(path) -> list[dict]:

@@ -438,7 +438,8 @@ def test_example_config_runs_end_to_end_heights_included(tmp_path):
     report = json.loads((results / "heights.json").read_text())
     assert report["reference"]["kind"] == "truth" and report["footprints"]["n_given"] == 20
     # the reference of every building is the truth's roof minus the ground the maps used under it
-    truth = {b["id"]: b for b in json.loads((tmp_path / "resources" / "rugged" / "truth.json").read_text())["buildings"]}
+    truth = {b["id"]: b
+             for b in json.loads((tmp_path / "resources" / "rugged" / "truth.json").read_text())["buildings"]}
     import csv
 
     rows = list(csv.DictReader((results / "heights.csv").open()))

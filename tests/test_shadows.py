@@ -295,7 +295,8 @@ def test_a_tall_buildings_shadow_falls_into_the_neighbouring_tiles(gl_ctx):
     end = 30 + 40 / math.tan(math.radians(35)) - 64       # the shadow ends 23.1 m into tile C
     row = round(16 / gsd)                                 # through the tower's middle (y = N0 + 16)
     lit, dark = GREY * (0.5 + 0.5 * math.sin(math.radians(35))), GREY * 0.5
-    for key, cols in ((b, np.arange(round(1 / gsd), round(31 / gsd))), (c, np.arange(round(1 / gsd), round((end - 1) / gsd)))):
+    for key, cols in ((b, np.arange(round(1 / gsd), round(31 / gsd))),
+                      (c, np.arange(round(1 / gsd), round((end - 1) / gsd)))):
         assert np.all(np.abs(with_casters[key][row, cols, 0] - dark) <= 1.5), key
         assert np.all(np.abs(without[key][row, cols, 0] - lit) <= 1.5), key
     assert abs(with_casters[c][row, round((end + 1) / gsd), 0] - lit) <= 1.5   # past the shadow's end: lit again
@@ -401,7 +402,8 @@ def test_the_workflow_casts_shadows_and_renders_again_when_they_change(tmp_path_
     sun = sun_position(datetime.fromisoformat(shadows["datetime"]), round(lon, 2), round(lat, 2))
     plans = {pid: read_plan(results / "plans" / f"{pid}.json") for pid in ("az000_el90", "az045_el45")}
     for plan in plans.values():
-        assert abs(plan.shadows["azimuth"] - sun.azimuth) < 1e-3 and abs(plan.shadows["elevation"] - sun.elevation) < 1e-3
+        assert (abs(plan.shadows["azimuth"] - sun.azimuth) < 1e-3
+                and abs(plan.shadows["elevation"] - sun.elevation) < 1e-3)
         assert any(t.casters for t in plan.tiles)
     summary = snakemake(workdir, "--detailed-summary").stdout.splitlines()
     header = summary[0].split("\t")
@@ -420,8 +422,8 @@ def test_the_workflow_casts_shadows_and_renders_again_when_they_change(tmp_path_
         foreign += len({(c.district, c.id) for t in tiles for c in t.casters} - drawn)
     assert foreign > 0                      # casters that no tile of their job draws
     before = gdal.Open(str(results / "maps" / "az000_el90.tif")).ReadAsArray()[:3].astype(int)
-    (workdir / "config.yaml").write_text((workdir / "config.yaml").read_text().replace("enabled: true",
-                                                                                        "ambient: 0.3\n  enabled: true"))
+    (workdir / "config.yaml").write_text((workdir / "config.yaml").read_text()
+                                         .replace("enabled: true", "ambient: 0.3\n  enabled: true"))
     snakemake(workdir)
     for manifest in (results / "tiles").glob("*/block_*.json"):
         record = json.loads(manifest.read_text())

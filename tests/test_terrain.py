@@ -117,7 +117,8 @@ def test_sites_are_exposed_clear_of_objects_and_of_their_lines_of_sight():
     alone = select_sites(dsm, dtm, grid, rules, [Perspective(0, 30)])
     ax, ay = alone["x"] - E0, alone["y"] - N0
     assert len(ax) > 350 and alone["clear"].all()
-    assert not ((ax > 90 - rules.radius) & (ax < 110 + rules.radius) & (ay > 110) & (ay < 110 + 30 / np.tan(np.radians(30)))).any()
+    assert not ((ax > 90 - rules.radius) & (ax < 110 + rules.radius) & (ay > 110)
+                & (ay < 110 + 30 / np.tan(np.radians(30)))).any()
     # one site per 8 m square, ids stable per square
     squares = set(zip(sites["square_col"].tolist(), sites["square_row"].tolist()))
     assert len(squares) == len(x)

@@ -254,7 +254,8 @@ def test_empty_land_is_not_filtered_and_the_districts_are_as_alone(monkeypatch):
     grid, dsm = sparse_scene()
     calls = []
     cloth = terrain._cloth_ground
-    monkeypatch.setattr(terrain, "_cloth_ground", lambda residual, *a: calls.append(residual.shape) or cloth(residual, *a))
+    monkeypatch.setattr(terrain, "_cloth_ground",
+                        lambda residual, *a: calls.append(residual.shape) or cloth(residual, *a))
     ground = np.zeros(grid.shape, bool)
     blocks = 0
     for block, core_dsm, core_ground in ground_blocks(_read(dsm), grid, MAX_OBJECT_M, 2.0, 2, 0.5, 512 * 512):

@@ -55,7 +55,8 @@ def test_tiles_lie_where_the_map_is_and_where_gdal2tiles_puts_them(tmp_path):
 
     def f(x, y):
         u, v = x - grid.transform.c, grid.transform.f - y
-        return (128 + 100 * np.sin(k * u), 128 + 100 * np.sin(k * v)), (100 * k * np.cos(k * u), -100 * k * np.cos(k * v))
+        return ((128 + 100 * np.sin(k * u), 128 + 100 * np.sin(k * v)),
+                (100 * k * np.cos(k * u), -100 * k * np.cos(k * v)))
 
     xs, ys = grid.xy(*np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5))
     (red, green), _ = f(xs, ys)
@@ -90,7 +91,8 @@ def _smooth_map(path):
     rgba[..., 2] = 90
     rgba[..., 3] = 255
     rgba[:150, :200] = 0
-    write_rgba_geotiff(path, rgba, Grid.north_up(691000.0, 5334000.0, 0.5, rgba.shape[1], rgba.shape[0]), horizontal_wkt("EPSG:25832"))
+    write_rgba_geotiff(path, rgba, Grid.north_up(691000.0, 5334000.0, 0.5, rgba.shape[1], rgba.shape[0]),
+                       horizontal_wkt("EPSG:25832"))
 
 
 def test_webp_tiles_are_the_png_tiles_lossy_and_keep_transparency(tmp_path):
@@ -173,7 +175,8 @@ def test_sigterm_removes_a_jobs_temporaries_like_ctrl_c(tmp_path):
     import signal
     import time
 
-    script = (f"import time; from pipeline25d.core.atomic import atomic_path; from pipeline25d.core.logsetup import log_to\n"
+    script = (f"import time; from pipeline25d.core.atomic import atomic_path; "
+              f"from pipeline25d.core.logsetup import log_to\n"
               f"log_to({str(tmp_path / 'job.log')!r})\n"
               f"with atomic_path({str(tmp_path / 'out.tif')!r}) as tmp:\n"
               f"    tmp.write_bytes(b'partial'); print('ready', flush=True); time.sleep(60)\n")

@@ -11,42 +11,19 @@ import json
 import math
 import os
 import shutil
-import threading
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
-from conftest import roof_colour, vertical_edge
+from conftest import roof_colour, serve, vertical_edge
 
 from pipeline25d.core.crs import transform_points
-from pipeline25d.publish.serve import make_server
 from pipeline25d.stages.tiles.archive import pyramid_tiles
 
-CHROMIUM = shutil.which("chromium")
 SHOTS = Path(os.environ.get("PIPELINE25D_SHOTS", "/tmp/viewer-shots"))
 SIZE = {"width": 1200, "height": 800}
 ZOOM = 19                       # ~0.2 m per screen pixel here, finer than the maps' 0.5 m gsd
-
-
-def serve(workdir: Path, results: Path):
-    """Serve ``results`` on 127.0.0.1 (with Range support) for the duration of a fixture."""
-    if CHROMIUM is None:
-        pytest.skip("no chromium on PATH: apt-get install chromium (make sysdeps does)")
-    pytest.importorskip("playwright.sync_api", reason="the playwright package is not installed (requirements.txt)")
-    server = make_server(results, port=0)
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
-    yield f"http://127.0.0.1:{server.server_address[1]}", workdir, results
-    server.shutdown()
-    server.server_close()
-    thread.join()
-
-
-@pytest.fixture(scope="module")
-def served(small_run):
-    """(base URL, workdir, results) with results/<scene>/ served on 127.0.0.1."""
-    yield from serve(*small_run)
 
 
 @pytest.fixture(scope="module")
@@ -64,16 +41,6 @@ def pmtiles_served(small_run, tmp_path_factory):
     jobs = job_counts(proc.stdout + proc.stderr)
     for url, wd, results in serve(workdir, workdir / "results" / config["scene"]):
         yield url, wd, results, jobs
-
-
-@pytest.fixture(scope="module")
-def browser(served):
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as pw:
-        chromium = pw.chromium.launch(executable_path=CHROMIUM)
-        yield chromium
-        chromium.close()
 
 
 def lonlat(xy: np.ndarray) -> tuple[float, float]:
@@ -434,7 +401,8 @@ def line_centre(col: np.ndarray) -> float:
 def road_offsets(page, truth: dict, centre: tuple[float, float], bearing: float, gsd: float) -> list[tuple]:
     """Per road station (every 5 m, away from crossings and district ends) where the road shows with grass on
     both sides: (road id, the overlay's drawn centreline minus the road's rendered centre, the drawn centreline
-    minus the true centreline where screen_px puts it), across the road, in map pixels (gsd). The road is measured with the overlay switched off, the line with it on, in the same view; the
+    minus the true centreline where screen_px puts it), across the road, in map pixels (gsd). The road is
+    measured with the overlay switched off, the line with it on, in the same view; the
     road's and the grass's colours are the medians over the stations at the centreline and 7 m off it."""
     import io
 
@@ -480,7 +448,8 @@ def test_a_street_overlay_lies_on_the_roads_of_every_perspective_turned_or_not(b
     """The demo's road centrelines, given as a config overlay in the scene CRS, are drawn on every perspective
     (north up and view direction up) within 1 map pixel of the road's centre as the map shows it, at every
     station where both edges show 8 m apart (measured across the road in the screenshot; the web tiles lie on
-    their own pixels, stages.tiles.web.tile_grid, where gdal2tiles' grid moved a tile by up to a pixel); a point given with a height is drawn where that perspective
+    their own pixels, stages.tiles.web.tile_grid, where gdal2tiles' grid moved a tile by up to a pixel);
+    a point given with a height is drawn where that perspective
     shows that height (h·cot φ along the view), within half a screen pixel."""
     base_url, workdir, results, building = overlay_viewer
     truth = json.loads((workdir / "resources" / "demo" / "truth.json").read_text())

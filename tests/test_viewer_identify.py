@@ -14,8 +14,7 @@ import math
 import zlib
 
 import numpy as np
-from test_viewer_browser import (SIZE, ZOOM, bearing_of, browser, lonlat, open_page, screen_px,  # noqa: F401
-                                 served, shot)
+from test_viewer_browser import ZOOM, bearing_of, lonlat, open_page, screen_px, shot
 
 from pipeline25d.publish.objects import measured_heights
 from pipeline25d.stages.tiles import ids as id_tiles
@@ -116,7 +115,8 @@ def test_a_click_on_a_roof_answers_its_building_and_on_open_road_never_a_buildin
             else:
                 page.evaluate(f"map.setView([{centre[1]}, {centre[0]}], {ZOOM}, {{animate: false}})")
             got = click_id(page, screen_px(roof, centre, bearing))
-            page.wait_for_function(f"(document.querySelector('#object table') || {{}}).textContent?.includes('{got} (')")
+            page.wait_for_function(f"(document.querySelector('#object table') || {{}}).textContent"
+                                   f"?.includes('{got} (')")
             name = page.text_content("#object .name")
             rows = page.text_content("#object table")
             shot(page, tmp_path, f"identify-{pid}{'-up' if turned else ''}-{b['id']}.png")
@@ -167,7 +167,7 @@ def test_a_click_on_a_roof_under_an_overlay_feature_still_identifies_the_buildin
                  ids=results)
     responses: list = []
     for pid, turned in (("az000_el90", False), ("az045_el45", False), ("az045_el45", True)):   # at 30° no roof
-        a, e = Perspective.from_id(pid).azimuth, Perspective.from_id(pid).elevation     # of this city meets its footprint
+        a, e = Perspective.from_id(pid).azimuth, Perspective.from_id(pid).elevation  # of this city meets its footprint
         # a roof point inside its footprint polygon: halfway between the footprint's and the shown roof's centres
         # (on an oblique the footprint lies on the ground, the roof h·cot φ further), 1 m inside both
         b = next(b for b in sorted(truth["buildings"], key=lambda b: -b["eave_z"]) if b["roof"] == "flat"
@@ -177,7 +177,8 @@ def test_a_click_on_a_roof_under_an_overlay_feature_still_identifies_the_buildin
                      for s in (0, 1) for r in (1.0, -1.0)))
         roof = np.mean(b["footprint"], axis=0) + roof_shift(b, a, e) / 2
         centre = lonlat(roof)
-        page = open_page(browser, f"{base_url}/viewer-footprints/index.html#{pid}/{ZOOM}/{centre[1]:.7f}/{centre[0]:.7f}"
+        page = open_page(browser, f"{base_url}/viewer-footprints/index.html"
+                                  f"#{pid}/{ZOOM}/{centre[1]:.7f}/{centre[0]:.7f}"
                          + ("/up" if turned else ""), responses)
         page.wait_for_selector('#layers label.loaded[data-overlay="footprints"]')
         bearing = bearing_of(page)[0]

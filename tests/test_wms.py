@@ -200,8 +200,8 @@ def test_capabilities_list_every_layer_with_its_crs_and_extent(synthetic, synthe
     assert set(layers) == set(SYNTHETIC)
     to_wgs84 = osr.CoordinateTransformation(srs(EPSG), srs(4326))
     for pid, layer in layers.items():
-        assert layer.findtext(f"{WMS}Title") == f"{pid}: azimuth {int(pid[2:5])} degrees, elevation {int(pid[-2:])} degrees" \
-            + (" (nadir)" if pid.endswith("90") else "")
+        assert layer.findtext(f"{WMS}Title") == f"{pid}: azimuth {int(pid[2:5])} degrees, " \
+            f"elevation {int(pid[-2:])} degrees" + (" (nadir)" if pid.endswith("90") else "")
         assert [e.text for e in layer.findall(f"{WMS}CRS")] == [f"EPSG:{EPSG}"]     # the rest inherited from the root
         extent = cog_extent(synthetic / "maps" / f"{pid}.tif")
         box = next(e for e in layer.findall(f"{WMS}BoundingBox") if e.get("CRS") == f"EPSG:{EPSG}")
@@ -272,8 +272,9 @@ def test_the_serve_command_answers_on_its_port_and_stops_on_ctrl_c(synthetic, ma
     with socket.socket() as sock:                    # a free port
         sock.bind(("127.0.0.1", 0))
         port = sock.getsockname()[1]
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline25d.publish.wms", "serve", str(synthetic / "wms" / "syn.map"),
-                             "--port", str(port)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline25d.publish.wms", "serve",
+                             str(synthetic / "wms" / "syn.map"), "--port", str(port)],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         url = f"http://127.0.0.1:{port}/wms?SERVICE=WMS&VERSION=1.3.0&REQUEST=GetCapabilities"
         for _ in range(100):
@@ -301,7 +302,8 @@ def test_maps_that_cannot_be_served_are_named_with_the_problem(tmp_path):
         write_mapfile("x", [tmp_path / "a" / "az045_el45.tif"], tmp_path / "x.map")
     write_cog(tmp_path / "b" / "az045_el45.tif", rgba, 500000.0, 20.0, "DEFLATE")
     write_cog(tmp_path / "b" / "az000_el90.tif", rgba, 500000.0, 20.0, "DEFLATE", epsg=32632)
-    with pytest.raises(InputFileError, match=r"b/az000_el90.tif: CRS EPSG:32632 differs from EPSG:25832 of .*az045_el45"):
+    with pytest.raises(InputFileError,
+                       match=r"b/az000_el90.tif: CRS EPSG:32632 differs from EPSG:25832 of .*az045_el45"):
         write_mapfile("x", [tmp_path / "b" / "az045_el45.tif", tmp_path / "b" / "az000_el90.tif"], tmp_path / "x.map")
     with pytest.raises(MapServiceError, match="perspective az045_el45 given twice"):
         write_mapfile("x", [tmp_path / "b" / "az045_el45.tif"] * 2, tmp_path / "x.map")
@@ -327,7 +329,8 @@ def test_the_workflow_maps_are_served_as_they_are(tmp_path, mapserv):
     from pipeline25d_lab.harness.bench import run_workflow
     from pipeline25d_lab.harness.killtest import demo_config
 
-    config = {**demo_config(tmp_path / "scene", 0.25, [{"azimuth": 45, "elevation": 45}, {"azimuth": 0, "elevation": 90}]),
+    config = {**demo_config(tmp_path / "scene", 0.25,
+                            [{"azimuth": 45, "elevation": 45}, {"azimuth": 0, "elevation": 90}]),
               "scene": "wmsdemo"}
     t0 = time.monotonic()
     run_workflow(tmp_path / "run", config, extra=["results/wmsdemo/wms/wmsdemo.map"])

@@ -1,6 +1,7 @@
 """WMS GetFeatureInfo through MapServer (pipeline25d.publish.wms_ids): a map and its id raster of known
 rectangles published with their objects table; a query at each rectangle answers its id, name, heights
-and attributes (quotes, markup, an escaped line break and non-ASCII text in one intact, commas as ;), a query on the transparent corner answers no object, and both
+and attributes (quotes, markup, an escaped line break and non-ASCII text in one intact, commas as ;),
+a query on the transparent corner answers no object, and both
 layers are listed. Then the small demo run's own mapfile: a query at each flat roof, where each map
 shows it, answers the id of that roof's building (its OBJ object, chunks/<district>/objects.json)."""
 
@@ -58,8 +59,8 @@ def feature_info(server, col: float, row: float) -> list[str]:
 def feature_info_at(server, pid: str, x: float, y: float) -> list[str]:
     """The cells of the HTML GetFeatureInfo answer of layer ``<pid>_ids`` at scene point (x, y)."""
     kind, body = request(server, REQUEST="GetFeatureInfo", LAYERS=f"{pid}_ids", QUERY_LAYERS=f"{pid}_ids",
-                         STYLES="", CRS="EPSG:25832", BBOX=f"{x - 5.5},{y - 5.5},{x + 5.5},{y + 5.5}", WIDTH=11, HEIGHT=11,
-                         I=5, J=5, INFO_FORMAT="text/html", FORMAT="image/png")
+                         STYLES="", CRS="EPSG:25832", BBOX=f"{x - 5.5},{y - 5.5},{x + 5.5},{y + 5.5}",
+                         WIDTH=11, HEIGHT=11, I=5, J=5, INFO_FORMAT="text/html", FORMAT="image/png")
     assert kind.startswith("text/html"), body
     return [html.unescape(c) for c in re.findall(r"<td>(.*?)</td>", body.decode())]
 
@@ -87,8 +88,8 @@ def test_the_map_layer_is_still_drawn_and_the_id_layer_is_listed(id_wms):
 
 def test_the_workflow_wms_answers_each_flat_roof_with_its_building(small_run, mapserv):  # noqa: F811
     """Where each map shows a flat roof's centre (its eave height above the DTM, along the view), the run's
-    own mapfile answers the id and name of the roof's building (its OBJ object): on the nadir map every roof, on the obliques
-    all but roofs hidden behind taller buildings (then a taller building's id)."""
+    own mapfile answers the id and name of the roof's building (its OBJ object): on the nadir map every roof,
+    on the obliques all but roofs hidden behind taller buildings (then a taller building's id)."""
     import json
 
     import numpy as np
@@ -101,9 +102,11 @@ def test_the_workflow_wms_answers_each_flat_roof_with_its_building(small_run, ma
     truth = json.loads((workdir / "resources" / "demo" / "truth.json").read_text())["buildings"]
     flat = [b for b in truth if b["roof"] == "flat"]
     eave = {b["id"]: b["eave_z"] for b in truth}
-    objects = {b["district"]: json.loads((results / "chunks" / b["district"] / "objects.json").read_text()) for b in flat}
+    objects = {b["district"]: json.loads((results / "chunks" / b["district"] / "objects.json").read_text())
+               for b in flat}
     centres = np.array([[*np.mean(b["footprint"], axis=0), b["eave_z"]] for b in flat])
-    ground = DTM(str(results / "terrain" / "dtm.tif"), "EPSG:25832", continuous=True).sample(centres[:, 0], centres[:, 1])
+    ground = DTM(str(results / "terrain" / "dtm.tif"), "EPSG:25832",
+                 continuous=True).sample(centres[:, 0], centres[:, 1])
     server = start(results / "wms" / "small.map", mapserv)
     try:
         shares = {}

@@ -127,7 +127,8 @@ NO_OBJECTS = {"objects": {"enabled": False}}
 SMALL_CONFIG = {"scene": "small", "crs": "EPSG:25832",
                 "inputs": {f"d{i}": {"path": f"resources/demo/d{i}.obj"} for i in range(4)},
                 "gsd": 0.5, "tile_size": 256, "chunk_size": 80,
-                "perspectives": SMALL_PERSPECTIVES, "gcp": {"spacing": 8, "holdout": 0.3, "marker_px": 4}, "tms": {"zoom": "14-17"}}
+                "perspectives": SMALL_PERSPECTIVES, "gcp": {"spacing": 8, "holdout": 0.3, "marker_px": 4},
+                "tms": {"zoom": "14-17"}}
 
 
 def demo_run(tmp_path_factory, scene: str, **overrides) -> tuple[Path, Path]:
@@ -291,7 +292,8 @@ def test_warped_map_puts_check_points_on_the_ground(small_run):
 
 
 def _tile_mtimes(results: Path, suffix: str = ".tif") -> dict[str, int]:
-    """Each render tile's mtime by "<pid>/<row>_<col>.tif": of its colour (``.tif``) or its object ids (``.ids.tif``)."""
+    """Each render tile's mtime by "<pid>/<row>_<col>.tif": of its colour (``.tif``) or its object ids
+    (``.ids.tif``)."""
     return {str(p.relative_to(results / "tiles")).replace(".ids.tif", ".tif"): p.stat().st_mtime_ns
             for p in (results / "tiles").rglob(f"*{suffix}") if (suffix == ".ids.tif") == p.name.endswith(".ids.tif")}
 

@@ -180,7 +180,8 @@ def streets_picture(results: Path, pid: str, out: Path, zoom: int = 18) -> None:
     lon, lat, _ = transform_points(np.array([[xy[0], xy[1], 0.0]]), crs, "EPSG:4326")[0]
 
     def click(page) -> None:
-        page.wait_for_function("OVERLAYS.every(o => document.querySelector(`#layers label.loaded[data-overlay='${o.name}']`))")
+        page.wait_for_function("OVERLAYS.every(o => document.querySelector("
+                               "`#layers label.loaded[data-overlay='${o.name}']`))")
         page.mouse.click(VIEWPORT[0] / 2, VIEWPORT[1] / 2)
         page.wait_for_function(f"(document.querySelector('#object table') || {{}}).textContent?.includes('{oid} (')")
         page.mouse.move(VIEWPORT[0] / 2 + 1, VIEWPORT[1] / 2)

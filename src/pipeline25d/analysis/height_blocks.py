@@ -22,10 +22,16 @@ from pathlib import Path
 from typing import Any
 
 from pipeline25d.analysis.ground_under import ground_sampler
-from pipeline25d.analysis.height_sources import (buildings_on_maps, finish_stage, plan, settings_of,
-                                                 write_skipped)
-from pipeline25d.analysis.heights.blocks import (blocks_of, context_of, footprint_from_json, footprint_to_json,
-                                                 reads_digest, row_from_json, row_to_json)
+from pipeline25d.analysis.height_sources import buildings_on_maps, finish_stage, plan, settings_of, write_skipped
+from pipeline25d.analysis.heights.blocks import (
+    blocks_of,
+    context_of,
+    footprint_from_json,
+    footprint_to_json,
+    reads_digest,
+    row_from_json,
+    row_to_json,
+)
 from pipeline25d.analysis.heights.results import NADIR_ID, HeightRow
 from pipeline25d.core.atomic import write_json
 from pipeline25d.core.errors import InputFileError

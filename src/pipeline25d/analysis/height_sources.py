@@ -146,7 +146,8 @@ def truth_buildings(truth_path: str | Path, config: dict, scene_crs: str) -> dic
         raise InputFileError(truth_path, f"cannot read the scene's truth: {exc}") from None
     by_file = {Path(spec["path"]).name: spec for spec in config["inputs"].values()
                if (Path(spec["path"]).parent / truth_path.name).resolve() == truth_path.resolve()}
-    districts = {name: by_file[d["obj"]] for name, d in (truth.get("districts") or {}).items() if d.get("obj") in by_file}
+    districts = {name: by_file[d["obj"]] for name, d in (truth.get("districts") or {}).items()
+                 if d.get("obj") in by_file}
     out: dict[str, RefBuilding] = {}
     for b in truth.get("buildings") or []:
         spec = districts.get(b.get("district"))
@@ -367,7 +368,8 @@ def finish_stage(config: dict, p: dict, scene: Scene, rows: list, buildings: tup
         "footprints": {**{k: v for k, v in p["footprints"].items()}, "n_given": len(fps_all), "n_on_maps": len(fps)},
         "n_measured": sum(1 for r in rows if np.isfinite(r.height)),
         "views": views, "reasons": reasons,
-        "reference": {"source": ref_source, "kind": ref_kind, "n": len(base), "main_group": main if main in groups else None,
+        "reference": {"source": ref_source, "kind": ref_kind, "n": len(base),
+                      "main_group": main if main in groups else None,
                       "basis": (BASIS + ": "
                                 + (f"DTM {scene.dtm}" if scene.dtm else f"the plane z0 = {scene.z0} m"))},
         "groups": groups,

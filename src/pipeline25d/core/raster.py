@@ -165,7 +165,8 @@ class DTM:
         if self.continuous:
             col, row = np.clip(col, 0, max(w - 1.000001, 0)), np.clip(row, 0, max(h - 1.000001, 0))
             if w == 1 or h == 1:
-                return self.values[np.clip(np.round(row).astype(int), 0, h - 1), np.clip(np.round(col).astype(int), 0, w - 1)]
+                return self.values[np.clip(np.round(row).astype(int), 0, h - 1),
+                                   np.clip(np.round(col).astype(int), 0, w - 1)]
         c0, r0 = np.floor(col).astype(int), np.floor(row).astype(int)
         ok = (c0 >= 0) & (r0 >= 0) & (c0 + 1 < w) & (r0 + 1 < h)
         out = np.full(len(x), np.nan)

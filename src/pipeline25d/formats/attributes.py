@@ -90,7 +90,8 @@ class Limiter:
             return self._text(value, MAX_TEXT, "text values")
         if isinstance(value, (list, tuple, Mapping)) and depth >= MAX_DEPTH:
             self.cut[f"values nested deeper than {MAX_DEPTH} levels kept as text"] += 1
-            return self._text(json.dumps(value, default=str, ensure_ascii=False)[:MAX_TEXT + 1], MAX_TEXT, "text values")
+            return self._text(json.dumps(value, default=str, ensure_ascii=False)[:MAX_TEXT + 1], MAX_TEXT,
+                              "text values")
         if isinstance(value, Mapping):
             items = list(value.items())
             if len(items) > MAX_ITEMS:

@@ -26,7 +26,8 @@ Appearances: ParameterizedTexture (``TexCoordList`` per ring, or ``TexCoordGen``
 polygon textured (one :class:`MeshPart` per image; CityGML texture coordinates already
 have t = 0 at the image bottom); X3DMaterial ``diffuseColor`` (and ``transparency``)
 colours it, or every polygon of an aggregate it targets (a MultiSurface, a solid's
-CompositeSurface: valid X3DMaterial targets; a polygon's own material wins); else the colour class's palette colour. With several themes, ``spec["theme"]``
+CompositeSurface: valid X3DMaterial targets; a polygon's own material wins); else the colour
+class's palette colour. With several themes, ``spec["theme"]``
 picks one (default: any, the first that targets a surface). Global appearances
 (``appearanceMember`` of the CityModel, before or after the objects) are collected by a
 first streaming pass that keeps only their targets, run only when the bytes
@@ -35,7 +36,8 @@ is a :class:`~pipeline25d.core.errors.MissingTextureWarning` (once per image), w
 :func:`pipeline25d.formats.load_district` turns into an error unless the input says
 ``missing_textures: untextured``; then its polygons fall back to colour.
 Each top-level object's attributes (:mod:`pipeline25d.formats.citygml_attributes`; BuildingParts
-folded into their building) travel on the parts as ``object_info``. The renderer repeats textures; texture coordinates outside [0, 1]
+folded into their building) travel on the parts as ``object_info``.
+The renderer repeats textures; texture coordinates outside [0, 1]
 under wrap modes other than ``wrap`` are clamped per vertex (an approximation).
 
 Forgiving where CityGML tools are: an undeclared namespace prefix (an ADE element such as
@@ -43,8 +45,8 @@ Forgiving where CityGML tools are: an undeclared namespace prefix (an ADE elemen
 the geometry, with one warning per prefix naming the file and its first line; so are stray
 characters (a bare ``&``, an undefined entity, a control character), with a warning naming the
 line and the element. Inside the geometry, and any other XML error (truncated file, mismatched
-tags, a stray ``<``), it refuses the file naming the line (:mod:`pipeline25d.formats.xml_defects`). Texture images must lie inside the
-file's folder (:func:`~pipeline25d.formats.common.side_file`).
+tags, a stray ``<``), it refuses the file naming the line (:mod:`pipeline25d.formats.xml_defects`).
+Texture images must lie inside the file's folder (:func:`~pipeline25d.formats.common.side_file`).
 
 Over 400 lines for one job: one format's streaming reader (three CityGML versions, geometry,
 appearances and terrain share its element walk).

@@ -10,7 +10,8 @@ UV index per ring vertex]`` or ``[null]``) and which material each surface has
 :class:`Appearances` collects them, takes the input's ``theme`` key (it must name a texture or a
 material theme of the file; the other kind keeps its default), else the file's
 ``default-theme-texture`` / ``default-theme-material``, else the first theme met; it logs which
-theme is drawn, which others exist and how many textures were drawn. A texture image that is missing, remote or not an image is a
+theme is drawn, which others exist and how many textures were drawn. A texture image that is
+missing, remote or not an image is a
 :class:`~pipeline25d.core.errors.MissingTextureWarning` (once per image): an error at ingest unless
 the input says ``missing_textures: untextured``, then its surfaces take their material or class
 colour. Wrap modes other than ``wrap`` clamp UVs outside [0, 1] per vertex (the renderer repeats

@@ -8,11 +8,11 @@ import os
 import shutil
 import subprocess
 import warnings
-from dataclasses import replace
-from pathlib import Path
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
+from dataclasses import replace
 from functools import lru_cache
+from pathlib import Path
 from typing import Any, NamedTuple
 from urllib.parse import unquote, urlsplit
 

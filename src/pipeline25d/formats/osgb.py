@@ -293,7 +293,8 @@ def _obj_parts(obj: Path, source: Path, matrix: np.ndarray) -> list[MeshPart]:
     try:
         read = load_mesh_file(obj)
     except InputFileError as exc:   # the OBJ is ours: name the .osgb it came from
-        raise InputFileError(source, str(exc).replace(f"{obj}: ", "").replace("it as an OBJ model", "its geometry")) from None
+        raise InputFileError(source, str(exc).replace(f"{obj}: ", "")
+                             .replace("it as an OBJ model", "its geometry")) from None
     parts = [replace(p, name=f"{source.name}:{p.name}") for p in read.parts]
     if np.allclose(matrix, np.eye(4)):
         return parts

@@ -121,7 +121,8 @@ class _Column:
             return stored.tolist()[0] if self.size == 1 else stored.tolist()
         if self.names is not None:
             return self.names.get(int(stored[0]), int(stored[0]))
-        values = stored.astype(np.float64) if self.divisor or self.scale is not None or self.offset is not None else stored
+        values = (stored.astype(np.float64) if self.divisor or self.scale is not None or self.offset is not None
+                  else stored)
         if self.divisor:
             values = np.maximum(values / self.divisor, -1.0)
         if self.scale is not None:

@@ -115,7 +115,8 @@ class XmlDefects:
                 keep.append((line, message))
                 continue
             holder = [e for e in inside if e.sourceline <= line][-1]
-            self._recover(line, message, _local(holder.tag), any(in_geometry(a) for a in (holder, *holder.iterancestors())))
+            self._recover(line, message, _local(holder.tag),
+                          any(in_geometry(a) for a in (holder, *holder.iterancestors())))
         self.pending = keep
 
     def _recover(self, line: int, message: str, element: str | None, geometric: bool) -> None:

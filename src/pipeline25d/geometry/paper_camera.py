@@ -217,10 +217,10 @@ class PaperCamera:
 
     def projection_matrix(self) -> np.ndarray:
         """Eq. (2): 4×4 eye → clip (orthographic), with (13)-(18)."""
-        l, r, b, t, n, f = self.left, self.right, self.bottom, self.top, self.near, self.far
-        return np.array([[2 / (r - l), 0, 0, (r + l) / (r - l)],
-                         [0, 2 / (t - b), 0, (t + b) / (t - b)],
-                         [0, 0, -2 / (f - n), -(f + n) / (f - n)],
+        left, right, bottom, top, near, far = self.left, self.right, self.bottom, self.top, self.near, self.far
+        return np.array([[2 / (right - left), 0, 0, (right + left) / (right - left)],
+                         [0, 2 / (top - bottom), 0, (top + bottom) / (top - bottom)],
+                         [0, 0, -2 / (far - near), -(far + near) / (far - near)],
                          [0, 0, 0, 1.0]])
 
     def mvp(self) -> np.ndarray:

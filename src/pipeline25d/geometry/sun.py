@@ -29,7 +29,8 @@ BIAS_TEXELS = 0.5         # height bias in texels (metres of height per texel ed
                           # bias·cot(elevation) at a wall's foot, half a texel at 45°
 WINDOW_PAD = 2            # texels around the receivers: the filter's taps stay inside the map
 DEPTH_MARGIN_M = 1.0      # keeps casters and receivers off the shadow map's near and far planes
-CENTRE_STEP_DEG = 0.01    # the scene centre that places the sun, rounded (~1 km; the sun moves by hundredths of a degree)
+CENTRE_STEP_DEG = 0.01    # the scene centre that places the sun, rounded (~1 km; the sun moves by hundredths
+                          # of a degree)
 
 
 @dataclass(frozen=True)

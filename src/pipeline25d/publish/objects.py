@@ -35,7 +35,7 @@ import numpy as np
 from pipeline25d.core.atomic import atomic_path, replace_dir, write_bytes, write_json
 from pipeline25d.formats.attributes import Limiter, clean_text
 from pipeline25d.stages.chunks import load_npz, unpack_parts
-from pipeline25d.stages.objects import LOCAL_BITS, LOCAL
+from pipeline25d.stages.objects import LOCAL, LOCAL_BITS
 
 log = logging.getLogger(__name__)
 
@@ -187,7 +187,8 @@ def write_gpkg(rows: list[SceneObject], path: Path, crs_wkt: str) -> None:
                     feat.SetField(name, _json(value) if name == "attributes" else value)
             if r.extent is not None:
                 x0, y0, x1, y1 = r.extent
-                feat.SetGeometry(ogr.CreateGeometryFromWkt(f"POLYGON(({x0} {y0},{x1} {y0},{x1} {y1},{x0} {y1},{x0} {y0}))"))
+                feat.SetGeometry(ogr.CreateGeometryFromWkt(
+                    f"POLYGON(({x0} {y0},{x1} {y0},{x1} {y1},{x0} {y1},{x0} {y0}))"))
             layer.CreateFeature(feat)
         layer.CommitTransaction()
         ds = None

@@ -197,7 +197,8 @@ def render_markdown(rep: dict) -> str:
              + (f"; the DTM is interpolated without the ground within {rep['dtm_check_holdout_m']:.1f} m of each"
                 " check point, so they measure how well it predicts ground it has not seen."
                 if rep.get("dtm_check_holdout_m") else "."), "",
-             "| perspective | tiles rendered | skipped | GCPs | checks | warp | RMSD m | RMSD px | max m | unwarped RMSD m |",
+             "| perspective | tiles rendered | skipped | GCPs | checks | warp | RMSD m | RMSD px | max m"
+             " | unwarped RMSD m |",
              "|---|---:|---:|---:|---:|---|---:|---:|---:|---:|"]
     for p in rep["perspectives"]:
         warp = warp_label(p)

@@ -17,8 +17,14 @@ from pathlib import Path
 from pipeline25d.core.atomic import write_json, write_text
 from pipeline25d.geometry.perspectives import Perspective
 from pipeline25d.publish.report import fmt_measure, read_heights, warp_label
-from pipeline25d.publish.report_figures import check_residuals, exaggeration, height_points, heights_plot, \
-    residual_plot, thumbnail
+from pipeline25d.publish.report_figures import (
+    check_residuals,
+    exaggeration,
+    height_points,
+    heights_plot,
+    residual_plot,
+    thumbnail,
+)
 
 STYLE = """
 body { font-family: system-ui, sans-serif; margin: 20px auto; max-width: 1100px; color: #222; }

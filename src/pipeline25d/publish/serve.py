@@ -146,12 +146,14 @@ def serve_until_interrupted(server: ThreadingHTTPServer) -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="pipeline25d serve", description=__doc__.split("\n\n")[0])
     parser.add_argument("root", type=Path, help="folder to serve, e.g. results/demo")
-    parser.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1, this machine only)")
+    parser.add_argument("--host", default="127.0.0.1",
+                        help="address to listen on (default 127.0.0.1, this machine only)")
     parser.add_argument("--port", type=int, default=8000, help="port (default 8000)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     server = make_server(args.root, args.host, args.port, verbose=True)
-    log.info("serving %s at http://%s:%d/ (viewer: /viewer/index.html; Ctrl-C stops)", args.root, *server.server_address[:2])
+    log.info("serving %s at http://%s:%d/ (viewer: /viewer/index.html; Ctrl-C stops)", args.root,
+             *server.server_address[:2])
     serve_until_interrupted(server)
     return 0
 

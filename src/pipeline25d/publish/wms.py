@@ -33,8 +33,8 @@ from pipeline25d.core.errors import InputFileError, MapServiceError
 from pipeline25d.core.grid import Grid
 from pipeline25d.core.raster import dataset_bounds, gdal
 from pipeline25d.geometry.perspectives import ID_PATTERN, Perspective
-from pipeline25d.publish.wms_ids import id_layer, id_path, row_raster, table_ids, write_join_table
 from pipeline25d.publish.serve import serve_until_interrupted
+from pipeline25d.publish.wms_ids import id_layer, id_path, row_raster, table_ids, write_join_table
 
 log = logging.getLogger(__name__)
 
@@ -105,7 +105,8 @@ def _has_transparency(ds) -> bool:
 
 def layer_title(pid: str) -> str:
     p = Perspective.from_id(pid)
-    return f"{pid}: azimuth {p.azimuth} degrees, elevation {p.elevation} degrees" + (" (nadir)" if p.elevation == 90 else "")
+    return (f"{pid}: azimuth {p.azimuth} degrees, elevation {p.elevation} degrees"
+            + (" (nadir)" if p.elevation == 90 else ""))
 
 
 def _extent(ext: Sequence[float]) -> str:
@@ -290,7 +291,8 @@ def main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     serve = sub.add_parser("serve", help="serve a mapfile's WMS through MapServer's CGI on a local port")
     serve.add_argument("mapfile", type=Path)
-    serve.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1, this machine only)")
+    serve.add_argument("--host", default="127.0.0.1",
+                       help="address to listen on (default 127.0.0.1, this machine only)")
     serve.add_argument("--port", type=int, default=8081, help="port (default 8081)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")

@@ -104,7 +104,8 @@ def select_sites(dsm: np.ndarray, dtm: np.ndarray, grid: Grid, rules: SiteRules,
     slopes = np.column_stack([o["sx"], o["sy"]])
     # which of two close sites survives follows a hash of their squares, not sites elsewhere
     apart = _apart(px, py, slopes, np.lexsort((o["sq_y"], o["sq_x"], jx)), rules.radius, grid.res, perspectives)
-    o, clear, jx, jy, px, py = {key: v[apart] for key, v in o.items()}, clear[apart], jx[apart], jy[apart], px[apart], py[apart]
+    o, clear, jx, jy, px, py = ({key: v[apart] for key, v in o.items()}, clear[apart], jx[apart], jy[apart],
+                                px[apart], py[apart])
     dz = o["sx"] * jx * grid.res + o["sy"] * jy * grid.res   # along the local ground plane
     return {"x": px, "y": py, "z": o["z"] + dz, "ground": o["ground"] + dz, "sx": o["sx"], "sy": o["sy"],
             "square_col": o["sq_x"].astype(np.int64), "square_row": o["sq_y"].astype(np.int64),

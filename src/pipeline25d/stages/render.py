@@ -46,8 +46,7 @@ from pipeline25d.core.mesh import MeshPart
 from pipeline25d.geometry.camera import clip_matrix
 from pipeline25d.geometry.perspectives import Perspective
 from pipeline25d.geometry.sun import SunFrame
-from pipeline25d.stages.textures import texture_anisotropy
-from pipeline25d.stages.textures import TextureCache
+from pipeline25d.stages.textures import TextureCache, texture_anisotropy
 
 LIGHT_DIRECTION = np.array([0.45, 0.65, -0.62]) / np.linalg.norm([0.45, 0.65, -0.62])
 MARKER_SEGMENTS = 32
@@ -546,7 +545,8 @@ def _overlapping(points: np.ndarray, slopes: np.ndarray, radius_m: float, view: 
     return out
 
 
-def marker_geometry(centres: np.ndarray, slopes: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def marker_geometry(centres: np.ndarray, slopes: np.ndarray,
+                    radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Disks (triangle fans) in the ground plane around (n, 3) local centres, coloured by id + 1.
 
     Each disk lies in the plane z = z_c + s_x·dx + s_y·dy of its (n, 2) slopes and has

@@ -48,7 +48,8 @@ def _tile_current(tiles_dir: str | Path, tile: Tile, objects: bool) -> bool:
 
 def render_block(plan_path: str | Path, block_id: str, block: int, lod_dir: str | Path, tiles_dir: str | Path,
                  out_manifest: str | Path, objects: bool = True) -> dict:
-    """Render the tiles of one render block (:func:`~pipeline25d.stages.plan.plan_blocks`) in one process and GL context.
+    """Render the tiles of one render block (:func:`~pipeline25d.stages.plan.plan_blocks`) in one process
+    and GL context.
 
     Each tile gets its own files (:func:`tile_files`), written GCPs, GeoTIFF, then spec hash,
     each atomically: a tile whose ``.spec`` matches its plan entry is complete and is kept as

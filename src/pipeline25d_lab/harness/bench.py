@@ -288,7 +288,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--stretch", type=float, default=1.0,
                     help="scale each district's x and y (not z) by this: a coarse mesh over a large area")
     ap.add_argument("--collect", action="store_true",
-                    help="collect the figures of the last finished run again instead of running (wall time from its log)")
+                    help="collect the figures of the last finished run again instead of running "
+                         "(wall time from its log)")
     args = ap.parse_args(argv)
     nx, ny = (int(v) for v in args.grid.lower().split("x"))
     name = args.name or f"delft{nx}x{ny}"

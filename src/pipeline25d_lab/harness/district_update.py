@@ -1,4 +1,4 @@
-"""A district update measured: one district of a city replaced, the workflow run again.
+r"""A district update measured: one district of a city replaced, the workflow run again.
 
 The scene is the benchmark's (:func:`pipeline25d_lab.harness.bench.make_scene`: the Delft LiDAR mesh
 tiled into NX x NY districts) with a given DTM, as a city that keeps its terrain model apart
@@ -15,7 +15,8 @@ updated scene must give the same maps and web tiles, byte for byte. Writes
 
 CLI::
 
-    python -m pipeline25d_lab.harness.district_update --grid 4x3 --decimate 0.1 --gsd 0.125 --district d01-01 --name districts
+    python -m pipeline25d_lab.harness.district_update --grid 4x3 --decimate 0.1 --gsd 0.125 \
+        --district d01-01 --name districts
 """
 
 from __future__ import annotations
@@ -62,7 +63,8 @@ def stage_seconds(logs: Path, since: float) -> dict[str, float]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m pipeline25d_lab.harness.district_update", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m pipeline25d_lab.harness.district_update",
+                                 description=__doc__.split("\n\n")[0])
     ap.add_argument("--grid", default="4x3", help="districts, NXxNY")
     ap.add_argument("--decimate", type=float, default=0.1, help="share of the source's triangles to keep")
     ap.add_argument("--district", default="d01-01", help="the district to replace")

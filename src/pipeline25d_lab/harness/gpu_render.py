@@ -3,7 +3,8 @@
 A generated textured city block (a heightfield of box buildings on rolling ground, one JPEG atlas
 with detail at every scale, ``--triangles`` triangles) is uploaded once and rendered as the render
 jobs do: nadir plus eight azimuths at 45°, ``--tiles`` tiles a view of ``--tile`` pixels, colour
-alone and colour with the object ids as a second render target (both with readback). Prints one JSON line and writes it (and one tile of each
+alone and colour with the object ids as a second render target (both with readback).
+Prints one JSON line and writes it (and one tile of each
 view as PNG, to compare drivers) to ``--out``. Run it on two machines; compare the tiles with
 ``--compare DIR_A DIR_B``.
 

@@ -188,7 +188,8 @@ def run_trials(work: Path, config: dict, trials: int, signals: list[str], seed: 
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m pipeline25d_lab.harness.killtest", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m pipeline25d_lab.harness.killtest",
+                                 description=__doc__.split("\n\n")[0])
     ap.add_argument("--trials", type=int, default=20)
     ap.add_argument("--signals", default="KILL,INT,TERM", help="cycled through the trials: KILL, INT, TERM")
     ap.add_argument("--scale", type=float, default=0.5, help="demo city scale (1 = the make run demo)")

@@ -10,8 +10,8 @@ it times, in this process and on this machine, with each step's median of ``--re
 - the web-tile cut, by sub-step: the web-mercator blocks' warp (decode COG, warp, encode),
   and for every base tile its read (decode of the blocks), the average down to the tile
   (:func:`pipeline25d.stages.tiles.base.average_tile`), the tile's encode and its write, beside
-  what gdal2tiles' own did (upsampled read of the window into the 4x query, its average); then the overview tiles (decode four children,
-  average, encode, write);
+  what gdal2tiles' own did (upsampled read of the window into the 4x query, its average); then the
+  overview tiles (decode four children, average, encode, write);
 - the whole cut (:func:`pipeline25d.stages.tiles.web.tms`) against ``gdal2tiles`` with its
   defaults on the same COG and zoom levels (a subprocess), and their ratio.
 
@@ -144,7 +144,8 @@ def tms_rows(cog: Path, work: Path, map_mpx: float, repeat: int, tile_format: st
     g.BuildVRT(str(vrt), [str(b) for b in sorted(blocks.glob("*.tif"))], outputBounds=kept.bounds,
                xRes=kept.transform.a, yRes=-kept.transform.e)
     shutil.rmtree(tiles, ignore_errors=True)
-    _, _, options = g2t.process_args([*web._gdal2tiles_args(zooms, 1, tile_format, quality, True), str(vrt), str(tiles)])
+    _, _, options = g2t.process_args([*web._gdal2tiles_args(zooms, 1, tile_format, quality, True), str(vrt),
+                                      str(tiles)])
     conf, details = g2t.worker_tile_details(str(vrt), str(tiles), options)
     try:
         steps = _base_tile_steps(conf, details, options, repeat)
@@ -197,7 +198,8 @@ def _base_tile_steps(conf, details, options, repeat: int) -> dict:
             if not window[nb][rows][:, cols].any():
                 continue
             tile = mem.Create("", size, size, nb + 1)
-            tile.WriteRaster(0, 0, size, size, average_tile(window, rows, cols, d.wx, d.wy, d.querysize, size).tobytes())
+            tile.WriteRaster(0, 0, size, size,
+                             average_tile(window, rows, cols, d.wx, d.wy, d.querysize, size).tobytes())
             c2 = time.perf_counter()
             ds.ReadRaster(d.rx, d.ry, d.rxsize, d.rysize, d.wxsize, d.wysize, band_list=list(range(1, nb + 1)))
             alpha_band.ReadRaster(d.rx, d.ry, d.rxsize, d.rysize, d.wxsize, d.wysize)

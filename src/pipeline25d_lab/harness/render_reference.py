@@ -33,7 +33,8 @@ void main() { f_color = v_color; }
 """
 
 
-def plain_loop_seconds(plan_path: str | Path, lod_dir: str | Path, samples: int, tiles: list[dict] | None = None) -> dict:
+def plain_loop_seconds(plan_path: str | Path, lod_dir: str | Path, samples: int,
+                       tiles: list[dict] | None = None) -> dict:
     """{"tiles": n, "seconds": total, "per_tile_s": mean, "coverage": [share of drawn pixels per tile]}
     of the plain loop over ``tiles`` (default: all the plan's)."""
     import moderngl

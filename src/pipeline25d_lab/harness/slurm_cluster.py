@@ -310,7 +310,8 @@ def local_against_slurm(work: Path, config: dict, cores: int = 2) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m pipeline25d_lab.harness.slurm_cluster", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m pipeline25d_lab.harness.slurm_cluster",
+                                 description=__doc__.split("\n\n")[0])
     ap.add_argument("--scale", type=float, default=0.5, help="demo city scale (1 = the make run demo)")
     ap.add_argument("--perspectives", default="eight-45+nadir")
     ap.add_argument("--cores", type=int, default=2, help="-j of the local run")

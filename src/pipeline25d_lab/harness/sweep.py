@@ -53,7 +53,8 @@ QUICK = {"gsd": (0.25, 0.5), "lod.max_error_px": (0.25, 0.5, 2, 4), "render.samp
          "tile_size": (512, 1024, 2048), "projection": ("terrain", "plane", "paper")}
 SHORT = {"gsd": "gsd", "lod.max_error_px": "lod", "render.samples": "msaa", "tile_size": "tile", "projection": ""}
 PERSPECTIVES = [{"azimuth": 0, "elevation": 90}, {"azimuth": 45, "elevation": 45}, {"azimuth": 225, "elevation": 30}]
-GCP = {"spacing": 10, "holdout": 0.3}     # denser than the defaults: enough check points in the obliques of one district
+GCP = {"spacing": 10, "holdout": 0.3}     # denser than the defaults: enough check points in the obliques
+                                          # of one district
 SCENE, QUICK_SCENE, DECIMATE = "delft:2x2", "delft:1x1", 0.25
 REFERENCE = {"render": {"samples": 8}, "lod": {"max_error_px": 0.05}}     # the map error's reference run
 

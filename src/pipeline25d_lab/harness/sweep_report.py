@@ -150,7 +150,7 @@ def _label(ax, items: list[tuple[float, float, str, str]]) -> None:
         for side in (1, -1):
             left = px + 8 if side > 0 else px - 8 - width
             dy = 3.0
-            while any(abs(py + dy - b) < LABEL_LINE_PT and left < r and left + width > l for l, r, b in placed):
+            while any(abs(py + dy - b) < LABEL_LINE_PT and left < x1 and left + width > x0 for x0, x1, b in placed):
                 dy += LABEL_LINE_PT / 2
             if best is None or dy < best[0]:
                 best = (dy, side, left)

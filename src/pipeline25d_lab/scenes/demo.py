@@ -220,7 +220,7 @@ def _split_lots(cells: list[tuple[float, float, float, float]], n: int,
         keep = np.sort(rng.choice(len(lots), size=n, replace=False))
         return [lots[i] for i in keep]
     while len(lots) < n:
-        sides = np.array([[l[2] - l[0], l[3] - l[1]] for l in lots])
+        sides = np.array([[lot[2] - lot[0], lot[3] - lot[1]] for lot in lots])
         splittable = sides.max(axis=1) >= 2 * min_lot
         if not splittable.any():
             raise ConfigError(f"cannot fit {n} buildings into a district; lower n_buildings or raise scale")
@@ -339,7 +339,7 @@ def build_layout(seed: int, n_buildings: int, scale: float) -> list[District]:
         lots = _split_lots(cells, count, rng)
         towers = set(np.flatnonzero(rng.uniform(size=len(lots)) < 0.04).tolist())
         if len(lots) >= 4 and not towers:
-            towers = {int(np.argmax([(l[2] - l[0]) * (l[3] - l[1]) for l in lots]))}
+            towers = {int(np.argmax([(lot[2] - lot[0]) * (lot[3] - lot[1]) for lot in lots]))}
         buildings = [
             _make_building(f"{name}_b{k:03d}", name, lot, k in towers, rng) for k, lot in enumerate(lots)
         ]

@@ -40,8 +40,15 @@ import numpy as np
 from pipeline25d.core.atomic import replace_dir, write_json
 from pipeline25d.core.errors import ConfigError
 from pipeline25d_lab.scenes.oap3d_city import City, build_city
-from pipeline25d_lab.scenes.oap3d_formats import (TileTree, metadata_xml, osgb_file, root_tileset, tile_name, to_ecef,
-                                                  write_osgb_file)
+from pipeline25d_lab.scenes.oap3d_formats import (
+    TileTree,
+    metadata_xml,
+    osgb_file,
+    root_tileset,
+    tile_name,
+    to_ecef,
+    write_osgb_file,
+)
 from pipeline25d_lab.scenes.oap3d_nodes import Node, Spec, children, make_node
 
 log = logging.getLogger(__name__)

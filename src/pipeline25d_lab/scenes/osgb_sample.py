@@ -122,7 +122,8 @@ def generate_osgb_sample(out: str | Path) -> Path:
             ids = itertools.count(1)   # UniqueIDs, one sequence per tile (unique within each file)
             files = {f"{name}.osgb": _paged(ids, 0, x0, y0, TILE, f"{name}_L1.osgb", f"{name}_L0")}
             quads = [(q, x0 + (q % 2) * NODE[1], y0 + (q // 2) * NODE[1]) for q in range(4)]
-            files[f"{name}_L1.osgb"] = _group(ids, [_paged(ids, 1, qx, qy, NODE[1], f"{name}_L2_{q}.osgb", f"{name}_L1_{q}")
+            files[f"{name}_L1.osgb"] = _group(ids, [_paged(ids, 1, qx, qy, NODE[1], f"{name}_L2_{q}.osgb",
+                                                           f"{name}_L1_{q}")
                                                for q, qx, qy in quads])
             for q, qx, qy in quads:
                 files[f"{name}_L2_{q}.osgb"] = _geode(ids, 2, qx, qy, NODE[2], f"{name}_L2_{q}")
@@ -143,7 +144,8 @@ HEADER = "#Ascii Scene\n#Version 161\n#Generator OpenSceneGraph 3.6.5\n\n"
 Osgt = tuple[str, dict[str, bytes]]   # object text, images it names (file name -> PNG bytes)
 
 
-def _paged(ids: Iterator[int], level: int, x0: float, y0: float, edge: float, child_file: str, texture_name: str) -> Osgt:
+def _paged(ids: Iterator[int], level: int, x0: float, y0: float, edge: float, child_file: str,
+           texture_name: str) -> Osgt:
     """A PagedLOD over one node: this level inline below the switch, ``child_file`` above it."""
     uid = next(ids)
     geode, images = _geode(ids, level, x0, y0, edge, texture_name)

@@ -162,7 +162,8 @@ class GroundModel:
         dsm_wkt = ds.GetProjection()
         dtm = DTM(dtm_tif, dsm_wkt or "")
         h, w = dsm.shape
-        if dtm.values.shape == dsm.shape and np.allclose(dtm.grid.geotransform, grid.geotransform) and _same_crs(dtm.crs_wkt, dsm_wkt):
+        if (dtm.values.shape == dsm.shape and np.allclose(dtm.grid.geotransform, grid.geotransform)
+                and _same_crs(dtm.crs_wkt, dsm_wkt)):
             terrain = dtm.values
         else:
             if not dsm_wkt and dtm.crs_wkt:
@@ -181,8 +182,8 @@ class GroundModel:
         if perspective is None or perspective.elevation >= 90:
             perspective = Perspective(0, 90)
         if perspective.id not in self._masks:
-            values = visible_ground(self.dsm, self.dtm, perspective, (self.grid.transform.a, -self.grid.transform.e), self.max_height,
-                                    self.dilate_m, self.projection, self.clearance)
+            values = visible_ground(self.dsm, self.dtm, perspective, (self.grid.transform.a, -self.grid.transform.e),
+                                    self.max_height, self.dilate_m, self.projection, self.clearance)
             self._masks[perspective.id] = RasterMask(values, self.grid, self.crs_wkt, self.map_crs)
         return self._masks[perspective.id]
 

@@ -13,11 +13,26 @@ import numpy as np
 from pipeline25d.analysis.evaluate.rasters import _open
 from pipeline25d.analysis.ground_under import Sampler, dtm_under
 from pipeline25d.analysis.heights.matcher import MatchResult, _Matcher
-from pipeline25d.analysis.heights.pitched import (KINDS, MAX_LOSS, fit_eave, lines_roof, ridge_height, rise_share,
-                                                  roof_frame, roof_ground, view_rise)
+from pipeline25d.analysis.heights.pitched import (
+    KINDS,
+    MAX_LOSS,
+    fit_eave,
+    lines_roof,
+    ridge_height,
+    rise_share,
+    roof_frame,
+    roof_ground,
+    view_rise,
+)
 from pipeline25d.analysis.heights.results import NADIR_ID, HeightRow, MatchSettings, ViewMeasurement
-from pipeline25d.analysis.heights.silhouette import (MIN_CONSISTENT, Lines, levelled, robust_level, roof_heights,
-                                                     silhouette_lines)
+from pipeline25d.analysis.heights.silhouette import (
+    MIN_CONSISTENT,
+    Lines,
+    levelled,
+    robust_level,
+    roof_heights,
+    silhouette_lines,
+)
 from pipeline25d.analysis.heights.template import _PAD, Template, _prepare_view, _View, build_template
 from pipeline25d.core.errors import InputFileError
 from pipeline25d.core.grid import Extent, Grid, Window
@@ -32,8 +47,9 @@ log = logging.getLogger(__name__)
 PITCHED_GAP_M = 1.0
 
 
-def measure_parallel(map_paths: dict[str, str | Path], footprints: list[Footprint], settings: MatchSettings | None = None,
-                     workers: int = 1, block: int = 64, ground: Callable[[], Sampler] | None = None) -> list[HeightRow]:
+def measure_parallel(map_paths: dict[str, str | Path], footprints: list[Footprint],
+                     settings: MatchSettings | None = None, workers: int = 1, block: int = 64,
+                     ground: Callable[[], Sampler] | None = None) -> list[HeightRow]:
     """:func:`measure_heights` over blocks of ``block`` footprints (in west-to-east order, so a
     block's maps are read from nearby windows) on ``workers`` processes; the same rows, in input
     order. Every footprint is measured alone, so the cost is footprints × views ÷ workers.
@@ -287,7 +303,8 @@ def _with_ridge(row: HeightRow, fp: Footprint, tmpl: Template, grid: Grid, win, 
              for k in excess}
         if np.isfinite(base) and all(np.isfinite(v).all() for v in g.values()):
             excess = {k: v - base for k, v in g.items()}
-    fits = {p: view_rise(fp, tmpl, xy, rgb, off, v.d_px, v.cot, row.height, excess, tol) for p, (v, rgb, off) in views.items()}
+    fits = {p: view_rise(fp, tmpl, xy, rgb, off, v.d_px, v.cot, row.height, excess, tol)
+            for p, (v, rgb, off) in views.items()}
     ridge, kind = ridge_height(fits, row.height)
     per_view = {p: row.height + f.rise if f.loss <= MAX_LOSS else math.nan for p, f in fits.items()}
     return replace(row, ridge=ridge, roof=kind, ridges=per_view)
@@ -306,11 +323,11 @@ def _by_silhouette(fp: Footprint, results: dict[str, MatchResult], lines: dict[s
     """Where the colours give no height (or one below ``min_colour_m``: a roof matched on its own
     wall of the same tint), the silhouette's (:mod:`.silhouette`); in place. Such a view takes its
     silhouette's height, unless colour matches of other views (ambiguous ones settled first) exist
-    and it lies more than ``outlier_m`` (the caller: 2 × agree_m) from their median ("silhouette_disagrees": a hidden roof's lines end where its
-    occluder ends). A lone colour match that its own view's silhouette and another view's both
-    put more than ``outlier_m`` elsewhere is rejected ("contradicted"); one that another view's
-    silhouette alone disagrees with is rejected with it ("inconsistent"). A view neither measures
-    keeps both reasons (colour+silhouette)."""
+    and it lies more than ``outlier_m`` (the caller: 2 × agree_m) from their median
+    ("silhouette_disagrees": a hidden roof's lines end where its occluder ends). A lone colour match
+    that its own view's silhouette and another view's both put more than ``outlier_m`` elsewhere is
+    rejected ("contradicted"); one that another view's silhouette alone disagrees with is rejected
+    with it ("inconsistent"). A view neither measures keeps both reasons (colour+silhouette)."""
     usable = {p: v for p, v in lines.items() if not isinstance(v, str)}
     found = roof_heights(fp, usable, slope) if usable else {}
     sil = {p: found.get(p, (math.nan, 0.0, v if isinstance(v, str) else "")) for p, v in lines.items()}
@@ -379,7 +396,8 @@ def _drop_inconsistent(views: dict[str, ViewMeasurement], outlier_m: float) -> N
     if len(acc) == 2 and abs(np.subtract(*acc.values())) > outlier_m:
         far = list(acc)
     elif len(acc) >= 3:
-        far = [p for p, h in acc.items() if abs(h - float(np.median([o for q, o in acc.items() if q != p]))) > outlier_m]
+        far = [p for p, h in acc.items()
+               if abs(h - float(np.median([o for q, o in acc.items() if q != p]))) > outlier_m]
     for p in far:
         views[p] = replace(views[p], height=math.nan, reason="inconsistent")
 

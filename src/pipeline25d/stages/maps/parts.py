@@ -48,7 +48,7 @@ def tile_parts(cells: Iterable[tuple[int, int]], gap: int = PART_GAP_TILES,
     whole = [(int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1]))]
     if len(rc) >= dense_share * np.prod(hi - lo + 1):    # the tiles alone fill the share: rectangles can only add
         return whole
-    from scipy import ndimage as ndi                      # (its import costs more than a dense map's grouping)
+    from scipy import ndimage as ndi  # (its import costs more than a dense map's grouping)
 
     occupied = np.zeros(tuple(hi - lo + 1), bool)
     occupied[rc[:, 0] - lo[0], rc[:, 1] - lo[1]] = True

@@ -55,7 +55,8 @@ def gdal_gcps(rows: Sequence[Observation], grid: Grid) -> list:
     return [g.GCP(r.x, r.y, r.z, float(p), float(q)) for r, (p, q) in zip(rows, to_pixels(rows, grid))]
 
 
-def predict(method: str, order: int, train: Sequence[Observation], query: Sequence[Observation], grid: Grid) -> np.ndarray:
+def predict(method: str, order: int, train: Sequence[Observation], query: Sequence[Observation],
+            grid: Grid) -> np.ndarray:
     """Scene (x, y) of the ``query`` rows' image positions under a warp fitted on ``train``."""
     if method == "none":
         return np.array([[r.map_x, r.map_y] for r in query], dtype=np.float64).reshape(-1, 2)
@@ -72,7 +73,8 @@ def predict(method: str, order: int, train: Sequence[Observation], query: Sequen
 
 
 
-def _errors(method: str, order: int, train: Sequence[Observation], query: Sequence[Observation], grid: Grid) -> np.ndarray:
+def _errors(method: str, order: int, train: Sequence[Observation], query: Sequence[Observation],
+            grid: Grid) -> np.ndarray:
     """(n,) metres between the query rows' predicted and true (x, y)."""
     xy = predict(method, order, train, query, grid)
     return np.hypot(xy[:, 0] - [r.x for r in query], xy[:, 1] - [r.y for r in query])
@@ -362,7 +364,8 @@ def warp(mosaic_vrt: str | Path, gcps_csv: str | Path, plan_path: str | Path, wa
     bounds = warp_to_cog(mosaic_vrt, obs, choice, pl, out_cog, parts=parts, work_dir=work_dir, threads=threads,
                          cells_memo=cells_memo, cells_note=cells_note, **(maps_cfg or {}))   # compression, quality
     p = pl.perspective
-    record = {"perspective": {"id": p.id, "azimuth": p.azimuth, "elevation": p.elevation}, **choice, "n_observed": len(obs), "parts": bounds,
+    record = {"perspective": {"id": p.id, "azimuth": p.azimuth, "elevation": p.elevation}, **choice,
+              "n_observed": len(obs), "parts": bounds,
               "paper_method": paper_method_on(obs, pl, grid) if pl.projection == "terrain" else None}
     write_json(out_json, record)
     log.info("%s: warp %s (order %s), check-point RMSD %s m", pl.id, choice["method"],

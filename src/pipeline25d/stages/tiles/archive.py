@@ -65,7 +65,8 @@ def write_pmtiles(tms_dir: str | Path, out: str | Path, name: str | None = None)
     east, south = tile_lonlat(zooms[-1], max(x for x, _ in top) + 1, max(y for _, y in top) + 1)
     header = {"tile_compression": Compression.NONE, "tile_type": TileType[suffix[1:].upper()],
               "min_lon_e7": _e7(west), "min_lat_e7": _e7(south), "max_lon_e7": _e7(east), "max_lat_e7": _e7(north),
-              "center_zoom": zooms[-1], "center_lon_e7": _e7((west + east) / 2), "center_lat_e7": _e7((south + north) / 2)}
+              "center_zoom": zooms[-1], "center_lon_e7": _e7((west + east) / 2),
+              "center_lat_e7": _e7((south + north) / 2)}
     metadata = {"name": name or Path(tms_dir).name, "format": suffix[1:], "type": "overlay",
                 "attribution": "pipeline25d", "bounds": f"{west},{south},{east},{north}"}
     order = sorted(tiles, key=lambda t: zxy_to_tileid(*t))

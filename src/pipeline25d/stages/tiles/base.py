@@ -155,7 +155,8 @@ def create_base_tile(tile_job_info, tile_detail) -> None:
             return
         if options.resampling == "average" and d.querysize % size == 0:
             window = np.concatenate([data, alpha[None]])
-            tile.WriteRaster(0, 0, size, size, average_tile(window, rows, cols, d.wx, d.wy, d.querysize, size).tobytes())
+            tile.WriteRaster(0, 0, size, size,
+                             average_tile(window, rows, cols, d.wx, d.wy, d.querysize, size).tobytes())
         else:
             up = np.concatenate([data, alpha[None]])[:, rows][:, :, cols]
             query = mem.Create("", d.querysize, d.querysize, bands + 1)

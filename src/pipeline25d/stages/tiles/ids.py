@@ -38,7 +38,8 @@ def encode(ids: np.ndarray) -> bytes:
     palette = np.unique(runs)
     index = np.searchsorted(palette, flat)
     kind = "u1" if len(palette) <= 256 else "<u2"
-    raw = np.uint32(len(palette)).astype("<u4").tobytes() + palette.astype("<u4").tobytes() + index.astype(kind).tobytes()
+    raw = (np.uint32(len(palette)).astype("<u4").tobytes() + palette.astype("<u4").tobytes()
+           + index.astype(kind).tobytes())
     return zlib.compress(raw, 9)
 
 

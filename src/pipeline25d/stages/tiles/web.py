@@ -47,9 +47,15 @@ from pipeline25d.core.raster import cells_grid_of, gdal, map_cells, noted_cells
 from pipeline25d.stages.maps.mosaic_sources import plain_sources
 from pipeline25d.stages.maps.parts import box_outline
 from pipeline25d.stages.tiles import ids as id_tiles
-from pipeline25d.stages.tiles.blocks import (GDAL2TILES_TILE, WEB_MERCATOR, stored_factor, stored_grid, tile_metres,
-                                             warp_block)
 from pipeline25d.stages.tiles.base import close_source, create_base_tile, gdal2tiles
+from pipeline25d.stages.tiles.blocks import (
+    GDAL2TILES_TILE,
+    WEB_MERCATOR,
+    stored_factor,
+    stored_grid,
+    tile_metres,
+    warp_block,
+)
 from pipeline25d.stages.tiles.workers import Workers
 
 log = logging.getLogger(__name__)
@@ -302,8 +308,8 @@ def _cut_ids(vrt: str, tiles: Path, base: list, reach: dict[int, set], conf, wor
 
 
 def _gdal2tiles_args(zoom: str, processes: int, tile_format: str, quality: int, exclude_empty: bool) -> list[str]:
-    args = ["-q", "--xyz", "-w", "none", "-r", "near" if tile_format == "ids" else "average", f"--processes={processes}",
-            *(["--exclude"] if exclude_empty else [])]
+    args = ["-q", "--xyz", "-w", "none", "-r", "near" if tile_format == "ids" else "average",
+            f"--processes={processes}", *(["--exclude"] if exclude_empty else [])]
     if tile_format == "webp":
         args += ["--tiledriver=WEBP", f"--webp-quality={int(quality)}"]
     if zoom != "auto":
