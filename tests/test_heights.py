@@ -402,26 +402,26 @@ def test_maps_in_other_crs_rejected(scene, tmp_path):
 
 
 def test_a_view_far_from_the_others_is_rejected_as_inconsistent():
+    from pipeline25d.analysis.heights.combine import drop_inconsistent
     from pipeline25d.analysis.heights.results import ViewMeasurement
-    from pipeline25d.analysis.heights.views import _drop_inconsistent
 
     def views(*hs):
         return {f"v{i}": ViewMeasurement(h, h, 1.0, 1.0, 0.0, "") for i, h in enumerate(hs)}
 
     v = views(10.0, 10.2, 9.9, 25.0, 7.9)
-    _drop_inconsistent(v, 2.0)
+    drop_inconsistent(v, 2.0)
     # medians of the other views (all five decide together): 10.05, 9.95, 10.1, 9.95, 10.1 ->
     # off by 0.05, 0.25, 0.2, 15.05, 2.2
     assert [m.reason for m in v.values()] == ["", "", "", "inconsistent", "inconsistent"]
     assert math.isnan(v["v3"].height) and v["v0"].height == 10.0
     v = views(10.0, 10.2, 9.9, 25.0, 7.9)
-    _drop_inconsistent(v, 2.5)
+    drop_inconsistent(v, 2.5)
     assert [m.reason for m in v.values()] == ["", "", "", "inconsistent", ""]
     v = views(10.0, 30.0)                                               # two views: no majority,
-    _drop_inconsistent(v, 2.0)                                          # neither can be trusted
+    drop_inconsistent(v, 2.0)                                          # neither can be trusted
     assert all(m.reason == "inconsistent" and math.isnan(m.height) for m in v.values())
     v = views(10.0, 11.5)                                               # two that agree are kept
-    _drop_inconsistent(v, 2.0)
+    drop_inconsistent(v, 2.0)
     assert all(m.reason == "" for m in v.values())
 
 

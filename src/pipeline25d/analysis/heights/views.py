@@ -12,6 +12,7 @@ import numpy as np
 
 from pipeline25d.analysis.evaluate.rasters import _open
 from pipeline25d.analysis.ground_under import Sampler, dtm_under
+from pipeline25d.analysis.heights.combine import combine, drop_inconsistent
 from pipeline25d.analysis.heights.matcher import MatchResult, _Matcher
 from pipeline25d.analysis.heights.pitched import (
     KINDS,
@@ -159,8 +160,8 @@ def measure_heights(map_paths: dict[str, str | Path], footprints: list[Footprint
             h = r.u / cot[pid] if not reason else math.nan
             measurements[pid] = ViewMeasurement(h, r.u, r.match * (1.0 - r.second), r.match, r.second, reason,
                                                 pid in resolved, r.method)
-        _drop_inconsistent(measurements, s.outlier_m)
-        row = _combine(fp.id, measurements, s)
+        drop_inconsistent(measurements, s.outlier_m)
+        row = combine(fp.id, measurements, s)
         if np.isfinite(row.height) and isinstance(tmpl, Template):
             around = {p: (v, obl[0], off) for p, (v, _, obl, off, _, _) in pending.items()}
             row = _roof(fp, row, measurements, cot, s,
@@ -222,8 +223,8 @@ def _refit_eaves(fp: Footprint, row: HeightRow, measurements: dict[str, ViewMeas
     place) and combined again; None where no view's eave changed or none is left."""
     if not _eaves(fp, row, measurements, lines, cot, sample):
         return None
-    _drop_inconsistent(measurements, s.outlier_m)
-    new = _combine(fp.id, measurements, s)
+    drop_inconsistent(measurements, s.outlier_m)
+    new = combine(fp.id, measurements, s)
     return replace(new, ridge=row.ridge, roof=row.roof, ridges=row.ridges) if np.isfinite(new.height) else None
 
 
@@ -383,33 +384,3 @@ def _resolve(results: dict[str, MatchResult], matchers: dict[str, "_Matcher"], c
             results[p] = r
             done.add(p)
     return done
-
-
-def _drop_inconsistent(views: dict[str, ViewMeasurement], outlier_m: float) -> None:
-    """With three or more accepted views, reject (in place, reason "inconsistent") each view whose
-    height lies more than ``outlier_m`` from the median of the other accepted views: a roof one
-    view alone puts elsewhere (its own roof hidden there, a like roof further along the view).
-    Two accepted views that differ by more than ``outlier_m`` are both rejected: with no third
-    view there is no telling which one matched a like roof."""
-    acc = {p: m.height for p, m in views.items() if not m.reason}
-    far: list[str] = []
-    if len(acc) == 2 and abs(np.subtract(*acc.values())) > outlier_m:
-        far = list(acc)
-    elif len(acc) >= 3:
-        far = [p for p, h in acc.items()
-               if abs(h - float(np.median([o for q, o in acc.items() if q != p]))) > outlier_m]
-    for p in far:
-        views[p] = replace(views[p], height=math.nan, reason="inconsistent")
-
-
-def _combine(fid: str, views: dict[str, ViewMeasurement], s: MatchSettings) -> HeightRow:
-    accepted = [m for m in views.values() if not m.reason]
-    if accepted:
-        hs = np.array([m.height for m in accepted])
-        height = float(np.median(hs))
-        n_agree = int(np.count_nonzero(np.abs(hs - height) <= s.agree_m))
-        quality = float(np.median([m.quality for m in accepted])) * n_agree / len(accepted)
-    else:
-        height, n_agree, quality = math.nan, 0, 0.0
-    return HeightRow(fid, {k: m.height for k, m in views.items()}, {k: m.quality for k, m in views.items()},
-                     {k: m.reason for k, m in views.items()}, len(accepted), n_agree, height, quality, views)
