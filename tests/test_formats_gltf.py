@@ -265,11 +265,31 @@ def test_webp_and_ktx2_textures(tmp_path):
 
 
 def test_unsupported_required_extension(tmp_path):
-    doc, binary = _gltf(extra={"extensionsRequired": ["KHR_texture_basisu"]})
-    path = _write_gltf(tmp_path / "basis.gltf", doc, binary)
+    doc, binary = _gltf(extra={"extensionsRequired": ["KHR_example_unknown"]})
+    path = _write_gltf(tmp_path / "unknown.gltf", doc, binary)
     with pytest.raises(UnsupportedFeatureError) as err:
         load_gltf(path)
-    assert "KHR_texture_basisu" in str(err.value) and "basis.gltf" in str(err.value)
+    assert "KHR_example_unknown" in str(err.value) and "unknown.gltf" in str(err.value)
+
+
+def test_required_ktx2_textures_are_missing_textures_not_a_refusal(tmp_path):
+    """KHR_texture_basisu listed as required (Cesium ion's and glTF-Transform's KTX2 output): the file
+    is read; its KTX2-only texture is a missing texture: an error naming it by default, its parts
+    drawn untextured with ``missing_textures: untextured``. It was refused whole, with no way round."""
+    from pipeline25d.formats import load_district
+
+    material = {"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}
+    doc, binary = _with_image(*_gltf(material=material), _png_bytes(), "image/ktx2")
+    doc["textures"] = [{"extensions": {"KHR_texture_basisu": {"source": 0}}}]
+    doc["extensionsRequired"] = doc["extensionsUsed"] = ["KHR_texture_basisu"]
+    path = tmp_path / "basis.glb"
+    path.write_bytes(_glb(doc, binary))
+    spec = {"path": str(path), "crs": "EPSG:28992", "offset": [85000.0, 447000.0, 0.0]}
+    with pytest.raises(InputFileError, match=r"basis\.glb: texture 0 is a KTX2 .* missing_textures: untextured"):
+        load_district(spec, "EPSG:28992")
+    with pytest.warns(UserWarning, match=r"basis\.glb: texture 0 is a KTX2"):
+        mesh = load_district({**spec, "missing_textures": "untextured"}, "EPSG:28992")
+    assert mesh.n_triangles == 1 and all(p.texture is None and p.colors is not None for p in mesh.parts)
 
 
 def test_broken_files(tmp_path):
@@ -340,6 +360,80 @@ def test_draco_primitive_by_attribute_id(tmp_path):
     # every vertex's UV is (x / 2, 1 - y / 3): UVs travel with their vertices, v flipped
     np.testing.assert_allclose(part.uv, np.column_stack([part.vertices[:, 0] / 2, 1 - part.vertices[:, 1] / 3]),
                                atol=1e-3)
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda d: d["meshes"][0].update(primitives="triangles"), r"glTF JSON holds a value of the wrong type"),
+    (lambda d: d["materials"][0].update(pbrMetallicRoughness=[]), r"glTF JSON holds a value of the wrong type"),
+    (lambda d: d["meshes"][0]["primitives"][0].update(extensions="KHR"), r"glTF JSON holds a value of the wrong type"),
+    (lambda d: d["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"].update(index=-1),
+     r"glTF references missing textures\[-1\]")])
+def test_json_of_the_wrong_types_is_an_input_error(tmp_path, edit, message):
+    """Values of the wrong JSON type (assimp's glTF2/wrongTypes corpus: an array as a string, an object
+    as an array, an extension as a string) and a negative index, which Python would take from the end:
+    errors naming the file, not an AttributeError or the last texture."""
+    import DracoPy
+
+    pts = np.array([[0, 0, 0], [2, 0, 0], [0, 3, 0]], dtype=np.float64)
+    stream = DracoPy.encode(pts, np.array([[0, 1, 2]], np.uint32), preserve_order=True)
+    png = _png_bytes()
+    doc = {
+        "asset": {"version": "2.0"}, "extensionsUsed": ["KHR_draco_mesh_compression"],
+        "nodes": [{"mesh": 0}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "material": 0, "extensions": {
+            "KHR_draco_mesh_compression": {"bufferView": 0, "attributes": {"POSITION": 0}}}}]}],
+        "materials": [{"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}],
+        "textures": [{"source": 0}], "images": [{"bufferView": 1, "mimeType": "image/png"}],
+        "accessors": [{"componentType": 5126, "count": 3, "type": "VEC3"}],
+        "bufferViews": [{"buffer": 0, "byteOffset": 0, "byteLength": len(stream)},
+                        {"buffer": 0, "byteOffset": len(stream), "byteLength": len(png)}],
+        "buffers": [{"byteLength": len(stream) + len(png)}],
+    }
+    assert parse_gltf_bytes(_glb(doc, stream + png), tmp_path / "ok.glb")[0].n_triangles == 1
+    edit(doc)
+    with pytest.raises(InputFileError, match=r"bad\.glb: " + message):
+        parse_gltf_bytes(_glb(doc, stream + png), tmp_path / "bad.glb")
+
+
+@pytest.mark.parametrize("component, scale", [(5122, 32767), (5120, 127), (5123, 65535)])
+def test_draco_over_normalized_integers_is_denormalised(tmp_path, component, scale):
+    """KHR_draco_mesh_compression over KHR_mesh_quantization (glTF-Transform's quantize + draco):
+    POSITION and TEXCOORD_0 stored as normalized shorts, bytes or unsigned shorts. DracoPy gives the
+    stored integers back as floats; they are divided as the accessor says, so a 1.86 m sphere of
+    glTF-Transform's fixtures no longer came out 60 km wide."""
+    import DracoPy
+
+    kind = {5122: np.int16, 5120: np.int8, 5123: np.uint16}[component]
+    signed = np.dtype(kind).kind == "i"
+    unit = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0.5]]) - (0.5 if signed else 0.0)
+    stored = np.rint(unit * scale).astype(kind)
+    uv = np.rint(np.array([[0, 0], [1, 0], [0, 1], [1, 1]]) * scale * (0.5 if signed else 1)).astype(kind)
+    stream = DracoPy.encode(stored, np.array([[0, 1, 2], [1, 3, 2]], np.uint32), tex_coord=uv.astype(np.float64),
+                            quantization_bits=16, tex_coord_quantization_bits=16, preserve_order=True)
+    ids = {a["attribute_type"]: a["unique_id"] for a in DracoPy.decode(stream).attributes}
+    png = _png_bytes()
+    doc = {
+        "asset": {"version": "2.0"},
+        "extensionsUsed": ["KHR_draco_mesh_compression", "KHR_mesh_quantization"],
+        "extensionsRequired": ["KHR_draco_mesh_compression", "KHR_mesh_quantization"],
+        "nodes": [{"mesh": 0, "scale": [2.0, 2.0, 2.0]}],
+        "meshes": [{"primitives": [{
+            "attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2, "material": 0,
+            "extensions": {"KHR_draco_mesh_compression": {
+                "bufferView": 0, "attributes": {"POSITION": ids[0], "TEXCOORD_0": ids[3]}}}}]}],
+        "materials": [{"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}],
+        "textures": [{"source": 0}], "images": [{"bufferView": 1, "mimeType": "image/png"}],
+        "accessors": [{"componentType": component, "normalized": True, "count": 4, "type": "VEC3"},
+                      {"componentType": component, "normalized": True, "count": 4, "type": "VEC2"},
+                      {"componentType": 5123, "count": 6, "type": "SCALAR"}],
+        "bufferViews": [{"buffer": 0, "byteOffset": 0, "byteLength": len(stream)},
+                        {"buffer": 0, "byteOffset": len(stream), "byteLength": len(png)}],
+        "buffers": [{"byteLength": len(stream) + len(png)}],
+    }
+    part = parse_gltf_bytes(_glb(doc, stream + png), tmp_path / "q.glb", y_up_to_z_up=False)[0]
+    want = 2.0 * np.maximum(stored / scale, -1.0)                         # the node's scale 2 on the unit values
+    np.testing.assert_allclose(part.bounds(), [want.min(axis=0), want.max(axis=0)], atol=2.0 * 2 / scale)
+    np.testing.assert_allclose(np.sort(part.uv[:, 0]), np.sort(np.maximum(uv[:, 0] / scale, -1.0)), atol=2 / scale)
 
 
 @pytest.mark.parametrize("rotation_type", ["float", "normalized short"])

@@ -12,7 +12,9 @@ accessors), sparse accessors, base colour textures (GLB buffer views, ``data:`` 
 relative to the glTF; PNG, JPEG, and WEBP by ``EXT_texture_webp``, stored as PNG), their
 ``KHR_texture_transform``, base colour factor and ``COLOR_0`` as vertex colours of untextured
 parts. Triangles come as lists, strips or fans (modes 4, 5, 6); points and lines are skipped
-with a warning, as are textures only a ``KHR_texture_basisu`` (KTX2) image gives (drawn untextured).
+with a warning. A texture only a ``KHR_texture_basisu`` (KTX2) image gives cannot be decoded here:
+it is a missing texture (an error naming it unless the input says ``missing_textures: untextured``,
+then its parts are drawn untextured), also where the file lists the extension as required.
 
 One :class:`MeshPart` per primitive instance, its vertices compacted to the ones its
 triangles use; its faces' objects are the feature ids (``_BATCHID``, ``EXT_mesh_features``) and
@@ -56,6 +58,7 @@ SUPPORTED_EXTENSIONS = frozenset({
     "EXT_mesh_gpu_instancing",
     "EXT_structural_metadata",
     "EXT_texture_webp",
+    "KHR_texture_basisu",           # its images are not decoded: a missing texture (see the module)
     *meshopt.EXTENSIONS,
 })
 
@@ -97,6 +100,14 @@ def parse_gltf_bytes(data: bytes, path: str | Path, y_up_to_z_up: bool = True,
     """
     path = Path(path)
     doc = _Document.parse(bytes(data), path, path.parent if root is None else root)
+    try:
+        return _parts(doc, path, y_up_to_z_up)
+    except (AttributeError, TypeError) as exc:   # an object where an array belongs, a string for an object ...
+        raise InputFileError(path, f"glTF JSON holds a value of the wrong type ({exc})") from None
+
+
+def _parts(doc: "_Document", path: Path, y_up_to_z_up: bool) -> list[MeshPart]:
+    """The parts of a parsed glTF document (:func:`parse_gltf_bytes`)."""
     world = Y_UP_TO_Z_UP if y_up_to_z_up else np.eye(4)
     rtc = doc.json.get("extensions", {}).get("CESIUM_RTC", {}).get("center")
     if rtc is not None:
@@ -162,8 +173,11 @@ class _Document:
         return cls(doc_json, path, root, glb_bin, limiter=Limiter(path))
 
     def item(self, kind: str, index: int) -> dict:
-        """``json[kind][index]`` or InputFileError when the reference dangles."""
+        """``json[kind][index]`` or InputFileError when the reference dangles (a negative index
+        included: glTF indices are unsigned, and Python's [-1] would take the last)."""
         try:
+            if int(index) < 0:
+                raise IndexError(index)
             return self.json[kind][int(index)]
         except (KeyError, IndexError, TypeError, ValueError):
             raise InputFileError(self.path, f"glTF references missing {kind}[{index}]") from None
@@ -467,8 +481,9 @@ def _draco_attributes(doc: _Document, prim: dict, draco: dict) -> tuple[dict[str
     """Decode a KHR_draco_mesh_compression primitive with DracoPy."""
     import DracoPy
 
+    stream = doc.view_bytes(int(draco["bufferView"]))      # its own errors name the file and the buffer
     try:
-        mesh = DracoPy.decode(doc.view_bytes(int(draco["bufferView"])))
+        mesh = DracoPy.decode(stream)
     except Exception as exc:  # DracoPy raises its own and ValueError types
         raise InputFileError(doc.path, f"Draco decoding failed: {exc}") from None
     attrs = {}
@@ -484,6 +499,11 @@ def _draco_attributes(doc: _Document, prim: dict, draco: dict) -> tuple[dict[str
         if name == feature:
             attrs[FEATURE] = data.reshape(-1).astype(np.float64)
             continue
+        stored = _COMPONENT_DTYPES.get(acc.get("componentType"))
+        if acc.get("normalized") and stored is not None and np.dtype(stored).kind in "iu":
+            # DracoPy hands a quantized attribute's integers over as floats: back to the accessor's
+            # type, so that _as_float undoes the normalisation (KHR_mesh_quantization under Draco)
+            data = np.rint(data).astype(stored)
         attrs[name] = _as_float(data.reshape(len(data), -1), acc)
     if "POSITION" not in attrs:
         raise InputFileError(doc.path, "Draco primitive without POSITION attribute")
