@@ -97,7 +97,7 @@ READERS: dict[str, Reader] = {
 
 #: file suffix -> format; .json, .gml and .xml are told apart by their content (:func:`detect_format`).
 SUFFIXES = {".obj": "obj", ".ply": "ply", ".dae": "dae", ".glb": "glb", ".gltf": "gltf",
-            ".b3dm": "b3dm", ".jsonl": "cityjson", ".osgb": "osgb",
+            ".b3dm": "b3dm", ".i3dm": "b3dm", ".cmpt": "b3dm", ".jsonl": "cityjson", ".osgb": "osgb",
             ".3ds": "3ds"}
 
 

@@ -247,6 +247,13 @@ def resolve(uri: str | None, base: Path, folder: Path) -> Path:
     return side_file(uri, base.parent, folder, base, "content")
 
 
+#: tileset extensions read (glTF content) or whose absence leaves the drawing unchanged (metadata, the
+#: batch table hierarchy, Draco in point clouds, which are not drawn); a tileset that requires any other
+#: (the pre-1.1 drafts of implicit tiling and multiple contents, S2 bounding volumes ...) is refused naming it
+TILESET_EXTENSIONS = frozenset({"3DTILES_content_gltf", "3DTILES_metadata", "3DTILES_batch_table_hierarchy",
+                                "3DTILES_draco_point_compression"})
+
+
 def read_json(path: Path, cache: dict[Path, dict] | None = None) -> dict:
     """Parsed tileset JSON (each file parsed once per ``cache``); InputFileError when missing,
     invalid or nested too deep to parse."""
@@ -262,6 +269,14 @@ def read_json(path: Path, cache: dict[Path, dict] | None = None) -> dict:
                                    "arrays; a tile tree that deep belongs in external tilesets)") from None
     if not isinstance(data, dict):
         raise InputFileError(path, "tileset JSON is not an object")
+    required = data.get("extensionsRequired") or []
+    if not isinstance(required, list):
+        raise InputFileError(path, f"extensionsRequired is not an array: {required!r}")
+    unsupported = [str(e) for e in required if e not in TILESET_EXTENSIONS]
+    if unsupported:
+        raise UnsupportedFeatureError(path, f"tileset requires unsupported extension(s) {', '.join(unsupported)}"
+                                            " (3D Tiles 1.1 has implicit tiling, multiple contents and metadata"
+                                            " in its core: a tileset written to 1.1 reads)")
     if cache is not None:
         cache[path] = data
     return data
