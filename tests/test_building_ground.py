@@ -147,7 +147,9 @@ def test_a_foot_on_a_roof_stands_and_a_neighbours_corner_does_not(floors):
     shared wall stand on the neighbour's floor edge or under its roof, at the same height, and are
     ground; a tower's feet on either box's roof stand, with a floor under them or without one
     (the box's top within 0.5 m and the box reaching 8 m lower)."""
-    from pipeline25d.stages.terrain.bases import standing
+    from pipeline25d.formats.surfaces import ROOF_NZ
+    from pipeline25d.geometry.standing import standing
+    from pipeline25d.stages.terrain.bases import BASE_TOL_M
     from pipeline25d_lab.scenes.building_city import roof_z, tower_on
 
     a, b = (X0, Y0, X0 + 12, Y0 + 9), (X0 + 12, Y0, X0 + 24, Y0 + 9)
@@ -157,7 +159,7 @@ def test_a_foot_on_a_roof_stands_and_a_neighbours_corner_does_not(floors):
     owner = np.concatenate([np.full(len(t), k) for k, t in enumerate(tris)])
     corners = np.array([(x, y) for fp in (a, b, tower) for x in fp[::2] for y in fp[1::2]])
     z = np.r_[plane(corners[:8, 0], corners[:8, 1]), np.full(4, roof_z(a))]
-    got = standing(np.c_[corners, z], np.repeat([0, 1, 2], 4), np.concatenate(tris), owner)
+    got = standing(np.c_[corners, z], np.repeat([0, 1, 2], 4), np.concatenate(tris), owner, BASE_TOL_M, ROOF_NZ)
     np.testing.assert_array_equal(got, [False] * 8 + [True] * 4)
 
 
@@ -454,3 +456,24 @@ def test_a_tower_on_a_roof_is_no_ground(tmp_path, gl_ctx, fmt):
         assert roof_z(fps[i]) - plane(t[0], t[1]) > 7.9
     assert on_roofs.sum() > 40                                   # cell centres under the towers
     assert_plane_but_near_check_points(tmp_path, scene, x, y, z)
+
+
+def test_a_parts_floor_on_the_roof_is_not_its_buildings_own_ground(tmp_path):
+    """The heights' reference ground of a Building (formats.cityjson_buildings: its own ground
+    surfaces, its parts' included) leaves out a tower part's GroundSurface on the roof: the podium's
+    floor alone, the plane under it (its mean over the box is the plane at its centre). Where the
+    only ground surface is the tower's (box 7 has none of its own), there is no own ground (NaN),
+    not the roof's height. Before, box 0's came out 1.2 m high (18 m² at 8.5 m over 108 m²)."""
+    from pipeline25d.formats.cityjson_buildings import cityjson_buildings
+
+    fps = boxes([(X0 + 20, Y0 + 20)])
+    path = write_cityjson(tmp_path / "city.json", fps, towers=(0, 4, 7), tower_part=True)
+    refs = cityjson_buildings(path, CRS)
+    for i, fp in enumerate(fps):
+        own = refs[f"b{i}"].own_ground_z
+        if i == 7:
+            assert np.isnan(own)
+        elif i % 2 == 0:                                    # the boxes with a GroundSurface
+            assert own == pytest.approx(float(plane((fp[0] + fp[2]) / 2, (fp[1] + fp[3]) / 2)), abs=1e-3)
+        else:
+            assert np.isnan(own)

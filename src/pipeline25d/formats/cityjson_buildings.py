@@ -5,7 +5,8 @@ highest): the footprint is the 2-D union of its GroundSurface polygons, or where
 carry no semantics (3dfier's LOD1 solids) of its downward-facing surfaces, or failing those of
 all its non-vertical surfaces, projected to the ground (OGR union, float64). Roof z = the
 mean z (weighted by area seen from above) of its RoofSurface (else upward-facing) surfaces; own ground z = that of
-the ground surfaces (NaN when there are none).
+the ground surfaces that stand on the ground, not on the building (a dormer's or a part's floor on a roof;
+NaN when there are none).
 """
 
 from __future__ import annotations
@@ -25,6 +26,8 @@ from pipeline25d.formats.cityjson import (
 )
 from pipeline25d.formats.footprints import Footprint, RefBuilding
 from pipeline25d.formats.surfaces import ROOF_NZ
+
+GROUND_TOL_M = 0.5        # a ground surface with a surface of its building this far below it stands on a roof
 
 BUILDING_TYPES = ("Building", "BuildingPart")
 
@@ -90,10 +93,10 @@ def cityjson_buildings(path: str | Path, scene_crs: str, src_crs: str | None = N
                 continue
             members = [obj] + [objs[c] for c in obj.get("children") or []
                                if isinstance(objs.get(c), dict) and objs[c].get("type") in BUILDING_TYPES]
-            surf = [s for m in members for s in _surfaces(m, lod, verts, model)]
+            surf = [(s, i) for i, m in enumerate(members) for s in _surfaces(m, lod, verts, model)]
             if not surf:
                 continue
-            pieces = [(np.asarray(t, dtype=np.float64).reshape(-1, 3, 3) + off, k, nz) for t, k, nz in surf]
+            pieces = [(np.asarray(t, dtype=np.float64).reshape(-1, 3, 3) + off, k, nz) for (t, k, nz), _ in surf]
             if src != scene_crs:
                 pieces = [(transform_points(t.reshape(-1, 3), src, scene_crs).reshape(-1, 3, 3), k, nz)
                           for t, k, nz in pieces]
@@ -104,8 +107,27 @@ def cityjson_buildings(path: str | Path, scene_crs: str, src_crs: str | None = N
                 continue
             out[str(oid)] = RefBuilding(Footprint(str(oid), tuple(rings)),
                                         _mean_z([t for t, k, _ in pieces if k == "roof"]),
-                                        own_ground_z=_mean_z(ground))
+                                        own_ground_z=_mean_z(_on_the_ground(pieces, [i for _, i in surf])))
     return out
+
+
+def _on_the_ground(pieces: list[tuple[np.ndarray, str, float]], member: list[int]) -> list[np.ndarray]:
+    """The ground surfaces of a building's ``pieces`` (triangles, kind, normal z; of its parts
+    ``member``) that stand on the ground, not on the building (:func:`~pipeline25d.geometry.standing.standing`
+    at their centroids: a dormer's or a chimney's floor on the roof, a part's on another part);
+    none where every one does (a building whose only ground surface is a part's on its roof)."""
+    from pipeline25d.geometry.standing import standing
+
+    ground = [(t, m) for (t, k, _), m in zip(pieces, member) if k == "ground"]
+    if not ground:
+        return []
+    tris = np.concatenate([t for t, _, _ in pieces])
+    owner = np.concatenate([np.full(len(t), m) for (t, _, _), m in zip(pieces, member)])
+    centres = np.concatenate([t.mean(axis=1) for t, _ in ground])
+    stands = standing(centres, np.concatenate([np.full(len(t), m) for t, m in ground]), tris, owner,
+                      GROUND_TOL_M, ROOF_NZ)
+    kept = np.split(~stands, np.cumsum([len(t) for t, _ in ground])[:-1])
+    return [t[k] for (t, _), k in zip(ground, kept) if k.any()]
 
 
 def _mean_z(tris: list[np.ndarray]) -> float:

@@ -12,10 +12,10 @@ ground to find. Its ground is where its walls end:
    or more, to 1 cm) the lowest wall vertex, less those more than :data:`BASE_TOL_M` above the
    lower side of their convex hull (window sills, walls standing on a lower part's roof). A
    gable's apex holds one vertex and is no corner. A sample that stands on the model is no
-   ground (:func:`standing`): one over a surface more than :data:`BASE_TOL_M` below it, or on
-   the roof of another building that reaches lower (the feet of a tower or a storey set back
-   drawn as a solid of its own, a part whose floor lies on another part). A building all of
-   whose samples stand so stands on another (``stacked``).
+   ground (:func:`~pipeline25d.geometry.standing.standing`): one over a surface more than
+   :data:`BASE_TOL_M` below it, or on the roof of another building that reaches lower (the
+   feet of a tower or a storey set back drawn as a solid of its own, a part whose floor lies on
+   another part). A building all of whose samples stand so stands on another (``stacked``).
 3. **TIN**: the samples of all buildings (one per (x, y) to 1 cm, the lowest) are joined by
    their Delaunay triangulation in plan, less the triangles with an edge longer than
    ``max_edge`` (twice the largest object: the reach of the DTM beyond ground, so buildings
@@ -38,6 +38,8 @@ import numpy as np
 
 from pipeline25d.core.grid import Grid
 from pipeline25d.core.mesh import Mesh
+from pipeline25d.formats.surfaces import ROOF_NZ
+from pipeline25d.geometry.standing import standing
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +47,6 @@ WELD_M = 0.001            # vertices this close are one (buildings' connectivity
 COLUMN_M = 0.01           # wall vertices this close in plan share a corner; heights this close are one
 BASE_TOL_M = 0.5          # a wall bottom more than this above the lower side of its building's hull is no base
 SQUARE_CELLS = 64         # cells are evaluated by squares of this edge that a triangle may cover
-EDGE_M = 0.001            # a sample this close to a surface's edge in plan stands over it
 
 
 @dataclass(frozen=True)
@@ -77,65 +78,10 @@ def base_samples(mesh: Mesh) -> BaseSamples:
     walls = walls[~np.isin(label[walls], label[ground])]
     bottoms, bottom_label = _wall_bottoms(points[walls], label[walls], origin)
     samples, owner = np.concatenate([points[ground], bottoms]), np.r_[label[ground], bottom_label]
-    kept = ~standing(samples, owner, points[faces], label[faces[:, 0]])
+    kept = ~standing(samples, owner, points[faces], label[faces[:, 0]], BASE_TOL_M, ROOF_NZ)
     buildings = np.unique(owner[kept])
     return BaseSamples(samples[kept], len(buildings), len(np.unique(owner[:len(ground)][kept[:len(ground)]])),
                        len(np.unique(owner)) - len(buildings))
-
-
-def standing(samples: np.ndarray, owner: np.ndarray, triangles: np.ndarray, tri_owner: np.ndarray,
-             tol: float = BASE_TOL_M) -> np.ndarray:
-    """(n,) bool: the samples (n, 3) of buildings ``owner`` that stand on the model rather than on the
-    ground, among ``triangles`` (m, 3, 3) of buildings ``tri_owner``. A sample stands where, over it
-    in plan (to :data:`EDGE_M`, edges included),
-
-    * a surface lies more than ``tol`` below it (a roof or a floor under a foot), or
-    * another building's top surface lies within ``tol`` of it while that building reaches more than
-      ``tol`` lower (a foot on the roof of a building drawn without a floor).
-
-    Only surfaces that face up or down are looked at (:data:`~pipeline25d.formats.surfaces.ROOF_NZ`:
-    a wall's plane, nearly vertical, says nothing of the height beside its foot). Float64;
-    candidates by an R-tree of the surfaces' plan boxes."""
-    from rtree.index import Index
-
-    from pipeline25d.formats.surfaces import ROOF_NZ
-
-    out = np.zeros(len(samples), bool)
-    normal = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
-    cross = normal[:, 2]                                                   # twice the signed plan area
-    keep = np.abs(cross) > ROOF_NZ * np.linalg.norm(normal, axis=1)
-    if not keep.any() or not len(samples):
-        return out
-    lowest = np.full(tri_owner.max() + 1, np.inf)                          # each building's lowest point
-    np.minimum.at(lowest, tri_owner, triangles[:, :, 2].min(axis=1))
-    tri, cross, tri_owner = triangles[keep], cross[keep], tri_owner[keep]
-    index = Index((np.arange(len(tri), dtype=np.int64), tri[:, :, :2].min(axis=1) - EDGE_M,
-                   tri[:, :, :2].max(axis=1) + EDGE_M))
-    ids, counts = index.intersection_v(samples[:, :2], samples[:, :2])
-    which = np.repeat(np.arange(len(samples)), counts.astype(np.int64))
-    t, p = tri[ids], samples[which]
-    # barycentric coordinates in plan; b_k · |cross| / |edge opposite k| is the distance inside that edge
-    d = p[:, :2] - t[:, 0, :2]
-    u, v = t[:, 1, :2] - t[:, 0, :2], t[:, 2, :2] - t[:, 0, :2]
-    b1 = (d[:, 0] * v[:, 1] - d[:, 1] * v[:, 0]) / cross[ids]
-    b2 = (u[:, 0] * d[:, 1] - u[:, 1] * d[:, 0]) / cross[ids]
-    b = np.c_[1.0 - b1 - b2, b1, b2]
-    opposite = np.linalg.norm(np.roll(t[:, :, :2], -1, axis=1) - np.roll(t[:, :, :2], -2, axis=1), axis=2)
-    over = (b * (np.abs(cross[ids])[:, None] / opposite) >= -EDGE_M).all(axis=1)
-    b = np.clip(b[over], 0.0, None)                     # at an edge: the edge's height, not beyond it
-    b /= b.sum(axis=1, keepdims=True)
-    which, ids, z = which[over], ids[over], np.einsum("ij,ij->i", b, t[over][:, :, 2])
-    out[which[z < samples[which, 2] - tol]] = True
-    # another building's top over the sample: the highest of its surfaces there
-    other = tri_owner[ids] != owner[which]
-    buildings = np.int64(len(lowest))
-    pair, inverse = np.unique(which[other] * buildings + tri_owner[ids][other], return_inverse=True)
-    top = np.full(len(pair), -np.inf)
-    np.maximum.at(top, inverse, z[other])
-    sample, building = np.divmod(pair, buildings)
-    height = samples[sample, 2]
-    out[sample[(np.abs(top - height) <= tol) & (lowest[building] < height - tol)]] = True
-    return out
 
 
 def welded(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
