@@ -142,3 +142,24 @@ def test_a_gsd_typo_on_a_city_model_is_refused_by_a_dry_run(tmp_path, fmt):
     line = next(ln for ln in proc.stderr.splitlines() if ln.startswith("pipeline25d: error: "))
     assert "config key limits.max_map_pixels: gsd 1e-05 m" in line and "scene extent from the" in line, line
     assert "Traceback" not in proc.stderr + proc.stdout and not (tmp_path / "results").exists()
+
+
+def test_a_y_up_obj_is_turned_z_up_by_the_reader_and_the_box(tmp_path):
+    """``up_axis: y`` (an OBJ from a modelling tool): the model, and the box the run plans from
+    before ingest, are those of the same model written z-up; the faces keep their winding (a
+    rotation). On a glTF, which is y-up by its specification, the key is an error."""
+    from pipeline25d.core.errors import ConfigError
+
+    z_up = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 1.0], [10.0, 8.0, 2.0], [0.0, 8.0, 12.0]])
+    faces = "f 1 2 3\nf 1 3 4\n"
+    (tmp_path / "z.obj").write_text("".join(f"v {x} {y} {z}\n" for x, y, z in z_up) + faces)
+    (tmp_path / "y.obj").write_text("".join(f"v {x} {z} {-y}\n" for x, y, z in z_up) + faces)
+    offset = [85000.0, 447000.0, 0.0]
+    want = load_district({"path": str(tmp_path / "z.obj"), "offset": offset}, "EPSG:28992")
+    got = load_district({"path": str(tmp_path / "y.obj"), "offset": offset, "up_axis": "y"}, "EPSG:28992")
+    np.testing.assert_allclose(got.parts[0].vertices, want.parts[0].vertices, atol=1e-9)
+    np.testing.assert_array_equal(got.parts[0].faces, want.parts[0].faces)
+    box = input_box({"path": str(tmp_path / "y.obj"), "offset": offset, "up_axis": "y"})
+    np.testing.assert_allclose(box.corners, [z_up.min(axis=0) + offset, z_up.max(axis=0) + offset])
+    with pytest.raises(ConfigError, match="up_axis applies to obj, ply, dae, 3ds files, not glb"):
+        load_district({"path": str(tmp_path / "m.glb"), "up_axis": "y"}, "EPSG:28992")

@@ -95,6 +95,9 @@ READERS: dict[str, Reader] = {
     "3ds": Reader(_lazy("threeds", "read_3ds")),
 }
 
+#: formats without an up axis of their own: ``up_axis: y`` turns a y-up export (a modelling tool's) z-up
+UP_AXIS_FORMATS = ("obj", "ply", "dae", "3ds")
+
 #: file suffix -> format; .json, .gml and .xml are told apart by their content (:func:`detect_format`).
 SUFFIXES = {".obj": "obj", ".ply": "ply", ".dae": "dae", ".glb": "glb", ".gltf": "gltf",
             ".b3dm": "b3dm", ".i3dm": "b3dm", ".cmpt": "b3dm", ".jsonl": "cityjson", ".osgb": "osgb",
@@ -183,12 +186,19 @@ def district_pieces(spec: dict, scene_crs: str, max_geometric_error: float | Non
         # these formats carry their own georeferencing; a silently ignored offset would misplace the map
         placed_by_offset = ", ".join(f for f, r in READERS.items() if not r.georeferenced)
         raise ConfigError(f"{path}: offset/metadata apply to mesh files ({placed_by_offset}), not {fmt}")
+    y_up = spec.get("up_axis", "z") == "y"
+    if y_up and fmt not in UP_AXIS_FORMATS:
+        raise ConfigError(f"{path}: up_axis applies to {', '.join(UP_AXIS_FORMATS)} files, not {fmt} (glTF is y-up "
+                          "by its specification and read so; the other formats say where they lie)")
     detail = Detail(max_geometric_error, gsd)
     with warnings.catch_warnings(), side_folders(_side_folders(spec, base_dir, path)):
         if spec.get("missing_textures", "error") == "error":
             warnings.simplefilter("error", MissingTextureWarning)
         def placed(piece: Loaded) -> Loaded:
-            parts = [p.transformed(lambda v: v + offset) for p in piece.parts] if offset.any() else piece.parts
+            parts = piece.parts
+            if y_up:                      # (x, y, z) -> (x, -z, y): a rotation, so faces keep their winding
+                parts = [p.transformed(lambda v: np.column_stack([v[:, 0], -v[:, 2], v[:, 1]])) for p in parts]
+            parts = [p.transformed(lambda v: v + offset) for p in parts] if offset.any() else parts
             return Loaded(parts, piece.crs or scene_crs, piece.coarser)
 
         try:
