@@ -329,32 +329,44 @@ def test_cdb_glb_with_metadata_extensions_and_missing_textures():
     assert 6.37e6 < r.min() and r.max() < 6.39e6
 
 
-def test_draco_primitive_by_attribute_id(tmp_path):
+def _draco_glb(positions: np.ndarray, uv: np.ndarray, component: int = 5126, node: dict | None = None,
+               extensions: tuple[str, ...] = (), **encode) -> tuple[dict, bytes]:
+    """(doc, binary) of a textured quad of two triangles (0 1 2, 1 3 2) in one Draco primitive:
+    ``positions`` and ``uv`` as stored (their accessors of ``component``, normalized where an integer
+    type), DracoPy's ``encode`` options; the texture is :func:`_png_bytes`."""
     import DracoPy
 
-    pts = np.array([[0, 0, 0], [2, 0, 0], [0, 3, 0], [2, 3, 0]], dtype=np.float64)
-    uv = np.array([[0, 0], [1, 0], [0, 1], [1, 1]], dtype=np.float64)
-    stream = DracoPy.encode(pts, np.array([[0, 1, 2], [1, 3, 2]], np.uint32), tex_coord=uv, preserve_order=True)
+    stream = DracoPy.encode(positions, np.array([[0, 1, 2], [1, 3, 2]], np.uint32), tex_coord=uv.astype(np.float64),
+                            preserve_order=True, **encode)
     ids = {a["attribute_type"]: a["unique_id"] for a in DracoPy.decode(stream).attributes}
     png = _png_bytes()
+    used = ["KHR_draco_mesh_compression", *extensions]
+    normalized = {"normalized": True} if component != 5126 else {}
     doc = {
-        "asset": {"version": "2.0"},
-        "extensionsUsed": ["KHR_draco_mesh_compression"], "extensionsRequired": ["KHR_draco_mesh_compression"],
-        "nodes": [{"mesh": 0}],
+        "asset": {"version": "2.0"}, "extensionsUsed": used, "extensionsRequired": used,
+        "nodes": [{"mesh": 0, **(node or {})}],
         "meshes": [{"primitives": [{
             "attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2, "material": 0,
             "extensions": {"KHR_draco_mesh_compression": {
                 "bufferView": 0, "attributes": {"POSITION": ids[0], "TEXCOORD_0": ids[3]}}}}]}],
         "materials": [{"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}],
         "textures": [{"source": 0}], "images": [{"bufferView": 1, "mimeType": "image/png"}],
-        "accessors": [{"componentType": 5126, "count": 4, "type": "VEC3"},
-                      {"componentType": 5126, "count": 4, "type": "VEC2"},
+        "accessors": [{"componentType": component, **normalized, "count": 4, "type": "VEC3"},
+                      {"componentType": component, **normalized, "count": 4, "type": "VEC2"},
                       {"componentType": 5123, "count": 6, "type": "SCALAR"}],
         "bufferViews": [{"buffer": 0, "byteOffset": 0, "byteLength": len(stream)},
                         {"buffer": 0, "byteOffset": len(stream), "byteLength": len(png)}],
         "buffers": [{"byteLength": len(stream) + len(png)}],
     }
-    part = parse_gltf_bytes(_glb(doc, stream + png), tmp_path / "d.glb", y_up_to_z_up=False)[0]
+    return doc, stream + png
+
+
+def test_draco_primitive_by_attribute_id(tmp_path):
+    pts = np.array([[0, 0, 0], [2, 0, 0], [0, 3, 0], [2, 3, 0]], dtype=np.float64)
+    uv = np.array([[0, 0], [1, 0], [0, 1], [1, 1]], dtype=np.float64)
+    doc, binary = _draco_glb(pts, uv)
+    png = _png_bytes()
+    part = parse_gltf_bytes(_glb(doc, binary), tmp_path / "d.glb", y_up_to_z_up=False)[0]
     assert part.n_triangles == 2 and part.texture == png
     np.testing.assert_allclose(part.bounds(), [[0, 0, 0], [2, 3, 0]], atol=1e-3)
     # every vertex's UV is (x / 2, 1 - y / 3): UVs travel with their vertices, v flipped
@@ -372,27 +384,12 @@ def test_json_of_the_wrong_types_is_an_input_error(tmp_path, edit, message):
     """Values of the wrong JSON type (assimp's glTF2/wrongTypes corpus: an array as a string, an object
     as an array, an extension as a string) and a negative index, which Python would take from the end:
     errors naming the file, not an AttributeError or the last texture."""
-    import DracoPy
-
-    pts = np.array([[0, 0, 0], [2, 0, 0], [0, 3, 0]], dtype=np.float64)
-    stream = DracoPy.encode(pts, np.array([[0, 1, 2]], np.uint32), preserve_order=True)
-    png = _png_bytes()
-    doc = {
-        "asset": {"version": "2.0"}, "extensionsUsed": ["KHR_draco_mesh_compression"],
-        "nodes": [{"mesh": 0}],
-        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "material": 0, "extensions": {
-            "KHR_draco_mesh_compression": {"bufferView": 0, "attributes": {"POSITION": 0}}}}]}],
-        "materials": [{"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}],
-        "textures": [{"source": 0}], "images": [{"bufferView": 1, "mimeType": "image/png"}],
-        "accessors": [{"componentType": 5126, "count": 3, "type": "VEC3"}],
-        "bufferViews": [{"buffer": 0, "byteOffset": 0, "byteLength": len(stream)},
-                        {"buffer": 0, "byteOffset": len(stream), "byteLength": len(png)}],
-        "buffers": [{"byteLength": len(stream) + len(png)}],
-    }
-    assert parse_gltf_bytes(_glb(doc, stream + png), tmp_path / "ok.glb")[0].n_triangles == 1
+    pts = np.array([[0, 0, 0], [2, 0, 0], [0, 3, 0], [2, 3, 0]], dtype=np.float64)
+    doc, binary = _draco_glb(pts, pts[:, :2] / [2, 3])
+    assert parse_gltf_bytes(_glb(doc, binary), tmp_path / "ok.glb")[0].n_triangles == 2
     edit(doc)
     with pytest.raises(InputFileError, match=r"bad\.glb: " + message):
-        parse_gltf_bytes(_glb(doc, stream + png), tmp_path / "bad.glb")
+        parse_gltf_bytes(_glb(doc, binary), tmp_path / "bad.glb")
 
 
 @pytest.mark.parametrize("component, scale", [(5122, 32767), (5120, 127), (5123, 65535)])
@@ -401,36 +398,15 @@ def test_draco_over_normalized_integers_is_denormalised(tmp_path, component, sca
     POSITION and TEXCOORD_0 stored as normalized shorts, bytes or unsigned shorts. DracoPy gives the
     stored integers back as floats; they are divided as the accessor says, so a 1.86 m sphere of
     glTF-Transform's fixtures no longer came out 60 km wide."""
-    import DracoPy
-
     kind = {5122: np.int16, 5120: np.int8, 5123: np.uint16}[component]
     signed = np.dtype(kind).kind == "i"
     unit = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0.5]]) - (0.5 if signed else 0.0)
     stored = np.rint(unit * scale).astype(kind)
     uv = np.rint(np.array([[0, 0], [1, 0], [0, 1], [1, 1]]) * scale * (0.5 if signed else 1)).astype(kind)
-    stream = DracoPy.encode(stored, np.array([[0, 1, 2], [1, 3, 2]], np.uint32), tex_coord=uv.astype(np.float64),
-                            quantization_bits=16, tex_coord_quantization_bits=16, preserve_order=True)
-    ids = {a["attribute_type"]: a["unique_id"] for a in DracoPy.decode(stream).attributes}
-    png = _png_bytes()
-    doc = {
-        "asset": {"version": "2.0"},
-        "extensionsUsed": ["KHR_draco_mesh_compression", "KHR_mesh_quantization"],
-        "extensionsRequired": ["KHR_draco_mesh_compression", "KHR_mesh_quantization"],
-        "nodes": [{"mesh": 0, "scale": [2.0, 2.0, 2.0]}],
-        "meshes": [{"primitives": [{
-            "attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2, "material": 0,
-            "extensions": {"KHR_draco_mesh_compression": {
-                "bufferView": 0, "attributes": {"POSITION": ids[0], "TEXCOORD_0": ids[3]}}}}]}],
-        "materials": [{"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}],
-        "textures": [{"source": 0}], "images": [{"bufferView": 1, "mimeType": "image/png"}],
-        "accessors": [{"componentType": component, "normalized": True, "count": 4, "type": "VEC3"},
-                      {"componentType": component, "normalized": True, "count": 4, "type": "VEC2"},
-                      {"componentType": 5123, "count": 6, "type": "SCALAR"}],
-        "bufferViews": [{"buffer": 0, "byteOffset": 0, "byteLength": len(stream)},
-                        {"buffer": 0, "byteOffset": len(stream), "byteLength": len(png)}],
-        "buffers": [{"byteLength": len(stream) + len(png)}],
-    }
-    part = parse_gltf_bytes(_glb(doc, stream + png), tmp_path / "q.glb", y_up_to_z_up=False)[0]
+    doc, binary = _draco_glb(stored, uv, component, node={"scale": [2.0, 2.0, 2.0]},
+                             extensions=("KHR_mesh_quantization",),
+                             quantization_bits=16, tex_coord_quantization_bits=16)
+    part = parse_gltf_bytes(_glb(doc, binary), tmp_path / "q.glb", y_up_to_z_up=False)[0]
     want = 2.0 * np.maximum(stored / scale, -1.0)                         # the node's scale 2 on the unit values
     np.testing.assert_allclose(part.bounds(), [want.min(axis=0), want.max(axis=0)], atol=2.0 * 2 / scale)
     np.testing.assert_allclose(np.sort(part.uv[:, 0]), np.sort(np.maximum(uv[:, 0] / scale, -1.0)), atol=2 / scale)
