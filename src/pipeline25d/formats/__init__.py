@@ -30,7 +30,7 @@ import numpy as np
 
 from pipeline25d.core.errors import ConfigError, InputFileError, MissingTextureWarning
 from pipeline25d.core.mesh import Mesh
-from pipeline25d.formats.common import Detail, Loaded, in_scene, side_folders
+from pipeline25d.formats.common import Detail, Loaded, in_scene, side_folders, z_up
 
 if TYPE_CHECKING:
     from pipeline25d.formats.buildings import Buildings
@@ -196,8 +196,8 @@ def district_pieces(spec: dict, scene_crs: str, max_geometric_error: float | Non
             warnings.simplefilter("error", MissingTextureWarning)
         def placed(piece: Loaded) -> Loaded:
             parts = piece.parts
-            if y_up:                      # (x, y, z) -> (x, -z, y): a rotation, so faces keep their winding
-                parts = [p.transformed(lambda v: np.column_stack([v[:, 0], -v[:, 2], v[:, 1]])) for p in parts]
+            if y_up:                      # a rotation: faces keep their winding
+                parts = [p.transformed(z_up) for p in parts]
             parts = [p.transformed(lambda v: v + offset) for p in parts] if offset.any() else parts
             return Loaded(parts, piece.crs or scene_crs, piece.coarser)
 

@@ -71,8 +71,10 @@ def input_box(spec: dict[str, Any], base_dir: Path = Path(".")) -> Box | None:
         return None
     if not READERS[fmt].georeferenced:
         if spec.get("up_axis", "z") == "y":       # a y-up export turned z-up, as the reader turns it
-            (x0, y0, z0), (x1, y1, z1) = corners
-            corners = np.array([[x0, -z1, y0], [x1, -z0, y1]])
+            from pipeline25d.formats.common import z_up
+
+            turned = z_up(corners)
+            corners = np.array([turned.min(axis=0), turned.max(axis=0)])
         offset = np.asarray(spec.get("offset", [0.0, 0.0, 0.0]), dtype=np.float64)
         if spec.get("metadata"):
             from pipeline25d.formats.contextcapture import read_metadata_xml

@@ -63,7 +63,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline25d.core.crs import parse_crs
+from pipeline25d.core.crs import is_geographic, parse_crs
 from pipeline25d.core.errors import CRSError, InputFileError
 from pipeline25d.core.mesh import MeshPart
 from pipeline25d.formats.attributes import Limiter
@@ -311,7 +311,7 @@ class _Reader:
             self._decide_axes()
 
     def _decide_axes(self) -> None:
-        geographic = self.crs is not None and _horizontal(self.crs).is_geographic
+        geographic = self.crs is not None and is_geographic(self.crs)
         self.swap = self.crs is not None and latitude_first(self.crs) != (geographic and self.swapped_axes)
         if geographic:
             self.scale = None  # set from the first vertex (cos latitude)

@@ -28,6 +28,15 @@ FLAT = 1e-10          # a triangle whose height is below FLAT x its longest edge
 FACE_BATCH = 1 << 20  # triangles checked at a time (bounds the temporary arrays)
 CONVERTER_TIMEOUT_S = 600
 
+#: y-up to z-up, (x, y, z) -> (x, -z, y), a rotation: glTF's convention to 3D Tiles' and the scene's,
+#: and a y-up mesh file's (``up_axis: y``)
+Y_UP_TO_Z_UP = np.array([[1, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]], dtype=np.float64)
+
+
+def z_up(points: np.ndarray) -> np.ndarray:
+    """(n, 3) points of a y-up model turned z-up by :data:`Y_UP_TO_Z_UP`."""
+    return np.asarray(points, dtype=np.float64) @ Y_UP_TO_Z_UP[:3, :3].T
+
 
 class Detail(NamedTuple):
     """How much detail the maps need, for readers of multi-resolution formats (3D Tiles, OSGB):

@@ -44,7 +44,7 @@ from pipeline25d.core.errors import InputFileError, MissingTextureWarning, Unsup
 from pipeline25d.core.mesh import MeshPart, repeated
 from pipeline25d.formats import meshopt
 from pipeline25d.formats.attributes import Limiter
-from pipeline25d.formats.common import image_problem, png_or_jpeg, side_file
+from pipeline25d.formats.common import Y_UP_TO_Z_UP, image_problem, png_or_jpeg, side_file
 from pipeline25d.formats.feature_info import feature_prefix, feature_properties
 
 #: Extensions this reader honours (or may safely ignore) when a file lists them as required.
@@ -61,9 +61,6 @@ SUPPORTED_EXTENSIONS = frozenset({
     "KHR_texture_basisu",           # its images are not decoded: a missing texture (see the module)
     *meshopt.EXTENSIONS,
 })
-
-#: 3D Tiles convention: glTF is y-up, tiles are z-up; (x, y, z) -> (x, -z, y).
-Y_UP_TO_Z_UP = np.array([[1, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]], dtype=np.float64)
 
 _GLB_MAGIC = b"glTF"
 _CHUNK_JSON = 0x4E4F534A
