@@ -118,6 +118,23 @@ def test_side_file_keeps_dot_dot_inside_the_root(tmp_path):
     assert side_file("x%20y.png", root, root, root / "m.gml", "texture", url=False) == root / "x%20y.png"
 
 
+def test_side_file_takes_a_name_in_another_letter_case_only_where_it_is_the_one(tmp_path):
+    """A model made where file names ignore case (Windows, macOS; a 3DS file's DOS names) names
+    ``Tex/WALL.JPG`` for ``tex/wall.jpg``: that file, with a warning. Two files of that name in
+    different cases leave nothing to choose by, and a link of another case still may not lead out."""
+    root = tmp_path / "set"
+    (root / "tex").mkdir(parents=True)
+    (root / "tex" / "wall.jpg").write_bytes(PNG_1PX)
+    with pytest.warns(UserWarning, match=r"m\.obj: texture 'Tex/WALL\.JPG' is 'tex/wall\.jpg' on disk \(the letter"):
+        assert side_file("Tex/WALL.JPG", root, root, root / "m.obj", "texture", url=False) == root / "tex" / "wall.jpg"
+    (root / "tex" / "Wall.jpg").write_bytes(PNG_1PX)
+    assert side_file("tex/WALL.jpg", root, root, root / "m.obj", "texture", url=False) == root / "tex" / "WALL.jpg"
+    (tmp_path / "secret.png").write_bytes(PNG_1PX)
+    (root / "Secret.PNG").symlink_to(tmp_path / "secret.png")
+    with pytest.raises(InputFileError, match="lies outside the dataset folder"):
+        side_file("secret.png", root, root, root / "m.obj", "texture", url=False)
+
+
 # --------------------------------------------------------------------------- 3D Tiles
 
 

@@ -93,6 +93,7 @@ def test_an_obj_with_a_truncated_texture_names_it_at_ingest(tmp_path, fmt, ext):
     (r"C:\Users\me\Desktop\export\t.png", "t.png", "t.png"),           # its machine's absolute path
     (r"D:\city\textures\t.png", "textures/t.png", "textures/t.png"),   # ... whose tail lies in the folder
     ("/home/me/export/t.png", "t.png", "t.png"),
+    ('"my texture.png"', "my texture.png", None),                       # quoted
 ])
 def test_an_obj_finds_its_texture_where_exporters_name_it(tmp_path, ref, where, found):
     """What photogrammetry and CAD exporters write in a material library, read as their own tools do:
@@ -122,3 +123,14 @@ def test_an_obj_texture_outside_its_folder_is_still_refused(tmp_path):
     model = _textured_obj(tmp_path / "in", "../t.png")
     with pytest.raises(InputFileError, match=r"texture '\.\./t\.png' lies outside the dataset folder"):
         load_district({"path": str(model)}, "EPSG:28992")
+
+
+def test_an_obj_texture_named_in_another_letter_case_is_drawn_with_a_warning(tmp_path):
+    """``Textures\\T.PNG`` written on Windows for ``textures/t.png``: drawn, and the warning names both."""
+    (tmp_path / "textures").mkdir()
+    data = _image("PNG")
+    (tmp_path / "textures" / "t.png").write_bytes(data)
+    model = _textured_obj(tmp_path, r"Textures\T.PNG")
+    with pytest.warns(UserWarning, match=r"texture 'Textures/T\.PNG' is 'textures/t\.png' on disk"):
+        mesh = load_district({"path": str(model)}, "EPSG:28992")
+    assert {p.texture for p in mesh.parts} == {data}

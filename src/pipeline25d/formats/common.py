@@ -12,7 +12,7 @@ from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import replace
 from functools import lru_cache
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any, NamedTuple
 from urllib.parse import unquote, urlsplit
 
@@ -144,7 +144,10 @@ def side_file(ref: str, base: Path, root: Path, referrer: Path, what: str, url: 
     InputFileError naming ``referrer`` and ``ref``; a remote URI (``http(s):``...) an
     UnsupportedFeatureError (no network). ``url``: ``ref`` is a URI (glTF, 3D Tiles:
     percent-escapes decoded), else a plain path (CityGML imageURI, OBJ, OSGB). The path is
-    returned as joined (not resolved), so messages keep the names the files use.
+    returned as joined (not resolved), so messages keep the names the files use. Where no file
+    has that name but one differs from it in letter case alone (a model made on Windows or
+    macOS, whose file systems ignore case; a 3DS file's upper-case DOS names), that file is
+    returned, with a warning.
     """
     parts = urlsplit(ref)
     scheme = parts.scheme.lower()
@@ -156,12 +159,46 @@ def side_file(ref: str, base: Path, root: Path, referrer: Path, what: str, url: 
     else:
         name = unquote(parts.path) if url else ref
     target = base / name
+    _confined(target, ref, root, referrer, what)
+    if not target.exists():
+        other = other_case(base, name)
+        if other is not None:
+            _confined(other, ref, root, referrer, what)          # a link of another case may lead out
+            on_disk = "/".join(other.parts[-len(PurePosixPath(name).parts):])
+            warnings.warn(f"{referrer}: {what} {ref!r} is {on_disk!r} on disk (the letter case differs); that file "
+                          "is used", stacklevel=3)
+            return other
+    return target
+
+
+def _confined(target: Path, ref: str, root: Path, referrer: Path, what: str) -> None:
     real = target.resolve()
     if not any(real.is_relative_to(_real(r)) for r in (root, *_SIDE_FOLDERS.get())):
         raise InputFileError(referrer, f"{what} {ref!r} lies outside the dataset folder {root} (it resolves to "
                                        f"{real}); a model may only name files inside the folder of the input "
                                        "(or in a folder the input's side_folders names)")
-    return target
+
+
+def other_case(base: Path, name: str) -> Path | None:
+    """The one file under ``base`` whose path ``name`` (``/``-separated, relative) differs from
+    it in letter case alone, component by component; None where there is none, or more than
+    one (``a.JPG`` and ``a.jpg`` both there: nothing to choose by)."""
+    here = base
+    for part in PurePosixPath(name).parts:
+        if part in (".", ".."):
+            here = here / part
+            continue
+        if (here / part).exists():
+            here = here / part
+            continue
+        try:
+            found = [e for e in os.listdir(here) if e.casefold() == part.casefold()]
+        except OSError:
+            return None
+        if len(found) != 1:
+            return None
+        here = here / found[0]
+    return here if here.is_file() else None
 
 
 #: extra folders side files may lie in while an input is read (its ``side_folders``)

@@ -122,18 +122,48 @@ def _dae_geometry(elem) -> bool:
     return isinstance(tag, str) and tag[tag.rfind("}") + 1:] in _DAE_GEOMETRY
 
 
+#: COLLADA elements whose text is numbers: where an exporter under a European locale writes decimal commas
+_DAE_NUMBERS = re.compile(rb"(<(?:float_array|color|float|translate|rotate|scale|matrix|lookat|skew)\b[^>]*>)([^<]*)")
+#: libraries never drawn, which pycollada refuses when incomplete (a ``<light/>`` with no technique)
+_DAE_UNDRAWN = re.compile(rb"<(library_lights|library_cameras)\b.*?</\1\s*>", re.S)
+
+
+def _dae_repaired(data: bytes, path: Path) -> bytes:
+    """A COLLADA document without its lights and cameras (never drawn; pycollada refuses the
+    file over an incomplete one) and with decimal commas read as points (``0,588235`` in an
+    element of numbers that holds no decimal point: 3ds Max's exporter under a European locale),
+    with a warning for the commas."""
+    data = _DAE_UNDRAWN.sub(b"", data)
+    changed = 0
+
+    def points(m: re.Match) -> bytes:
+        nonlocal changed
+        text = m.group(2)
+        if re.search(rb"\d,\d", text) is None or re.search(rb"\d\.\d", text) is not None:
+            return m.group(0)
+        changed += 1
+        return m.group(1) + re.sub(rb"(\d),(\d)", rb"\1.\2", text)
+
+    data = _DAE_NUMBERS.sub(points, data)
+    if changed:
+        warnings.warn(f"{path}: {changed} elements of numbers are written with decimal commas (an exporter "
+                      "under a European locale); they are read as decimal points", stacklevel=3)
+    return data
+
+
 def _check_dae(path: Path) -> bytes | None:
     """InputFileError for what trimesh's COLLADA reading (pycollada) hides: NaN/inf coordinates
     (read as 0) and malformed geometry such as indices beyond their source (geometry dropped).
     XML defects outside the geometry (stray characters, undeclared prefixes) are recovered from
-    with a warning (:func:`~pipeline25d.formats.xml_defects.recovered_xml`); the repaired
-    document is returned then (None: the file is read as it is)."""
+    with a warning (:func:`~pipeline25d.formats.xml_defects.recovered_xml`), lights, cameras and
+    decimal commas as :func:`_dae_repaired` says; the repaired document is returned then (None:
+    the file is read as it is)."""
     import collada
 
     from pipeline25d.formats.xml_defects import recovered_xml
 
     original = path.read_bytes()
-    data = recovered_xml(original, path, _dae_geometry)
+    data = _dae_repaired(recovered_xml(original, path, _dae_geometry), path)
     if re.search(rb"<float_array[^>]*>[^<]*?(?<![\w.])[+-]?(nan|inf)", data, re.IGNORECASE):
         raise InputFileError(path, "has NaN or infinite coordinates")
     try:
@@ -141,7 +171,7 @@ def _check_dae(path: Path) -> bytes | None:
                                                   collada.common.DaeBrokenRefError])
     except collada.common.DaeError as exc:
         raise InputFileError(path, f"cannot read it as a DAE model: {exc}") from None
-    return None if data is original else data
+    return None if data == original else data
 
 
 def _part(geom, vertices: np.ndarray, name: str, encoded: dict[int, bytes],
@@ -190,9 +220,15 @@ MAP_OPTIONS = {"-blendu": 1, "-blendv": 1, "-bm": 1, "-boost": 1, "-cc": 1, "-cl
                "-mm": 2, "-o": 3, "-s": 3, "-t": 3, "-texres": 1, "-type": 1}
 
 
+#: the suffixes of the images a material library's maps name
+IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".jpe", ".tga", ".bmp", ".tif", ".tiff", ".gif", ".webp",
+                            ".dds", ".ktx", ".ktx2", ".exr", ".hdr", ".psd", ".rgb", ".sgi", ".pcx", ".ppm"})
+
+
 def map_file_name(ref: str) -> str:
     """The file an OBJ's ``mtllib`` or a material library's ``map_*`` statement names: its options
-    (:data:`MAP_OPTIONS`) dropped, ``\\`` read as ``/``; a name with spaces kept whole."""
+    (:data:`MAP_OPTIONS`) dropped, ``\\`` read as ``/``; a name with spaces kept whole, a quoted
+    one unquoted."""
     tokens = ref.strip().split(" ")
     while len(tokens) > 1 and tokens[0].lower() in MAP_OPTIONS:
         option, tokens = tokens[0].lower(), tokens[1:]
@@ -200,7 +236,10 @@ def map_file_name(ref: str) -> str:
         for _ in range(MAP_OPTIONS[option]):
             if len(tokens) > 1 and (not numeric or _is_number(tokens[0])):
                 tokens = tokens[1:]
-    return " ".join(tokens).replace("\\", "/")
+    name = " ".join(tokens)
+    if len(name) > 1 and name[0] == name[-1] == '"':
+        name = name[1:-1]
+    return name.replace("\\", "/")
 
 
 def _found_tail(ref: str, folder: Path) -> str | None:
@@ -243,11 +282,11 @@ class _Files(trimesh.resolvers.FilePathResolver):
             if self.asked[name] is None:
                 raise FileNotFoundError(f"{name}: missing or not drawable (warned of once)")
             return self.asked[name]
-        what = "material library" if name.lower().endswith(".mtl") else "texture"
+        what = self.kind(name)
         folder, wanted = self.model.parent, map_file_name(name)
         try:
-            side_file(wanted, folder, folder, self.model, what, url=False)
-            outside = None
+            found = side_file(wanted, folder, folder, self.model, what, url=False)    # its letter case may differ
+            wanted, outside = (wanted if found == folder / wanted else str(found)), None
         except InputFileError as exc:
             outside = exc
         if outside is not None or not (folder / wanted).is_file():
@@ -267,6 +306,13 @@ class _Files(trimesh.resolvers.FilePathResolver):
         self.asked[name] = data
         return data
 
+    def kind(self, name: str) -> str:
+        """What the model names by ``name``: an OBJ's material library (``.mtl``, or any name not an
+        image's: ``mtllib city.mat``) or a texture."""
+        suffix = PurePosixPath(map_file_name(name)).suffix.lower()
+        obj = self.model.suffix.lower() == ".obj"
+        return "material library" if suffix == ".mtl" or (obj and suffix not in IMAGE_SUFFIXES) else "texture"
+
     def check(self, model: Path) -> None:
         """Warn of each material library or texture that was missing or cannot be drawn (not an
         image, truncated, corrupt: :func:`~pipeline25d.formats.common.image_problem`); such a
@@ -277,7 +323,7 @@ class _Files(trimesh.resolvers.FilePathResolver):
             if name in self.checked:                    # an earlier slab's file: checked then
                 continue
             self.checked.add(name)
-            what = "material library" if name.lower().endswith(".mtl") else "texture"
+            what = self.kind(name)
             problem = "is missing" if data is None else image_problem(data) if what == "texture" else None
             if problem is not None:
                 self.asked[name] = None
