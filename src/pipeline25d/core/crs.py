@@ -59,8 +59,29 @@ def transformer(src: str, dst: str):
         raise CRSError(f"cannot transform {src} to {dst}: {exc}") from None
 
 
+@lru_cache(maxsize=64)
+def z_unit(text: str) -> tuple[str, float]:
+    """(name, metres) of the unit heights are written in under CRS ``text``: its vertical axis's
+    (a compound or 3D CRS), a 2D projected CRS's horizontal unit (it names no vertical one, and
+    its models write heights as they write x and y: New York City's buildings in EPSG:2263 have
+    z in US survey feet), else metres (a 2D geographic CRS)."""
+    crs = parse_crs(text)
+    axes = crs.axis_info
+    if len(axes) >= 3 or (crs.is_projected and axes):
+        axis = axes[2] if len(axes) >= 3 else axes[0]
+        return axis.unit_name, float(axis.unit_conversion_factor)
+    return "metre", 1.0
+
+
+def implied_z_metres(text: str) -> float:
+    """Metres per unit of the heights pyproj takes as metres in ``text``: a 2D CRS's (its
+    :func:`z_unit`); pyproj converts a vertical axis's unit itself."""
+    return z_unit(text)[1] if len(parse_crs(text).axis_info) == 2 else 1.0
+
+
 def transform_points(points: np.ndarray, src: str, dst: str) -> np.ndarray:
-    """(n, 3) float64 points from CRS ``src`` to ``dst``; z carried as height.
+    """(n, 3) float64 points from CRS ``src`` to ``dst``; z carried as height, in each CRS's
+    :func:`z_unit` (a 2D CRS in feet: z in feet).
 
     Raises CRSError when the transform fails or yields non-finite coordinates
     (typically a model far outside the target CRS's area of use).
@@ -68,8 +89,8 @@ def transform_points(points: np.ndarray, src: str, dst: str) -> np.ndarray:
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if parse_crs(src) == parse_crs(dst):
         return pts.copy()
-    x, y, z = transformer(src, dst).transform(pts[:, 0], pts[:, 1], pts[:, 2])
-    out = np.column_stack([x, y, z])
+    x, y, z = transformer(src, dst).transform(pts[:, 0], pts[:, 1], pts[:, 2] * implied_z_metres(src))
+    out = np.column_stack([x, y, z / implied_z_metres(dst)])
     if not np.isfinite(out).all():
         raise CRSError(f"transforming {len(pts)} points from {src} to {dst} gave non-finite values")
     return out

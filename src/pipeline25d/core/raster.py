@@ -79,9 +79,10 @@ class DTM:
     """A terrain GeoTIFF sampled bilinearly in the scene CRS.
 
     Points are transformed to the raster's CRS first (pyproj), so a DTM in any CRS GDAL
-    reads works. Cells equal to nodata give NaN, and so do points outside the raster,
-    unless ``continuous``: then nodata cells take their nearest valid value and points
-    outside take the nearest edge, so every vertex of a model has a ground height
+    reads works; its heights are read as metres (a 2D CRS in feet has them in feet:
+    :func:`~pipeline25d.core.crs.z_unit`). Cells equal to nodata give NaN, and so do points
+    outside the raster, unless ``continuous``: then nodata cells take their nearest valid value
+    and points outside take the nearest edge, so every vertex of a model has a ground height
     (terrain-relative projection needs one).
     """
 
@@ -105,11 +106,15 @@ class DTM:
         win = Window(0, 0, grid.width, grid.height) if window is None else self._pixel_window(Extent(*window), grid)
         nodata = band.GetNoDataValue()
 
-        def read(w: Window) -> np.ndarray:      # nodata (a number, or NaN itself) as NaN
+        from pipeline25d.core.crs import z_unit
+
+        metres = z_unit(self.crs_wkt)[1] if self.crs_wkt else 1.0   # a DTM in a 2D CRS in feet: feet
+
+        def read(w: Window) -> np.ndarray:      # nodata (a number, or NaN itself) as NaN; metres
             values = band.ReadAsArray(w.col0, w.row0, w.width, w.height).astype(np.float64)
             if nodata is not None:
                 values[values == nodata] = np.nan
-            return values
+            return values * metres if metres != 1.0 else values
 
         self.values = read(win)
         if continuous and window is not None and not np.isfinite(self.values).all():

@@ -18,7 +18,7 @@ from urllib.parse import unquote, urlsplit
 
 import numpy as np
 
-from pipeline25d.core.crs import check_within_area_of_use, parse_crs, transform_points
+from pipeline25d.core.crs import check_within_area_of_use, implied_z_metres, parse_crs, transform_points, z_unit
 from pipeline25d.core.errors import CRSError, InputFileError, MissingTextureWarning, UnsupportedFeatureError
 from pipeline25d.core.mesh import Coarser, Mesh, MeshPart
 
@@ -303,6 +303,10 @@ def reproject_parts(parts: list[MeshPart], src_crs: str, scene_crs: str, where: 
     """
     if not parts or parse_crs(src_crs) == parse_crs(scene_crs):
         return parts
+    unit, metres = z_unit(src_crs)
+    if implied_z_metres(src_crs) != 1.0:
+        warnings.warn(f"{where}: {src_crs} names no vertical CRS; its heights are taken in its horizontal unit, "
+                      f"the {unit} ({metres:.7g} m), as its x and y are", stacklevel=3)
     allv = np.concatenate([p.vertices for p in parts])
     try:
         lonlat = transform_points(allv[:: max(1, len(allv) // AREA_SAMPLE)], src_crs, "EPSG:4979")
