@@ -252,3 +252,49 @@ def test_blocks_made_by_worker_processes_give_the_same_map_as_made_here(tmp_path
             np.testing.assert_array_equal(a, b)
         assert made[1][2] == made[2][2] and made[1][3] == made[2][3]
         assert made[1][0][3].any() and len(made[1][3]) > 10_000
+
+
+def test_blank_blocks_of_a_new_map_are_not_made_and_read_as_the_zeros_they_hold(tmp_path, monkeypatch):
+    """Drawn tiles in two corners only (a sparse city): the map's blocks over nothing get no
+    overviews and no writes, the kept file stores none of them (GDAL: data coverage EMPTY there),
+    and it reads pixel for pixel, overviews too, as the map made writing every block. A later
+    patch that blanks a drawn tile writes its block's zeros (the kept file had pixels there)."""
+    monkeypatch.setattr(map_patch, "BLOCK_PX", BLOCK)
+    d = tmp_path / "tiles"
+    d.mkdir()
+    drawn = {(0, 0), (0, 1), (ROWS - 1, COLS - 1)}
+    for r in range(ROWS):
+        for c in range(COLS):
+            path = _write_tile(d, r, c)
+            if (r, c) not in drawn:
+                write_rgba_geotiff(path, np.zeros((TILE, TILE, 4), np.uint8),
+                                   Grid.of_dataset(gdal().Open(path)), horizontal_wkt(CRS))
+    none, crs = {"method": "none", "order": 0}, horizontal_wkt(CRS)
+    mosaic, src = _source(d, _observations())
+    writes = []
+    write_block = map_patch.write_block
+    monkeypatch.setattr(map_patch, "write_block", lambda kept, block, win, *a: (writes.append(win),
+                                                                              write_block(kept, block, win, *a)))
+    kept, made = patched_map(mosaic, src, none, crs, GSD, tmp_path / "kept")
+    drawn_blocks = len(writes)
+    monkeypatch.setattr(map_patch, "blank", lambda block: False)
+    every, _ = patched_map(mosaic, src, none, crs, GSD, tmp_path / "every")
+    assert made["blocks"] == len(writes) - drawn_blocks > drawn_blocks == 2      # tiles (0, 0), (0, 1): one block
+    np.testing.assert_array_equal(_pixels_of(kept), _pixels_of(every))
+    for level in range(2):
+        np.testing.assert_array_equal(_overview(kept, level), _overview(every, level))
+
+    def coverage(path, col: int, row: int) -> int:
+        ds = gdal().Open(str(path))                     # held while its band is asked
+        return ds.GetRasterBand(1).GetDataCoverageStatus(col, row, BLOCK, BLOCK)[0]
+
+    assert coverage(kept, 2 * BLOCK, 2 * BLOCK) == gdal().GDAL_DATA_COVERAGE_STATUS_EMPTY    # between the corners
+    assert coverage(kept, 0, 0) & gdal().GDAL_DATA_COVERAGE_STATUS_DATA
+    monkeypatch.undo()
+    monkeypatch.setattr(map_patch, "BLOCK_PX", BLOCK)
+    write_rgba_geotiff(d / "0_0.tif", np.zeros((TILE, TILE, 4), np.uint8),
+                       Grid.of_dataset(gdal().Open(str(d / "0_0.tif"))), horizontal_wkt(CRS))
+    mosaic, src = _source(d, _observations())
+    kept, patch = patched_map(mosaic, src, none, crs, GSD, tmp_path / "kept")
+    assert not patch["full"] and patch["blocks_redone"] == 1
+    np.testing.assert_array_equal(_pixels_of(kept), _pixels_of(mosaic))

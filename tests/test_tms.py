@@ -338,3 +338,49 @@ def test_box_mean_rounds_half_up_like_the_average_of_a_query():
         np.testing.assert_array_equal(box_mean(window, f), average_tile(window, idx, idx, 0, 0, 1024, 256))
     assert box_mean(np.array([[[1, 2], [2, 1]]], np.uint8), 2)[0, 0, 0] == 2          # 6/4 = 1.5 -> 2
     assert box_mean(np.array([[[1, 1], [2, 1]]], np.uint8), 2)[0, 0, 0] == 1          # 5/4 = 1.25 -> 1
+
+
+def _cog(dense, out, sparse: bool):
+    gdal().Translate(str(out), str(dense), format="COG",
+                     creationOptions=["COMPRESS=DEFLATE", *(["SPARSE_OK=TRUE"] if sparse else [])])
+    return out
+
+
+def test_a_sparse_map_skips_the_blocks_over_nothing_and_cuts_the_same_tiles(tmp_path):
+    """Two districts 1.5 km apart on one map: stored sparse (its empty blocks unstored, as the warp
+    writes maps), the web-mercator blocks over nothing are not warped, and the tiles are byte for
+    byte those cut from the same pixels stored dense (every block warped). A district then removed:
+    the update drops its tiles and equals a fresh cut."""
+    import hashlib
+
+    from pipeline25d.core.crs import horizontal_wkt
+
+    wkt = horizontal_wkt("EPSG:25832")
+    grid = Grid.from_gdal((691000.0, 0.5, 0.0, 5334000.0, 0.0, -0.5), 3600, 3600)
+    rng = np.random.default_rng(7)
+    both = np.zeros((3600, 3600, 4), np.uint8)
+    for r, c in ((200, 300), (3000, 3100)):
+        both[r:r + 300, c:c + 300, :3] = rng.integers(0, 255, (300, 300, 3), dtype=np.uint8)
+        both[r:r + 300, c:c + 300, 3] = 255
+    one = both.copy()
+    one[3000:3300, 3100:3400] = 0
+    write_rgba_geotiff(tmp_path / "both.tif", both, grid, wkt)
+    write_rgba_geotiff(tmp_path / "one.tif", one, grid, wkt)
+    dense = tms(_cog(tmp_path / "both.tif", tmp_path / "dense.tif", False), "auto", tmp_path / "d", processes=2)
+    work = tmp_path / "work"
+    sparse = tms(_cog(tmp_path / "both.tif", tmp_path / "sparse.tif", True), "auto", tmp_path / "s", processes=2,
+                 work_dir=work)
+    # dense: only blocks beyond the map's edge hold nothing; sparse: those between the districts too
+    assert sparse["blocks_over_nothing"] > dense["blocks_over_nothing"] + 2
+    assert sum(sparse[k] for k in ("blocks_warped", "blocks_over_nothing")) == \
+        sum(dense[k] for k in ("blocks_warped", "blocks_over_nothing"))
+
+    def digests(root):
+        return {k: hashlib.sha256(p.read_bytes()).hexdigest() for k, p in _tile_files(root).items()}
+
+    assert digests(tmp_path / "s") == digests(tmp_path / "d") and len(digests(tmp_path / "d")) > 8
+    update = tms(_cog(tmp_path / "one.tif", tmp_path / "one_sparse.tif", True), "auto", tmp_path / "s", processes=2,
+                 work_dir=work)
+    fresh = tms(_cog(tmp_path / "one.tif", tmp_path / "one_dense.tif", False), "auto", tmp_path / "f", processes=2)
+    assert not update["full"] and digests(tmp_path / "s") == digests(tmp_path / "f")
+    assert 0 < update["web_tiles"] == fresh["web_tiles"] < sparse["web_tiles"]

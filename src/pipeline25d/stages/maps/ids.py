@@ -51,7 +51,7 @@ log = logging.getLogger(__name__)
 
 STATE_VERSION = 1
 KEPT = "ids.tif"
-ID_COG = ["COMPRESS=DEFLATE", "PREDICTOR=2", "OVERVIEWS=FORCE_USE_EXISTING"]
+ID_COG = ["COMPRESS=DEFLATE", "PREDICTOR=2", "OVERVIEWS=FORCE_USE_EXISTING", "SPARSE_OK=TRUE"]   # as the map's
 
 
 def id_map(ids_vrt: str | Path, mosaic_vrt: str | Path, gcps_csv: str | Path, map_json: str | Path,
@@ -228,7 +228,8 @@ def _patched(maker: _Blocks, ids_vrt: str | Path, mosaic_vrt: str | Path, work: 
             win = block_window(bx, by, grid.width, grid.height, size)
             ids, filled, cleared = maker.make(win)
             fixes[f"{bx}_{by}"] = [filled, cleared]
-            write_block(kept, maker.dataset(ids, win), win, factors, "NEAREST")
+            if not full or ids.any():       # a new kept file holds zeros where nothing is written
+                write_block(kept, maker.dataset(ids, win), win, factors, "NEAREST")
     write_state(work, {"key": key, "cells": cells, "fixes": fixes, "dirty": []})
     log.info("id map: %s; %d mosaic squares changed, %d of %d blocks %s", "full" if full else "patch",
              len(changed), len(todo), nx * ny, "warped" if warped else "copied")

@@ -152,8 +152,8 @@ def assemble_sparse_cog(parts: list[tuple[Path, Window]], grid: Grid, wkt: str, 
     grid, with the map's overview factors already built)
     is copied into an intermediate sparse GeoTIFF, level by level, ``rows_per_copy`` rows at a
     time (memory O(part width)); the COG driver then keeps those overviews and skips the
-    unstored blocks. ``cog_options``: the COG driver's compression and overview options
-    (OVERVIEWS=FORCE_USE_EXISTING keeps the parts' own).
+    unstored blocks. ``cog_options``: the COG driver's compression, overview and sparse options
+    (:func:`~pipeline25d.stages.maps.warp.cog_options`; OVERVIEWS=FORCE_USE_EXISTING keeps the parts' own).
     """
     g = gdal()
     factors = overview_factors(grid.width, grid.height)
@@ -166,7 +166,7 @@ def assemble_sparse_cog(parts: list[tuple[Path, Window]], grid: Grid, wkt: str, 
                              overviews=factors) as dst:  # levels filled below
             _copy_parts(parts, dst, factors, rows_per_copy, bands)
         g.Translate(str(out), str(tmp), format="COG",
-                    creationOptions=[*cog_options, "SPARSE_OK=TRUE", "BIGTIFF=IF_SAFER"])
+                    creationOptions=[*cog_options, "BIGTIFF=IF_SAFER"])
     finally:
         tmp.unlink(missing_ok=True)
 

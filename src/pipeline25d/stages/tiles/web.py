@@ -11,8 +11,8 @@ gdal2tiles then cuts a VRT of the blocks with its
 own tile functions: base tiles by ``create_base_tile`` (its read made fast, same bytes: see
 :mod:`pipeline25d.stages.tiles.base`), overview tiles from their children by
 ``create_overview_tile``. It reads plain windows instead of re-warping for every tile,
-and only tiles that hold data are written, so a sparse map costs its districts, not its
-bounding box.
+blocks over nothing the map stores (a sparse COG's unstored blocks) are not warped at all, and
+only tiles that hold data are written, so a sparse map costs its districts, not its bounding box.
 
 A pyramid kept in a work folder is *updated*: the map is hashed in squares of
 :data:`CELL_PX` pixels, and only the web-mercator blocks within reach of a changed square are
@@ -174,15 +174,23 @@ def update_pyramid(cog: str | Path, zoom: str, work: Path, processes: int = 1, t
     jobs = [(b, w) for b, w in ((b, block_window(b, grid, max_zoom)) for b in todo) if w is not None]
     with Workers(processes, most) as workers:
         workers.map(partial(warp_block, str(cog), str(work / "blocks"), grid, tile_format == "ids", factor), jobs)
-        redone = cut(sorted((work / "blocks").glob("*.tif")), work / "tiles", stored_grid(grid, factor), zooms,
-                     [w.scaled_down(factor) for w in reach], workers, tile_format, quality, webp_method)
+        blocks = sorted((work / "blocks").glob("*.tif"))
+        if blocks:
+            redone = cut(blocks, work / "tiles", stored_grid(grid, factor), zooms,
+                         [w.scaled_down(factor) for w in reach], workers, tile_format, quality, webp_method)
+        else:                           # the map stores nothing: no tile holds anything
+            shutil.rmtree(work / "tiles", ignore_errors=True)
+            (work / "tiles").mkdir()
+            redone = 0
     write_state(work, {"key": key, "cells": cells, "dirty": []})
-    stats = {"full": full, "map_cells_changed": len(changed), "blocks_warped": len(jobs),
-             "web_tiles_redone": redone, "web_tiles": sum(1 for p in (work / "tiles").rglob("*") if p.is_file()),
-             "zooms": zooms}
-    log.info("web tiles: %s; %d of %d map cells changed, %d web-mercator blocks warped, %d of %d web tiles redone"
-             " (workers: %d at each stage's start, %d more taken as cores fell idle)", "full cut" if full else "update",
-             len(changed), len(cells), len(jobs), redone, stats["web_tiles"], workers.processes, workers.grown)
+    warped = sum((work / "blocks" / f"{b[0]}_{b[1]}.tif").is_file() for b, _ in jobs)
+    stats = {"full": full, "map_cells_changed": len(changed), "blocks_warped": warped,
+             "blocks_over_nothing": len(jobs) - warped, "web_tiles_redone": redone,
+             "web_tiles": sum(1 for p in (work / "tiles").rglob("*") if p.is_file()), "zooms": zooms}
+    log.info("web tiles: %s; %d of %d map cells changed, %d web-mercator blocks warped (%d more over nothing the "
+             "map stores), %d of %d web tiles redone (workers: %d at each stage's start, %d more taken as cores fell "
+             "idle)", "full cut" if full else "update", len(changed), len(cells), warped, len(jobs) - warped, redone,
+             stats["web_tiles"], workers.processes, workers.grown)
     return stats
 
 
