@@ -7,6 +7,7 @@ import os
 import shutil
 
 import numpy as np
+import pytest
 from conftest import grid_plan
 
 from pipeline25d.core.crs import horizontal_wkt
@@ -14,7 +15,7 @@ from pipeline25d.core.geotiff import write_rgba_geotiff
 from pipeline25d.core.grid import Grid
 from pipeline25d.core.raster import gdal
 from pipeline25d.stages.maps import patch as map_patch
-from pipeline25d.stages.maps.patch import block_window, patched_map
+from pipeline25d.stages.maps.patch import blank, block_window, patched_map
 from pipeline25d.stages.maps.warp import build_mosaic, gdal_gcps, raster_grid, warp_to_cog
 from pipeline25d.stages.records import Observation
 
@@ -254,12 +255,15 @@ def test_blocks_made_by_worker_processes_give_the_same_map_as_made_here(tmp_path
         assert made[1][0][3].any() and len(made[1][3]) > 10_000
 
 
-def test_blank_blocks_of_a_new_map_are_not_made_and_read_as_the_zeros_they_hold(tmp_path, monkeypatch):
+@pytest.mark.parametrize("workers", [1, 2])
+def test_blank_blocks_of_a_new_map_are_not_made_and_read_as_the_zeros_they_hold(tmp_path, monkeypatch, workers):
     """Drawn tiles in two corners only (a sparse city): the map's blocks over nothing get no
-    overviews and no writes, the kept file stores none of them (GDAL: data coverage EMPTY there),
-    and it reads pixel for pixel, overviews too, as the map made writing every block. A later
-    patch that blanks a drawn tile writes its block's zeros (the kept file had pixels there)."""
+    overviews and no writes (made here or by worker processes), the kept file stores none of them
+    (GDAL: data coverage EMPTY there), and it reads pixel for pixel, overviews too, as the map
+    made writing every block. A later patch that blanks a drawn tile writes its block's zeros
+    (the kept file had pixels there)."""
     monkeypatch.setattr(map_patch, "BLOCK_PX", BLOCK)
+    monkeypatch.setattr(map_patch, "job_workers", lambda threads: workers)
     d = tmp_path / "tiles"
     d.mkdir()
     drawn = {(0, 0), (0, 1), (ROWS - 1, COLS - 1)}
@@ -272,9 +276,9 @@ def test_blank_blocks_of_a_new_map_are_not_made_and_read_as_the_zeros_they_hold(
     none, crs = {"method": "none", "order": 0}, horizontal_wkt(CRS)
     mosaic, src = _source(d, _observations())
     writes = []
-    write_block = map_patch.write_block
-    monkeypatch.setattr(map_patch, "write_block", lambda kept, block, win, *a: (writes.append(win),
-                                                                              write_block(kept, block, win, *a)))
+    write_levels = map_patch.write_levels            # each block's levels are written here, whoever made them
+    monkeypatch.setattr(map_patch, "write_levels", lambda kept, levels, win, *a: (writes.append(win),
+                                                                                write_levels(kept, levels, win, *a)))
     kept, made = patched_map(mosaic, src, none, crs, GSD, tmp_path / "kept")
     drawn_blocks = len(writes)
     monkeypatch.setattr(map_patch, "blank", lambda block: False)
@@ -290,8 +294,7 @@ def test_blank_blocks_of_a_new_map_are_not_made_and_read_as_the_zeros_they_hold(
 
     assert coverage(kept, 2 * BLOCK, 2 * BLOCK) == gdal().GDAL_DATA_COVERAGE_STATUS_EMPTY    # between the corners
     assert coverage(kept, 0, 0) & gdal().GDAL_DATA_COVERAGE_STATUS_DATA
-    monkeypatch.undo()
-    monkeypatch.setattr(map_patch, "BLOCK_PX", BLOCK)
+    monkeypatch.setattr(map_patch, "blank", blank)
     write_rgba_geotiff(d / "0_0.tif", np.zeros((TILE, TILE, 4), np.uint8),
                        Grid.of_dataset(gdal().Open(str(d / "0_0.tif"))), horizontal_wkt(CRS))
     mosaic, src = _source(d, _observations())

@@ -1,5 +1,6 @@
 """The WMS id layer's row raster (publish.wms_ids.row_raster): each id's row in the objects table,
-looked up once per run of equal ids, against a lookup of every pixel."""
+looked up once per run of equal ids, against a lookup of every pixel; a sparse id raster's
+unstored squares left unread and unstored."""
 
 from __future__ import annotations
 
@@ -29,7 +30,7 @@ def test_rows_equal_a_lookup_of_every_pixel_and_an_unknown_id_is_named(tmp_path:
     ids = id_image(rng, table, (300, 257))
     grid = Grid.from_gdal((1000.0, 0.5, 0.0, 2000.0, 0.0, -0.5), 257, 300)
     write_geotiff(tmp_path / "ids.tif", ids, grid, "", "UInt32", ("TILED=YES",), nodata=0)
-    row_raster(tmp_path / "ids.tif", table.tolist(), tmp_path / "rows.tif", rows_per_block=64)
+    row_raster(tmp_path / "ids.tif", table.tolist(), tmp_path / "rows.tif", block_px=64)
     got = gdal().Open(str(tmp_path / "rows.tif")).ReadAsArray()
     want = np.where(ids == 0, 0, np.searchsorted(table, ids) + 1)
     assert np.array_equal(got, want) and (got > 0).mean() > 0.5
@@ -40,4 +41,25 @@ def test_rows_equal_a_lookup_of_every_pixel_and_an_unknown_id_is_named(tmp_path:
     assert 12345 not in table and 54321 not in table
     write_geotiff(tmp_path / "bad.tif", ids, grid, "", "UInt32", ("TILED=YES",), nodata=0)
     with pytest.raises(InputFileError, match="id 12345 is not in the objects table"):
-        row_raster(tmp_path / "bad.tif", table.tolist(), tmp_path / "bad_rows.tif", rows_per_block=64)
+        row_raster(tmp_path / "bad.tif", table.tolist(), tmp_path / "bad_rows.tif", block_px=64)
+
+
+def test_the_rows_of_a_sparse_id_raster_skip_its_unstored_squares(tmp_path: Path):
+    """Ids in one corner of a sparse COG (its empty blocks unstored, as the warp writes id maps):
+    the row raster equals the lookup of every pixel and stores nothing where the ids store nothing."""
+    rng = np.random.default_rng(3)
+    table = np.arange(1, 200, 3, dtype=np.uint32)
+    ids = np.zeros((1024, 1536), np.uint32)
+    ids[:300, :400] = id_image(rng, table, (300, 400))
+    grid = Grid.from_gdal((1000.0, 0.5, 0.0, 2000.0, 0.0, -0.5), 1536, 1024)
+    write_geotiff(tmp_path / "dense.tif", ids, grid, "", "UInt32", ("TILED=YES",), nodata=0)
+    gdal().Translate(str(tmp_path / "ids.tif"), str(tmp_path / "dense.tif"), format="COG",
+                     creationOptions=["COMPRESS=DEFLATE", "SPARSE_OK=TRUE"])
+    row_raster(tmp_path / "ids.tif", table.tolist(), tmp_path / "rows.tif", block_px=256)
+    ds = gdal().Open(str(tmp_path / "rows.tif"))
+    got = ds.ReadAsArray()
+    assert np.array_equal(got, np.where(ids == 0, 0, np.searchsorted(table, ids) + 1)) and got.any()
+    empty, data = gdal().GDAL_DATA_COVERAGE_STATUS_EMPTY, gdal().GDAL_DATA_COVERAGE_STATUS_DATA
+    band = ds.GetRasterBand(1)
+    assert band.GetDataCoverageStatus(512, 512, 1024, 512)[0] == empty
+    assert band.GetDataCoverageStatus(0, 0, 256, 256)[0] & data

@@ -57,22 +57,28 @@ def id_path(map_path: Path) -> Path:
     return map_path.with_name(f"{map_path.stem}.ids.tif")
 
 
-def row_raster(ids_tif: Path, ids: Sequence[int], out: Path, rows_per_block: int = 1024) -> None:
+def row_raster(ids_tif: Path, ids: Sequence[int], out: Path, block_px: int = 1024) -> None:
     """An id raster with each id replaced by its row in the objects table (1-based; 0 stays 0, no
-    data), written block by block: MapServer prints a raster query's value with 8 significant
-    digits, too few for a 32-bit id (1384755801 prints as 1.3847558e+09), exact for a row number
-    below 10^8. An id that is not in the table is refused (:class:`InputFileError`)."""
+    data), written in squares of ``block_px``: MapServer prints a raster query's value with 8
+    significant digits, too few for a 32-bit id (1384755801 prints as 1.3847558e+09), exact for a
+    row number below 10^8. A square the id raster does not store (a sparse map's empty land: GDAL's
+    data coverage) is neither read nor written; the file is sparse as the id raster is. An id
+    that is not in the table is refused (:class:`InputFileError`)."""
     table = np.asarray(ids, dtype=np.uint32)
     if len(table) and (np.diff(table.astype(np.int64)) <= 0).any():
         raise MapServiceError(f"{ids_tif}: the objects table is not in increasing id order")
     ds = gdal().Open(str(ids_tif))
     grid = Grid.of_dataset(ds)
     band = ds.GetRasterBand(1)
-    with geotiff_dataset(out, grid, ds.GetProjection(), 1, "UInt32", ("COMPRESS=ZSTD", "TILED=YES"), nodata=0) as dst:
-        for r0 in range(0, grid.height, rows_per_block):
-            h = min(rows_per_block, grid.height - r0)
-            block = band.ReadAsArray(0, r0, grid.width, h)
-            dst.band(1).WriteArray(_table_rows(block, table, ids_tif), 0, r0)
+    empty = gdal().GDAL_DATA_COVERAGE_STATUS_EMPTY
+    options = ("COMPRESS=ZSTD", "TILED=YES", "SPARSE_OK=TRUE")
+    with geotiff_dataset(out, grid, ds.GetProjection(), 1, "UInt32", options, nodata=0) as dst:
+        for r0 in range(0, grid.height, block_px):
+            for c0 in range(0, grid.width, block_px):
+                w, h = min(block_px, grid.width - c0), min(block_px, grid.height - r0)
+                if band.GetDataCoverageStatus(c0, r0, w, h)[0] == empty:
+                    continue
+                dst.band(1).WriteArray(_table_rows(band.ReadAsArray(c0, r0, w, h), table, ids_tif), c0, r0)
 
 
 def _table_rows(block: np.ndarray, table: np.ndarray, ids_tif: Path) -> np.ndarray:
