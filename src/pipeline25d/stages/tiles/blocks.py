@@ -65,18 +65,12 @@ def box_mean(bands: np.ndarray, factor: int) -> np.ndarray:
 def warp_block(cog: str, blocks_dir: str, grid: Grid, ids: bool, factor: int,
                job: tuple[tuple[int, int], Window]) -> None:
     """Warp the map (``ids``: its id raster) onto one block's window of its web-mercator grid and
-    keep it, averaged by ``factor`` (:func:`stored_factor`), written atomically. A block over
-    nothing the map stores (:func:`nothing_under`) is not warped, and its old file is removed:
-    the tiles read zeros there, transparent, and are not written."""
+    keep it, averaged by ``factor`` (:func:`stored_factor`), written atomically."""
     block, window = job
     bounds = grid.window_bounds(Window(*window))
-    path = Path(blocks_dir) / f"{block[0]}_{block[1]}.tif"
-    if nothing_under(cog, bounds):
-        path.unlink(missing_ok=True)
-        return
     extra = ["-tr", repr(grid.transform.a), repr(-grid.transform.e), "-te", *map(repr, bounds)]
     g = gdal()
-    with atomic_path(path) as tmp:
+    with atomic_path(Path(blocks_dir) / f"{block[0]}_{block[1]}.tif") as tmp:
         if factor == 1:
             options = mercator_args(1, extra, alpha=not ids) + [a for o in BLOCK_OPTIONS for a in ("-co", o)]
             g.Warp(str(tmp), cog, options=options)
@@ -93,25 +87,32 @@ def warp_block(cog: str, blocks_dir: str, grid: Grid, ids: bool, factor: int,
         g.GetDriverByName("GTiff").CreateCopy(str(tmp), kept, options=BLOCK_OPTIONS)
 
 
-def nothing_under(cog: str, bounds: tuple[float, float, float, float], margin: int = SOURCE_MARGIN_PX) -> bool:
-    """Whether the map ``cog`` stores no pixel under the web-mercator rectangle ``bounds``: its outline
-    taken to the map's CRS, grown by ``margin`` map pixels (gdalwarp's nearest pixel, its 0.01 px
-    approximation), meets only blocks the map never stored (a sparse COG's, which GDAL reads as
-    zeros: its data coverage EMPTY). Zurich's 210 buildings over 9 x 10 km: 1,350 of a map's 1,404
-    blocks of 512 px are unstored."""
+def over_nothing(cog: str, grid: Grid, jobs: list[tuple[tuple[int, int], Window]],
+                 margin: int = SOURCE_MARGIN_PX) -> set[tuple[int, int]]:
+    """The blocks of ``jobs`` (block, window on the web-mercator ``grid``) under which the map
+    ``cog`` stores no pixel: each window's outline taken to the map's CRS, grown by ``margin`` map
+    pixels (gdalwarp's nearest pixel, its 0.01 px approximation), meets only blocks the map never
+    stored (a sparse COG's, which GDAL reads as zeros: its data coverage EMPTY) or lies off the
+    map. A map that stores every block (GDAL: no EMPTY anywhere) is not asked block by block.
+    Zurich's 210 buildings over 9 x 10 km: 1,350 of a map's 1,404 blocks of 512 px are unstored."""
     from pipeline25d.core.crs import transform_points
     from pipeline25d.stages.maps.parts import box_outline
 
     ds = gdal().Open(cog)
-    xs, ys = box_outline(*bounds, n=SOURCE_EDGE_SAMPLES)
+    band, empty = ds.GetRasterBand(1), gdal().GDAL_DATA_COVERAGE_STATUS_EMPTY
+    if not jobs or not band.GetDataCoverageStatus(0, 0, ds.RasterXSize, ds.RasterYSize)[0] & empty:
+        return set()
+    outlines = [box_outline(*grid.window_bounds(Window(*w)), n=SOURCE_EDGE_SAMPLES) for _, w in jobs]
+    xs, ys = np.concatenate([o[0] for o in outlines]), np.concatenate([o[1] for o in outlines])
     xy = transform_points(np.column_stack([xs, ys, np.zeros(len(xs))]), WEB_MERCATOR, ds.GetProjection())
-    cols, rows = Grid.of_dataset(ds).colrow(xy[:, 0], xy[:, 1])
-    c0, r0 = (max(int(np.floor(v.min())) - margin, 0) for v in (cols, rows))
-    c1, r1 = (min(int(np.ceil(v.max())) + margin, n) for v, n in ((cols, ds.RasterXSize), (rows, ds.RasterYSize)))
-    if c1 <= c0 or r1 <= r0:
-        return True
-    flags, _ = ds.GetRasterBand(1).GetDataCoverageStatus(c0, r0, c1 - c0, r1 - r0)
-    return flags == gdal().GDAL_DATA_COVERAGE_STATUS_EMPTY
+    cols, rows = (v.reshape(len(jobs), -1) for v in Grid.of_dataset(ds).colrow(xy[:, 0], xy[:, 1]))
+    out = set()
+    for (block, _), c, r in zip(jobs, cols, rows):
+        c0, r0 = (max(int(np.floor(v.min())) - margin, 0) for v in (c, r))
+        c1, r1 = (min(int(np.ceil(v.max())) + margin, n) for v, n in ((c, ds.RasterXSize), (r, ds.RasterYSize)))
+        if c1 <= c0 or r1 <= r0 or band.GetDataCoverageStatus(c0, r0, c1 - c0, r1 - r0)[0] == empty:
+            out.add(block)
+    return out
 
 
 def mercator_args(threads: int, extra: list[str] | None = None, alpha: bool = True) -> list[str]:

@@ -51,6 +51,7 @@ from pipeline25d.stages.tiles.base import close_source, create_base_tile, gdal2t
 from pipeline25d.stages.tiles.blocks import (
     GDAL2TILES_TILE,
     WEB_MERCATOR,
+    over_nothing,
     stored_factor,
     stored_grid,
     tile_metres,
@@ -172,8 +173,12 @@ def update_pyramid(cog: str | Path, zoom: str, work: Path, processes: int = 1, t
     write_state(work, {**state, "dirty": reach})
     todo = sorted({b for w in reach for b in blocks_meeting(w, grid, max_zoom)})
     jobs = [(b, w) for b, w in ((b, block_window(b, grid, max_zoom)) for b in todo) if w is not None]
+    nothing = over_nothing(str(cog), grid, jobs)      # not warped: the tiles read zeros there and are not written
+    for b in nothing:
+        (work / "blocks" / f"{b[0]}_{b[1]}.tif").unlink(missing_ok=True)
     with Workers(processes, most) as workers:
-        workers.map(partial(warp_block, str(cog), str(work / "blocks"), grid, tile_format == "ids", factor), jobs)
+        workers.map(partial(warp_block, str(cog), str(work / "blocks"), grid, tile_format == "ids", factor),
+                    [j for j in jobs if j[0] not in nothing])
         blocks = sorted((work / "blocks").glob("*.tif"))
         if blocks:
             redone = cut(blocks, work / "tiles", stored_grid(grid, factor), zooms,
@@ -183,9 +188,9 @@ def update_pyramid(cog: str | Path, zoom: str, work: Path, processes: int = 1, t
             (work / "tiles").mkdir()
             redone = 0
     write_state(work, {"key": key, "cells": cells, "dirty": []})
-    warped = sum((work / "blocks" / f"{b[0]}_{b[1]}.tif").is_file() for b, _ in jobs)
+    warped = len(jobs) - len(nothing)
     stats = {"full": full, "map_cells_changed": len(changed), "blocks_warped": warped,
-             "blocks_over_nothing": len(jobs) - warped, "web_tiles_redone": redone,
+             "blocks_over_nothing": len(nothing), "web_tiles_redone": redone,
              "web_tiles": sum(1 for p in (work / "tiles").rglob("*") if p.is_file()), "zooms": zooms}
     log.info("web tiles: %s; %d of %d map cells changed, %d web-mercator blocks warped (%d more over nothing the "
              "map stores), %d of %d web tiles redone (workers: %d at each stage's start, %d more taken as cores fell "
