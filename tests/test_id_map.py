@@ -167,3 +167,25 @@ def test_conform_clears_ids_under_transparency_and_fills_opaque_holes_from_the_n
     out, filled, cleared = conform(ids, alpha)
     assert out[0, 1] == 5 and out[2, 3] == 7 and out[3, 0] == 0
     assert filled.sum() == 2 and cleared.sum() == 1 and np.array_equal(out > 0, alpha > 0)
+
+
+def test_id_blocks_where_the_map_stores_nothing_are_not_made_and_the_id_map_is_the_same(tmp_path, monkeypatch):
+    """An 8 x 8 tile map with a 4 x 4 tile hole (512 px: one of the COG's blocks, which it does not
+    store; one part; no warp, so the hole is four whole id blocks): those blocks are not made, and
+    the id map is byte for byte the one made block by block."""
+    from pipeline25d.stages.maps import ids as map_ids
+
+    monkeypatch.setattr(map_patch, "BLOCK_PX", 256)
+    monkeypatch.setattr(map_ids, "BLOCK_PX", 256)
+    cells = [(r, c) for r in range(8) for c in range(8) if not (r < 4 and c >= 4)]
+    d, obs = scene(tmp_path, cells)
+    made = []
+    make = map_ids._Blocks.make
+    monkeypatch.setattr(map_ids._Blocks, "make", lambda self, win: (made.append(win), make(self, win))[1])
+    stats = make_maps(tmp_path, d, obs, cells, "none")
+    assert stats["parts"] == 1 and stats["blocks"] == 16 and len(made) == 12
+    check_against_map(tmp_path, "a", cells, stats, False)
+    monkeypatch.setattr(map_ids._Blocks, "nothing_drawn", lambda self, win: False)
+    every = make_maps(tmp_path, d, obs, cells, "none", name="b")
+    assert len(made) == 12 + 16 and every["filled"] == stats["filled"] and every["cleared"] == stats["cleared"]
+    assert (tmp_path / "a.ids.tif").read_bytes() == (tmp_path / "b.ids.tif").read_bytes()

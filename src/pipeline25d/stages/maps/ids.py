@@ -122,6 +122,13 @@ class _Blocks:
         band = self.map.GetRasterBand(4) if self.map.RasterCount >= 4 else self.map.GetRasterBand(1).GetMaskBand()
         return band.ReadAsArray(win.col0, win.row0, win.width, win.height)
 
+    def nothing_drawn(self, win: Window) -> bool:
+        """Whether the map stores no pixel in ``win`` (its COG's unstored blocks: GDAL's data coverage
+        EMPTY), where the ids, held to its alpha, are all 0."""
+        band = self.map.GetRasterBand(1)
+        return band.GetDataCoverageStatus(win.col0, win.row0, win.width, win.height)[0] == \
+            gdal().GDAL_DATA_COVERAGE_STATUS_EMPTY
+
     def ids(self, win: Window) -> np.ndarray:
         """Nearest ids over ``win`` (uint32, 0 = none)."""
         g = gdal()
@@ -226,9 +233,12 @@ def _patched(maker: _Blocks, ids_vrt: str | Path, mosaic_vrt: str | Path, work: 
     with kept_dataset(work / KEPT, full, grid, maker.crs, factors, 1, "UInt32", KEPT_OPTIONS, nodata=0) as kept:
         for bx, by in todo:
             win = block_window(bx, by, grid.width, grid.height, size)
+            if full and maker.nothing_drawn(win):     # its ids all cleared: a new kept file holds those zeros
+                fixes[f"{bx}_{by}"] = [0, 0]
+                continue
             ids, filled, cleared = maker.make(win)
             fixes[f"{bx}_{by}"] = [filled, cleared]
-            if not full or ids.any():       # a new kept file holds zeros where nothing is written
+            if not full or ids.any():
                 write_block(kept, maker.dataset(ids, win), win, factors, "NEAREST")
     write_state(work, {"key": key, "cells": cells, "fixes": fixes, "dirty": []})
     log.info("id map: %s; %d mosaic squares changed, %d of %d blocks %s", "full" if full else "patch",
