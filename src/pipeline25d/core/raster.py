@@ -75,6 +75,13 @@ def read_rgba_block(ds, col0: int, row0: int, width: int, height: int) -> tuple[
     return rgb, alpha
 
 
+def stores_nothing(band, win: Window) -> bool:
+    """Whether a GDAL ``band`` stores no block in the pixel window ``win``: a sparse GeoTIFF's or
+    COG's unstored blocks, which GDAL reads as zeros (its data coverage EMPTY)."""
+    status = band.GetDataCoverageStatus(win.col0, win.row0, win.width, win.height)[0]
+    return status == gdal().GDAL_DATA_COVERAGE_STATUS_EMPTY
+
+
 class DTM:
     """A terrain GeoTIFF sampled bilinearly in the scene CRS.
 

@@ -303,8 +303,8 @@ def reproject_parts(parts: list[MeshPart], src_crs: str, scene_crs: str, where: 
     """
     if not parts or parse_crs(src_crs) == parse_crs(scene_crs):
         return parts
-    unit, metres = z_unit(src_crs)
     if implied_z_metres(src_crs) != 1.0:
+        unit, metres = z_unit(src_crs)
         warnings.warn(f"{where}: {src_crs} names no vertical CRS; its heights are taken in its horizontal unit, "
                       f"the {unit} ({metres:.7g} m), as its x and y are", stacklevel=3)
     allv = np.concatenate([p.vertices for p in parts])

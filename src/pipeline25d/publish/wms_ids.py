@@ -17,8 +17,8 @@ import numpy as np
 from pipeline25d.core.atomic import write_bytes, write_text
 from pipeline25d.core.errors import InputFileError, MapServiceError
 from pipeline25d.core.geotiff import geotiff_dataset
-from pipeline25d.core.grid import Grid
-from pipeline25d.core.raster import gdal, run_starts
+from pipeline25d.core.grid import Grid, Window
+from pipeline25d.core.raster import gdal, run_starts, stores_nothing
 from pipeline25d.publish.objects import COLUMNS as JOIN_COLUMNS
 
 # the objects table as MapServer joins it, and the GetFeatureInfo answer's template, beside the mapfile
@@ -70,15 +70,14 @@ def row_raster(ids_tif: Path, ids: Sequence[int], out: Path, block_px: int = 102
     ds = gdal().Open(str(ids_tif))
     grid = Grid.of_dataset(ds)
     band = ds.GetRasterBand(1)
-    empty = gdal().GDAL_DATA_COVERAGE_STATUS_EMPTY
     options = ("COMPRESS=ZSTD", "TILED=YES", "SPARSE_OK=TRUE")
     with geotiff_dataset(out, grid, ds.GetProjection(), 1, "UInt32", options, nodata=0) as dst:
         for r0 in range(0, grid.height, block_px):
             for c0 in range(0, grid.width, block_px):
-                w, h = min(block_px, grid.width - c0), min(block_px, grid.height - r0)
-                if band.GetDataCoverageStatus(c0, r0, w, h)[0] == empty:
-                    continue
-                dst.band(1).WriteArray(_table_rows(band.ReadAsArray(c0, r0, w, h), table, ids_tif), c0, r0)
+                win = Window(c0, r0, min(c0 + block_px, grid.width), min(r0 + block_px, grid.height))
+                if not stores_nothing(band, win):
+                    block = band.ReadAsArray(c0, r0, win.width, win.height)
+                    dst.band(1).WriteArray(_table_rows(block, table, ids_tif), c0, r0)
 
 
 def _table_rows(block: np.ndarray, table: np.ndarray, ids_tif: Path) -> np.ndarray:

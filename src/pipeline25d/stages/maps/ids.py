@@ -30,7 +30,7 @@ import numpy as np
 from pipeline25d.core.atomic import atomic_path, write_json
 from pipeline25d.core.grid import Extent, Grid, Window
 from pipeline25d.core.journal import read_state, write_state
-from pipeline25d.core.raster import gdal, map_cells
+from pipeline25d.core.raster import gdal, map_cells, stores_nothing
 from pipeline25d.stages.gcps import read_observations
 from pipeline25d.stages.maps.parts import overview_factors
 from pipeline25d.stages.maps.patch import (
@@ -125,9 +125,7 @@ class _Blocks:
     def nothing_drawn(self, win: Window) -> bool:
         """Whether the map stores no pixel in ``win`` (its COG's unstored blocks: GDAL's data coverage
         EMPTY), where the ids, held to its alpha, are all 0."""
-        band = self.map.GetRasterBand(1)
-        return band.GetDataCoverageStatus(win.col0, win.row0, win.width, win.height)[0] == \
-            gdal().GDAL_DATA_COVERAGE_STATUS_EMPTY
+        return stores_nothing(self.map.GetRasterBand(1), win)
 
     def ids(self, win: Window) -> np.ndarray:
         """Nearest ids over ``win`` (uint32, 0 = none)."""

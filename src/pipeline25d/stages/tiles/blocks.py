@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from pipeline25d.core.atomic import atomic_path
-from pipeline25d.core.grid import Grid, Window
-from pipeline25d.core.raster import gdal
+from pipeline25d.core.grid import Extent, Grid, Window
+from pipeline25d.core.raster import gdal, stores_nothing
 from pipeline25d.stages.tiles.base import box_sums
 
 WEB_MERCATOR = "EPSG:3857"
@@ -105,12 +105,13 @@ def over_nothing(cog: str, grid: Grid, jobs: list[tuple[tuple[int, int], Window]
     outlines = [box_outline(*grid.window_bounds(Window(*w)), n=SOURCE_EDGE_SAMPLES) for _, w in jobs]
     xs, ys = np.concatenate([o[0] for o in outlines]), np.concatenate([o[1] for o in outlines])
     xy = transform_points(np.column_stack([xs, ys, np.zeros(len(xs))]), WEB_MERCATOR, ds.GetProjection())
-    cols, rows = (v.reshape(len(jobs), -1) for v in Grid.of_dataset(ds).colrow(xy[:, 0], xy[:, 1]))
+    xy = xy[:, :2].reshape(len(jobs), -1, 2)
+    lo, hi, map_grid = xy.min(axis=1), xy.max(axis=1), Grid.of_dataset(ds)
     out = set()
-    for (block, _), c, r in zip(jobs, cols, rows):
-        c0, r0 = (max(int(np.floor(v.min())) - margin, 0) for v in (c, r))
-        c1, r1 = (min(int(np.ceil(v.max())) + margin, n) for v, n in ((c, ds.RasterXSize), (r, ds.RasterYSize)))
-        if c1 <= c0 or r1 <= r0 or band.GetDataCoverageStatus(c0, r0, c1 - c0, r1 - r0)[0] == empty:
+    for (block, _), (x0, y0), (x1, y1) in zip(jobs, lo, hi):
+        w = map_grid.window_covering(Extent(x0, y0, x1, y1), margin)
+        w = Window(max(w.col0, 0), max(w.row0, 0), min(w.col1, map_grid.width), min(w.row1, map_grid.height))
+        if w.col1 <= w.col0 or w.row1 <= w.row0 or stores_nothing(band, w):
             out.add(block)
     return out
 

@@ -194,7 +194,7 @@ def update_pyramid(cog: str | Path, zoom: str, work: Path, processes: int = 1, t
              "web_tiles": sum(1 for p in (work / "tiles").rglob("*") if p.is_file()), "zooms": zooms}
     log.info("web tiles: %s; %d of %d map cells changed, %d web-mercator blocks warped (%d more over nothing the "
              "map stores), %d of %d web tiles redone (workers: %d at each stage's start, %d more taken as cores fell "
-             "idle)", "full cut" if full else "update", len(changed), len(cells), warped, len(jobs) - warped, redone,
+             "idle)", "full cut" if full else "update", len(changed), len(cells), warped, len(nothing), redone,
              stats["web_tiles"], workers.processes, workers.grown)
     return stats
 
