@@ -486,12 +486,13 @@ def test_footprints_in_blocks_give_the_whole_runs_rows_and_a_change_reaches_only
 
 
 def test_the_stage_in_block_jobs_writes_the_single_jobs_files_and_keeps_unchanged_blocks(scene, tmp_path):
-    """height_blocks: the checkpoint's blocks, one measure_block per block and merge_blocks write the
-    heights.csv of run_stage in one job byte for byte and its heights.json but for "cost"; measured
-    again with nothing changed, every block keeps its rows and the files stay the same."""
+    """height_blocks: the checkpoint's blocks and jobs, one measure_job per job and merge_blocks write
+    the heights.csv of run_stage in one job byte for byte and its heights.json but for "cost", with
+    the blocks in one job each or grouped (sparse blocks share a job); measured again with nothing
+    changed, every block keeps its rows and the files stay the same."""
     import json
 
-    from pipeline25d.analysis.height_blocks import measure_block, merge_blocks, run_stage, write_blocks
+    from pipeline25d.analysis.height_blocks import measure_job, merge_blocks, read_blocks, run_stage, write_blocks
     from pipeline25d.core.atomic import write_json
 
     maps = {k: str(v) for k, v in scene["maps"].items() if k in ("az000_el90", "az045_el45")}
@@ -505,24 +506,32 @@ def test_the_stage_in_block_jobs_writes_the_single_jobs_files_and_keeps_unchange
                             "dtm_check_holdout_m": None, "n_chunks": 1})
     one = run_stage(config, maps, scene_json, None, tmp_path / "one.csv", tmp_path / "one.json")
     blocks_json = tmp_path / "work" / "blocks.json"
-    blocks = write_blocks(config, maps["az000_el90"], blocks_json)
-    assert len(blocks) >= 3
+    grouped = write_blocks(config, maps["az000_el90"], blocks_json)
+    _, blocks, jobs = read_blocks(blocks_json)
+    assert jobs == grouped and len(blocks) >= 3 and len(jobs) < len(blocks)     # a few footprints: grouped
+    assert sorted(b for bs in jobs.values() for b in bs) == sorted(blocks)
 
-    def in_blocks(tag: str) -> tuple[dict, list[dict]]:
-        outs = [tmp_path / "work" / f"block_{b}.{tag}.json" for b in blocks]
-        summaries = [measure_block(config, maps, scene_json, blocks_json, b, tmp_path / "work" / "rows", out)
-                     for b, out in zip(blocks, outs)]
+    def in_blocks(tag: str, jobs: dict[str, list[str]]) -> tuple[dict, list[dict]]:
+        d = json.loads(blocks_json.read_text())
+        write_json(blocks_json, {**d, "jobs": jobs})
+        outs = [tmp_path / "work" / f"block_{j}.{tag}.json" for j in jobs]
+        summaries = [measure_job(config, maps, scene_json, blocks_json, j, tmp_path / "work" / "rows", out)
+                     for j, out in zip(jobs, outs)]
         merged = merge_blocks(config, maps, scene_json, None, blocks_json, [str(o) for o in outs],
                               tmp_path / "work" / "rows", tmp_path / f"{tag}.csv", tmp_path / f"{tag}.json")
         return merged, summaries
 
-    merged, summaries = in_blocks("blocks")
-    assert all(s["measured"] for s in summaries) and sum(s["n"] for s in summaries) == one["footprints"]["n_on_maps"]
-    assert (tmp_path / "blocks.csv").read_bytes() == (tmp_path / "one.csv").read_bytes()
     strip = lambda d: {k: v for k, v in d.items() if k != "cost"}  # noqa: E731
-    assert strip(json.loads((tmp_path / "blocks.json").read_text())) == \
-        strip(json.loads((tmp_path / "one.json").read_text()))
-    assert merged["cost"]["jobs"] == len(blocks) and merged["cost"]["blocks_measured"] == len(blocks)
-    again, summaries = in_blocks("again")
+    for tag, js in (("alone", {b: [b] for b in blocks}), ("blocks", jobs)):
+        for f in (tmp_path / "work" / "rows").glob("*.json"):
+            f.unlink()
+        merged, summaries = in_blocks(tag, js)
+        assert sum(s["measured"] for s in summaries) == len(blocks)
+        assert sum(s["n"] for s in summaries) == one["footprints"]["n_on_maps"]
+        assert (tmp_path / f"{tag}.csv").read_bytes() == (tmp_path / "one.csv").read_bytes()
+        assert strip(json.loads((tmp_path / f"{tag}.json").read_text())) == \
+            strip(json.loads((tmp_path / "one.json").read_text()))
+        assert merged["cost"]["jobs"] == len(js) and merged["cost"]["blocks_measured"] == len(blocks)
+    again, summaries = in_blocks("again", jobs)
     assert not any(s["measured"] for s in summaries) and again["cost"]["blocks_measured"] == 0
     assert (tmp_path / "again.csv").read_bytes() == (tmp_path / "one.csv").read_bytes()

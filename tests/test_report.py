@@ -59,11 +59,29 @@ def test_stage_timings_count_only_this_configurations_jobs(tmp_path):
     log("heights/blocks.log", 0.25)
     log("heights/block_3_-1.log", 5.0)
     log("heights/block_7_7.log", 90.0)                   # a block of footprints no longer there
+    log("heights/block_L4_1_0.log", 2.0)                 # sparse blocks in one job
     log("report.log", 9.0)
     log("viewer.log", 9.0)
-    current = current_jobs({"d0"}, {"az045_el45": {"0_1_2", "0_1_3"}}, {"3_-1"})
+    current = current_jobs({"d0"}, {"az045_el45": {"0_1_2", "0_1_3"}}, {"3_-1", "L4_1_0"})
     got = stage_timings(tmp_path, current)
     assert {k: (v["jobs"], v["seconds"]) for k, v in got.items()} == \
-        {"scene": (1, 1.0), "lod": (1, 2.0), "warp": (1, 3.0), "render": (1, 4.0), "heights": (3, 5.75)}
+        {"scene": (1, 1.0), "lod": (1, 2.0), "warp": (1, 3.0), "render": (1, 4.0), "heights": (4, 7.75)}
     assert got["warp"]["max_rss_mb"] == 710.0                   # the job's process and its largest child
     assert stage_timings(tmp_path)["render"]["jobs"] == 2         # without the filter: every finished job
+
+
+def test_the_heights_jobs_are_read_from_the_blocks_file_and_one_per_block_in_an_older_one(tmp_path):
+    """The report counts a heights job's log by the job names of work/heights/blocks.json; a file
+    written before blocks were grouped into jobs had one job per block, named as the block."""
+    import json
+
+    from pipeline25d.publish.report import _heights_jobs
+
+    path = tmp_path / "work" / "heights" / "blocks.json"
+    assert _heights_jobs(tmp_path) == set()
+    path.parent.mkdir(parents=True)
+    path.write_text(json.dumps({"footprints": [], "blocks": {"3_-1": [0], "4_-1": [1], "9_9": [2]},
+                                "jobs": {"L1_1_-1": ["3_-1", "4_-1"], "9_9": ["9_9"]}}))
+    assert _heights_jobs(tmp_path) == {"L1_1_-1", "9_9"}
+    path.write_text(json.dumps({"footprints": [], "blocks": {"3_-1": [0], "9_9": [2]}}))
+    assert _heights_jobs(tmp_path) == {"3_-1", "9_9"}

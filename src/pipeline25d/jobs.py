@@ -145,9 +145,9 @@ def heights_blocks_job(job: Job) -> None:
 
 
 def heights_block_job(job: Job) -> None:
-    from pipeline25d.analysis.height_blocks import measure_block
+    from pipeline25d.analysis.height_blocks import measure_job
 
-    measure_block(dict(job.params.config), dict(zip(job.params.pids, job.input.maps)), job.input.scene,
+    measure_job(dict(job.params.config), dict(zip(job.params.pids, job.input.maps)), job.input.scene,
                   job.input.blocks, job.wildcards.hblock, job.params.rows_dir, job.output[0])
 
 

@@ -76,7 +76,7 @@ wildcard_constraints:
     pid=ID_PATTERN,
     block=r"\d+_-?\d+_-?\d+(_[0-3]+)?",
     district=r"[A-Za-z0-9-]+",
-    hblock=r"-?\d+_-?\d+",
+    hblock=r"(L\d+_)?-?\d+_-?\d+",
 
 
 def district_inputs(wildcards):
@@ -134,10 +134,10 @@ def perspective_tiles(wildcards, suffix):
 
 @parse_guard
 def heights_block_files(wildcards):
-    """The heights_block jobs' summaries, one per block of the heights_blocks checkpoint (none when skipped)."""
+    """The heights_block jobs' summaries, one per job of blocks of the heights_blocks checkpoint (none when skipped)."""
     if HEIGHTS_PLAN["skip"]:
         return []
     from pipeline25d.analysis.height_blocks import read_blocks
 
-    _, blocks = read_blocks(checkpoints.heights_blocks.get().output.blocks)
-    return [f"{RESULTS}/work/heights/block_{b}.json" for b in blocks]
+    _, _, jobs = read_blocks(checkpoints.heights_blocks.get().output.blocks)
+    return [f"{RESULTS}/work/heights/block_{j}.json" for j in jobs]

@@ -1,9 +1,10 @@
 # Building heights measured on the maps: each footprint's roof displacement between the nadir
 # map and every oblique map, compared with the model's own heights (see height_sources.py).
 # In parallel jobs (analysis/height_blocks.py): the heights_blocks checkpoint puts the footprints on
-# the maps in blocks of heights.block_size m, one heights_block job measures each block (and keeps
-# its rows where nothing they were measured from changed: a district update re-measures only the
-# blocks it reaches), the heights job merges the rows and compares them with the model.
+# the maps in blocks of heights.block_size m and the blocks in jobs (sparse neighbours together), one
+# heights_block job measures each job's blocks (and keeps a block's rows where nothing they were
+# measured from changed: a district update re-measures only the blocks it reaches), the heights job
+# merges the rows and compares them with the model.
 
 # only what the steps read: a change elsewhere (web tiles, shadows ...) must not re-run them
 HEIGHTS_CONFIG = {k: config[k] for k in ("crs", "gsd", "inputs", "perspectives", "heights") if k in config}

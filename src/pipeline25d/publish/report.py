@@ -56,10 +56,10 @@ def stage_timings(results: Path, current=None) -> dict[str, dict]:
     return out
 
 
-def current_jobs(districts: set[str], blocks: dict[str, set[str]], heights_blocks: set[str] = frozenset()):
+def current_jobs(districts: set[str], blocks: dict[str, set[str]], heights_jobs: set[str] = frozenset()):
     """``current(job log)``: whether it belongs to a job of this configuration, whose
-    ``districts``, perspectives' render ``blocks`` (ids by perspective) and blocks of footprints
-    (``heights_blocks``) are given. Logs an earlier configuration left (a removed district or
+    ``districts``, perspectives' render ``blocks`` (ids by perspective) and jobs of the heights
+    stage's blocks of footprints (``heights_jobs``) are given. Logs an earlier configuration left (a removed district or
     perspective, a render block of another grouping) are not this run's."""
     def current(rel: Path) -> bool:
         if len(rel.parts) == 1:                              # scene.log, terrain.log
@@ -67,7 +67,7 @@ def current_jobs(districts: set[str], blocks: dict[str, set[str]], heights_block
         if rel.parts[0] == "render":
             return rel.parts[1] in blocks and rel.stem.removeprefix("block_") in blocks[rel.parts[1]]
         if rel.parts[0] == "heights":
-            return rel.stem == "blocks" or rel.stem.removeprefix("block_") in heights_blocks
+            return rel.stem == "blocks" or rel.stem.removeprefix("block_") in heights_jobs
         return rel.stem in districts or rel.stem in blocks
     return current
 
@@ -129,7 +129,7 @@ def build_report(config: dict, results: str | Path) -> dict:
         "sizes": {"model_bytes": model, "maps_bytes": maps, "tms_bytes": tms,
                   "ids_bytes": sum(p["ids"]["ids_bytes"] for p in persp if p["ids"]),
                   "model_to_maps": model / maps if maps else None},
-        "timings": stage_timings(results, current_jobs(set(config["inputs"]), blocks, _heights_blocks(results))),
+        "timings": stage_timings(results, current_jobs(set(config["inputs"]), blocks, _heights_jobs(results))),
         **({"coarser": coarser} if coarser else {}),
     }
 
@@ -140,10 +140,12 @@ def read_heights(results: Path) -> dict:
     return json.loads(path.read_text()) if path.exists() else {"skipped": "the heights step did not run"}
 
 
-def _heights_blocks(results: Path) -> set[str]:
-    """The blocks of footprints the heights stage measured in (work/heights/blocks.json; none without it)."""
+def _heights_jobs(results: Path) -> set[str]:
+    """The jobs the heights stage measured its blocks of footprints in (work/heights/blocks.json: a job
+    per block in a file of before the jobs; none without it)."""
     try:
-        return set(json.loads((results / "work" / "heights" / "blocks.json").read_text())["blocks"])
+        d = json.loads((results / "work" / "heights" / "blocks.json").read_text())
+        return set(d["jobs"] if "jobs" in d else d["blocks"])
     except (OSError, ValueError, KeyError, TypeError):
         return set()
 

@@ -38,6 +38,42 @@ def blocks_of(fps: list[Footprint], block_m: float) -> dict[str, list[int]]:
     return dict(sorted(out.items()))
 
 
+#: a heights job measures at most this many footprints where it groups sparse blocks (a job's
+#: start costs about one second: Python, scipy, the DTM; a footprint a third of one, nine views)
+JOB_FOOTPRINTS = 24
+
+
+def jobs_of(blocks: dict[str, list[int]], most: int = JOB_FOOTPRINTS) -> dict[str, list[str]]:
+    """{job: its blocks}: sparse blocks grouped into one job by a quadtree over the block grid.
+
+    Four sibling cells (``2**L`` blocks a side, aligned with the world's grid) become one job while
+    they hold at most ``most`` footprints together and none of them is already a job of its own; a
+    block with more stays a job alone. A job of one block is named as the block; a job of a level
+    ``L`` cell ``L<L>_<col>_<row>``. The grid being fixed in the world, an edit changes only the
+    jobs around it, and each block's rows are kept alone (:func:`block_of`'s name)."""
+    cells = {tuple(int(v) for v in b.split("_")): ([b], len(idx)) for b, idx in blocks.items()}
+    done: dict[str, list[str]] = {}
+    level = 0
+    while len(cells) > 1 and level < 64:      # cells either side of 0 never share a parent
+        parents: dict[tuple[int, int], list[tuple[int, int]]] = {}
+        for c in cells:
+            parents.setdefault((c[0] >> 1, c[1] >> 1), []).append(c)
+        merged = {}
+        for parent, kids in parents.items():
+            n = sum(cells[k][1] for k in kids)
+            if n <= most:
+                merged[parent] = ([b for k in sorted(kids) for b in cells[k][0]], n)
+            else:
+                done.update((_job_name(level, k, cells[k][0]), cells[k][0]) for k in kids)
+        cells, level = merged, level + 1
+    done.update((_job_name(level, k, v[0]), v[0]) for k, v in cells.items())
+    return dict(sorted(done.items(), key=lambda kv: kv[1][0]))
+
+
+def _job_name(level: int, cell: tuple[int, int], members: list[str]) -> str:
+    return members[0] if len(members) == 1 else f"L{level}_{cell[0]}_{cell[1]}"
+
+
 def context_of(members: list[Footprint], fps: list[Footprint], margin: float = CONTEXT_M) -> list[Footprint]:
     """The footprints of ``fps`` (in their order) whose bounding boxes come within ``margin`` m of
     any member's: every neighbour the members' silhouettes can meet."""
