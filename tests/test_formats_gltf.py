@@ -448,3 +448,29 @@ def test_gpu_instancing_repeats_the_mesh_at_each_instance(tmp_path, rotation_typ
         assert min(np.abs(tri[list(order)] - expected).max() for order in permutations(range(3))) < 1e-5, i
         normal = np.cross(tri[1] - tri[0], tri[2] - tri[0])
         assert normal @ exact[i].apply([0, 0, 1]) > 0, i     # the mirror (y -> -y) leaves the front at +z
+
+
+def test_specular_glossiness_diffuse_is_the_base_colour(tmp_path):
+    """KHR_materials_pbrSpecularGlossiness (obj2gltf --specularGlossiness, older exporters): its
+    diffuse texture and factor are drawn as the base colour, over a metallic-roughness fallback,
+    also where the file requires the extension; without a diffuse the part is white, as in glTF."""
+    png = _png_bytes()
+    gloss = {"diffuseTexture": {"index": 0}, "diffuseFactor": [1.0, 1.0, 1.0, 1.0], "glossinessFactor": 0.2}
+    material = {"extensions": {"KHR_materials_pbrSpecularGlossiness": gloss},
+                "pbrMetallicRoughness": {"baseColorFactor": [0.0, 0.0, 1.0, 1.0]}}
+    doc, binary = _gltf(material=material, image={"uri": "data:image/png;base64," + base64.b64encode(png).decode()},
+                        extra={"extensionsUsed": ["KHR_materials_pbrSpecularGlossiness"],
+                               "extensionsRequired": ["KHR_materials_pbrSpecularGlossiness"]})
+    part = load_gltf(_write_gltf(tmp_path / "gloss.gltf", doc, binary))[0]
+    assert part.texture == png and part.uv is not None and part.colors is None
+
+    gloss = {"diffuseFactor": [1.0, 0.5, 0.0, 1.0]}
+    doc["materials"] = [{"extensions": {"KHR_materials_pbrSpecularGlossiness": gloss},
+                         "pbrMetallicRoughness": {"baseColorFactor": [0.0, 0.0, 1.0, 1.0]}}]
+    part = load_gltf(_write_gltf(tmp_path / "factor.gltf", doc, binary))[0]
+    assert part.texture is None
+    np.testing.assert_array_equal(part.colors, [[255, 128, 0, 255]] * 3)
+
+    doc["materials"] = [{"extensions": {"KHR_materials_pbrSpecularGlossiness": {"glossinessFactor": 0.5}}}]
+    part = load_gltf(_write_gltf(tmp_path / "none.gltf", doc, binary))[0]
+    np.testing.assert_array_equal(part.colors, [[255, 255, 255, 255]] * 3)

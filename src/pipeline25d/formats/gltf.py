@@ -11,10 +11,11 @@ Draco (DracoPy), meshopt-compressed buffer views (``EXT_meshopt_compression`` an
 accessors), sparse accessors, base colour textures (GLB buffer views, ``data:`` URIs, files
 relative to the glTF; PNG, JPEG, and WEBP by ``EXT_texture_webp``, stored as PNG), their
 ``KHR_texture_transform``, base colour factor and ``COLOR_0`` as vertex colours of untextured
-parts. Triangles come as lists, strips or fans (modes 4, 5, 6); points and lines are skipped
-with a warning. A texture only a ``KHR_texture_basisu`` (KTX2) image gives cannot be decoded here:
-it is a missing texture (an error naming it unless the input says ``missing_textures: untextured``,
-then its parts are drawn untextured), also where the file lists the extension as required.
+parts (the base colour of ``KHR_materials_pbrSpecularGlossiness``: its diffuse). Triangles come
+as lists, strips or fans (modes 4, 5, 6); points and lines are skipped with a warning. A
+texture only a ``KHR_texture_basisu`` (KTX2) image gives cannot be decoded here: it is a missing
+texture (an error naming it unless the input says ``missing_textures: untextured``, then its
+parts are drawn untextured), also where the file lists the extension as required.
 
 One :class:`MeshPart` per primitive instance, its vertices compacted to the ones its
 triangles use; its faces' objects are the feature ids (``_BATCHID``, ``EXT_mesh_features``) and
@@ -52,6 +53,7 @@ SUPPORTED_EXTENSIONS = frozenset({
     "CESIUM_RTC",
     "KHR_draco_mesh_compression",
     "KHR_materials_unlit",
+    "KHR_materials_pbrSpecularGlossiness",      # its diffuse colour and texture are the base colour's
     "KHR_mesh_quantization",
     "KHR_texture_transform",
     "EXT_mesh_features",
@@ -524,7 +526,7 @@ def _primitive_part(doc: _Document, prim: dict, matrix: np.ndarray, name: str) -
         faces = faces[:, [0, 2, 1]]
     vertices = positions[used] @ matrix[:3, :3].T + matrix[:3, 3]
     material = doc.item("materials", prim["material"]) if "material" in prim else {}
-    pbr = material.get("pbrMetallicRoughness", {})
+    pbr = base_colour(material)
     texture, uv = _base_color_texture(doc, pbr, attrs)
     colors = None
     if texture is None:
@@ -560,6 +562,19 @@ def _face_features(doc: _Document, feature: np.ndarray | None,
     held, face_objects = np.unique(values, return_inverse=True)
     name = feature_prefix(doc.path, doc.root)
     return tuple(f"{name}#{v}" for v in held), face_objects
+
+
+def base_colour(material: dict) -> dict:
+    """The material's base colour as ``pbrMetallicRoughness`` gives it (``baseColorFactor``,
+    ``baseColorTexture``): from ``KHR_materials_pbrSpecularGlossiness``' diffuse factor and texture
+    where the material has that extension (obj2gltf's ``--specularGlossiness``, older exporters; a
+    reader that knows the extension takes it over the metallic-roughness fallback), the diffuse
+    colour of a surface being its base colour; else the material's own."""
+    gloss = (material.get("extensions") or {}).get("KHR_materials_pbrSpecularGlossiness")
+    if not isinstance(gloss, dict):
+        return material.get("pbrMetallicRoughness", {})
+    return {k: gloss[g] for k, g in (("baseColorFactor", "diffuseFactor"), ("baseColorTexture", "diffuseTexture"))
+            if g in gloss}
 
 
 def _base_color_texture(doc: _Document, pbr: dict, attrs: dict) -> tuple[bytes | None, np.ndarray | None]:
