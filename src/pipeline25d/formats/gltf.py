@@ -1,4 +1,5 @@
-"""glTF 2.0 / GLB reader producing :class:`~pipeline25d.core.mesh.MeshPart` lists.
+"""glTF 2.0 / GLB reader producing :class:`~pipeline25d.core.mesh.MeshPart` lists (glTF 1.0 and
+its binary container upgraded to 2.0 first: :mod:`.gltf1`).
 
 A small direct reader (numpy views on buffer views) rather than trimesh, because the
 3D Tiles content this pipeline meets needs what trimesh ignores: the ``CESIUM_RTC``
@@ -43,7 +44,7 @@ import numpy as np
 
 from pipeline25d.core.errors import InputFileError, MissingTextureWarning, UnsupportedFeatureError
 from pipeline25d.core.mesh import MeshPart, repeated
-from pipeline25d.formats import meshopt
+from pipeline25d.formats import gltf1, meshopt
 from pipeline25d.formats.attributes import Limiter
 from pipeline25d.formats.common import Y_UP_TO_Z_UP, image_problem, png_or_jpeg, side_file
 from pipeline25d.formats.feature_info import feature_prefix, feature_properties
@@ -63,6 +64,11 @@ SUPPORTED_EXTENSIONS = frozenset({
     "KHR_texture_basisu",           # its images are not decoded: a missing texture (see the module)
     *meshopt.EXTENSIONS,
 })
+
+#: a glTF's up axis turned to z, as CesiumJS turns a 3D Tiles 1.0 tileset's ``gltfUpAxis``: Y by
+#: (x, y, z) -> (x, -z, y), X by a rotation of -90 degrees about y, (x, y, z) -> (-z, y, x)
+UP_AXES = {"Y": Y_UP_TO_Z_UP, "Z": np.eye(4),
+           "X": np.array([[0, 0, -1, 0], [0, 1, 0, 0], [1, 0, 0, 0], [0, 0, 0, 1]], dtype=np.float64)}
 
 _GLB_MAGIC = b"glTF"
 _CHUNK_JSON = 0x4E4F534A
@@ -89,25 +95,28 @@ def load_gltf(path: str | Path, y_up_to_z_up: bool = True) -> list[MeshPart]:
 
 
 def parse_gltf_bytes(data: bytes, path: str | Path, y_up_to_z_up: bool = True,
-                     root: Path | None = None) -> list[MeshPart]:
+                     root: Path | None = None, up_axis: str | None = None) -> list[MeshPart]:
     """Parts of a GLB or JSON glTF held in ``data``.
 
     ``path`` names the file in messages and anchors relative URIs (for GLB embedded in
     b3dm/i3dm it is the tile file, as 3D Tiles resolves glTF URIs relative to the tile).
     Buffer and image files must lie inside ``root`` (default: ``path``'s folder; a tileset's
-    root folder for its tiles), see :func:`pipeline25d.formats.common.side_file`.
+    root folder for its tiles), see :func:`pipeline25d.formats.common.side_file`. ``up_axis``
+    ("X", "Y" or "Z": a 3D Tiles 1.0 tileset's ``asset.gltfUpAxis``), where given, names the glTF's
+    up axis in place of ``y_up_to_z_up`` (:data:`UP_AXES`).
     """
     path = Path(path)
     doc = _Document.parse(bytes(data), path, path.parent if root is None else root)
     try:
-        return _parts(doc, path, y_up_to_z_up)
+        up = UP_AXES[up_axis] if up_axis is not None else Y_UP_TO_Z_UP if y_up_to_z_up else np.eye(4)
+        return _parts(doc, path, up)
     except (AttributeError, TypeError) as exc:   # an object where an array belongs, a string for an object ...
         raise InputFileError(path, f"glTF JSON holds a value of the wrong type ({exc})") from None
 
 
-def _parts(doc: "_Document", path: Path, y_up_to_z_up: bool) -> list[MeshPart]:
-    """The parts of a parsed glTF document (:func:`parse_gltf_bytes`)."""
-    world = Y_UP_TO_Z_UP if y_up_to_z_up else np.eye(4)
+def _parts(doc: "_Document", path: Path, up: np.ndarray) -> list[MeshPart]:
+    """The parts of a parsed glTF document (:func:`parse_gltf_bytes`), turned z-up by ``up``."""
+    world = up
     rtc = doc.json.get("extensions", {}).get("CESIUM_RTC", {}).get("center")
     if rtc is not None:
         world = _translation(np.asarray(rtc, dtype=np.float64)) @ world
@@ -163,9 +172,11 @@ class _Document:
                 raise InputFileError(path, f"neither GLB nor valid glTF JSON ({exc})") from None
         if not isinstance(doc_json, dict):
             raise InputFileError(path, "glTF JSON is not an object")
+        if gltf1.is_gltf1(doc_json):
+            doc_json = gltf1.upgraded(doc_json, path)
         version = str(doc_json.get("asset", {}).get("version", ""))
         if not version.startswith("2"):
-            raise UnsupportedFeatureError(path, f"glTF version {version or '?'} is not supported (2.0 only)")
+            raise UnsupportedFeatureError(path, f"glTF version {version or '?'} is not supported (1.0 and 2.0 are)")
         unsupported = [e for e in doc_json.get("extensionsRequired", []) if e not in SUPPORTED_EXTENSIONS]
         if unsupported:
             raise UnsupportedFeatureError(path, f"glTF requires unsupported extension(s) {', '.join(unsupported)}")
@@ -369,12 +380,15 @@ def _webp_as_png(data: bytes, path: Path, index: int) -> bytes | None:
 
 
 def _split_glb(data: bytes, path: Path) -> tuple[dict, bytes | None]:
-    """JSON and BIN chunks of a GLB container, checking the header and chunk lengths."""
+    """JSON and BIN chunks of a GLB container, checking the header and chunk lengths (a binary glTF
+    1.0: its JSON, as written, and its body)."""
     if len(data) < 20:
         raise InputFileError(path, "GLB is truncated (shorter than its header)")
     _, version, length = struct.unpack_from("<4sII", data, 0)
+    if version == 1:
+        return gltf1.split_glb1(data, path)
     if version != 2:
-        raise UnsupportedFeatureError(path, f"GLB version {version} is not supported (glTF 2.0 only)")
+        raise UnsupportedFeatureError(path, f"GLB version {version} is not supported (1 and 2 are)")
     if length > len(data):
         raise InputFileError(path, f"GLB header says {length} bytes but only {len(data)} are present (truncated)")
     doc_json, glb_bin, pos = None, None, 12
@@ -433,8 +447,14 @@ def _translation(t: np.ndarray) -> np.ndarray:
 
 
 def _as_float(values: np.ndarray, accessor: dict) -> np.ndarray:
-    """float64 copy of accessor data, undoing ``normalized`` integer encodings."""
+    """float64 copy of accessor data, undoing ``normalized`` integer encodings and glTF 1.0's
+    ``WEB3D_quantized_attributes`` (its ``decodeMatrix``, column-major, on (value, 1))."""
     out = values.astype(np.float64)
+    quantized = (accessor.get("extensions") or {}).get("WEB3D_quantized_attributes")
+    if quantized is not None:
+        n = out.shape[1]
+        decode = np.asarray(quantized["decodeMatrix"], dtype=np.float64).reshape(n + 1, n + 1).T
+        return out @ decode[:n, :n].T + decode[:n, n]
     if accessor.get("normalized") and values.dtype.kind in "iu":
         out /= float(np.iinfo(values.dtype).max)
         if values.dtype.kind == "i":

@@ -102,7 +102,16 @@ def _content_has_features(data: bytes) -> bool:
 
 
 def _gltf_has_features(doc: dict) -> bool:
-    """Whether a glTF document's primitives carry feature ids (``_BATCHID``, ``EXT_mesh_features``)."""
+    """Whether a glTF document's primitives carry feature ids (``_BATCHID``, ``EXT_mesh_features``;
+    a glTF 1.0 one's ``BATCHID``)."""
+    from pipeline25d.formats import gltf1
+
+    if gltf1.is_gltf1(doc):
+        doc = gltf1.upgraded(doc, Path("content"))
+    return _features_in(doc)
+
+
+def _features_in(doc: dict) -> bool:
     for mesh in doc.get("meshes") or []:
         for prim in mesh.get("primitives") or []:
             if "EXT_mesh_features" in (prim.get("extensions") or {}):

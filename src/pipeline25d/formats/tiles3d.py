@@ -39,7 +39,7 @@ from pipeline25d.core.mesh import Mesh, MeshPart, joined, repeated
 from pipeline25d.formats.batch_table import COMPONENT_TYPES, batch_table_rows
 from pipeline25d.formats.common import Detail, Loaded, in_scene
 from pipeline25d.formats.feature_info import feature_prefix, with_feature_info
-from pipeline25d.formats.gltf import parse_gltf_bytes
+from pipeline25d.formats.gltf import UP_AXES, parse_gltf_bytes
 from pipeline25d.formats.tileset_tree import read_json, resolve, select
 
 _B3DM_HEADER = 28
@@ -72,6 +72,8 @@ def read_tileset_pieces(path: Path, spec: dict, detail: Detail = Detail(),
     one piece, the parts :func:`read_tileset` returns."""
     path = Path(path)
     up_axis = str(read_json(path).get("asset", {}).get("gltfUpAxis", "Y")).upper()
+    if up_axis not in UP_AXES:
+        raise InputFileError(path, f"asset.gltfUpAxis {up_axis!r} is none of X, Y, Z")
     chosen = select(path, detail.max_error, spec.get("missing_children", "coarser"))
     crs, coarser = spec.get("crs") or ECEF, tuple(chosen.coarser)
     if chosen.coarser:
@@ -83,7 +85,7 @@ def read_tileset_pieces(path: Path, spec: dict, detail: Detail = Detail(),
     parts: list[MeshPart] = []
     held, drawn = 0, False
     for k, (content_path, transform) in enumerate(chosen.contents):
-        parts.extend(_place(read_content(content_path, y_up=(up_axis != "Z"), root=path.parent), transform))
+        parts.extend(_place(read_content(content_path, up_axis, root=path.parent), transform))
         held += content_path.stat().st_size
         if held >= piece_bytes and k < len(chosen.contents) - 1:
             drawn = drawn or bool(parts)
@@ -110,7 +112,7 @@ def load_b3dm(path: str | Path, scene_crs: str, src_crs: str = ECEF) -> Mesh:
     return in_scene(read_b3dm(Path(path), {"crs": src_crs}), scene_crs, path)
 
 
-def read_content(path: Path, y_up: bool = True, root: Path | None = None) -> list[MeshPart]:
+def read_content(path: Path, up_axis: str = "Y", root: Path | None = None) -> list[MeshPart]:
     """Parts of one content file (b3dm, i3dm, cmpt, glb, gltf) in the tile's frame; the files it
     names must lie in ``root`` (default: its folder).
 
@@ -122,23 +124,23 @@ def read_content(path: Path, y_up: bool = True, root: Path | None = None) -> lis
         raise InputFileError(path, "tile content file is missing") from None
     except OSError as exc:
         raise InputFileError(path, f"cannot read tile content: {exc.strerror or exc}") from None
-    return _parse_content(data, path, y_up, path.parent if root is None else root)
+    return _parse_content(data, path, up_axis, path.parent if root is None else root)
 
 
 # --------------------------------------------------------------------------- content formats
 
 
-def _parse_content(data: bytes, path: Path, y_up: bool, root: Path) -> list[MeshPart]:
+def _parse_content(data: bytes, path: Path, up_axis: str, root: Path) -> list[MeshPart]:
     """Dispatch on the 4-byte magic (or JSON) of a tile content."""
     magic = data[:4]
     if magic == b"b3dm":
-        return _parse_b3dm(data, path, y_up, root)
+        return _parse_b3dm(data, path, up_axis, root)
     if magic == b"i3dm":
-        return _parse_i3dm(data, path, y_up, root)
+        return _parse_i3dm(data, path, up_axis, root)
     if magic == b"cmpt":
-        return _parse_cmpt(data, path, y_up, root)
+        return _parse_cmpt(data, path, up_axis, root)
     if magic == b"glTF" or data.lstrip()[:1] == b"{":
-        return parse_gltf_bytes(data, path, y_up, root)
+        return parse_gltf_bytes(data, path, root=root, up_axis=up_axis)
     if magic == b"pnts":
         warnings.warn(f"{path}: point cloud (pnts) content skipped", stacklevel=3)
         return []
@@ -182,7 +184,7 @@ def _feature_array(table: dict, body: bytes, name: str, count: int, n: int, dtyp
     return np.asarray(value, dtype=np.float64).reshape(count, n)
 
 
-def _parse_b3dm(data: bytes, path: Path, y_up: bool, root: Path) -> list[MeshPart]:
+def _parse_b3dm(data: bytes, path: Path, up_axis: str, root: Path) -> list[MeshPart]:
     """Batched 3D model: header, feature table (RTC_CENTER, BATCH_LENGTH), batch table (the batch
     ids' attributes, :mod:`pipeline25d.formats.batch_table`), GLB."""
     length = _check_length(data, path, _B3DM_HEADER)
@@ -196,7 +198,7 @@ def _parse_b3dm(data: bytes, path: Path, y_up: bool, root: Path) -> list[MeshPar
     if glb_start > length:
         raise InputFileError(path, "b3dm table lengths exceed the tile's byteLength (corrupt)")
     table, body = _feature_table(data, header, ft_json, ft_bin, path)
-    parts = parse_gltf_bytes(data[glb_start:length], path, y_up, root)
+    parts = parse_gltf_bytes(data[glb_start:length], path, root=root, up_axis=up_axis)
     rtc = _feature_array(table, body, "RTC_CENTER", 1, 3, "float32", path)
     parts = parts if rtc is None else [p.transformed(lambda v, t=rtc[0]: v + t) for p in parts]
     batch_start = header + ft_json + ft_bin
@@ -207,7 +209,7 @@ def _parse_b3dm(data: bytes, path: Path, y_up: bool, root: Path) -> list[MeshPar
     return with_feature_info(parts, rows, feature_prefix(path, root), path)
 
 
-def _parse_i3dm(data: bytes, path: Path, y_up: bool, root: Path) -> list[MeshPart]:
+def _parse_i3dm(data: bytes, path: Path, up_axis: str, root: Path) -> list[MeshPart]:
     """Instanced 3D model: the glTF repeated at each instance's position/rotation/scale, each
     instance an object ``<file>#<batch id>`` (``BATCH_ID``, else its index) with its row of the
     batch table as attributes (where the glTF's own faces carry no feature ids).
@@ -225,9 +227,9 @@ def _parse_i3dm(data: bytes, path: Path, y_up: bool, root: Path) -> list[MeshPar
     gltf = data[body_start:length]
     if gltf_format == 0:
         gltf_path = resolve(gltf.rstrip(b" \x00").decode("utf-8"), path, root)
-        parts = read_content(gltf_path, y_up, root)
+        parts = read_content(gltf_path, up_axis, root)
     else:
-        parts = parse_gltf_bytes(gltf, path, y_up, root)
+        parts = parse_gltf_bytes(gltf, path, root=root, up_axis=up_axis)
     matrices = _instance_matrices(table, body, path)
     batch_ids = _batch_ids(table, body, len(matrices), path)
     prefix = feature_prefix(path, root)
@@ -324,7 +326,7 @@ def _instanced(part: MeshPart, matrices: np.ndarray, batch_ids: np.ndarray, pref
     return out
 
 
-def _parse_cmpt(data: bytes, path: Path, y_up: bool, root: Path) -> list[MeshPart]:
+def _parse_cmpt(data: bytes, path: Path, up_axis: str, root: Path) -> list[MeshPart]:
     """Composite tile: the inner tiles one after another, the features of inner tile ``k`` keyed
     ``<file>/<k>#<feature id>`` (each inner tile numbers its features from 0)."""
     length = _check_length(data, path, 16)
@@ -336,7 +338,7 @@ def _parse_cmpt(data: bytes, path: Path, y_up: bool, root: Path) -> list[MeshPar
         inner_len = struct.unpack_from("<I", data, pos + 8)[0]
         if inner_len < 12 or pos + inner_len > length:
             raise InputFileError(path, "composite inner tile runs past the end (corrupt)")
-        parts.extend(_inner_keys(_parse_content(data[pos:pos + inner_len], path, y_up, root),
+        parts.extend(_inner_keys(_parse_content(data[pos:pos + inner_len], path, up_axis, root),
                                  feature_prefix(path, root), k))
         pos += inner_len
     return parts
