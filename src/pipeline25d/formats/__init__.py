@@ -130,8 +130,10 @@ def detect_format(path: Path) -> str:
         if is_citygml(head):
             return "citygml"
     if suffix == ".json":
+        from pipeline25d.formats.gzipped import file_bytes
+
         try:
-            doc = json.loads(path.read_bytes())
+            doc = json.loads(file_bytes(path))
         except (OSError, ValueError) as exc:
             raise InputFileError(path, f"is not valid JSON: {exc}") from None
         except RecursionError:

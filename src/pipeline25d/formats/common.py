@@ -58,9 +58,12 @@ class Loaded(NamedTuple):
 
 
 def read_text(path: Path, what: str) -> str:
-    """The file's text (UTF-8, BOM tolerated); InputFileError naming ``what`` when unreadable."""
+    """The file's text (UTF-8, BOM tolerated; a gzipped file's: :mod:`.gzipped`); InputFileError naming
+    ``what`` when unreadable."""
+    from pipeline25d.formats.gzipped import file_bytes
+
     try:
-        return path.read_text(encoding="utf-8-sig")
+        return file_bytes(path).decode("utf-8-sig")
     except FileNotFoundError:
         raise InputFileError(path, f"{what} is missing") from None
     except (OSError, UnicodeDecodeError) as exc:

@@ -48,6 +48,7 @@ from pipeline25d.formats import gltf1, meshopt
 from pipeline25d.formats.attributes import Limiter
 from pipeline25d.formats.common import Y_UP_TO_Z_UP, image_problem, png_or_jpeg, side_file
 from pipeline25d.formats.feature_info import feature_prefix, feature_properties
+from pipeline25d.formats.gzipped import file_bytes
 
 #: Extensions this reader honours (or may safely ignore) when a file lists them as required.
 SUPPORTED_EXTENSIONS = frozenset({
@@ -88,7 +89,7 @@ def load_gltf(path: str | Path, y_up_to_z_up: bool = True) -> list[MeshPart]:
     """
     path = Path(path)
     try:
-        data = path.read_bytes()
+        data = file_bytes(path)
     except OSError as exc:
         raise InputFileError(path, f"cannot read glTF file: {exc.strerror or exc}") from None
     return parse_gltf_bytes(data, path, y_up_to_z_up)
@@ -354,7 +355,7 @@ class _Document:
                 raise InputFileError(self.path, f"{what}: malformed data URI") from None
         target = side_file(uri, self.path.parent, self.root, self.path, what)
         try:
-            return target.read_bytes()
+            return file_bytes(target)
         except FileNotFoundError:
             return None
         except OSError as exc:

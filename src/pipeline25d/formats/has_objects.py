@@ -20,6 +20,7 @@ from collections import deque
 from pathlib import Path
 
 from pipeline25d.core.errors import Pipeline25dError
+from pipeline25d.formats.gzipped import file_bytes
 
 #: formats whose files never name an object (see the module docstring)
 SURFACE_FORMATS = frozenset({"ply", "osgb"})
@@ -39,9 +40,9 @@ def input_has_objects(spec: dict) -> bool:
             return False
         if fmt == "3dtiles":
             content = _first_content(path)
-            return content is None or _content_has_features(content.read_bytes())
+            return content is None or _content_has_features(file_bytes(content))
         if fmt == "b3dm":
-            return _content_has_features(path.read_bytes())
+            return _content_has_features(file_bytes(path))
     except (Pipeline25dError, OSError, ValueError, KeyError, TypeError, AttributeError, struct.error,
             RecursionError):
         return True                     # ingest names the file's problem

@@ -40,6 +40,7 @@ from pipeline25d.formats.batch_table import COMPONENT_TYPES, batch_table_rows
 from pipeline25d.formats.common import Detail, Loaded, in_scene
 from pipeline25d.formats.feature_info import feature_prefix, with_feature_info
 from pipeline25d.formats.gltf import UP_AXES, parse_gltf_bytes
+from pipeline25d.formats.gzipped import file_bytes
 from pipeline25d.formats.tileset_tree import read_json, resolve, select
 
 _B3DM_HEADER = 28
@@ -119,7 +120,7 @@ def read_content(path: Path, up_axis: str = "Y", root: Path | None = None) -> li
     Point clouds (pnts) and unknown formats are skipped with a warning.
     """
     try:
-        data = path.read_bytes()
+        data = file_bytes(path)
     except FileNotFoundError:
         raise InputFileError(path, "tile content file is missing") from None
     except OSError as exc:

@@ -35,6 +35,7 @@ import numpy as np
 from pipeline25d.core.errors import InputFileError, UnsupportedFeatureError
 from pipeline25d.core.mesh import Coarser
 from pipeline25d.formats.common import read_text, side_file
+from pipeline25d.formats.gzipped import file_bytes
 
 #: the most tiles one tileset's tree may expand to (external tilesets included, every time
 #: they are named); beyond it the tileset is refused
@@ -395,7 +396,7 @@ def _bit(bits: np.ndarray, index: int) -> bool:
 def _read_subtree(path: Path, ctx: _Implicit) -> _Subtree:
     """Parse a binary (``subt``) or JSON subtree file into availability bitstreams."""
     try:
-        data = path.read_bytes()
+        data = file_bytes(path)
     except FileNotFoundError:
         raise InputFileError(path, f"subtree file named by {ctx.json_path} is missing") from None
     if data[:4] == b"subt":
@@ -437,7 +438,7 @@ def _read_subtree(path: Path, ctx: _Implicit) -> _Subtree:
 def _read_buffer(path: Path, subtree: Path) -> bytes:
     """The bytes of a subtree's external buffer; InputFileError naming both when unreadable."""
     try:
-        return path.read_bytes()
+        return file_bytes(path)
     except OSError as exc:
         raise InputFileError(path, f"subtree buffer named by {subtree} cannot be read: {exc.strerror or exc}") from None
 
