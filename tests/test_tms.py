@@ -384,3 +384,44 @@ def test_a_sparse_map_skips_the_blocks_over_nothing_and_cuts_the_same_tiles(tmp_
     fresh = tms(_cog(tmp_path / "one.tif", tmp_path / "one_dense.tif", False), "auto", tmp_path / "f", processes=2)
     assert not update["full"] and digests(tmp_path / "s") == digests(tmp_path / "f")
     assert 0 < update["web_tiles"] == fresh["web_tiles"] < sparse["web_tiles"]
+
+
+def test_a_sparse_cut_makes_only_the_base_tiles_its_warped_blocks_reach(tmp_path, monkeypatch):
+    """One 150 m district on a 1.8 km map stored sparse: the base tiles whose read windows meet no
+    warped block (they would read zeros, and gdal2tiles writes no empty tile) are not made; every
+    tile written is one that was made, and the pyramid is the dense map's byte for byte."""
+    import hashlib
+
+    from pipeline25d.core.crs import horizontal_wkt
+    from pipeline25d.stages.tiles import web
+
+    grid = Grid.from_gdal((691000.0, 0.5, 0.0, 5334000.0, 0.0, -0.5), 3600, 3600)
+    rgba = np.zeros((3600, 3600, 4), np.uint8)
+    rgba[1700:2000, 1500:1800, :3] = np.random.default_rng(3).integers(0, 255, (300, 300, 3), dtype=np.uint8)
+    rgba[1700:2000, 1500:1800, 3] = 255
+    write_rgba_geotiff(tmp_path / "map.tif", rgba, grid, horizontal_wkt("EPSG:25832"))
+    real = web.create_base_tile
+    made: dict[str, list] = {"sparse": [], "dense": []}
+    for kind in made:
+        monkeypatch.setattr(web, "create_base_tile", lambda conf, d, k=kind: (made[k].append((d.tz, d.tx, d.ty)),
+                                                                             real(conf, d))[1])
+        tms(_cog(tmp_path / "map.tif", tmp_path / f"{kind}.tif", kind == "sparse"), "auto", tmp_path / kind,
+            processes=1, most=1, work_dir=tmp_path / f"work_{kind}")
+    files = {k: _tile_files(tmp_path / k) for k in made}
+    top = max(z for z, _, _ in made["dense"])
+    on_disk = {tuple(int(v) for v in k.removesuffix(".png").split("/")) for k in files["sparse"]}
+    written = {t for t in on_disk if t[0] == top}
+    assert written and written <= set(made["sparse"])
+    # the warped blocks' tiles (a block: BLOCK_TILES a side, its y counted up, the tiles' down), one more around
+    warped = [tuple(int(v) for v in p.stem.split("_")) for p in (tmp_path / "work_sparse" / "blocks").glob("*.tif")]
+    rows = 2 ** top - 1
+
+    def near_a_warped_block(x: int, y: int) -> bool:
+        return any(bx * BLOCK_TILES - 1 <= x <= (bx + 1) * BLOCK_TILES and
+                   by * BLOCK_TILES - 1 <= rows - y <= (by + 1) * BLOCK_TILES for bx, by in warped)
+
+    assert 0 < len(warped) < 16 and all(near_a_warped_block(x, y) for _, x, y in made["sparse"])
+    assert not all(near_a_warped_block(x, y) for _, x, y in made["dense"])
+    assert len(made["sparse"]) < len(made["dense"])
+    digest = {k: {t: hashlib.sha256(p.read_bytes()).hexdigest() for t, p in f.items()} for k, f in files.items()}
+    assert digest["sparse"] == digest["dense"]

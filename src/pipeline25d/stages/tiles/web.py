@@ -258,7 +258,10 @@ def cut(blocks: list[Path], tiles: Path, grid: Grid, zooms: str, windows: list[W
     """Cut again, with gdal2tiles' own tile functions, every web tile that ``windows`` (pixel
     windows of the web-mercator grid whose blocks were warped again) reach: the base tiles
     whose read window meets one, and all tiles above them. Their old files are deleted first,
-    so a tile that now holds nothing is gone. Returns how many tiles were written."""
+    so a tile that now holds nothing is gone. A base tile whose read window meets none of the
+    ``blocks`` is not made: it would read zeros, and gdal2tiles writes no empty tile (a map of
+    Zurich's 210 LoD2 buildings over 9 x 10 km at 0.5 m: 2,158 base tiles made for its 234 tiles,
+    where all 9,108 of its extent were read). Returns how many tiles were written."""
     g2t = gdal2tiles()
     if not windows:
         return 0
@@ -280,11 +283,9 @@ def cut(blocks: list[Path], tiles: Path, grid: Grid, zooms: str, windows: list[W
     conf, details = g2t.worker_tile_details(str(layout), str(tiles), options)
     try:
         reads = np.array([[d.rx, d.ry, d.rx + d.rxsize, d.ry + d.rysize] for d in details]).reshape(-1, 1, 4)
-        win = np.asarray(windows).reshape(1, -1, 4)
-        meets = ((reads[..., 0] < win[..., 2]) & (reads[..., 2] > win[..., 0]) & (reads[..., 1] < win[..., 3])
-                 & (reads[..., 3] > win[..., 1])).any(axis=1)
-        base = [d for d, m in zip(details, meets) if m]
-        reach = {conf.tmaxz: {(d.tx, d.ty) for d in base}}          # xyz positions, as on disk
+        meets, held = _meeting(reads, windows), _meeting(reads, _windows_of(blocks, grid))
+        base = [d for d, m, h in zip(details, meets, held) if m and h]
+        reach = {conf.tmaxz: {(d.tx, d.ty) for d, m in zip(details, meets) if m}}     # xyz positions, as on disk
         for z in range(conf.tmaxz - 1, conf.tminz - 1, -1):
             reach[z] = {(x >> 1, y >> 1) for x, y in reach[z + 1]}
         ext = id_tiles.EXT if ids else conf.tile_extension
@@ -308,6 +309,19 @@ def cut(blocks: list[Path], tiles: Path, grid: Grid, zooms: str, windows: list[W
         layout.unlink(missing_ok=True)
     return sum((tiles / str(z) / str(x) / f"{y}.{conf.tile_extension}").is_file()
                for z, cells in reach.items() for x, y in cells)
+
+
+def _meeting(reads: np.ndarray, windows: list[Window]) -> np.ndarray:
+    """Whether each (n, 1, 4) read window (col0, row0, col1, row1) meets any of ``windows``."""
+    win = np.asarray(windows, dtype=np.int64).reshape(1, -1, 4)
+    return ((reads[..., 0] < win[..., 2]) & (reads[..., 2] > win[..., 0]) & (reads[..., 1] < win[..., 3])
+            & (reads[..., 3] > win[..., 1])).any(axis=1)
+
+
+def _windows_of(blocks: list[Path], grid: Grid) -> list[Window]:
+    """The pixel windows of the block files on ``grid`` (the grid they were kept on)."""
+    g = gdal()
+    return [grid.window_covering(Extent(*Grid.of_dataset(g.Open(str(b))).bounds)) for b in blocks]
 
 
 def _cut_ids(vrt: str, tiles: Path, base: list, reach: dict[int, set], conf, workers: Workers) -> None:
