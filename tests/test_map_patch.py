@@ -301,3 +301,29 @@ def test_blank_blocks_of_a_new_map_are_not_made_and_read_as_the_zeros_they_hold(
     kept, patch = patched_map(mosaic, src, none, crs, GSD, tmp_path / "kept")
     assert not patch["full"] and patch["blocks_redone"] == 1
     np.testing.assert_array_equal(_pixels_of(kept), _pixels_of(mosaic))
+
+
+@pytest.mark.parametrize("method, order", [("none", 0), ("polynomial", 1)])
+def test_blocks_no_rendered_tile_reaches_are_not_made(tmp_path, monkeypatch, method, order):
+    """Tiles rendered in two corners only (the mosaic has no others): a new map makes only the blocks
+    its tiles reach (their squares of data through the warp, or the tiles' own windows where it is
+    copied), and reads pixel for pixel, overviews too, as the map that makes every block."""
+    monkeypatch.setattr(map_patch, "BLOCK_PX", BLOCK)
+    d = tmp_path / "tiles"
+    d.mkdir()
+    for r, c in ((0, 0), (0, 1), (ROWS - 1, COLS - 1)):
+        _write_tile(d, r, c)
+    choice, crs = {"method": method, "order": order}, horizontal_wkt(CRS)
+    mosaic, src = _source(d, _observations())
+    kept, stats = patched_map(mosaic, src, choice, crs, GSD, tmp_path / "kept")
+    ds = gdal().Open(str(kept))
+    nx, ny = -(-ds.RasterXSize // BLOCK), -(-ds.RasterYSize // BLOCK)
+    ds = None
+    monkeypatch.setattr(map_patch, "blocks_reached", lambda *a: {(bx, by) for bx in range(nx) for by in range(ny)})
+    every, all_stats = patched_map(mosaic, src, choice, crs, GSD, tmp_path / "every")
+    assert all_stats["blocks_redone"] == all_stats["blocks"] == stats["blocks"] == nx * ny
+    assert 2 <= stats["blocks_redone"] <= nx * ny // 3          # the corners' blocks, not the land between
+    np.testing.assert_array_equal(_pixels_of(kept), _pixels_of(every))
+    for level in range(2):
+        np.testing.assert_array_equal(_overview(kept, level), _overview(every, level))
+    assert _pixels_of(kept)[3].any()

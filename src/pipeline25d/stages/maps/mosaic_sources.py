@@ -41,6 +41,23 @@ def plain_sources(vrt: Path) -> bool:
     return True
 
 
+def source_windows(mosaic: str | Path, grid: list) -> list[tuple[int, int, int, int]]:
+    """The pixel windows (col0, row0, col1, row1) of the tiles a mosaic VRT's first band reads:
+    where its pixels can hold anything; a mosaic that is no VRT of sources (a raster file), or
+    one whose sources say no place, is its whole ``grid`` (of :func:`~pipeline25d.core.raster.map_cells`)."""
+    whole = [(0, 0, int(grid[6]), int(grid[7]))]
+    try:
+        root = ET.parse(mosaic).getroot()
+    except (ET.ParseError, UnicodeDecodeError, OSError):
+        return whole
+    band = root.find("VRTRasterBand") if root.tag == "VRTDataset" else None
+    sources = [] if band is None else [c for c in band if c.tag.endswith("Source")]
+    if band is None or any(s.find("DstRect") is None for s in sources):     # no DstRect: the whole raster
+        return whole
+    rects = [[float(s.find("DstRect").get(k)) for k in ("xOff", "yOff", "xSize", "ySize")] for s in sources]
+    return [(int(np.floor(x)), int(np.floor(y)), int(np.ceil(x + w)), int(np.ceil(y + h))) for x, y, w, h in rects]
+
+
 def _transforms(source: ET.Element) -> bool:
     """A source that does more than copy through its mask (scale, offset, lookup table, ...)."""
     return any(child.tag not in ("SourceFilename", "SourceBand", "SourceProperties", "SrcRect", "DstRect",

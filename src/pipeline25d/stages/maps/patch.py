@@ -32,6 +32,7 @@ from pipeline25d.core.geotiff import geotiff_dataset
 from pipeline25d.core.grid import Grid, Window
 from pipeline25d.core.journal import read_state, write_state
 from pipeline25d.core.raster import cells_grid_of, gdal
+from pipeline25d.stages.maps.mosaic_sources import source_windows
 from pipeline25d.stages.maps.parts import box_outline
 
 log = logging.getLogger(__name__)
@@ -114,7 +115,11 @@ def patched_map(mosaic: str | Path, source: str | Path, choice: dict, crs: str, 
     if full:
         shutil.rmtree(work, ignore_errors=True)
         work.mkdir(parents=True)
-        todo = {(bx, by) for bx in range(nx) for by in range(ny)}
+        # a block that no square of the mosaic holding data reaches holds nothing: not made, and a
+        # new kept file leaves it unwritten (read as zeros)
+        held = list(cells) if warped else cells_under(source_windows(mosaic, mosaic_grid), mosaic_grid)
+        to_map = source_to_map(source, choice) if warped else pixel_to_map(mosaic_grid)
+        todo = blocks_reached(held, mosaic_grid, to_map, grid, size, MARGIN_PX if warped else 0)
         changed: list[str] = []
     else:
         old = state["cells"]
@@ -263,6 +268,16 @@ def gcps_digest(source: str | Path) -> str:
 
 def pixel_to_map(mosaic_grid: list):
     return cells_grid_of(mosaic_grid).xy
+
+
+def cells_under(windows: list[tuple[int, int, int, int]], mosaic_grid: list) -> list[str]:
+    """The squares (``col_row``) of :func:`~pipeline25d.core.raster.map_cells`' grid that pixel windows meet."""
+    cell, out = mosaic_grid[8], set()
+    for c0, r0, c1, r1 in windows:
+        if c1 > c0 and r1 > r0:
+            out |= {f"{c}_{r}" for c in range(c0 // cell, (c1 - 1) // cell + 1)
+                    for r in range(r0 // cell, (r1 - 1) // cell + 1)}
+    return sorted(out)
 
 
 def block_window(bx: int, by: int, width: int, height: int, size: int) -> Window:
