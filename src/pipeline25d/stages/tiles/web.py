@@ -260,8 +260,8 @@ def cut(blocks: list[Path], tiles: Path, grid: Grid, zooms: str, windows: list[W
     whose read window meets one, and all tiles above them. Their old files are deleted first,
     so a tile that now holds nothing is gone. A base tile whose read window meets none of the
     ``blocks`` is not made: it would read zeros, and gdal2tiles writes no empty tile (a map of
-    Zurich's 210 LoD2 buildings over 9 x 10 km at 0.5 m: 2,158 base tiles made for its 234 tiles,
-    where all 9,108 of its extent were read). Returns how many tiles were written."""
+    Zurich's 210 LoD2 buildings over 9 x 10 km at 0.5 m: at zooms 11-17, 1,008 base tiles made
+    where 2,350 were; at 14-18, 2,158 where 9,108 were). Returns how many tiles were written."""
     g2t = gdal2tiles()
     if not windows:
         return 0
