@@ -263,3 +263,31 @@ def _spans(length: int, span: int, cuts: Sequence[int] | None) -> list[tuple[int
 
 def widen(s: slice, by: int, length: int) -> slice:
     return slice(max(s.start - by, 0), min(s.stop + by, length))
+
+
+def windows_meeting(reads: np.ndarray, windows: Sequence[Window], grid: Grid, cell: int = 64) -> np.ndarray:
+    """Whether each of the (n, 4) pixel windows ``reads`` (col0, row0, col1, row1) of ``grid`` may
+    meet one of ``windows``: both taken to squares of ``cell`` px, a read window meeting a square
+    that a window covers part of. Never False where they meet (True at most a square early), in
+    memory of the grid's squares, not of reads x windows (the web-tile cut: its base tiles' read
+    windows against its changed windows and its blocks, 10^5 and 10^4 for a city at 5 cm)."""
+    reads = np.asarray(reads, dtype=np.int64).reshape(-1, 4)
+    ny, nx = -(-grid.height // cell), -(-grid.width // cell)
+    held = np.zeros((ny + 1, nx + 1), np.int64)          # a 2D difference array of the windows' squares
+    for w in windows:
+        c0, r0 = max(w.col0, 0) // cell, max(w.row0, 0) // cell
+        c1, r1 = -(-min(w.col1, grid.width) // cell), -(-min(w.row1, grid.height) // cell)
+        if c1 > c0 and r1 > r0:
+            held[r0, c0] += 1
+            held[r0, c1] -= 1
+            held[r1, c0] -= 1
+            held[r1, c1] += 1
+    covered = (held.cumsum(axis=0).cumsum(axis=1)[:ny, :nx] > 0).astype(np.int64)
+    sums = np.zeros((ny + 1, nx + 1), np.int64)          # its integral image: squares covered in a range
+    sums[1:, 1:] = covered.cumsum(axis=0).cumsum(axis=1)
+    c0, r0 = np.clip(reads[:, 0], 0, grid.width) // cell, np.clip(reads[:, 1], 0, grid.height) // cell
+    c1 = -(-np.clip(reads[:, 2], 0, grid.width) // cell)
+    r1 = -(-np.clip(reads[:, 3], 0, grid.height) // cell)
+    inside = (c1 > c0) & (r1 > r0)
+    c0, r0, c1, r1 = (np.minimum(v, m) for v, m in ((c0, nx), (r0, ny), (c1, nx), (r1, ny)))
+    return inside & (sums[r1, c1] - sums[r0, c1] - sums[r1, c0] + sums[r0, c0] > 0)

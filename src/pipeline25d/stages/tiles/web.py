@@ -41,7 +41,7 @@ import numpy as np
 
 from pipeline25d.core.atomic import device_full, replace_dir
 from pipeline25d.core.errors import OutputError
-from pipeline25d.core.grid import Extent, Grid, Window
+from pipeline25d.core.grid import Extent, Grid, Window, windows_meeting
 from pipeline25d.core.journal import read_state, write_state
 from pipeline25d.core.raster import cells_grid_of, gdal, map_cells, noted_cells
 from pipeline25d.stages.maps.mosaic_sources import plain_sources
@@ -181,8 +181,10 @@ def update_pyramid(cog: str | Path, zoom: str, work: Path, processes: int = 1, t
                     [j for j in jobs if j[0] not in nothing])
         blocks = sorted((work / "blocks").glob("*.tif"))
         if blocks:
+            held = [block_window(tuple(int(v) for v in b.stem.split("_")), grid, max_zoom) for b in blocks]
             redone = cut(blocks, work / "tiles", stored_grid(grid, factor), zooms,
-                         [w.scaled_down(factor) for w in reach], workers, tile_format, quality, webp_method)
+                         [w.scaled_down(factor) for w in reach], workers, tile_format, quality, webp_method,
+                         [w.scaled_down(factor) for w in held if w is not None])
         else:                           # the map stores nothing: no tile holds anything
             shutil.rmtree(work / "tiles", ignore_errors=True)
             (work / "tiles").mkdir()
@@ -254,14 +256,16 @@ def block_window(block: tuple[int, int], grid: Grid, max_zoom: int) -> Window | 
 
 
 def cut(blocks: list[Path], tiles: Path, grid: Grid, zooms: str, windows: list[Window], workers: Workers,
-        tile_format: str, quality: int, webp_method: int | None = None) -> int:
+        tile_format: str, quality: int, webp_method: int | None = None,
+        held_windows: list[Window] | None = None) -> int:
     """Cut again, with gdal2tiles' own tile functions, every web tile that ``windows`` (pixel
     windows of the web-mercator grid whose blocks were warped again) reach: the base tiles
     whose read window meets one, and all tiles above them. Their old files are deleted first,
     so a tile that now holds nothing is gone. A base tile whose read window meets none of the
-    ``blocks`` is not made: it would read zeros, and gdal2tiles writes no empty tile (a map of
-    Zurich's 210 LoD2 buildings over 9 x 10 km at 0.5 m: at zooms 11-17, 1,008 base tiles made
-    where 2,350 were; at 14-18, 2,158 where 9,108 were). Returns how many tiles were written."""
+    ``blocks`` (their windows on ``grid``: ``held_windows``, default the whole grid) is not made:
+    it would read zeros, and gdal2tiles writes no empty tile (a map of Zurich's 210 LoD2 buildings
+    over 9 x 10 km at 0.5 m: at zooms 11-17, 1,008 base tiles made where 2,350 were; at 14-18,
+    2,158 where 9,108 were). Returns how many tiles were written."""
     g2t = gdal2tiles()
     if not windows:
         return 0
@@ -282,8 +286,9 @@ def cut(blocks: list[Path], tiles: Path, grid: Grid, zooms: str, windows: list[W
     options.webp_method = webp_method             # read by the tile encoder (tiles.base.gdal2tiles)
     conf, details = g2t.worker_tile_details(str(layout), str(tiles), options)
     try:
-        reads = np.array([[d.rx, d.ry, d.rx + d.rxsize, d.ry + d.rysize] for d in details]).reshape(-1, 1, 4)
-        meets, held = _meeting(reads, windows), _meeting(reads, _windows_of(blocks, grid))
+        reads = np.array([[d.rx, d.ry, d.rx + d.rxsize, d.ry + d.rysize] for d in details]).reshape(-1, 4)
+        held_windows = [Window(0, 0, grid.width, grid.height)] if held_windows is None else held_windows
+        meets, held = windows_meeting(reads, windows, grid), windows_meeting(reads, held_windows, grid)
         base = [d for d, m, h in zip(details, meets, held) if m and h]
         reach = {conf.tmaxz: {(d.tx, d.ty) for d, m in zip(details, meets) if m}}     # xyz positions, as on disk
         for z in range(conf.tmaxz - 1, conf.tminz - 1, -1):
@@ -309,19 +314,6 @@ def cut(blocks: list[Path], tiles: Path, grid: Grid, zooms: str, windows: list[W
         layout.unlink(missing_ok=True)
     return sum((tiles / str(z) / str(x) / f"{y}.{conf.tile_extension}").is_file()
                for z, cells in reach.items() for x, y in cells)
-
-
-def _meeting(reads: np.ndarray, windows: list[Window]) -> np.ndarray:
-    """Whether each (n, 1, 4) read window (col0, row0, col1, row1) meets any of ``windows``."""
-    win = np.asarray(windows, dtype=np.int64).reshape(1, -1, 4)
-    return ((reads[..., 0] < win[..., 2]) & (reads[..., 2] > win[..., 0]) & (reads[..., 1] < win[..., 3])
-            & (reads[..., 3] > win[..., 1])).any(axis=1)
-
-
-def _windows_of(blocks: list[Path], grid: Grid) -> list[Window]:
-    """The pixel windows of the block files on ``grid`` (the grid they were kept on)."""
-    g = gdal()
-    return [grid.window_covering(Extent(*Grid.of_dataset(g.Open(str(b))).bounds)) for b in blocks]
 
 
 def _cut_ids(vrt: str, tiles: Path, base: list, reach: dict[int, set], conf, workers: Workers) -> None:
