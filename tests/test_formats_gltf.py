@@ -366,7 +366,7 @@ def test_draco_primitive_by_attribute_id(tmp_path):
     uv = np.array([[0, 0], [1, 0], [0, 1], [1, 1]], dtype=np.float64)
     doc, binary = _draco_glb(pts, uv)
     png = _png_bytes()
-    part = parse_gltf_bytes(_glb(doc, binary), tmp_path / "d.glb", y_up_to_z_up=False)[0]
+    part = parse_gltf_bytes(_glb(doc, binary), tmp_path / "d.glb", up_axis="Z")[0]
     assert part.n_triangles == 2 and part.texture == png
     np.testing.assert_allclose(part.bounds(), [[0, 0, 0], [2, 3, 0]], atol=1e-3)
     # every vertex's UV is (x / 2, 1 - y / 3): UVs travel with their vertices, v flipped
@@ -406,7 +406,7 @@ def test_draco_over_normalized_integers_is_denormalised(tmp_path, component, sca
     doc, binary = _draco_glb(stored, uv, component, node={"scale": [2.0, 2.0, 2.0]},
                              extensions=("KHR_mesh_quantization",),
                              quantization_bits=16, tex_coord_quantization_bits=16)
-    part = parse_gltf_bytes(_glb(doc, binary), tmp_path / "q.glb", y_up_to_z_up=False)[0]
+    part = parse_gltf_bytes(_glb(doc, binary), tmp_path / "q.glb", up_axis="Z")[0]
     want = 2.0 * np.maximum(stored / scale, -1.0)                         # the node's scale 2 on the unit values
     np.testing.assert_allclose(part.bounds(), [want.min(axis=0), want.max(axis=0)], atol=2.0 * 2 / scale)
     np.testing.assert_allclose(np.sort(part.uv[:, 0]), np.sort(np.maximum(uv[:, 0] / scale, -1.0)), atol=2 / scale)
@@ -439,7 +439,7 @@ def test_gpu_instancing_repeats_the_mesh_at_each_instance(tmp_path, rotation_typ
     doc["buffers"][0]["byteLength"] = len(binary)
     doc["nodes"][0]["extensions"] = {"EXT_mesh_gpu_instancing": {"attributes": attributes}}
     doc["extensionsUsed"] = doc["extensionsRequired"] = ["EXT_mesh_gpu_instancing"]
-    part, = parse_gltf_bytes(_glb(doc, binary), tmp_path / "i.glb", y_up_to_z_up=False)
+    part, = parse_gltf_bytes(_glb(doc, binary), tmp_path / "i.glb", up_axis="Z")
     assert part.n_triangles == 3
     exact = Rotation.from_quat(rotation.astype(np.float64) / (32767 if rotation_type != "float" else 1))
     for i in range(3):

@@ -69,6 +69,10 @@ class Window(NamedTuple):
     def of_slices(cls, rows: slice, cols: slice) -> "Window":
         return cls(cols.start, rows.start, cols.stop, rows.stop)
 
+    def clipped(self, width: int, height: int) -> "Window":
+        """This window cut to a ``width`` x ``height`` grid (empty, col1 <= col0 or row1 <= row0, off it)."""
+        return Window(max(self.col0, 0), max(self.row0, 0), min(self.col1, width), min(self.row1, height))
+
     def scaled_down(self, factor: int) -> "Window":
         """The window of a grid with pixels ``factor`` times as wide that covers this one."""
         if factor == 1:
@@ -275,8 +279,8 @@ def windows_meeting(reads: np.ndarray, windows: Sequence[Window], grid: Grid, ce
     ny, nx = -(-grid.height // cell), -(-grid.width // cell)
     held = np.zeros((ny + 1, nx + 1), np.int64)          # a 2D difference array of the windows' squares
     for w in windows:
-        c0, r0 = max(w.col0, 0) // cell, max(w.row0, 0) // cell
-        c1, r1 = -(-min(w.col1, grid.width) // cell), -(-min(w.row1, grid.height) // cell)
+        w = w.clipped(grid.width, grid.height)
+        c0, r0, c1, r1 = w.col0 // cell, w.row0 // cell, -(-w.col1 // cell), -(-w.row1 // cell)
         if c1 > c0 and r1 > r0:
             held[r0, c0] += 1
             held[r0, c1] -= 1

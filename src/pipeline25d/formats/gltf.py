@@ -48,6 +48,7 @@ from pipeline25d.formats import gltf1, meshopt
 from pipeline25d.formats.attributes import Limiter
 from pipeline25d.formats.common import Y_UP_TO_Z_UP, image_problem, png_or_jpeg, side_file
 from pipeline25d.formats.feature_info import feature_prefix, feature_properties
+from pipeline25d.formats.gltf1 import COMPONENT_DTYPES, TYPE_SIZES
 from pipeline25d.formats.gzipped import file_bytes
 
 #: Extensions this reader honours (or may safely ignore) when a file lists them as required.
@@ -74,10 +75,6 @@ UP_AXES = {"Y": Y_UP_TO_Z_UP, "Z": np.eye(4),
 _GLB_MAGIC = b"glTF"
 _CHUNK_JSON = 0x4E4F534A
 _CHUNK_BIN = 0x004E4942
-_COMPONENT_DTYPES = {
-    5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32, 5126: np.float32,
-}
-_TYPE_SIZES = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
 _TRIANGLES, _STRIP, _FAN = 4, 5, 6
 
 
@@ -92,32 +89,29 @@ def load_gltf(path: str | Path, y_up_to_z_up: bool = True) -> list[MeshPart]:
         data = file_bytes(path)
     except OSError as exc:
         raise InputFileError(path, f"cannot read glTF file: {exc.strerror or exc}") from None
-    return parse_gltf_bytes(data, path, y_up_to_z_up)
+    return parse_gltf_bytes(data, path, "Y" if y_up_to_z_up else "Z")
 
 
-def parse_gltf_bytes(data: bytes, path: str | Path, y_up_to_z_up: bool = True,
-                     root: Path | None = None, up_axis: str | None = None) -> list[MeshPart]:
+def parse_gltf_bytes(data: bytes, path: str | Path, up_axis: str = "Y", root: Path | None = None) -> list[MeshPart]:
     """Parts of a GLB or JSON glTF held in ``data``.
 
     ``path`` names the file in messages and anchors relative URIs (for GLB embedded in
     b3dm/i3dm it is the tile file, as 3D Tiles resolves glTF URIs relative to the tile).
     Buffer and image files must lie inside ``root`` (default: ``path``'s folder; a tileset's
-    root folder for its tiles), see :func:`pipeline25d.formats.common.side_file`. ``up_axis``
-    ("X", "Y" or "Z": a 3D Tiles 1.0 tileset's ``asset.gltfUpAxis``), where given, names the glTF's
-    up axis in place of ``y_up_to_z_up`` (:data:`UP_AXES`).
+    root folder for its tiles), see :func:`pipeline25d.formats.common.side_file`. ``up_axis``: the
+    glTF's up axis, turned to z (:data:`UP_AXES`): "Y" as glTF says, "Z" to keep the axes as stored,
+    or a 3D Tiles 1.0 tileset's ``asset.gltfUpAxis``.
     """
     path = Path(path)
     doc = _Document.parse(bytes(data), path, path.parent if root is None else root)
     try:
-        up = UP_AXES[up_axis] if up_axis is not None else Y_UP_TO_Z_UP if y_up_to_z_up else np.eye(4)
-        return _parts(doc, path, up)
+        return _parts(doc, path, UP_AXES[up_axis])
     except (AttributeError, TypeError) as exc:   # an object where an array belongs, a string for an object ...
         raise InputFileError(path, f"glTF JSON holds a value of the wrong type ({exc})") from None
 
 
-def _parts(doc: "_Document", path: Path, up: np.ndarray) -> list[MeshPart]:
-    """The parts of a parsed glTF document (:func:`parse_gltf_bytes`), turned z-up by ``up``."""
-    world = up
+def _parts(doc: "_Document", path: Path, world: np.ndarray) -> list[MeshPart]:
+    """The parts of a parsed glTF document (:func:`parse_gltf_bytes`), turned z-up by ``world``."""
     rtc = doc.json.get("extensions", {}).get("CESIUM_RTC", {}).get("center")
     if rtc is not None:
         world = _translation(np.asarray(rtc, dtype=np.float64)) @ world
@@ -289,8 +283,8 @@ class _Document:
     def accessor(self, index: int) -> np.ndarray:
         """(count, components) array of accessor ``index`` in its stored dtype (sparse applied)."""
         acc = self.item("accessors", index)
-        dtype = np.dtype(_COMPONENT_DTYPES.get(acc.get("componentType"), np.float32)).newbyteorder("<")
-        n = _TYPE_SIZES.get(acc.get("type"), 1)
+        dtype = np.dtype(COMPONENT_DTYPES.get(acc.get("componentType"), np.float32)).newbyteorder("<")
+        n = TYPE_SIZES.get(acc.get("type"), 1)
         count = int(acc["count"])
         if "bufferView" in acc:
             data, start, length, stride = self.view(int(acc["bufferView"]))
@@ -312,7 +306,7 @@ class _Document:
         """Overwrite the sparse-listed elements of ``out``."""
         k = int(sparse["count"])
         ind, val = sparse["indices"], sparse["values"]
-        ind_dtype = np.dtype(_COMPONENT_DTYPES[ind["componentType"]]).newbyteorder("<")
+        ind_dtype = np.dtype(COMPONENT_DTYPES[ind["componentType"]]).newbyteorder("<")
         data, start, _, _ = self.view(int(ind["bufferView"]))
         idx = np.frombuffer(data, ind_dtype, k, start + int(ind.get("byteOffset", 0))).astype(np.int64)
         data, start, _, _ = self.view(int(val["bufferView"]))
@@ -519,7 +513,7 @@ def _draco_attributes(doc: _Document, prim: dict, draco: dict) -> tuple[dict[str
         if name == feature:
             attrs[FEATURE] = data.reshape(-1).astype(np.float64)
             continue
-        stored = _COMPONENT_DTYPES.get(acc.get("componentType"))
+        stored = COMPONENT_DTYPES.get(acc.get("componentType"))
         if acc.get("normalized") and stored is not None and np.dtype(stored).kind in "iu":
             # DracoPy hands a quantized attribute's integers over as floats: back to the accessor's
             # type, so that _as_float undoes the normalisation (KHR_mesh_quantization under Draco)

@@ -27,12 +27,17 @@ import struct
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from pipeline25d.core.errors import InputFileError
 
 #: the technique uniforms whose material values are the base colour (gltf-pipeline's defaults)
 BASE_COLOUR_UNIFORMS = ("u_diffuse", "u_tex", "u_emission", "u_diffuse_tex")
-_COMPONENT_BYTES = {5120: 1, 5121: 1, 5122: 2, 5123: 2, 5125: 4, 5126: 4}
-_TYPE_SIZES = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
+#: an accessor's componentType and type, as both glTF versions name them (the 2.0 reader's too)
+COMPONENT_DTYPES = {
+    5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32, 5126: np.float32,
+}
+TYPE_SIZES = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
 _KNOWN_SEMANTICS = {"POSITION", "NORMAL", "TANGENT"}
 _INDEXED_SEMANTICS = {"COLOR": "COLOR", "TEXCOORD": "TEXCOORD", "JOINT": "JOINTS", "JOINTS": "JOINTS",
                       "WEIGHT": "WEIGHTS", "WEIGHTS": "WEIGHTS"}
@@ -123,7 +128,7 @@ class _Upgrade:
         """The accessor on a buffer view of its own: its bytes from the 1.0 view and offset, its stride on the view."""
         view = views[self.index("bufferViews", a["bufferView"])]
         count, stride = int(a["count"]), int(a.get("byteStride", 0))
-        element = _COMPONENT_BYTES[int(a["componentType"])] * _TYPE_SIZES[a["type"]]
+        element = np.dtype(COMPONENT_DTYPES[int(a["componentType"])]).itemsize * TYPE_SIZES[a["type"]]
         length = (stride * (count - 1) + element) if stride and count else element * count
         own = {"buffer": view["buffer"], "byteOffset": view["byteOffset"] + int(a.get("byteOffset", 0)),
                "byteLength": length}

@@ -141,7 +141,7 @@ def _parse_content(data: bytes, path: Path, up_axis: str, root: Path) -> list[Me
     if magic == b"cmpt":
         return _parse_cmpt(data, path, up_axis, root)
     if magic == b"glTF" or data.lstrip()[:1] == b"{":
-        return parse_gltf_bytes(data, path, root=root, up_axis=up_axis)
+        return parse_gltf_bytes(data, path, up_axis, root)
     if magic == b"pnts":
         warnings.warn(f"{path}: point cloud (pnts) content skipped", stacklevel=3)
         return []
@@ -199,7 +199,7 @@ def _parse_b3dm(data: bytes, path: Path, up_axis: str, root: Path) -> list[MeshP
     if glb_start > length:
         raise InputFileError(path, "b3dm table lengths exceed the tile's byteLength (corrupt)")
     table, body = _feature_table(data, header, ft_json, ft_bin, path)
-    parts = parse_gltf_bytes(data[glb_start:length], path, root=root, up_axis=up_axis)
+    parts = parse_gltf_bytes(data[glb_start:length], path, up_axis, root)
     rtc = _feature_array(table, body, "RTC_CENTER", 1, 3, "float32", path)
     parts = parts if rtc is None else [p.transformed(lambda v, t=rtc[0]: v + t) for p in parts]
     batch_start = header + ft_json + ft_bin
@@ -230,7 +230,7 @@ def _parse_i3dm(data: bytes, path: Path, up_axis: str, root: Path) -> list[MeshP
         gltf_path = resolve(gltf.rstrip(b" \x00").decode("utf-8"), path, root)
         parts = read_content(gltf_path, up_axis, root)
     else:
-        parts = parse_gltf_bytes(gltf, path, root=root, up_axis=up_axis)
+        parts = parse_gltf_bytes(gltf, path, up_axis, root)
     matrices = _instance_matrices(table, body, path)
     batch_ids = _batch_ids(table, body, len(matrices), path)
     prefix = feature_prefix(path, root)

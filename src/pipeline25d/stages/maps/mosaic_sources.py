@@ -54,8 +54,14 @@ def source_windows(mosaic: str | Path, grid: list) -> list[tuple[int, int, int, 
     sources = [] if band is None else [c for c in band if c.tag.endswith("Source")]
     if band is None or any(s.find("DstRect") is None for s in sources):     # no DstRect: the whole raster
         return whole
-    rects = [[float(s.find("DstRect").get(k)) for k in ("xOff", "yOff", "xSize", "ySize")] for s in sources]
-    return [(int(np.floor(x)), int(np.floor(y)), int(np.ceil(x + w)), int(np.ceil(y + h))) for x, y, w, h in rects]
+    return [(int(np.floor(x)), int(np.floor(y)), int(np.ceil(x + w)), int(np.ceil(y + h)))
+            for x, y, w, h in _dst_rects(sources)]
+
+
+def _dst_rects(sources: list[ET.Element]) -> np.ndarray:
+    """(n, 4) xOff, yOff, xSize, ySize of the sources' destination rectangles."""
+    return np.array([[float(s.find("DstRect").get(k)) for k in ("xOff", "yOff", "xSize", "ySize")] for s in sources],
+                    dtype=np.float64).reshape(-1, 4)
 
 
 def _transforms(source: ET.Element) -> bool:
@@ -68,7 +74,7 @@ def _overlap(sources: list[ET.Element]) -> bool:
     """Whether any two sources' destination rectangles share a pixel."""
     if len(sources) < 2:
         return False
-    r = np.array([[float(s.find("DstRect").get(k)) for k in ("xOff", "yOff", "xSize", "ySize")] for s in sources])
+    r = _dst_rects(sources)
     x0, y0, x1, y1 = r[:, 0], r[:, 1], r[:, 0] + r[:, 2], r[:, 1] + r[:, 3]
     for i in range(0, len(r), 1024):         # 1024 rows of the pairs at a time: memory O(n), not O(n^2)
         a = slice(i, i + 1024)

@@ -117,7 +117,7 @@ def patched_map(mosaic: str | Path, source: str | Path, choice: dict, crs: str, 
         work.mkdir(parents=True)
         # a block that no square of the mosaic holding data reaches holds nothing: not made, and a
         # new kept file leaves it unwritten (read as zeros)
-        held = list(cells) if warped else cells_under(source_windows(mosaic, mosaic_grid), mosaic_grid)
+        held = list(cells) if warped else cells_under(source_windows(mosaic, mosaic_grid), mosaic_grid[8])
         to_map = source_to_map(source, choice) if warped else pixel_to_map(mosaic_grid)
         todo = blocks_reached(held, mosaic_grid, to_map, grid, size, MARGIN_PX if warped else 0)
         changed: list[str] = []
@@ -204,9 +204,8 @@ def make_block(source: str, warp: dict | None, bounds: tuple[float, float, float
 
 def _redigest(digests: dict[str, str], new: dict[str, str], win: Window, cell: int) -> None:
     """Replace the digests of the squares of map window ``win`` by ``new``, those of its new pixels."""
-    for cy in range(win.row0 // cell, -(-win.row1 // cell)):
-        for cx in range(win.col0 // cell, -(-win.col1 // cell)):
-            digests.pop(f"{cx}_{cy}", None)
+    for square in cells_under([win], cell):
+        digests.pop(square, None)
     digests.update(new)
 
 
@@ -270,9 +269,10 @@ def pixel_to_map(mosaic_grid: list):
     return cells_grid_of(mosaic_grid).xy
 
 
-def cells_under(windows: list[tuple[int, int, int, int]], mosaic_grid: list) -> list[str]:
-    """The squares (``col_row``) of :func:`~pipeline25d.core.raster.map_cells`' grid that pixel windows meet."""
-    cell, out = mosaic_grid[8], set()
+def cells_under(windows: Iterable[tuple[int, int, int, int]], cell: int) -> list[str]:
+    """The squares (``col_row``) of ``cell`` px (:func:`~pipeline25d.core.raster.map_cells`') that
+    pixel windows (col0, row0, col1, row1) meet."""
+    out: set[str] = set()
     for c0, r0, c1, r1 in windows:
         if c1 > c0 and r1 > r0:
             out |= {f"{c}_{r}" for c in range(c0 // cell, (c1 - 1) // cell + 1)

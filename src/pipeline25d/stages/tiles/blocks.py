@@ -109,8 +109,7 @@ def over_nothing(cog: str, grid: Grid, jobs: list[tuple[tuple[int, int], Window]
     lo, hi, map_grid = xy.min(axis=1), xy.max(axis=1), Grid.of_dataset(ds)
     out = set()
     for (block, _), (x0, y0), (x1, y1) in zip(jobs, lo, hi):
-        w = map_grid.window_covering(Extent(x0, y0, x1, y1), margin)
-        w = Window(max(w.col0, 0), max(w.row0, 0), min(w.col1, map_grid.width), min(w.row1, map_grid.height))
+        w = map_grid.window_covering(Extent(x0, y0, x1, y1), margin).clipped(map_grid.width, map_grid.height)
         if w.col1 <= w.col0 or w.row1 <= w.row0 or stores_nothing(band, w):
             out.add(block)
     return out
