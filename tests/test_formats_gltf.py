@@ -242,9 +242,9 @@ def test_triangle_strips_and_fans_give_the_triangles_of_a_list(tmp_path):
         np.testing.assert_allclose(parts[0].vertices[parts[0].faces[0]][[0, 1, 2] if mode == 5 else [2, 0, 1]], TRI)
 
 
-def test_webp_and_ktx2_textures(tmp_path):
-    """EXT_texture_webp: the WEBP image is read (stored as PNG, the same texels: lossless WEBP); a
-    texture only KHR_texture_basisu gives (KTX2) is drawn untextured, with a warning naming it."""
+def test_webp_textures(tmp_path):
+    """EXT_texture_webp: the WEBP image is read (stored as PNG, the same texels: lossless WEBP; KTX2:
+    test_formats_ktx2)."""
     from PIL import Image
 
     texels = np.random.default_rng(5).integers(0, 256, (8, 8, 3), dtype=np.uint8)
@@ -257,11 +257,6 @@ def test_webp_and_ktx2_textures(tmp_path):
     part = parse_gltf_bytes(_glb(doc, binary), tmp_path / "w.glb")[0]
     assert part.texture[:8] == b"\x89PNG\r\n\x1a\n"
     np.testing.assert_array_equal(np.asarray(Image.open(io.BytesIO(part.texture)).convert("RGB")), texels)
-    doc["textures"] = [{"extensions": {"KHR_texture_basisu": {"source": 0}}}]
-    doc["extensionsRequired"], doc["extensionsUsed"] = [], ["KHR_texture_basisu"]
-    with pytest.warns(UserWarning, match=r"k\.glb: texture 0 is a KTX2 \(Basis Universal\) image only"):
-        part = parse_gltf_bytes(_glb(doc, binary), tmp_path / "k.glb")[0]
-    assert part.texture is None and part.colors is not None
 
 
 def test_unsupported_required_extension(tmp_path):
@@ -270,26 +265,6 @@ def test_unsupported_required_extension(tmp_path):
     with pytest.raises(UnsupportedFeatureError) as err:
         load_gltf(path)
     assert "KHR_example_unknown" in str(err.value) and "unknown.gltf" in str(err.value)
-
-
-def test_required_ktx2_textures_are_missing_textures_not_a_refusal(tmp_path):
-    """KHR_texture_basisu listed as required (Cesium ion's and glTF-Transform's KTX2 output): the file
-    is read; its KTX2-only texture is a missing texture: an error naming it by default, its parts
-    drawn untextured with ``missing_textures: untextured``. It was refused whole, with no way round."""
-    from pipeline25d.formats import load_district
-
-    material = {"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}
-    doc, binary = _with_image(*_gltf(material=material), _png_bytes(), "image/ktx2")
-    doc["textures"] = [{"extensions": {"KHR_texture_basisu": {"source": 0}}}]
-    doc["extensionsRequired"] = doc["extensionsUsed"] = ["KHR_texture_basisu"]
-    path = tmp_path / "basis.glb"
-    path.write_bytes(_glb(doc, binary))
-    spec = {"path": str(path), "crs": "EPSG:28992", "offset": [85000.0, 447000.0, 0.0]}
-    with pytest.raises(InputFileError, match=r"basis\.glb: texture 0 is a KTX2 .* missing_textures: untextured"):
-        load_district(spec, "EPSG:28992")
-    with pytest.warns(UserWarning, match=r"basis\.glb: texture 0 is a KTX2"):
-        mesh = load_district({**spec, "missing_textures": "untextured"}, "EPSG:28992")
-    assert mesh.n_triangles == 1 and all(p.texture is None and p.colors is not None for p in mesh.parts)
 
 
 def test_broken_files(tmp_path):

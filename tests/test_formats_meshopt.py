@@ -10,7 +10,6 @@ editing the JSON of one such file.
 from __future__ import annotations
 
 import json
-import os
 import struct
 import subprocess
 from pathlib import Path
@@ -23,15 +22,15 @@ from test_formats_gltf import _glb
 from pipeline25d.core.errors import InputFileError, UnsupportedFeatureError
 from pipeline25d.formats.gltf import load_gltf
 
-REPO = Path(__file__).resolve().parents[1]
-
 
 def _gltfpack_cli() -> Path:
-    roots = [Path(os.environ["PIPELINE25D_NODE_MODULES"])] if os.environ.get("PIPELINE25D_NODE_MODULES") else []
-    for root in [*roots, REPO / "build" / "node_modules"]:
-        if (root / "gltfpack" / "cli.js").exists():
-            return root / "gltfpack" / "cli.js"
-    pytest.fail("gltfpack is not installed: run `make deps` (npm install into build/)")
+    from pipeline25d.core.errors import Pipeline25dError
+    from pipeline25d.core.node_modules import package_folder
+
+    try:
+        return package_folder("gltfpack", ".", ("cli.js",)) / "cli.js"
+    except Pipeline25dError as exc:
+        pytest.fail(f"gltfpack is not installed: {exc}")
 
 
 def _gltfpack(src: Path, out: Path, *flags: str) -> Path:

@@ -10,13 +10,13 @@ the glTF y-up -> 3D Tiles z-up rotation ((x, y, z) -> (x, -z, y), optional), ``C
 Draco (DracoPy), meshopt-compressed buffer views (``EXT_meshopt_compression`` and
 ``KHR_meshopt_compression``, :mod:`.meshopt`), ``KHR_mesh_quantization`` (normalised/integer
 accessors), sparse accessors, base colour textures (GLB buffer views, ``data:`` URIs, files
-relative to the glTF; PNG, JPEG, and WEBP by ``EXT_texture_webp``, stored as PNG), their
-``KHR_texture_transform``, base colour factor and ``COLOR_0`` as vertex colours of untextured
-parts (the base colour of ``KHR_materials_pbrSpecularGlossiness``: its diffuse). Triangles come
-as lists, strips or fans (modes 4, 5, 6); points and lines are skipped with a warning. A
-texture only a ``KHR_texture_basisu`` (KTX2) image gives cannot be decoded here: it is a missing
-texture (an error naming it unless the input says ``missing_textures: untextured``, then its
-parts are drawn untextured), also where the file lists the extension as required.
+relative to the glTF; PNG, JPEG, and WEBP by ``EXT_texture_webp`` or KTX2 (Basis Universal) by
+``KHR_texture_basisu``, both stored as PNG; a texture's PNG or JPEG fallback is taken over its
+KTX2 image), their ``KHR_texture_transform``, base colour factor and ``COLOR_0`` as vertex colours
+of untextured parts (the base colour of ``KHR_materials_pbrSpecularGlossiness``: its diffuse).
+Triangles come as lists, strips or fans (modes 4, 5, 6); points and lines are skipped with a
+warning. An image that cannot be decoded is a missing texture (an error naming it unless the input
+says ``missing_textures: untextured``, then its parts are drawn untextured).
 
 One :class:`MeshPart` per primitive instance, its vertices compacted to the ones its
 triangles use; its faces' objects are the feature ids (``_BATCHID``, ``EXT_mesh_features``) and
@@ -44,7 +44,7 @@ import numpy as np
 
 from pipeline25d.core.errors import InputFileError, MissingTextureWarning, UnsupportedFeatureError
 from pipeline25d.core.mesh import MeshPart, repeated
-from pipeline25d.formats import gltf1, meshopt
+from pipeline25d.formats import gltf1, ktx2, meshopt
 from pipeline25d.formats.attributes import Limiter
 from pipeline25d.formats.common import Y_UP_TO_Z_UP, image_problem, png_or_jpeg, side_file
 from pipeline25d.formats.feature_info import feature_prefix, feature_properties
@@ -63,7 +63,7 @@ SUPPORTED_EXTENSIONS = frozenset({
     "EXT_mesh_gpu_instancing",
     "EXT_structural_metadata",
     "EXT_texture_webp",
-    "KHR_texture_basisu",           # its images are not decoded: a missing texture (see the module)
+    "KHR_texture_basisu",           # KTX2 images, decoded by Basis Universal's transcoder (.ktx2)
     *meshopt.EXTENSIONS,
 })
 
@@ -329,6 +329,8 @@ class _Document:
                                   "its parts are drawn untextured", MissingTextureWarning, stacklevel=4)
             if data is not None and data[:4] == b"RIFF" and data[8:12] == b"WEBP":
                 data = _webp_as_png(data, self.path, index)
+            elif data is not None and ktx2.is_ktx2(data):
+                data = _ktx2_as_png(data, self.path, index)
             if data is not None and not png_or_jpeg(data):
                 warnings.warn(f"{self.path}: image {index} is neither PNG nor JPEG (not an image); "
                               "its parts are drawn untextured", MissingTextureWarning, stacklevel=4)
@@ -372,6 +374,16 @@ def _webp_as_png(data: bytes, path: Path, index: int) -> bytes | None:
                       MissingTextureWarning, stacklevel=5)
         return None
     return out.getvalue()
+
+
+def _ktx2_as_png(data: bytes, path: Path, index: int) -> bytes | None:
+    """A KTX2 image (``KHR_texture_basisu``) as PNG bytes; None with a warning when it cannot be decoded."""
+    try:
+        return ktx2.ktx2_as_png(data)
+    except ktx2.Ktx2Error as exc:
+        warnings.warn(f"{path}: image {index} cannot be read (KTX2: {exc}); its parts are drawn untextured",
+                      MissingTextureWarning, stacklevel=5)
+        return None
 
 
 def _split_glb(data: bytes, path: Path) -> tuple[dict, bytes | None]:
@@ -602,9 +614,8 @@ def _base_color_texture(doc: _Document, pbr: dict, attrs: dict) -> tuple[bytes |
     texture = doc.item("textures", info["index"])
     extensions = texture.get("extensions", {})
     source = extensions.get("EXT_texture_webp", {}).get("source", texture.get("source"))
-    if source is None and "KHR_texture_basisu" in extensions:
-        warnings.warn(f"{doc.path}: texture {info['index']} is a KTX2 (Basis Universal) image only, which "
-                      "cannot be read; its parts are drawn untextured", MissingTextureWarning, stacklevel=4)
+    if source is None:
+        source = extensions.get("KHR_texture_basisu", {}).get("source")
     if uv is None or source is None:
         return None, None
     image = doc.image(int(source))

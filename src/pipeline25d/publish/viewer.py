@@ -25,6 +25,7 @@ import numpy as np
 
 from pipeline25d.core.atomic import write_text
 from pipeline25d.core.errors import Pipeline25dError
+from pipeline25d.core.node_modules import package_folder
 from pipeline25d.publish.overlays import write_overlays
 from pipeline25d.publish.report import warp_label
 from pipeline25d.stages.tiles import ids as id_tiles
@@ -38,15 +39,8 @@ NODE_FILES = {"leaflet": ("leaflet.js", "leaflet.css", "images"), "leaflet-rotat
 
 
 def node_dist(package: str) -> Path:
-    """An npm package's dist folder: under $PIPELINE25D_NODE_MODULES, else build/node_modules."""
-    env = os.environ.get("PIPELINE25D_NODE_MODULES")
-    roots = [Path(env)] if env else []
-    roots.append(Path(__file__).resolve().parents[3] / "build" / "node_modules")
-    for root in roots:
-        if all((root / package / "dist" / name).exists() for name in NODE_FILES[package]):
-            return root / package / "dist"
-    raise Pipeline25dError(f"{package} not found in {' or '.join(map(str, roots))}: run `make deps` (npm install "
-                           "into build/) or set PIPELINE25D_NODE_MODULES to a node_modules folder that has it")
+    """An npm package's dist folder (:func:`~pipeline25d.core.node_modules.package_folder`)."""
+    return package_folder(package, "dist", NODE_FILES[package])
 
 
 def tile_extension(tms_dir: Path) -> str:
