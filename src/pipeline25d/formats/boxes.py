@@ -15,6 +15,7 @@ cannot box is left to ingest, whose reader reports what is wrong with it. Per fo
   since an ECEF-aligned box tilted to local vertical spans kilometres of height it does not hold;
 * an OSGB dataset: the coarsest level of the tiles at the ends of the ``Tile_±x_±y`` index
   ranges (at most four tiles, each one osgconv call), with ``metadata.xml``'s origin and SRS;
+* a 3MX scene: the boxes of its root files' nodes, with each layer's SRSOrigin and SRS;
 * glTF, GLB, b3dm, DAE, 3DS: None (the terrain job checks the estimate with every chunk's bounds).
 
 The box is in the input's CRS (``Box.crs``; None: the scene's), offsets and a ContextCapture
@@ -243,5 +244,18 @@ def _osgb(path: Path, spec: dict) -> tuple | None:
     return (None if box is None else box + origin), crs, "the coarsest level of the OSGB tiles at the dataset's ends"
 
 
+def _threemx(path: Path, spec: dict) -> tuple | None:
+    from pipeline25d.formats.threemx import Layer, read_group, scene_layers
+
+    layers = scene_layers(path) if path.suffix.lower() == ".3mx" else [Layer(None, np.zeros(3), path)]
+    corners = [np.asarray([n["bbMin"], n["bbMax"]], dtype=np.float64) + layer.origin
+               for layer in layers for n in read_group(layer.root).nodes]
+    crs = {layer.crs for layer in layers}
+    if not corners or len(crs) > 1:
+        return None
+    return _box_of(np.concatenate(corners)), crs.pop(), "the 3MX root nodes' boxes"
+
+
 _FINDERS: dict[str, Callable[[Path, dict], tuple | None]] = {
-    "obj": _obj, "ply": _ply, "cityjson": _cityjson, "citygml": _citygml, "3dtiles": _tileset, "osgb": _osgb}
+    "obj": _obj, "ply": _ply, "cityjson": _cityjson, "citygml": _citygml, "3dtiles": _tileset, "osgb": _osgb,
+    "3mx": _threemx}

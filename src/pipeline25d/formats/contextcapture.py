@@ -47,7 +47,7 @@ def read_metadata_xml(path: str | Path) -> tuple[str, np.ndarray]:
     srs = _child_text(root, "SRS")
     if not srs:
         raise InputFileError(path, "no <SRS> element")
-    return _crs_text(srs, path), _origin(_child_text(root, "SRSOrigin"), path)
+    return srs_crs_text(srs, path), origin_of(_child_text(root, "SRSOrigin"), path)
 
 
 def enu_crs_wkt(lat: float, lon: float, height: float = 0.0) -> str:
@@ -69,7 +69,7 @@ def enu_crs_wkt(lat: float, lon: float, height: float = 0.0) -> str:
     )
 
 
-def _crs_text(srs: str, path: Path) -> str:
+def srs_crs_text(srs: str, path: Path) -> str:
     """CRS text for an SRS value: EPSG codes/WKT as given, ENU:lat,lon as topocentric WKT."""
     srs = srs.strip()
     enu = _ENU.match(srs)
@@ -87,7 +87,7 @@ def _crs_text(srs: str, path: Path) -> str:
     return srs
 
 
-def _origin(text: str | None, path: Path) -> np.ndarray:
+def origin_of(text: str | None, path: Path) -> np.ndarray:
     """float64 (3,) from 'x,y,z' (2 values: z = 0; absent: zeros)."""
     if not text:
         return np.zeros(3)

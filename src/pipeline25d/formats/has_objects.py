@@ -2,8 +2,8 @@
 
 ``objects.enabled: auto`` makes the id tiles, id maps and their web tiles only for a scene
 whose inputs name objects: buildings, city objects, features. A PLY file is one surface, and
-an OSGB dataset (ContextCapture photogrammetry) a tree of mesh tiles whose node names are
-pieces of one surface; neither ever names an object. A 3D Tiles tileset names features where
+an OSGB dataset or a 3MX scene (ContextCapture photogrammetry) a tree of mesh tiles whose node
+names are pieces of one surface; none ever names an object. A 3D Tiles tileset names features where
 its contents carry feature ids (a b3dm's batch, ``_BATCHID``, ``EXT_mesh_features``, an i3dm's
 instances); a photogrammetry tileset carries none, and its parts would all be one object. One
 content, the first the tile tree reaches, stands for the tileset: exporters write every content
@@ -23,7 +23,7 @@ from pipeline25d.core.errors import Pipeline25dError
 from pipeline25d.formats.gzipped import file_bytes
 
 #: formats whose files never name an object (see the module docstring)
-SURFACE_FORMATS = frozenset({"ply", "osgb"})
+SURFACE_FORMATS = frozenset({"ply", "osgb", "3mx"})
 MAX_PEEK_TILES = 10_000     # tiles visited, external tilesets included, before the peek gives up (answers yes)
 _FEATURE_ATTRIBUTES = ("_BATCHID", "BATCHID")
 
