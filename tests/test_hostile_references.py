@@ -100,14 +100,18 @@ def test_absolute_file_remote_and_symlinked_references_are_refused(tmp_path, uri
     assert type(err.value) is error and str(err.value).startswith(f"{model}: buffer 0 ")
 
 
-def test_an_image_outside_the_folder_is_refused_not_taken_for_missing(tmp_path):
+def test_an_image_outside_the_folder_is_not_read_and_is_a_missing_texture(tmp_path):
+    """Never read; an error naming it and why by default; with missing_textures: untextured the model
+    is drawn without it (a texture path from the exporter's machine need not stop a city), warned."""
     (tmp_path / "secret.png").write_bytes(PNG_1PX)
     model = tmp_path / "model" / "model.gltf"
     model.parent.mkdir()
     write_gltf(model, SQUARE, SQUARE_FACES, "../secret.png")
-    for missing_textures in ("error", "untextured"):
-        with pytest.raises(InputFileError, match=r"model\.gltf: image 0 '\.\./secret\.png' lies outside"):
-            load_district({"path": str(model), "missing_textures": missing_textures}, SCENE_CRS)
+    with pytest.raises(InputFileError, match=r"model\.gltf: image 0 '\.\./secret\.png' lies outside .*side_folders"):
+        load_district({"path": str(model)}, SCENE_CRS)
+    with pytest.warns(UserWarning, match=r"model\.gltf: image 0 '\.\./secret\.png' lies outside the dataset folder"):
+        mesh = load_district({"path": str(model), "missing_textures": "untextured"}, SCENE_CRS)
+    assert mesh.n_triangles == 2 and all(p.texture is None for p in mesh.parts)
 
 
 def test_side_file_keeps_dot_dot_inside_the_root(tmp_path):
@@ -218,10 +222,10 @@ def test_an_obj_texture_outside_its_folder_is_refused_and_never_opened(tmp_path)
     assert not any(p.endswith("secret.png") for p in opened), opened
 
 
-def test_a_cityjson_texture_outside_the_model_folder_is_refused(tmp_path):
-    """A CityJSON appearance image that climbs out of the model's folder is refused, even when missing
-    textures are allowed."""
-    from pipeline25d.formats.cityjson import read_cityjson
+def test_a_cityjson_texture_outside_the_model_folder_is_not_read(tmp_path):
+    """A CityJSON appearance image that climbs out of the model's folder is never read: a missing texture,
+    an error naming it by default, drawn untextured (warned) where missing textures are allowed."""
+    from pipeline25d.formats import load_district
 
     model = tmp_path / "city"
     model.mkdir()
@@ -236,5 +240,8 @@ def test_a_cityjson_texture_outside_the_model_folder_is_refused(tmp_path):
                "texture": {"t": {"values": [[[0, 0, 1, 2]]]}}}]}}}
     path = model / "city.json"
     path.write_text(json.dumps(doc))
-    with pytest.raises(InputFileError, match=r"\.\./secret\.png.*outside the dataset folder"):
-        read_cityjson(path, {"path": str(path), "missing_textures": "untextured"})
+    with pytest.raises(InputFileError, match=r"city\.json: texture image \.\./secret\.png lies outside the dataset"):
+        load_district({"path": str(path)}, "EPSG:7415")
+    with pytest.warns(UserWarning, match=r"\.\./secret\.png lies outside the dataset folder"):
+        mesh = load_district({"path": str(path), "missing_textures": "untextured"}, "EPSG:7415")
+    assert mesh.n_triangles == 1 and all(p.texture is None for p in mesh.parts)

@@ -46,7 +46,8 @@ the geometry, with one warning per prefix naming the file and its first line; so
 characters (a bare ``&``, an undefined entity, a control character), with a warning naming the
 line and the element. Inside the geometry, and any other XML error (truncated file, mismatched
 tags, a stray ``<``), it refuses the file naming the line (:mod:`pipeline25d.formats.xml_defects`).
-Texture images must lie inside the file's folder (:func:`~pipeline25d.formats.common.side_file`).
+Texture images must lie inside the file's folder (:func:`~pipeline25d.formats.common.side_file`); one
+that does not is not read and is a missing texture (``missing_textures``).
 
 Over 400 lines for one job: one format's streaming reader (three CityGML versions, geometry,
 appearances and terrain share its element walk).
@@ -70,7 +71,7 @@ from pipeline25d.formats.attributes import Limiter
 from pipeline25d.formats.buildings import Buildings, is_building
 from pipeline25d.formats.citygml_attributes import GML_ID, city_object_info
 from pipeline25d.formats.citygml_attributes import local_name as _local
-from pipeline25d.formats.common import Detail, Loaded, crs_name, side_file, texture_image
+from pipeline25d.formats.common import Detail, Loaded, crs_name, texture_file, texture_image
 from pipeline25d.formats.surfaces import (
     GROUND_TYPES,
     OBJECT_CLASS,
@@ -208,7 +209,8 @@ class _Reader:
         self.issues: Counter = Counter()
         self.version: str | None = None
         self.xml = XmlDefects(path)
-        self.image_paths: dict[str, str] = {}   # imageURI -> confined, resolved image path
+        self.image_paths: dict[str, str] = {}   # imageURI -> confined, resolved image path (else the URI)
+        self.image_problems: dict[str, str] = {}   # image -> why it is not read (outside the folder, remote)
 
     # -- passes ------------------------------------------------------------
     def run(self, keep) -> None:
@@ -344,8 +346,11 @@ class _Reader:
         if not uri:
             return
         if uri not in self.image_paths:
-            target = side_file(uri, self.path.parent, self.path.parent, self.path, "texture imageURI", url=False)
-            self.image_paths[uri] = str(target.resolve())
+            target, problem = texture_file(uri, self.path.parent, self.path.parent, self.path, "texture imageURI",
+                                           url=False)
+            self.image_paths[uri] = str(target.resolve()) if target is not None else uri
+            if problem:
+                self.image_problems[self.image_paths[uri]] = problem
         image = self.image_paths[uri]
         clamp = (_child_text(data, "wrapMode") or "none") != "wrap"
         for target in data.iter("{*}target"):
@@ -378,7 +383,7 @@ class _Reader:
     def _image(self, image: str) -> bytes | None:
         """Encoded image bytes, or None (warned once) when missing or unreadable."""
         if image not in self.images:
-            self.images[image] = texture_image(self.path, image)
+            self.images[image] = texture_image(self.path, image, self.image_problems.get(image))
         return self.images[image]
 
     # -- objects -----------------------------------------------------------

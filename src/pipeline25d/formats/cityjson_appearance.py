@@ -30,7 +30,7 @@ import numpy as np
 
 from pipeline25d.core.errors import ConfigError, InputFileError
 from pipeline25d.core.mesh import MeshPart
-from pipeline25d.formats.common import side_file, texture_image
+from pipeline25d.formats.common import texture_file, texture_image
 from pipeline25d.formats.surfaces import join_pieces, triangulate_polygon
 
 log = logging.getLogger(__name__)
@@ -40,9 +40,10 @@ Rgba = tuple[int, int, int, int]
 
 @dataclass(frozen=True)
 class _Texture:
-    image: str | None        # resolved image path; None: not a local file (remote URL, no image)
+    image: str | None        # resolved image path; None: not a local file (remote URL, outside the folder)
     uri: str                 # as written in the file, for messages
     wrap: str                # wrapMode ("wrap" repeats; others are clamped)
+    problem: str | None = None   # why ``image`` is None
 
 
 @dataclass(frozen=True)
@@ -54,12 +55,21 @@ class _Palette:
     materials: tuple[Rgba, ...]
 
 
-def image_path(model: Path, uri: str) -> str | None:
-    """The local file a texture's ``image`` names (relative to the model's folder, and confined to
-    it: :func:`pipeline25d.formats.common.side_file`), None for a URL (drawn as a missing texture)."""
+def image_path(model: Path, uri: str) -> tuple[str | None, str | None]:
+    """(the local file a texture's ``image`` names, None) or (None, why it is not read: a URL, a path
+    leaving the model's folder): relative to the model's folder and confined to it
+    (:func:`pipeline25d.formats.common.texture_file`); an image not read is a missing texture."""
     if "://" in uri:
-        return None
-    return str(side_file(uri, model.parent, model.parent, model, "texture image", url=False).resolve())
+        return None, "is a URL (not fetched)"
+    target, problem = texture_file(uri, model.parent, model.parent, model, "texture image", url=False)
+    return (str(target.resolve()) if target is not None else None), problem
+
+
+def _texture_of(model: Path, entry: dict) -> _Texture:
+    """A CityJSON appearance's texture entry, its image found (or why not) by :func:`image_path`."""
+    uri = str(entry["image"])
+    image, problem = image_path(model, uri)
+    return _Texture(image, uri, str(entry.get("wrapMode", "none")), problem)
 
 
 def material_rgba(material: dict) -> Rgba:
@@ -135,8 +145,7 @@ class Appearances:
         app = doc_appearance if isinstance(doc_appearance, dict) else self.header
         if id(app) not in self.palettes:
             try:
-                textures = tuple(_Texture(image_path(self.path, str(t["image"])), str(t["image"]),
-                                          str(t.get("wrapMode", "none"))) for t in app.get("textures") or [])
+                textures = tuple(_texture_of(self.path, t) for t in app.get("textures") or [])
                 uv = np.asarray(app.get("vertices-texture") or [], dtype=np.float64).reshape(-1, 2)
                 materials = tuple(material_rgba(m) for m in app.get("materials") or [])
             except (KeyError, TypeError, ValueError, AttributeError) as exc:
@@ -193,7 +202,7 @@ class Appearances:
         """Encoded image bytes, or None (warned once per image) when missing, remote or unreadable."""
         key = texture.image or texture.uri
         if key not in self.images:
-            self.images[key] = texture_image(self.path, key, None if texture.image else "is a URL (not fetched)")
+            self.images[key] = texture_image(self.path, key, texture.problem)
         return self.images[key]
 
     def parts(self, groups: dict[str, list[tuple]], objects: tuple[str, ...]) -> list[MeshPart]:

@@ -174,6 +174,17 @@ def side_file(ref: str, base: Path, root: Path, referrer: Path, what: str, url: 
     return target
 
 
+def texture_file(ref: str, base: Path, root: Path, referrer: Path, what: str,
+                 url: bool = True) -> tuple[Path | None, str | None]:
+    """(:func:`side_file`, None) for a texture image a model names, or (None, the problem) where it
+    leads outside the dataset folder or is remote: that image is not read, and is a missing texture
+    (``missing_textures`` decides), where a model or child file there refuses the input."""
+    try:
+        return side_file(ref, base, root, referrer, what, url=url), None
+    except InputFileError as exc:
+        return None, exc.problem.removeprefix(f"{what} {ref!r} ")
+
+
 def _confined(target: Path, ref: str, root: Path, referrer: Path, what: str) -> None:
     real = target.resolve()
     if not any(real.is_relative_to(_real(r)) for r in (root, *_SIDE_FOLDERS.get())):

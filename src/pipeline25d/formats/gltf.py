@@ -46,7 +46,7 @@ from pipeline25d.core.errors import InputFileError, MissingTextureWarning, Unsup
 from pipeline25d.core.mesh import MeshPart, repeated
 from pipeline25d.formats import gltf1, ktx2, meshopt
 from pipeline25d.formats.attributes import Limiter
-from pipeline25d.formats.common import Y_UP_TO_Z_UP, image_problem, png_or_jpeg, side_file
+from pipeline25d.formats.common import Y_UP_TO_Z_UP, image_problem, png_or_jpeg, side_file, texture_file
 from pipeline25d.formats.feature_info import feature_prefix, feature_properties
 from pipeline25d.formats.gltf1 import COMPONENT_DTYPES, TYPE_SIZES
 from pipeline25d.formats.gzipped import file_bytes
@@ -323,10 +323,14 @@ class _Document:
             if "bufferView" in img:
                 data: bytes | None = self.view_bytes(int(img["bufferView"]))
             else:
-                data = self._uri_bytes(img.get("uri", ""), f"image {index}")
+                uri = img.get("uri", "")
+                problem = None if uri.startswith("data:") else texture_file(
+                    uri, self.path.parent, self.root, self.path, f"image {index}")[1]
+                data = None if problem else self._uri_bytes(uri, f"image {index}")
                 if data is None:
-                    warnings.warn(f"{self.path}: image {unquote(img.get('uri', ''))!r} is missing; "
-                                  "its parts are drawn untextured", MissingTextureWarning, stacklevel=4)
+                    said = f"image {index} {uri!r} {problem}" if problem else f"image {unquote(uri)!r} is missing"
+                    warnings.warn(f"{self.path}: {said}; its parts are drawn untextured", MissingTextureWarning,
+                                  stacklevel=4)
             if data is not None and data[:4] == b"RIFF" and data[8:12] == b"WEBP":
                 data = _webp_as_png(data, self.path, index)
             elif data is not None and ktx2.is_ktx2(data):
