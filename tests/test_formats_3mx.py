@@ -153,3 +153,22 @@ def test_the_box_before_reading_is_the_root_nodes_boxes_and_no_objects_are_named
     assert box.crs == "EPSG:28992"
     np.testing.assert_allclose(box.corners, [vertices.min(0), vertices.max(0)], atol=1e-3)
     assert not input_has_objects({"path": str(scene)})
+
+
+def test_a_root_of_one_node_over_the_tiles_is_read_a_tile_at_a_time(tmp_path):
+    """A root file whose one node spans both tiles (diagonal 112 m): at gsd 1 (112 px, over its 100)
+    the tiles' files replace it and each is a piece of its own, so memory follows a tile, each tile
+    drawn at its own level (71 px: coarse; at 0.25 fine); at gsd 2 (56 px) the root's own quad under
+    them is drawn, one piece."""
+    from pipeline25d.formats.threemx import read_3mx_pieces
+
+    scene = sample.write_3mx_scene(tmp_path / "one", one_root=True)
+
+    def triangles(gsd):
+        return [sum(len(p.faces) for p in piece.parts) for piece in read_3mx_pieces(scene, {}, Detail(None, gsd))]
+
+    assert triangles(0.25) == [2 * sample.GRID ** 2] * 2
+    assert triangles(1.0) == [2, 2]
+    assert triangles(2.0) == [2]
+    (low,) = read_3mx_pieces(scene, {}, Detail(None, 2.0))
+    np.testing.assert_allclose(low.parts[0].vertices[:, 2], sample.ORIGIN[2], atol=1e-6)   # the quad at z = 0

@@ -17,8 +17,9 @@ The level of a node is the number of files between it and the root file.
 
 **Missing children**: where a child file a node needs is absent, the node itself is drawn, coarser
 than the gsd asks for, with a warning naming the files (``missing_children: error``: an error), as
-for OSGB. A missing root file is an error. A scene is read in pieces, one per node of a layer's
-root file (a tile of ContextCapture's export): memory follows a tile. Files a scene names must lie
+for OSGB. A missing root file is an error. A scene is read in pieces: each node of a layer's root file, or
+where that node is refined, each child file replacing it (a root file may hold one node over all
+tiles, a child file per tile): memory follows a tile. Files a scene names must lie
 in its folder (:func:`~pipeline25d.formats.common.side_file`).
 """
 
@@ -30,7 +31,7 @@ import struct
 import warnings
 from collections import Counter
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -90,11 +91,9 @@ def read_3mx_pieces(path: Path, spec: dict, detail: Detail = Detail()) -> Iterat
     layers = scene_layers(path) if path.suffix.lower() == ".3mx" else [Layer(None, np.zeros(3), path)]
     drawn = False
     for layer in layers:
-        root = read_group(layer.root)
-        for node in root.nodes:
-            walk = _Walk(folder, detail.gsd, spec.get("missing_children", "coarser"))
-            _walk_node(node, root, 0, walk)
-            _say(walk, root.path, node)
+        for name, walk in _tiles(read_group(layer.root), _Walk(folder, detail.gsd,
+                                                                spec.get("missing_children", "coarser"))):
+            _say(walk, name)
             parts = [p.transformed(lambda v: v + layer.origin) for p in walk.parts] if layer.origin.any() \
                 else walk.parts
             drawn = drawn or bool(parts)
@@ -169,23 +168,56 @@ def read_group(path: Path) -> Group:
     return Group(path, nodes, resources)
 
 
+def _tiles(root: Group, blank: _Walk) -> Iterator[tuple[str, _Walk]]:
+    """The pieces of a layer: each node of its root file, or where that node is refined, each of the
+    child files that replace it (a root file may hold one node over all tiles, a child file per
+    tile): (name, its walk)."""
+    for node in root.nodes:
+        walk = replace(blank, parts=[], levels=Counter(), coarser=[])
+        files = _finer_files(node, root, 0, walk)
+        if files is None:
+            _draw(node, root, 0, walk)
+            yield f"{root.path.name} node {node.get('id', '?')}", walk
+            continue
+        for file in files:
+            walk = replace(blank, parts=[], levels=Counter(), coarser=[])
+            child = read_group(file)
+            for sub in child.nodes:
+                _walk_node(sub, child, 1, walk)
+            yield file.name, walk
+
+
 def _walk_node(node: dict, group: Group, level: int, walk: _Walk) -> None:
     """Gather ``node``'s drawn parts at the map's gsd (the module's level rule)."""
+    files = _finer_files(node, group, level, walk)
+    if files is None:
+        _draw(node, group, level, walk)
+        return
+    for file in files:
+        child = read_group(file)
+        for sub in child.nodes:
+            _walk_node(sub, child, level + 1, walk)
+
+
+def _finer_files(node: dict, group: Group, level: int, walk: _Walk) -> list[Path] | None:
+    """The child files that replace ``node`` at the map's gsd; None where the node itself is drawn
+    (fine enough, no children, or a child file missing: then noted as drawn coarser, or an error)."""
     children = [str(c) for c in node.get("children") or []]
     diagonal = float(np.linalg.norm(np.subtract(node["bbMax"], node["bbMin"], dtype=np.float64)))
-    finer = children and (walk.gsd is None or diagonal / walk.gsd >= float(node["maxScreenDiameter"]))
-    if finer:
-        files = [side_file(c, group.path.parent, walk.folder, group.path, "child file", url=False) for c in children]
-        missing = [c for c, f in zip(children, files) if not f.is_file()]
-        if not missing:
-            for file in files:
-                child = read_group(file)
-                for sub in child.nodes:
-                    _walk_node(sub, child, level + 1, walk)
-            return
-        if walk.missing_children == "error":
-            raise InputFileError(group.path, f"node {node.get('id')!r}: child file(s) missing: {', '.join(missing)}")
-        walk.coarser.append(Coarser(str(group.path), level, tuple(missing), f"node {node.get('id')!r} itself"))
+    if not children or (walk.gsd is not None and diagonal / walk.gsd < float(node["maxScreenDiameter"])):
+        return None
+    files = [side_file(c, group.path.parent, walk.folder, group.path, "child file", url=False) for c in children]
+    missing = [c for c, f in zip(children, files) if not f.is_file()]
+    if not missing:
+        return files
+    if walk.missing_children == "error":
+        raise InputFileError(group.path, f"node {node.get('id')!r}: child file(s) missing: {', '.join(missing)}")
+    walk.coarser.append(Coarser(str(group.path), level, tuple(missing), f"node {node.get('id')!r} itself"))
+    return None
+
+
+def _draw(node: dict, group: Group, level: int, walk: _Walk) -> None:
+    """Add ``node``'s own geometry to ``walk``."""
     for rid in node.get("resources") or []:
         part = _geometry(group, str(rid), walk.folder)
         if part is not None:
@@ -245,11 +277,10 @@ def _resource_bytes(group: Group, res: dict, folder: Path, what: str) -> bytes:
     return file_bytes(side_file(res["file"], group.path.parent, folder, group.path, what, url=False))
 
 
-def _say(walk: _Walk, root: Path, node: dict) -> None:
+def _say(walk: _Walk, name: str) -> None:
     """Log a tile's levels; warn of its child files that are missing."""
     from pipeline25d.formats.osgb import describe_levels
 
-    name = f"{root.name} node {node.get('id', '?')}"
     log.info("%s at gsd %s: %s", name, walk.gsd, describe_levels(walk.levels))
     if walk.coarser:
         asked = f"gsd {walk.gsd}" if walk.gsd else "full detail"

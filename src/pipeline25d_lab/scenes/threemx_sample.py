@@ -82,8 +82,10 @@ def node_file(nodes: list[dict], resources: list[tuple[dict, bytes]]) -> bytes:
     return b"3MXBO" + struct.pack("<I", len(header)) + header + b"".join(b for _, b in resources)
 
 
-def write_3mx_scene(folder: Path, tiles: int = 2) -> Path:
-    """Write the scene (``folder/scene.3mx``, ``folder/Data/...``); return the .3mx path."""
+def write_3mx_scene(folder: Path, tiles: int = 2, one_root: bool = False) -> Path:
+    """Write the scene (``folder/scene.3mx``, ``folder/Data/...``); return the .3mx path. ``one_root``:
+    the root file holds one node over all tiles (a quad under them at z = 0, drawn below
+    ``MAX_SCREEN_DIAMETER`` px) whose children are one file per tile holding the tile's node."""
     data = folder / "Data"
     data.mkdir(parents=True, exist_ok=True)
     root_nodes, root_resources = [], []
@@ -104,7 +106,25 @@ def write_3mx_scene(folder: Path, tiles: int = 2) -> Path:
         root_resources += [({"type": "textureBuffer", "format": "jpg", "id": f"t{t}"}, image_bytes("jpg")),
                            ({"type": "geometryBuffer", "format": "ctm", "id": f"g{t}", "texture": f"t{t}",
                              "bbMin": cv.min(0).tolist(), "bbMax": cv.max(0).tolist()}, ctm_bytes(cv, cf, cu, "RAW"))]
-    (data / "root.3mxb").write_bytes(node_file(root_nodes, root_resources))
+    if not one_root:
+        (data / "root.3mxb").write_bytes(node_file(root_nodes, root_resources))
+    else:
+        by_tile = {}
+        for t, node in enumerate(root_nodes):
+            name = node["id"]
+            by_tile[f"{name}/{name}.3mxb"] = node_file([{**node, "children": [f"{name}_L1.3mxb"]}],
+                                                       root_resources[2 * t:2 * t + 2])
+        for rel, data_bytes in by_tile.items():
+            (data / rel).write_bytes(data_bytes)
+        width = tiles * TILE_M
+        quad = np.array([[0, 0, 0], [width, 0, 0], [width, TILE_M, 0], [0, TILE_M, 0]], float)
+        top = {"id": "top", "bbMin": [0, 0, 0], "bbMax": [width, TILE_M, 7.0], "maxScreenDiameter": MAX_SCREEN_DIAMETER,
+               "children": list(by_tile), "resources": ["g"]}
+        (data / "root.3mxb").write_bytes(node_file([top], [
+            ({"type": "textureBuffer", "format": "jpg", "id": "t"}, image_bytes("jpg")),
+            ({"type": "geometryBuffer", "format": "ctm", "id": "g", "texture": "t", "bbMin": [0, 0, 0],
+              "bbMax": [width, TILE_M, 0]}, ctm_bytes(quad, np.array([[0, 1, 2], [0, 2, 3]]),
+                                                      np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float), "RAW"))]))
     scene = {"3mxVersion": 1, "name": "sample", "description": "", "logo": "", "sceneOptions": [{}],
              "layers": [{"type": "meshPyramid", "id": "mesh0", "name": "sample", "description": "",
                          "SRS": SRS, "SRSOrigin": list(ORIGIN), "root": "Data/root.3mxb"}]}
