@@ -84,8 +84,8 @@ def read_3mx(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
 
 
 def read_3mx_pieces(path: Path, spec: dict, detail: Detail = Detail()) -> Iterator[Loaded]:
-    """:func:`read_3mx` one tile (node of a root file) at a time; the SRS origin added, the SRS the
-    CRS (the input's ``crs`` key overrides it)."""
+    """:func:`read_3mx` one tile at a time (:func:`_tiles`); the SRS origin added, the SRS the CRS
+    (the input's ``crs`` key overrides it)."""
     path = Path(path)
     folder = path.parent
     layers = scene_layers(path) if path.suffix.lower() == ".3mx" else [Layer(None, np.zeros(3), path)]
