@@ -51,3 +51,18 @@ def test_runs_killed_interrupted_and_terminated_resume_to_identical_maps_and_til
         assert not rec["finished_before_signal"], rec          # the signal came while it ran
         if rec["signal"] != "KILL":
             assert rec["stopped"] and rec["stop_s"] < HANG_S, rec
+
+
+def test_a_trial_that_did_not_resume_identical_names_the_jobs_each_run_started(tmp_path):
+    """What a failed trial's message carries (CI keeps nothing else): the jobs the interrupted run
+    started and the resumed run ran, with their wildcards, and the interrupted run's last lines."""
+    from pipeline25d_lab.harness.killtest import what_ran
+
+    (tmp_path / "interrupted.log").write_text(
+        "Select jobs to execute...\n\nlocalrule ingest:\n    input: a.obj\n    wildcards: district=d1\n\n"
+        "localrule terrain:\n    output: t.tif\n\nlocalcheckpoint plan:\n    wildcards: pid=az045_el45\n")
+    (tmp_path / "resumed.log").write_text("rule warp:\n    wildcards: pid=az045_el45\n")
+    got = what_ran(tmp_path)
+    assert got["interrupted_jobs"] == ["ingest (district=d1)", "terrain", "plan (pid=az045_el45)"]
+    assert got["resumed_jobs"] == ["warp (pid=az045_el45)"]
+    assert got["interrupted_tail"][-1] == "    wildcards: pid=az045_el45"

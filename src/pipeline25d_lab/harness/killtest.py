@@ -141,8 +141,28 @@ def trial(workdir: Path, config: dict, sig_name: str, at_s: float, reference: di
     record["temporaries_left"] = temporaries(results_of(workdir, config))
     record.update({"unlock_rc": unlock.returncode, "resume_rc": resumed.returncode,
                    "identical": resumed.returncode == 0 and not differ, "differing": differ[:20]})
+    if not record["identical"]:            # what a failure needs to be read where only its message is kept (CI)
+        record.update(what_ran(workdir))
     record["ok"] = record["identical"] and (sig_name == "KILL" or record.get("stopped", True))
     return record
+
+
+def what_ran(workdir: Path) -> dict:
+    """The jobs the interrupted run started and the resumed run ran (by their log lines), and the
+    interrupted run's last lines: which job a signal stopped, for a trial that did not resume identical."""
+    def jobs(log: Path) -> list[str]:
+        found: list[str] = []
+        for line in (log.read_text(errors="replace") if log.exists() else "").splitlines():
+            if line.startswith(("rule ", "localrule ", "checkpoint ", "localcheckpoint ")):
+                found.append(line.split()[-1].rstrip(":"))
+            elif line.strip().startswith("wildcards:") and found:
+                found[-1] += f" ({line.strip().removeprefix('wildcards:').strip()})"
+        return found
+
+    interrupted = workdir / "interrupted.log"
+    tail = interrupted.read_text(errors="replace").splitlines()[-12:] if interrupted.exists() else []
+    return {"interrupted_jobs": jobs(interrupted), "resumed_jobs": jobs(workdir / "resumed.log"),
+            "interrupted_tail": tail}
 
 
 def demo_config(scene_dir: Path, scale: float, perspectives: str | list[dict]) -> dict:
