@@ -324,9 +324,11 @@ class _Document:
                 data: bytes | None = self.view_bytes(int(img["bufferView"]))
             else:
                 uri = img.get("uri", "")
-                problem = None if uri.startswith("data:") else texture_file(
-                    uri, self.path.parent, self.root, self.path, f"image {index}")[1]
-                data = None if problem else self._uri_bytes(uri, f"image {index}")
+                if uri.startswith("data:"):
+                    data, problem = self._uri_bytes(uri, f"image {index}"), None
+                else:
+                    target, problem = texture_file(uri, self.path.parent, self.root, self.path, f"image {index}")
+                    data = None if target is None else self._side_bytes(target, f"image {index}")
                 if data is None:
                     said = f"image {index} {uri!r} {problem}" if problem else f"image {unquote(uri)!r} is missing"
                     warnings.warn(f"{self.path}: {said}; its parts are drawn untextured", MissingTextureWarning,
@@ -353,7 +355,11 @@ class _Document:
                 return base64.b64decode(uri.split(",", 1)[1], validate=False)
             except (IndexError, binascii.Error):
                 raise InputFileError(self.path, f"{what}: malformed data URI") from None
-        target = side_file(uri, self.path.parent, self.root, self.path, what)
+        return self._side_bytes(side_file(uri, self.path.parent, self.root, self.path, what), what)
+
+    @staticmethod
+    def _side_bytes(target: Path, what: str) -> bytes | None:
+        """Bytes of a side file found by :func:`~pipeline25d.formats.common.side_file`; None when it does not exist."""
         try:
             return file_bytes(target)
         except FileNotFoundError:
