@@ -245,9 +245,9 @@ def _osgb(path: Path, spec: dict) -> tuple | None:
 
 
 def _threemx(path: Path, spec: dict) -> tuple | None:
-    from pipeline25d.formats.threemx import Layer, read_group, scene_layers
+    from pipeline25d.formats.threemx import layers_of, read_group
 
-    layers = scene_layers(path) if path.suffix.lower() == ".3mx" else [Layer(None, np.zeros(3), path)]
+    layers = layers_of(path)
     corners = [np.asarray([n["bbMin"], n["bbMax"]], dtype=np.float64) + layer.origin
                for layer in layers for n in read_group(layer.root).nodes]
     crs = {layer.crs for layer in layers}

@@ -101,12 +101,13 @@ class _Transcoder:
     def _started(self) -> subprocess.Popen:
         if self._proc is not None and self._pid == os.getpid() and self._proc.poll() is None:
             return self._proc
+        self.close()                       # one that ended: its pipes and stderr file (a child's: forgotten)
         node = shutil.which("node")
         if node is None:
             raise Ktx2Error("decoding Basis Universal textures needs Node.js (`node` on PATH; `make deps` "
                             "installs it with npm)")
         try:
-            folder = package_folder(TRANSCODER[0], TRANSCODER[1], TRANSCODER[2])
+            folder = package_folder(*TRANSCODER)
         except Pipeline25dError as exc:
             raise Ktx2Error(f"the Basis Universal transcoder is missing: {exc}") from None
         self._err = tempfile.TemporaryFile()

@@ -75,6 +75,10 @@ class _Walk:
     levels: Counter = field(default_factory=Counter)
     coarser: list[Coarser] = field(default_factory=list)
 
+    def fresh(self) -> "_Walk":
+        """A walk of the same map and folder with nothing gathered yet (the next tile's)."""
+        return replace(self, parts=[], levels=Counter(), coarser=[])
+
 
 def read_3mx(path: Path, spec: dict, detail: Detail = Detail()) -> Loaded:
     """Reader contract (:mod:`pipeline25d.formats`): a .3mx scene or one .3mxb file, at ``detail.gsd``."""
@@ -87,11 +91,9 @@ def read_3mx_pieces(path: Path, spec: dict, detail: Detail = Detail()) -> Iterat
     """:func:`read_3mx` one tile at a time (:func:`_tiles`); the SRS origin added, the SRS the CRS
     (the input's ``crs`` key overrides it)."""
     path = Path(path)
-    folder = path.parent
-    layers = scene_layers(path) if path.suffix.lower() == ".3mx" else [Layer(None, np.zeros(3), path)]
     drawn = False
-    for layer in layers:
-        for name, walk in _tiles(read_group(layer.root), _Walk(folder, detail.gsd,
+    for layer in layers_of(path):
+        for name, walk in _tiles(read_group(layer.root), _Walk(path.parent, detail.gsd,
                                                                 spec.get("missing_children", "coarser"))):
             _say(walk, name)
             parts = [p.transformed(lambda v: v + layer.origin) for p in walk.parts] if layer.origin.any() \
@@ -100,6 +102,11 @@ def read_3mx_pieces(path: Path, spec: dict, detail: Detail = Detail()) -> Iterat
             yield Loaded(parts, spec.get("crs") or layer.crs, tuple(walk.coarser))
     if not drawn:
         raise InputFileError(path, f"holds no triangles at gsd {detail.gsd} (an empty 3MX tree)")
+
+
+def layers_of(path: Path) -> list[Layer]:
+    """A .3mx scene's layers (:func:`scene_layers`); a .3mxb alone is one layer with no SRS, at the origin."""
+    return scene_layers(path) if path.suffix.lower() == ".3mx" else [Layer(None, np.zeros(3), path)]
 
 
 def scene_layers(path: Path) -> list[Layer]:
@@ -173,17 +180,15 @@ def _tiles(root: Group, blank: _Walk) -> Iterator[tuple[str, _Walk]]:
     child files that replace it (a root file may hold one node over all tiles, a child file per
     tile): (name, its walk)."""
     for node in root.nodes:
-        walk = replace(blank, parts=[], levels=Counter(), coarser=[])
+        walk = blank.fresh()
         files = _finer_files(node, root, 0, walk)
         if files is None:
             _draw(node, root, 0, walk)
             yield f"{root.path.name} node {node.get('id', '?')}", walk
             continue
         for file in files:
-            walk = replace(blank, parts=[], levels=Counter(), coarser=[])
-            child = read_group(file)
-            for sub in child.nodes:
-                _walk_node(sub, child, 1, walk)
+            walk = blank.fresh()
+            _walk_file(file, 1, walk)
             yield file.name, walk
 
 
@@ -194,9 +199,14 @@ def _walk_node(node: dict, group: Group, level: int, walk: _Walk) -> None:
         _draw(node, group, level, walk)
         return
     for file in files:
-        child = read_group(file)
-        for sub in child.nodes:
-            _walk_node(sub, child, level + 1, walk)
+        _walk_file(file, level + 1, walk)
+
+
+def _walk_file(file: Path, level: int, walk: _Walk) -> None:
+    """Gather the drawn parts of every node of the .3mxb ``file``, whose nodes are at ``level``."""
+    group = read_group(file)
+    for node in group.nodes:
+        _walk_node(node, group, level, walk)
 
 
 def _finer_files(node: dict, group: Group, level: int, walk: _Walk) -> list[Path] | None:
