@@ -126,7 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from pipeline25d.core.logsetup import exit_on_sigterm
+    from pipeline25d.core.stopping import exit_on_sigterm
 
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)

@@ -19,6 +19,7 @@ from typing import Any
 from pipeline25d.core import cores
 from pipeline25d.core.cores import allowed_cores, job_workers
 from pipeline25d.core.logsetup import log_job_resources, log_to, process_age, stop_on_error
+from pipeline25d.core.stopping import end_if_stopped
 
 log = logging.getLogger(__name__)
 
@@ -209,4 +210,5 @@ def run(job: Job) -> None:
     log_to(job.log[0])
     with stop_on_error():
         RULES[job.rule](job)
+    end_if_stopped()                  # stopped, though some code dropped the signal's exception: failed
     log_job_resources(startup, time.monotonic() - t0)

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from pipeline25d.core.errors import OutputError
+from pipeline25d.core.stopping import end_if_stopped
 
 FULL_BYTES = 1 << 20   # a device with less free space than this when a write fails is taken as full
 
@@ -35,6 +36,7 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
     tmp_path = Path(tmp)
     try:
         yield tmp_path
+        end_if_stopped()               # a stop signal whose exception a library dropped: not a finished output
         os.replace(tmp_path, path)
     except BaseException as exc:
         full = isinstance(exc, (OSError, RuntimeError)) and device_full(path.parent, exc)
@@ -77,7 +79,8 @@ def write_bytes(path: str | Path, data: bytes) -> None:
 
 
 def replace_dir(src: Path, dst: Path) -> None:
-    """Move a finished folder onto ``dst``, replacing an older one."""
+    """Move a finished folder onto ``dst``, replacing an older one (not after a stop signal)."""
+    end_if_stopped()
     dst = Path(dst)
     if dst.exists():
         old = dst.with_name(f".{dst.name}.old")

@@ -143,11 +143,15 @@ class IdleMeter:
 def fork_pool(processes: int) -> Iterator[Executor]:
     """``processes`` worker processes, forked now, all of them: a job that makes them before it grows
     keeps their memory small, as a forked child's resident pages count again in the job's process
-    tree; what they run is inherited, not imported again."""
+    tree; what they run is inherited, not imported again. A stop signal ends a worker at once
+    (:func:`~pipeline25d.core.stopping.die_on_stop_signals`), and the job with it."""
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
-    with ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("fork")) as pool:
+    from pipeline25d.core.stopping import die_on_stop_signals
+
+    with ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("fork"),
+                             initializer=die_on_stop_signals) as pool:
         list(pool.map(abs, range(processes)))          # a fork pool starts all its workers at its first task
         yield pool
 

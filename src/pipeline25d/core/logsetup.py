@@ -6,7 +6,6 @@ import logging
 import os
 import re
 import resource
-import signal
 import sys
 import warnings
 from collections.abc import Iterable, Iterator
@@ -14,22 +13,16 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from pipeline25d.core.errors import Pipeline25dError
-
-
-def exit_on_sigterm() -> None:
-    """SIGTERM (a scheduler's cancel, Snakemake stopping its jobs) raises SystemExit like Ctrl-C
-    raises KeyboardInterrupt, so a job's ``finally`` and ``except BaseException`` blocks remove
-    its temporary files (by default SIGTERM ends Python at once, leaving them behind)."""
-    signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
+from pipeline25d.core.stopping import remember_stop_signals
 
 
 def log_to(path: str) -> None:
     """Log a Snakemake script job to ``path`` (its Python warnings too: :func:`warnings_to_log`),
-    and make it stop cleanly on SIGTERM."""
+    and make it stop cleanly on SIGTERM and SIGINT, remembering either (:mod:`pipeline25d.core.stopping`)."""
     logging.basicConfig(filename=path, level=logging.INFO, force=True,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     warnings_to_log()
-    exit_on_sigterm()
+    remember_stop_signals()
 
 
 def warnings_to_log() -> None:

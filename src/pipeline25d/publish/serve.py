@@ -24,7 +24,7 @@ from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import BinaryIO, Sequence
 
-from pipeline25d.core.logsetup import exit_on_sigterm
+from pipeline25d.core.stopping import exit_on_sigterm
 
 log = logging.getLogger(__name__)
 

@@ -42,7 +42,7 @@ from typing import Iterator
 
 from pipeline25d.core.atomic import write_json, write_text
 from pipeline25d.core.errors import ClusterError, WorkflowRunError
-from pipeline25d.core.logsetup import exit_on_sigterm
+from pipeline25d.core.stopping import exit_on_sigterm
 from pipeline25d_lab.harness.bench import REPO, results_of, run_workflow
 from pipeline25d_lab.harness.killtest import demo_config, differences, output_digests
 

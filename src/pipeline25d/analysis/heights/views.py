@@ -59,10 +59,12 @@ def measure_parallel(map_paths: dict[str, str | Path], footprints: list[Footprin
         return measure_heights(map_paths, footprints, settings=settings, ground=ground)
     from concurrent.futures import ProcessPoolExecutor
 
+    from pipeline25d.core.stopping import die_on_stop_signals
+
     order = sorted(range(len(footprints)), key=lambda i: footprints[i].bounds[0])
     blocks = [order[k:k + block] for k in range(0, len(order), block)]
     rows: list[HeightRow | None] = [None] * len(footprints)
-    with ProcessPoolExecutor(max_workers=workers) as pool:
+    with ProcessPoolExecutor(max_workers=workers, initializer=die_on_stop_signals) as pool:
         futures = [pool.submit(measure_heights, map_paths, [footprints[i] for i in b], NADIR_ID, settings,
                                footprints, ground) for b in blocks]
         for b, f in zip(blocks, futures):

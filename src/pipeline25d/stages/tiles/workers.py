@@ -9,7 +9,6 @@ core that job leaves. What a cut writes does not depend on the count.
 from __future__ import annotations
 
 import logging
-import signal
 from collections.abc import Callable
 
 log = logging.getLogger(__name__)
@@ -25,8 +24,9 @@ class Workers:
     machine had a core idle since the last piece of work ended (``idle``: cores idle since the
     previous call, :class:`pipeline25d.core.cores.IdleMeter`): a cut that started beside another
     job takes the core that job leaves. The tiles do not depend on the count.
-    A worker dies on SIGTERM (it would otherwise, with the job's SystemExit handler, fail one
-    tile and take the next), and leaving on an exception kills the workers at once.
+    A worker dies on SIGTERM or SIGINT (it would otherwise, with the job's SystemExit handler, fail
+    one tile and take the next: :func:`~pipeline25d.core.stopping.die_on_stop_signals`), and leaving
+    on an exception kills the workers at once.
 
     concurrent.futures, not multiprocessing.Pool: the pool's exit terminates its workers,
     which can leave one waiting for a queue lock a terminated sibling held (seen: a hung job).
@@ -65,10 +65,11 @@ class Workers:
             from concurrent.futures import ProcessPoolExecutor
 
             from pipeline25d.core.cores import IdleMeter
+            from pipeline25d.core.stopping import die_on_stop_signals
 
             self.idle = self.idle or IdleMeter()
             self.pool = ProcessPoolExecutor(self.most, mp_context=multiprocessing.get_context("fork"),
-                                            initializer=signal.signal, initargs=(signal.SIGTERM, signal.SIG_DFL))
+                                            initializer=die_on_stop_signals)
         from concurrent.futures import FIRST_COMPLETED, wait
 
         size = max(1, min(16, len(items) // (8 * self.most)))
