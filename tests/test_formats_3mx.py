@@ -7,6 +7,7 @@ quad in the root file and a fine grid with a peak in a child file, relative to S
 from __future__ import annotations
 
 import json
+import os
 import struct
 import warnings
 
@@ -139,6 +140,30 @@ def test_an_unreadable_texture_is_a_missing_texture(scene, tmp_path):
         warnings.simplefilter("always")
         mesh = _load(copy / "scene.3mx", 1.0, missing_textures="untextured")
     assert any(issubclass(w.category, MissingTextureWarning) for w in seen)
+    assert sorted(p.texture is None for p in mesh.parts) == [False, True]
+
+
+def test_a_texture_file_outside_the_dataset_folder_is_a_missing_texture(scene, tmp_path):
+    """A textureFile resource that leads out of the folder (an exporter's path on its own machine)
+    is never read, even where it is a good image: an error naming it by default, untextured with
+    missing_textures: untextured, as a glTF, CityGML or CityJSON image there is."""
+    copy = tmp_path / "t"
+    root, good, size = _copy(scene, copy)
+    start = 9 + size
+    header = json.loads(good[9:start])
+    res = header["resources"][0]                          # tile 0's JPEG, a buffer
+    n = res.pop("size")
+    (tmp_path / "outside.jpg").write_bytes(good[start:start + n])
+    res.update(type="textureFile", file=os.path.relpath(tmp_path / "outside.jpg", root.parent))
+    text = json.dumps(header).encode()
+    root.write_bytes(b"3MXBO" + struct.pack("<I", len(text)) + text + good[start + n:])
+    with pytest.raises(InputFileError, match=r"root\.3mxb: texture 't0' lies outside the dataset folder .*"
+                                             r"missing_textures"):
+        _load(copy / "scene.3mx", 1.0)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        mesh = _load(copy / "scene.3mx", 1.0, missing_textures="untextured")
+    assert [str(w.message) for w in seen if issubclass(w.category, MissingTextureWarning)]
     assert sorted(p.texture is None for p in mesh.parts) == [False, True]
 
 

@@ -38,7 +38,7 @@ import numpy as np
 
 from pipeline25d.core.errors import InputFileError, MissingTextureWarning, UnsupportedFeatureError
 from pipeline25d.core.mesh import Coarser, MeshPart
-from pipeline25d.formats.common import Detail, Loaded, image_problem, png_or_jpeg, read_text, side_file
+from pipeline25d.formats.common import Detail, Loaded, image_problem, png_or_jpeg, read_text, side_file, texture_file
 from pipeline25d.formats.gzipped import file_bytes
 
 log = logging.getLogger(__name__)
@@ -265,7 +265,7 @@ def _texture(group: Group, tid, folder: Path) -> bytes | None:
     problem = None
     if res is None or res.get("type") not in ("textureBuffer", "textureFile"):
         problem = "is not a texture resource of the file"
-    else:
+    elif (problem := _outside(group, res, folder)) is None:
         try:
             data = _resource_bytes(group, res, folder, "texture file")
         except FileNotFoundError:
@@ -277,6 +277,14 @@ def _texture(group: Group, tid, folder: Path) -> bytes | None:
                       MissingTextureWarning, stacklevel=4)
         return None
     return data
+
+
+def _outside(group: Group, res: dict, folder: Path) -> str | None:
+    """Where a ``textureFile`` leads outside the dataset folder, the problem (that image is not read:
+    a missing texture, as for glTF, CityGML and CityJSON images); else None."""
+    if "bytes" in res or not isinstance(res.get("file"), str):
+        return None
+    return texture_file(res["file"], group.path.parent, folder, group.path, "texture file", url=False)[1]
 
 
 def _resource_bytes(group: Group, res: dict, folder: Path, what: str) -> bytes:
