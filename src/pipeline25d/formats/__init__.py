@@ -94,6 +94,7 @@ READERS: dict[str, Reader] = {
     "osgb": Reader(_lazy("osgb", "read_osgb"), pieces=_lazy("osgb", "read_osgb_pieces")),
     "3ds": Reader(_lazy("threeds", "read_3ds")),
     "3mx": Reader(_lazy("threemx", "read_3mx"), pieces=_lazy("threemx", "read_3mx_pieces")),
+    "i3s": Reader(_lazy("i3s", "read_i3s"), georeferenced=True, pieces=_lazy("i3s", "read_i3s_pieces")),
 }
 
 #: formats without an up axis of their own: ``up_axis: y`` turns a y-up export (a modelling tool's) z-up
@@ -102,7 +103,7 @@ UP_AXIS_FORMATS = ("obj", "ply", "dae", "3ds")
 #: file suffix -> format; .json, .gml and .xml are told apart by their content (:func:`detect_format`).
 SUFFIXES = {".obj": "obj", ".ply": "ply", ".dae": "dae", ".glb": "glb", ".gltf": "gltf",
             ".b3dm": "b3dm", ".i3dm": "b3dm", ".cmpt": "b3dm", ".jsonl": "cityjson", ".osgb": "osgb",
-            ".3ds": "3ds", ".3mx": "3mx", ".3mxb": "3mx"}
+            ".3ds": "3ds", ".3mx": "3mx", ".3mxb": "3mx", ".slpk": "i3s"}
 
 
 def is_osgb_dataset(path: Path) -> bool:
@@ -112,11 +113,16 @@ def is_osgb_dataset(path: Path) -> bool:
 
 def detect_format(path: Path) -> str:
     """The input format from the file name, for .json, .gml and .xml from its content; a folder
-    is an OSGB dataset."""
+    is an OSGB dataset or an unpacked I3S scene layer package."""
+    from pipeline25d.formats.slpk import is_scene_layer_folder
+
     if is_osgb_dataset(path):
         return "osgb"
+    if is_scene_layer_folder(path):
+        return "i3s"
     if path.is_dir():
-        raise InputFileError(path, "is a folder but not an OSGB dataset (no Data/ folder); name a model file")
+        raise InputFileError(path, "is a folder but not an OSGB dataset (no Data/ folder) nor an unpacked I3S "
+                                   "scene layer package (no 3dSceneLayer.json); name a model file")
     suffix = path.suffix.lower()
     if suffix in SUFFIXES:
         return SUFFIXES[suffix]
@@ -150,8 +156,11 @@ def detect_format(path: Path) -> str:
 def reader_of(spec: dict, base_dir: Path = Path(".")) -> tuple[Path, str, Reader]:
     """The input's path, format name and reader (``format: auto`` detects it)."""
     path = base_dir / spec["path"]
-    if path.is_dir() and not is_osgb_dataset(path):
-        raise InputFileError(path, "is a directory, not a model file (nor an OSGB dataset folder with Data/)")
+    from pipeline25d.formats.slpk import is_scene_layer_folder
+
+    if path.is_dir() and not is_osgb_dataset(path) and not is_scene_layer_folder(path):
+        raise InputFileError(path, "is a directory, not a model file (nor an OSGB dataset folder with Data/, "
+                                   "nor an unpacked I3S scene layer package with 3dSceneLayer.json)")
     if path.is_file() and path.stat().st_size == 0:
         raise InputFileError(path, "is empty (0 bytes)")
     fmt = spec.get("format", "auto")

@@ -16,6 +16,7 @@ cannot box is left to ingest, whose reader reports what is wrong with it. Per fo
 * an OSGB dataset: the coarsest level of the tiles at the ends of the ``Tile_±x_±y`` index
   ranges (at most four tiles, each one osgconv call), with ``metadata.xml``'s origin and SRS;
 * a 3MX scene: the boxes of its root files' nodes, with each layer's SRSOrigin and SRS;
+* an I3S scene layer package: its layer's ``fullExtent``;
 * glTF, GLB, b3dm, DAE, 3DS: None (the terrain job checks the estimate with every chunk's bounds).
 
 The box is in the input's CRS (``Box.crs``; None: the scene's), offsets and a ContextCapture
@@ -256,6 +257,13 @@ def _threemx(path: Path, spec: dict) -> tuple | None:
     return _box_of(np.concatenate(corners)), crs.pop(), "the 3MX root nodes' boxes"
 
 
+def _i3s(path: Path, spec: dict) -> tuple | None:
+    from pipeline25d.formats.i3s import layer_box
+
+    found = layer_box(path, spec)
+    return None if found is None else (_box_of(found[0]), found[1], "the I3S layer's fullExtent")
+
+
 _FINDERS: dict[str, Callable[[Path, dict], tuple | None]] = {
     "obj": _obj, "ply": _ply, "cityjson": _cityjson, "citygml": _citygml, "3dtiles": _tileset, "osgb": _osgb,
-    "3mx": _threemx}
+    "3mx": _threemx, "i3s": _i3s}

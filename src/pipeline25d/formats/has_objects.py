@@ -43,6 +43,10 @@ def input_has_objects(spec: dict) -> bool:
             return content is None or _content_has_features(file_bytes(content))
         if fmt == "b3dm":
             return _content_has_features(file_bytes(path))
+        if fmt == "i3s":                # a 3DObject layer's features are its objects; an IntegratedMesh has none
+            from pipeline25d.formats.i3s import Layer, Package
+
+            return Layer.of(Package(path), spec).objects
     except (Pipeline25dError, OSError, ValueError, KeyError, TypeError, AttributeError, struct.error,
             RecursionError):
         return True                     # ingest names the file's problem

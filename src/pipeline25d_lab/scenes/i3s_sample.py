@@ -1,0 +1,153 @@
+"""A small I3S scene layer package with exact truth, written as ArcGIS Pro lays one out.
+
+Node 0 is a root without a mesh over one node (1): a coarse level, a 100 m square quad at z = 0
+with a PNG texture. Its children (2, 3) are the fine level: the square's west and east halves,
+each two triangles at z = 5, node 2 of two features (ids 101 and 102, a triangle each). The
+coarse node's threshold is :data:`SWITCH_PX` pixels of diameter (given as an area,
+``maxScreenThresholdSQ``): its bounding sphere (radius 70.7 m) covers 141 px at gsd 1 (the fine
+level drawn) and 71 px at gsd 2 (the coarse). Positions are offsets from each node's box centre,
+in metres in a projected layer, in degrees of longitude and latitude in a geographic one (the
+square's corners then lie at the lon/lat of :func:`corners_lonlat`).
+"""
+
+from __future__ import annotations
+
+import gzip
+import io
+import json
+import math
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+SIDE_M = 100.0
+SWITCH_PX = 100.0
+PROJECTED = ("EPSG:28992", np.array([85000.0, 447000.0, 0.0]))
+GEOGRAPHIC_CENTRE = np.array([4.3571, 52.0116, 0.0])       # lon, lat, h: Delft
+FEATURE_IDS = (101, 102)
+VERTICAL = 5709                # NAP heights
+
+
+def _quad(x0: float, x1: float, y0: float, y1: float, z: float) -> np.ndarray:
+    """Two triangles' six corners (non-indexed, as I3S stores them), counter-clockwise from above."""
+    a, b, c, d = (x0, y0, z), (x1, y0, z), (x1, y1, z), (x0, y1, z)
+    return np.array([a, b, c, a, c, d], dtype=np.float64)
+
+
+def node_corners() -> dict[int, np.ndarray]:
+    """Each mesh node's corners in metres from the square's centre (x east, y north)."""
+    h = SIDE_M / 2
+    return {1: _quad(-h, h, -h, h, 0.0), 2: _quad(-h, 0.0, -h, h, 5.0), 3: _quad(0.0, h, -h, h, 5.0)}
+
+
+def corners_lonlat(metres: np.ndarray) -> np.ndarray:
+    """Metres from the square's centre as lon/lat/h on a sphere of radius 6378137 m (the sample's own
+    rule; the test compares what the reader places with pyproj's transform of these lon/lat)."""
+    lon0, lat0, _ = GEOGRAPHIC_CENTRE
+    r = 6378137.0
+    return np.column_stack([lon0 + np.degrees(metres[:, 0] / (r * math.cos(math.radians(lat0)))),
+                            lat0 + np.degrees(metres[:, 1] / r), metres[:, 2]])
+
+
+def texture_png() -> bytes:
+    """A 4 x 4 PNG: its top row red, the rest blue (the top row is v = 0 in I3S)."""
+    from PIL import Image
+
+    pixels = np.zeros((4, 4, 3), np.uint8)
+    pixels[:, :, 2] = 255
+    pixels[0] = (255, 0, 0)
+    out = io.BytesIO()
+    Image.fromarray(pixels).save(out, format="PNG")
+    return out.getvalue()
+
+
+def _geometry(points: np.ndarray, uv: np.ndarray | None, features: list[tuple[int, int, int]]) -> bytes:
+    """The uncompressed geometry buffer: header, position, uv0, color, featureId, faceRange."""
+    n = len(points)
+    colour = np.tile(np.array([200, 180, 160, 255], np.uint8), (n, 1))
+    out = [np.array([n, len(features)], "<u4").tobytes(), points.astype("<f4").tobytes(),
+           (uv if uv is not None else np.zeros((n, 2))).astype("<f4").tobytes(), colour.tobytes(),
+           np.array([f[0] for f in features], "<u8").tobytes(),
+           np.array([f[1:] for f in features], "<u4").reshape(-1, 2).tobytes()]
+    return b"".join(out)
+
+
+def write_package(target: Path, geographic: bool = False, draco: bool = False, uncompressed: bool = True,
+                  layer_type: str = "3DObject", packed: bool = True) -> Path:
+    """The package at ``target`` (``.slpk``; ``packed`` False: its entries in a folder there).
+    ``draco``: a Draco buffer beside (or, without ``uncompressed``, instead of) the plain one."""
+    crs, centre = ("EPSG:4326", GEOGRAPHIC_CENTRE) if geographic else PROJECTED
+    entries: dict[str, bytes] = {}
+    threshold = math.pi / 4 * SWITCH_PX ** 2
+    nodes = [{"index": 0, "obb": _obb(centre, (80, 80, 10)), "children": [1]}]
+    for k, metres in node_corners().items():
+        middle = (metres.min(0) + metres.max(0)) / 2
+        if geographic:
+            lonlat = corners_lonlat(metres)
+            box_centre = corners_lonlat(middle[None])[0]
+            offsets = lonlat - box_centre
+        else:
+            box_centre, offsets = centre + middle, metres - middle
+        half = (metres.max(0) - metres.min(0)) / 2 + (0, 0, 0.5)
+        node = {"index": k, "parentIndex": 0 if k == 1 else 1, "obb": _obb(box_centre, half),
+                "mesh": {"geometry": {"definition": 0, "resource": k, "vertexCount": 6,
+                                      "featureCount": 2 if k == 2 else 1},
+                         "material": {"definition": 1 if k == 1 else 0, "resource": k}}}
+        if k == 1:
+            node.update(children=[2, 3], lodThreshold=threshold)
+        nodes.append(node)
+        uv = np.array([(0, 1), (1, 1), (1, 0), (0, 1), (1, 0), (0, 0)], float)   # v = 0 at the north edge
+        features = [(101, 0, 0), (102, 1, 1)] if k == 2 else [(200 + k, 0, 1)]
+        if uncompressed:
+            entries[f"nodes/{k}/geometries/0.bin.gz"] = gzip.compress(_geometry(offsets, uv, features))
+        if draco:
+            import DracoPy
+
+            entries[f"nodes/{k}/geometries/1.bin.gz"] = gzip.compress(DracoPy.encode(
+                offsets.astype(np.float32), np.arange(6).reshape(2, 3), quantization_bits=20,
+                tex_coord=uv.astype(np.float64)))
+        if k == 1:
+            entries[f"nodes/{k}/textures/0.png"] = texture_png()
+    layer = {
+        "id": 0, "layerType": layer_type, "version": "sample",
+        "spatialReference": {"wkid": int(crs.split(":")[1]), "vcsWkid": VERTICAL},
+        "nodePages": {"nodesPerPage": 64, "lodSelectionMetricType": "maxScreenThresholdSQ"},
+        "geometryDefinitions": [{"geometryBuffers": [
+            {"offset": 8, "position": {"type": "Float32", "component": 3}, "uv0": {"type": "Float32", "component": 2},
+             "color": {"type": "UInt8", "component": 4}, "featureId": {"type": "UInt64", "component": 1},
+             "faceRange": {"type": "UInt32", "component": 2}},
+            {"compressedAttributes": {"encoding": "draco", "attributes": ["position", "uv0"]}}]}],
+        "materialDefinitions": [{"doubleSided": True},
+                                {"pbrMetallicRoughness": {"baseColorTexture": {"textureSetDefinitionId": 0}}}],
+        "textureSetDefinitions": [{"formats": [{"name": "0", "format": "png"}]}],
+        "fullExtent": _extent(centre, geographic),
+    }
+    entries["3dSceneLayer.json.gz"] = gzip.compress(json.dumps(layer).encode())
+    entries["nodepages/0.json.gz"] = gzip.compress(json.dumps({"nodes": nodes}).encode())
+    entries["metadata.json"] = json.dumps({"folderPattern": "basic", "ArchiveCompressionType": "Store",
+                                           "I3SVersion": "1.7", "nodeCount": len(nodes)}).encode()
+    target.parent.mkdir(parents=True, exist_ok=True)
+    if packed:
+        with zipfile.ZipFile(target, "w", zipfile.ZIP_STORED) as z:
+            for name, data in entries.items():
+                z.writestr(name, data)
+    else:
+        for name, data in entries.items():
+            (target / name).parent.mkdir(parents=True, exist_ok=True)
+            (target / name).write_bytes(data)
+    return target
+
+
+def _obb(centre, half) -> dict:
+    return {"center": [float(v) for v in centre], "halfSize": [float(v) for v in half], "quaternion": [0, 0, 0, 1]}
+
+
+def _extent(centre: np.ndarray, geographic: bool) -> dict:
+    corners = node_corners()[1][[0, 2]] + (0, 0, 0)
+    lo, hi = corners.min(0), corners.max(0) + (0, 0, 5)
+    if geographic:
+        lo, hi = corners_lonlat(lo[None])[0], corners_lonlat(hi[None])[0]
+    else:
+        lo, hi = centre + lo, centre + hi
+    return dict(zip(("xmin", "ymin", "zmin", "xmax", "ymax", "zmax"), [*map(float, lo), *map(float, hi)]))

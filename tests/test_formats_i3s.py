@@ -1,0 +1,184 @@
+"""I3S scene layer packages (.slpk, or unpacked): level rule, placement, geometry buffers, textures,
+features, and broken packages, on generated packages with exact truth (pipeline25d_lab.scenes.i3s_sample)."""
+
+from __future__ import annotations
+
+import gzip
+import io
+import json
+import warnings
+import zipfile
+
+import numpy as np
+import pytest
+
+from pipeline25d.core.errors import InputFileError, MissingTextureWarning, UnsupportedFeatureError
+from pipeline25d.formats import load_district
+from pipeline25d_lab.scenes import i3s_sample as sample
+
+CRS = "EPSG:28992"
+
+
+def _load(path, gsd, **spec):
+    return load_district({"path": str(path), **spec}, CRS, gsd=gsd)
+
+
+def _by_node(mesh) -> dict[str, np.ndarray]:
+    return {p.name: p.vertices for p in mesh.parts}
+
+
+@pytest.fixture(scope="module")
+def slpk(tmp_path_factory):
+    return sample.write_package(tmp_path_factory.mktemp("i3s") / "sample.slpk")
+
+
+@pytest.mark.parametrize("gsd, drawn", [(2.0, ["node 1"]), (1.0, ["node 2", "node 3"]), (None, ["node 2", "node 3"])])
+def test_the_level_drawn_follows_the_threshold_and_each_vertex_lies_where_written(slpk, gsd, drawn):
+    """A 70.7 m bounding sphere is 71 px at gsd 2 (within 100 px: the coarse node) and 141 px at gsd 1
+    (its children); a projected layer's offsets plus the box centre are the vertices, exactly."""
+    got = _by_node(_load(slpk, gsd))
+    assert sorted(got) == drawn
+    origin = sample.PROJECTED[1]
+    for name, vertices in got.items():
+        np.testing.assert_allclose(vertices, sample.node_corners()[int(name.split()[1])] + origin, atol=1e-6)
+
+
+def test_a_geographic_layer_lands_where_pyproj_puts_its_lon_lat(tmp_path):
+    """Degree offsets from the box centre: the vertices equal pyproj's transform of the lon/lat the
+    package was written from (under the layer's wkid + vcsWkid, NAP heights), to the float32
+    offsets' precision (~1e-8 degrees, under a millimetre)."""
+    from pyproj import CRS as ProjCRS
+    from pyproj import Transformer
+
+    path = sample.write_package(tmp_path / "geo.slpk", geographic=True)
+    got = _by_node(_load(path, None))
+    to_rd = Transformer.from_crs(ProjCRS(f"EPSG:4326+{sample.VERTICAL}"), ProjCRS(CRS).to_3d(), always_xy=True)
+    for k in (2, 3):
+        lonlat = sample.corners_lonlat(sample.node_corners()[k])
+        want = np.column_stack(to_rd.transform(lonlat[:, 0], lonlat[:, 1], lonlat[:, 2]))
+        np.testing.assert_allclose(got[f"node {k}"], want, atol=2e-3)
+
+
+def test_draco_geometry_is_read_where_no_plain_buffer_is_and_refused_for_a_geographic_layer(tmp_path):
+    plain = _by_node(_load(sample.write_package(tmp_path / "plain.slpk"), None))
+    draco = _by_node(_load(sample.write_package(tmp_path / "draco.slpk", draco=True, uncompressed=False), None))
+    assert sorted(draco) == sorted(plain)
+    for name in plain:                          # Draco keeps the triangles, not their order
+        np.testing.assert_allclose(np.unique(draco[name].round(3), axis=0), np.unique(plain[name].round(3), axis=0),
+                                   atol=1e-3)
+    geo = sample.write_package(tmp_path / "geo-draco.slpk", geographic=True, draco=True, uncompressed=False)
+    with pytest.raises(UnsupportedFeatureError, match=r"geo-draco\.slpk: nodes/2/geometries/1: Draco-compressed "
+                                                      r"geometry of a geographic layer"):
+        _load(geo, None)
+
+
+def test_the_texture_is_the_package_image_with_its_top_row_at_v_1(slpk):
+    (part,) = _load(slpk, 2.0).parts
+    assert part.texture == sample.texture_png()
+    north = part.vertices[:, 1] > sample.PROJECTED[1][1]            # the square's north edge: I3S v = 0
+    np.testing.assert_array_equal(part.uv[north, 1], 1.0)
+    np.testing.assert_array_equal(part.uv[~north, 1], 0.0)
+    assert part.colors is None
+
+
+def test_features_are_objects_and_the_untextured_fine_level_has_its_vertex_colours(slpk):
+    parts = {p.name: p for p in _load(slpk, 1.0).parts}
+    west = parts["node 2"]
+    assert [west.objects[k] for k in west.face_objects] == ["101", "102"]
+    assert [parts["node 3"].objects[k] for k in parts["node 3"].face_objects] == ["203", "203"]
+    np.testing.assert_array_equal(west.colors, np.tile([200, 180, 160, 255], (6, 1)))
+    assert west.texture is None
+
+
+def test_an_unpacked_package_reads_as_the_package(slpk, tmp_path):
+    folder = sample.write_package(tmp_path / "unpacked", packed=False)
+    packed, unpacked = _by_node(_load(slpk, 1.0)), _by_node(_load(folder, 1.0))
+    assert sorted(packed) == sorted(unpacked)
+    for name in packed:
+        np.testing.assert_array_equal(packed[name], unpacked[name])
+
+
+def test_the_box_before_reading_and_objects_come_from_the_layer(slpk, tmp_path):
+    from pipeline25d.formats.boxes import input_box
+    from pipeline25d.formats.has_objects import input_has_objects
+
+    box = input_box({"path": str(slpk)})
+    vertices = np.concatenate([p.vertices for p in _load(slpk, None).parts])
+    assert box.crs == f"{CRS}+{sample.VERTICAL}"
+    np.testing.assert_allclose(box.corners[:, :2], [vertices.min(0)[:2], vertices.max(0)[:2]], atol=1e-6)
+    assert box.corners[0, 2] <= vertices[:, 2].min() and box.corners[1, 2] >= vertices[:, 2].max()
+    assert input_has_objects({"path": str(slpk)})
+    mesh = sample.write_package(tmp_path / "mesh.slpk", layer_type="IntegratedMesh")
+    assert not input_has_objects({"path": str(mesh)})
+    assert all(not p.objects for p in _load(mesh, None).parts)
+
+
+def _rewrite(source, target, **changes):
+    """A copy of a package with entries replaced (bytes) or removed (None)."""
+    with zipfile.ZipFile(source) as z:
+        entries = {name: z.read(name) for name in z.namelist()}
+    entries.update(changes)
+    with zipfile.ZipFile(target, "w") as z:
+        for name, data in entries.items():
+            if data is not None:
+                z.writestr(name, data)
+    return target
+
+
+def _layer(slpk, **changes) -> bytes:
+    with zipfile.ZipFile(slpk) as z:
+        layer = json.loads(gzip.decompress(z.read("3dSceneLayer.json.gz")))
+    layer.update(changes)
+    return gzip.compress(json.dumps(layer).encode())
+
+
+def test_broken_packages_are_errors_naming_them(slpk, tmp_path):
+    (tmp_path / "not-a-zip.slpk").write_bytes(b"PK but not really a zip file")
+    cases = [
+        (tmp_path / "not-a-zip.slpk", InputFileError, r"not-a-zip\.slpk: is not a scene layer package"),
+        (_rewrite(slpk, tmp_path / "no-layer.slpk", **{"3dSceneLayer.json.gz": None}), InputFileError,
+         r"no-layer\.slpk: has no 3dSceneLayer\.json"),
+        (_rewrite(slpk, tmp_path / "points.slpk", **{"3dSceneLayer.json.gz": _layer(slpk, layerType="PointCloud")}),
+         UnsupportedFeatureError, r"points\.slpk: I3S layerType 'PointCloud'"),
+        (_rewrite(slpk, tmp_path / "v16.slpk", **{"3dSceneLayer.json.gz": _layer(slpk, nodePages=None)}),
+         UnsupportedFeatureError, r"v16\.slpk: an I3S layer without nodePages"),
+        (_rewrite(slpk, tmp_path / "short.slpk", **{"nodes/2/geometries/0.bin.gz": gzip.compress(
+            np.array([6, 2], "<u4").tobytes() + bytes(40))}), InputFileError,
+         r"short\.slpk: nodes/2/geometries/0 is cut short: attribute position ends at byte 80"),
+        (_rewrite(slpk, tmp_path / "no-geometry.slpk", **{"nodes/3/geometries/0.bin.gz": None}), InputFileError,
+         r"no-geometry\.slpk: node 3: no geometry buffer in the package"),
+        (_rewrite(slpk, tmp_path / "bad-page.slpk", **{"nodepages/0.json.gz": gzip.compress(b"{nodes")}),
+         InputFileError, r"bad-page\.slpk: nodepages/0\.json is not valid JSON"),
+        (_rewrite(slpk, tmp_path / "cycle.slpk", **{"nodepages/0.json.gz": gzip.compress(json.dumps(
+            {"nodes": [{"index": 0, "children": [1]}, {"index": 1, "children": [0]}]}).encode())}),
+         InputFileError, r"cycle\.slpk: node 0 is reached twice"),
+    ]
+    for path, error, message in cases:
+        with pytest.raises(error, match=message):
+            _load(path, 1.0)
+
+
+def test_a_texture_that_is_not_an_image_is_a_missing_texture(slpk, tmp_path):
+    path = _rewrite(slpk, tmp_path / "bad-texture.slpk", **{"nodes/1/textures/0.png": b"\x89PNG\r\n\x1a\n cut"})
+    with pytest.raises(InputFileError, match=r"bad-texture\.slpk: the texture of node 1: nodes/1/textures/0"):
+        _load(path, 2.0)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        (part,) = _load(path, 2.0, missing_textures="untextured").parts
+    assert any(issubclass(w.category, MissingTextureWarning) for w in seen)
+    assert part.texture is None and part.uv is None
+
+
+def test_a_gzip_bomb_entry_is_refused(slpk, tmp_path):
+    from pipeline25d.formats import gzipped
+
+    bomb = io.BytesIO()
+    with gzip.GzipFile(fileobj=bomb, mode="wb") as f:
+        f.write(bytes(4 << 20))
+    path = _rewrite(slpk, tmp_path / "bomb.slpk", **{"nodepages/0.json.gz": bomb.getvalue()})
+    import pipeline25d.formats.slpk as slpk_module
+
+    with pytest.MonkeyPatch.context() as mp:             # a 4 MiB entry against a limit of 1 MiB
+        mp.setattr(slpk_module, "gunzipped", lambda data, where: gzipped.gunzipped(data, where, 1 << 20))
+        with pytest.raises(InputFileError, match=r"nodepages/0\.json\.gz: gzip data decompresses to more than"):
+            _load(path, 1.0)
