@@ -98,6 +98,19 @@ def test_an_unpacked_package_reads_as_the_package(slpk, tmp_path):
         np.testing.assert_array_equal(packed[name], unpacked[name])
 
 
+@pytest.mark.parametrize("gsd", [2.0, 1.0, None])
+def test_a_1_6_package_of_node_documents_reads_as_its_node_pages(slpk, tmp_path, gsd):
+    """The same nodes through I3S 1.6 index documents (bounding spheres, a diameter threshold, child
+    hrefs, the store's defaultGeometrySchema): the same levels, vertices, texture and objects."""
+    legacy = sample.write_package(tmp_path / "v16.slpk", pages=False)
+    old, new = {p.name: p for p in _load(legacy, gsd).parts}, {p.name: p for p in _load(slpk, gsd).parts}
+    assert sorted(old) == sorted(new)
+    for name, part in new.items():
+        np.testing.assert_array_equal(old[name].vertices, part.vertices)
+        assert old[name].texture == part.texture and old[name].objects == part.objects
+        np.testing.assert_array_equal(old[name].uv if part.uv is not None else 0, part.uv if part.uv is not None else 0)
+
+
 def test_the_box_before_reading_and_objects_come_from_the_layer(slpk, tmp_path):
     from pipeline25d.formats.boxes import input_box
     from pipeline25d.formats.has_objects import input_has_objects
@@ -140,8 +153,9 @@ def test_broken_packages_are_errors_naming_them(slpk, tmp_path):
          r"no-layer\.slpk: has no 3dSceneLayer\.json"),
         (_rewrite(slpk, tmp_path / "points.slpk", **{"3dSceneLayer.json.gz": _layer(slpk, layerType="PointCloud")}),
          UnsupportedFeatureError, r"points\.slpk: I3S layerType 'PointCloud'"),
-        (_rewrite(slpk, tmp_path / "v16.slpk", **{"3dSceneLayer.json.gz": _layer(slpk, nodePages=None)}),
-         UnsupportedFeatureError, r"v16\.slpk: an I3S layer without nodePages"),
+        (_rewrite(slpk, tmp_path / "v16.slpk", **{"3dSceneLayer.json.gz": _layer(slpk, nodePages=None),
+                                                  "nodes/root/3dNodeIndexDocument.json.gz": None}),
+         InputFileError, r"v16\.slpk: has no nodes/root/3dNodeIndexDocument\.json"),
         (_rewrite(slpk, tmp_path / "short.slpk", **{"nodes/2/geometries/0.bin.gz": gzip.compress(
             np.array([6, 2], "<u4").tobytes() + bytes(40))}), InputFileError,
          r"short\.slpk: nodes/2/geometries/0 is cut short: attribute position ends at byte 80"),
@@ -182,3 +196,12 @@ def test_a_gzip_bomb_entry_is_refused(slpk, tmp_path):
         mp.setattr(slpk_module, "gunzipped", lambda data, where: gzipped.gunzipped(data, where, 1 << 20))
         with pytest.raises(InputFileError, match=r"nodepages/0\.json\.gz: gzip data decompresses to more than"):
             _load(path, 1.0)
+
+
+def test_a_1_6_href_that_leaves_the_package_nodes_is_refused(tmp_path):
+    legacy = sample.write_package(tmp_path / "v16.slpk", pages=False)
+    doc = {"id": "root", "mbs": [85000, 447000, 0, 100], "children": [{"id": "x", "href": "../../../../etc"}]}
+    path = _rewrite(legacy, tmp_path / "escape.slpk",
+                    **{"nodes/root/3dNodeIndexDocument.json.gz": gzip.compress(json.dumps(doc).encode())})
+    with pytest.raises(InputFileError, match=r"escape\.slpk: href '\.\./\.\./\.\./\.\./etc' of node root leaves"):
+        _load(path, 1.0)

@@ -258,10 +258,13 @@ def _threemx(path: Path, spec: dict) -> tuple | None:
 
 
 def _i3s(path: Path, spec: dict) -> tuple | None:
-    from pipeline25d.formats.i3s import layer_box
+    from pipeline25d.formats.i3s import Layer, Package
 
-    found = layer_box(path, spec)
-    return None if found is None else (_box_of(found[0]), found[1], "the I3S layer's fullExtent")
+    layer = Layer.of(Package(path), spec)
+    extent, keys = layer.doc.get("fullExtent"), ("xmin", "ymin", "zmin", "xmax", "ymax", "zmax")
+    if not isinstance(extent, dict) or not all(isinstance(extent.get(k), (int, float)) for k in keys):
+        return None
+    return _box_of([extent[k] for k in keys]), layer.crs, "the I3S layer's fullExtent"
 
 
 _FINDERS: dict[str, Callable[[Path, dict], tuple | None]] = {

@@ -1,7 +1,7 @@
 """Esri I3S scene layers (an OGC community standard), as ArcGIS Pro, Drone2Map and ArcGIS Reality
 export city models and photogrammetry: a scene layer package ``.slpk`` (a zip) or that package
 unpacked into a folder. Read: ``3DObject`` and ``IntegratedMesh`` layers of I3S 1.7 and later
-(node pages).
+(node pages), and of 1.6 (node index documents, :mod:`.i3s_legacy`).
 
 A package holds ``3dSceneLayer.json`` (the layer: its spatial reference, geometry, material and
 texture set definitions, ``nodePages``), ``nodepages/<k>.json`` (its nodes: an oriented box
@@ -69,6 +69,7 @@ class Layer:
     geographic: bool
     metric: str
     objects: bool
+    legacy: bool = False
 
     @classmethod
     def of(cls, package: Package, spec: dict) -> "Layer":
@@ -79,15 +80,22 @@ class Layer:
                                                         "layers are meshes")
         pages = doc.get("nodePages")
         if not isinstance(pages, dict) or not isinstance(pages.get("nodesPerPage"), int) or pages["nodesPerPage"] < 1:
-            raise UnsupportedFeatureError(package.path, "an I3S layer without nodePages (I3S 1.6 or older): "
-                                                        "export it again as I3S 1.7 or later")
+            pages = None               # I3S 1.6: node index documents (:mod:`.i3s_legacy`)
         crs = spec.get("crs") or _layer_crs(doc)
         if not crs:
             raise InputFileError(package.path, "3dSceneLayer.json names no spatialReference (set the input's crs)")
         from pipeline25d.core.crs import is_geographic
 
-        return cls(doc, crs, is_geographic(crs), pages.get("lodSelectionMetricType", "maxScreenThresholdSQ"),
-                   kind == "3DObject")
+        metric = (pages or {}).get("lodSelectionMetricType", "maxScreenThresholdSQ")
+        return cls(doc, crs, is_geographic(crs), metric, kind == "3DObject", pages is None)
+
+    def nodes(self, package: Package):
+        """The layer's nodes by index (node pages) or by id (1.6 documents), with its ``root``."""
+        if self.legacy:
+            from pipeline25d.formats.i3s_legacy import NodeDocuments
+
+            return NodeDocuments(package, self.doc.get("store") or {})
+        return _NodePages(package, self.doc["nodePages"]["nodesPerPage"])
 
 
 def _layer_crs(doc: dict) -> str | None:
@@ -118,8 +126,7 @@ def read_i3s_pieces(path: Path, spec: dict, detail: Detail = Detail()) -> Iterat
     """:func:`read_i3s` as pieces of drawn nodes, about :data:`PIECE_VERTICES` vertices each."""
     package = Package(path)
     layer = Layer.of(package, spec)
-    nodes = _NodePages(package, layer.doc["nodePages"]["nodesPerPage"])
-    drawn = drawn_nodes(nodes, detail.gsd, layer.metric)
+    drawn = drawn_nodes(layer.nodes(package), detail.gsd, layer.metric)
     if not drawn:
         raise InputFileError(package.path, f"holds no mesh at gsd {detail.gsd} (no node with a mesh)")
     log.info("%s: %d I3S nodes drawn at gsd %s", package.path, len(drawn), detail.gsd)
@@ -141,6 +148,8 @@ def read_i3s_pieces(path: Path, spec: dict, detail: Detail = Detail()) -> Iterat
 class _NodePages:
     """The layer's nodes by index, their pages read when first needed."""
 
+    root = 0
+
     def __init__(self, package: Package, per_page: int):
         self.package, self.per_page, self.pages = package, per_page, {}
 
@@ -159,7 +168,7 @@ class _NodePages:
 
 def drawn_nodes(nodes, gsd: float | None, metric: str) -> list[dict]:
     """The nodes the level rule (module doc) draws at ``gsd``, from node 0 down."""
-    drawn, stack, seen = [], [0], set()
+    drawn, stack, seen = [], [nodes.root], set()
     while stack:
         index = stack.pop()
         if index in seen:
@@ -175,10 +184,10 @@ def drawn_nodes(nodes, gsd: float | None, metric: str) -> list[dict]:
 
 
 def _fine_enough(node: dict, gsd: float | None, metric: str) -> bool:
-    threshold = node.get("lodThreshold")
+    threshold, metric = node.get("lodThreshold"), node.get("metric", metric)
     if gsd is None or not isinstance(threshold, (int, float)) or threshold <= 0:
         return False
-    radius = float(np.linalg.norm(node.get("obb", {}).get("halfSize", [0, 0, 0])))
+    radius = node.get("radius") or float(np.linalg.norm(node.get("obb", {}).get("halfSize", [0, 0, 0])))
     limit = threshold if metric == "maxScreenThreshold" else math.sqrt(4 * threshold / math.pi)
     return 2 * radius / gsd <= limit
 
@@ -186,15 +195,26 @@ def _fine_enough(node: dict, gsd: float | None, metric: str) -> bool:
 def _node_part(package: Package, layer: Layer, node: dict) -> MeshPart | None:
     """A drawn node's mesh, placed in the layer's CRS; None for an empty one."""
     mesh = node["mesh"]
-    geometry = mesh.get("geometry") or {}
-    values = _geometry(package, layer, geometry, node.get("index"))
+    if layer.legacy:
+        from pipeline25d.formats.i3s_legacy import geometry_layouts
+
+        name = mesh["geometry"]["href"]
+        values = _uncompressed(_entry(package, name, ".bin"), geometry_layouts(layer.doc.get("store") or {}),
+                               package, name)
+    else:
+        values = _geometry(package, layer, mesh.get("geometry") or {}, node.get("index"))
     position = values["position"].astype(np.float64)
     if not len(position):
         return None
     centre = np.asarray(node.get("obb", {}).get("center", [0, 0, 0]), dtype=np.float64)
     vertices = position + centre
     faces = np.arange(len(vertices), dtype=np.int64).reshape(-1, 3)
-    texture, colors = _appearance(package, layer, mesh.get("material") or {}, values, node.get("index"))
+    if layer.legacy:
+        href = mesh["material"]["href"]
+        texture = None if href is None else _texture(package, [(f, href) for f in _TEXTURE_ORDER], node.get("index"))
+        colors = _rgba(values.get("color"), np.ones(4), len(values["position"]))
+    else:
+        texture, colors = _appearance(package, layer, mesh.get("material") or {}, values, node.get("index"))
     uv = None
     if texture is not None and values.get("uv0") is not None:
         uv = _uv(values["uv0"], values.get("uvRegion"))
@@ -226,10 +246,13 @@ def _geometry(package: Package, layer: Layer, geometry: dict, index) -> dict[str
     raise InputFileError(package.path, f"node {index}: no geometry buffer in the package ({', '.join(tried)})")
 
 
-def _uncompressed(data: bytes, layout: dict, package: Package, name: str) -> dict[str, np.ndarray]:
+def _uncompressed(data: bytes, layouts: dict | list[dict], package: Package, name: str) -> dict[str, np.ndarray]:
+    """The attributes of an uncompressed buffer; of several ``layouts``, the first its length fits."""
     if len(data) < 8:
         raise InputFileError(package.path, f"{name} is shorter than its 8-byte header")
     n, features = (int(v) for v in np.frombuffer(data, "<u4", 2))
+    layouts = layouts if isinstance(layouts, list) else [layouts]
+    layout = next((lay for lay in layouts if _length(lay, n, features) == len(data)), layouts[0])
     at = int(layout.get("offset", 8))
     values = {}
     for key in _ORDER:
@@ -251,6 +274,24 @@ def _uncompressed(data: bytes, layout: dict, package: Package, name: str) -> dic
         raise InputFileError(package.path, f"{name}: {n} vertices with{'out' if 'position' not in values else ''} "
                                            "positions (three vertices a triangle are needed)")
     return values
+
+
+def _length(layout: dict, n: int, features: int) -> int:
+    """The byte length of a buffer of ``layout`` holding ``n`` vertices and ``features`` features."""
+    at = int(layout.get("offset", 8))
+    for key in _ORDER:
+        field = layout.get(key)
+        if isinstance(field, dict) and field.get("type") in _TYPES and isinstance(field.get("component", 1), int):
+            count = (features if key in _PER_FEATURE else n) * field.get("component", 1)
+            at += count * np.dtype(_TYPES[field["type"]]).itemsize
+    return at
+
+
+def _entry(package: Package, name: str, *suffixes: str) -> bytes:
+    data = package.read(name, *suffixes)
+    if data is None:
+        raise InputFileError(package.path, f"{name} is not in the package")
+    return data
 
 
 def _draco(data: bytes, package: Package, layer: Layer, name: str) -> dict[str, np.ndarray]:
@@ -280,31 +321,36 @@ def _appearance(package: Package, layer: Layer, material: dict, values: dict,
     definition = _item(layer.doc.get("materialDefinitions"), material.get("definition", 0)) or {}
     pbr = definition.get("pbrMetallicRoughness") or {}
     factor = np.asarray(pbr.get("baseColorFactor", [1, 1, 1, 1]), dtype=np.float64)
-    colour = values.get("color")
-    colors = None
-    if colour is not None or not np.allclose(factor, 1):
-        rgba = np.full((len(values["position"]), 4), 255.0) if colour is None else \
-            np.concatenate([colour, np.full((len(colour), 4 - colour.shape[1]), 255)], axis=1)[:, :4].astype(float)
-        colors = np.clip(np.rint(rgba * np.resize(factor, 4)), 0, 255).astype(np.uint8)
+    colors = _rgba(values.get("color"), factor, len(values["position"]))
     texture_id = (pbr.get("baseColorTexture") or {}).get("textureSetDefinitionId")
     if texture_id is None:
         return None, colors
-    textures = _item(layer.doc.get("textureSetDefinitions"), texture_id) or {}
-    return _texture(package, textures.get("formats") or [], material.get("resource", index), index), colors
-
-
-def _texture(package: Package, formats: list, resource, index) -> bytes | None:
+    formats = (_item(layer.doc.get("textureSetDefinitions"), texture_id) or {}).get("formats") or []
     by_format = {f.get("format"): f.get("name") for f in formats if isinstance(f, dict)}
-    problem = f"names none of {', '.join(_TEXTURE_ORDER)} (only {sorted(by_format)})"
-    for fmt in _TEXTURE_ORDER:
-        if fmt not in by_format:
-            continue
-        name = f"nodes/{resource}/textures/{by_format[fmt]}"
+    resource = material.get("resource", index)
+    candidates = [(f, f"nodes/{resource}/textures/{by_format[f]}") for f in _TEXTURE_ORDER if f in by_format]
+    said = "" if candidates else f"names none of {', '.join(_TEXTURE_ORDER)} (only {sorted(map(str, by_format))})"
+    return _texture(package, candidates, index, said), colors
+
+
+def _rgba(colour: np.ndarray | None, factor: np.ndarray, n: int) -> np.ndarray | None:
+    """RGBA vertex colours: ``colour`` (or white) times the base colour ``factor``; None for white alone."""
+    if colour is None and np.allclose(factor, 1):
+        return None
+    rgba = np.full((n, 4), 255.0) if colour is None else \
+        np.concatenate([colour, np.full((len(colour), 4 - colour.shape[1]), 255)], axis=1)[:, :4].astype(float)
+    return np.clip(np.rint(rgba * np.resize(factor, 4)), 0, 255).astype(np.uint8)
+
+
+def _texture(package: Package, candidates: list[tuple[str, str]], index, problem: str = "") -> bytes | None:
+    """The first of ``candidates`` ((format, entry name), in :data:`_TEXTURE_ORDER`) that is a readable
+    image, as JPEG or PNG bytes; None with a MissingTextureWarning saying why when there is none."""
+    for fmt, name in candidates:
         data = package.read(name, f".{fmt}", f".bin.{fmt}")
         if data is None:
-            problem = f"{name} is not in the package"
+            problem = problem or f"{name} is not in the package (as {fmt.upper()}, JPEG, PNG and KTX2 are read)"
             continue
-        if fmt == "ktx2":
+        if data[:12] == b"\xabKTX 20\xbb\r\n\x1a\n":
             from pipeline25d.formats import ktx2
 
             try:
@@ -351,13 +397,3 @@ def _item(items, index) -> dict | None:
     ok = isinstance(items, list) and isinstance(index, int) and 0 <= index < len(items)
     return items[index] if ok and isinstance(items[index], dict) else None
 
-
-def layer_box(path: Path, spec: dict) -> tuple[np.ndarray, str] | None:
-    """The layer's ``fullExtent`` as (2, 3) corners and its CRS, or None where it names none."""
-    package = Package(path)
-    layer = Layer.of(package, spec)
-    extent = layer.doc.get("fullExtent")
-    keys = ("xmin", "ymin", "zmin", "xmax", "ymax", "zmax")
-    if not isinstance(extent, dict) or not all(isinstance(extent.get(k), (int, float)) for k in keys):
-        return None
-    return np.array([[extent[k] for k in keys[:3]], [extent[k] for k in keys[3:]]], dtype=np.float64), layer.crs

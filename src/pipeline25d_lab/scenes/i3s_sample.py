@@ -74,9 +74,11 @@ def _geometry(points: np.ndarray, uv: np.ndarray | None, features: list[tuple[in
 
 
 def write_package(target: Path, geographic: bool = False, draco: bool = False, uncompressed: bool = True,
-                  layer_type: str = "3DObject", packed: bool = True) -> Path:
+                  layer_type: str = "3DObject", packed: bool = True, pages: bool = True) -> Path:
     """The package at ``target`` (``.slpk``; ``packed`` False: its entries in a folder there).
-    ``draco``: a Draco buffer beside (or, without ``uncompressed``, instead of) the plain one."""
+    ``draco``: a Draco buffer beside (or, without ``uncompressed``, instead of) the plain one.
+    Every package holds I3S 1.6 node index documents, as ArcGIS Pro writes them beside the node
+    pages of 1.7; ``pages`` False leaves the pages out (a 1.6 package)."""
     crs, centre = ("EPSG:4326", GEOGRAPHIC_CENTRE) if geographic else PROJECTED
     entries: dict[str, bytes] = {}
     threshold = math.pi / 4 * SWITCH_PX ** 2
@@ -97,6 +99,7 @@ def write_package(target: Path, geographic: bool = False, draco: bool = False, u
         if k == 1:
             node.update(children=[2, 3], lodThreshold=threshold)
         nodes.append(node)
+        entries[f"nodes/{k}/3dNodeIndexDocument.json.gz"] = _document(node)
         uv = np.array([(0, 1), (1, 1), (1, 0), (0, 1), (1, 0), (0, 0)], float)   # v = 0 at the north edge
         features = [(101, 0, 0), (102, 1, 1)] if k == 2 else [(200 + k, 0, 1)]
         if uncompressed:
@@ -123,8 +126,19 @@ def write_package(target: Path, geographic: bool = False, draco: bool = False, u
         "textureSetDefinitions": [{"formats": [{"name": "0", "format": "png"}]}],
         "fullExtent": _extent(centre, geographic),
     }
+    layer["store"] = {"rootNode": "./nodes/root", "defaultGeometrySchema": {
+        "ordering": ["position", "uv0", "color"], "featureAttributeOrder": ["id", "faceRange"],
+        "vertexAttributes": {"position": {"valueType": "Float32", "valuesPerElement": 3},
+                             "uv0": {"valueType": "Float32", "valuesPerElement": 2},
+                             "color": {"valueType": "UInt8", "valuesPerElement": 4}},
+        "featureAttributes": {"id": {"valueType": "UInt64", "valuesPerElement": 1},
+                              "faceRange": {"valueType": "UInt32", "valuesPerElement": 2}}}}
+    entries["nodes/root/3dNodeIndexDocument.json.gz"] = _document(nodes[0])
+    if pages:
+        entries["nodepages/0.json.gz"] = gzip.compress(json.dumps({"nodes": nodes}).encode())
+    else:
+        del layer["nodePages"]
     entries["3dSceneLayer.json.gz"] = gzip.compress(json.dumps(layer).encode())
-    entries["nodepages/0.json.gz"] = gzip.compress(json.dumps({"nodes": nodes}).encode())
     entries["metadata.json"] = json.dumps({"folderPattern": "basic", "ArchiveCompressionType": "Store",
                                            "I3SVersion": "1.7", "nodeCount": len(nodes)}).encode()
     target.parent.mkdir(parents=True, exist_ok=True)
@@ -137,6 +151,21 @@ def write_package(target: Path, geographic: bool = False, draco: bool = False, u
             (target / name).parent.mkdir(parents=True, exist_ok=True)
             (target / name).write_bytes(data)
     return target
+
+
+def _document(node: dict) -> bytes:
+    """A node's 1.6 index document: its bounding sphere, threshold (a diameter), children and data."""
+    name = "root" if node["index"] == 0 else str(node["index"])
+    doc = {"id": name, "mbs": [*node["obb"]["center"], float(np.linalg.norm(node["obb"]["halfSize"]))],
+           "children": [{"id": str(c), "href": f"../{c}"} for c in node.get("children", [])]}
+    if "lodThreshold" in node:
+        doc["lodSelection"] = [{"metricType": "maxScreenThreshold", "maxError": SWITCH_PX},
+                               {"metricType": "maxScreenThresholdSQ", "maxError": node["lodThreshold"]}]
+    if "mesh" in node:
+        doc["geometryData"] = [{"href": "./geometries/0"}]
+        if node["index"] == 1:
+            doc["textureData"] = [{"href": "./textures/0"}]
+    return gzip.compress(json.dumps(doc).encode())
 
 
 def _obb(centre, half) -> dict:
