@@ -52,7 +52,8 @@ class Package:
         try:
             return self._zip.read(info)
         except (zipfile.BadZipFile, OSError, EOFError, NotImplementedError) as exc:
-            raise InputFileError(self.path, f"entry {name} cannot be read: {exc}") from None
+            raise InputFileError(self.path, f"entry {name} cannot be read (a corrupt or cut-short package: "
+                                            f"{exc})") from None
 
     def json(self, name: str) -> dict:
         """A JSON entry (``name``, ``name.json``, gzipped or not); InputFileError naming it when absent or bad."""

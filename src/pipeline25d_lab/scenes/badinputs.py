@@ -50,6 +50,7 @@ from pipeline25d_lab.scenes.model_writers import (  # noqa: F401 - the corpus's 
     write_obj,
     write_osgb,
     write_ply,
+    write_slpk,
     write_tileset,
 )
 
@@ -198,6 +199,8 @@ FORMATS: list[Format] = [
                     "nan": "degenerate"}),                                        # assimp reads NaN as a point
     Format("citygml", ".gml", write_citygml, without=frozenset({"index-out-of-range"}),
            phrases={"truncated": "malformed XML", "corrupt-header": "malformed XML"}),
+    Format("i3s", ".slpk", write_slpk, textures=False, without=frozenset({"index-out-of-range"}),  # no indices
+           phrases={"truncated": "not a scene layer package", "corrupt-header": "cannot be read"}),
 ]
 
 

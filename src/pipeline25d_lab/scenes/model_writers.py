@@ -263,3 +263,28 @@ def write_osgb(path: Path, v: np.ndarray, f: np.ndarray, texture: str | None) ->
             Path(tmp, texture).write_bytes(_png())
         osgconv(Path(src.name), Path("model.osgb"), ["WriteImageHint=UseExternal"], Path(tmp), path)
         path.write_bytes((Path(tmp) / "model.osgb").read_bytes())
+
+
+def write_slpk(path: Path, v: np.ndarray, f: np.ndarray, texture: str | None) -> None:
+    """An I3S scene layer package (EPSG:25832, 1.7 node pages) of one node holding the triangles
+    (three vertices each, as I3S stores them), offsets from the node's centre as ArcGIS writes them."""
+    import gzip
+    import zipfile
+
+    origin = np.array([691000.0, 5334000.0, 520.0])
+    corners = v[f].reshape(-1, 3) + origin
+    with np.errstate(invalid="ignore"):
+        centre = (np.nanmin(corners, 0) + np.nanmax(corners, 0)) / 2
+    centre = np.where(np.isfinite(centre), centre, origin)
+    data = np.array([len(corners), 0], "<u4").tobytes() + (corners - centre).astype("<f4").tobytes()
+    layer = {"layerType": "3DObject", "spatialReference": {"wkid": 25832},
+             "nodePages": {"nodesPerPage": 64, "lodSelectionMetricType": "maxScreenThresholdSQ"},
+             "geometryDefinitions": [{"geometryBuffers": [{"offset": 8,
+                                                           "position": {"type": "Float32", "component": 3}}]}]}
+    node = {"index": 0, "obb": {"center": centre.tolist(), "halfSize": [10, 10, 1], "quaternion": [0, 0, 0, 1]},
+            "mesh": {"geometry": {"definition": 0, "resource": 0}}}
+    entries = {"3dSceneLayer.json.gz": json.dumps(layer).encode(), "nodepages/0.json.gz": json.dumps(
+        {"nodes": [node]}).encode(), "nodes/0/geometries/0.bin.gz": data}
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED) as z:
+        for name, content in entries.items():              # a fixed date: the same bytes every time
+            z.writestr(zipfile.ZipInfo(name, date_time=(2020, 1, 1, 0, 0, 0)), gzip.compress(content, mtime=0))
