@@ -90,6 +90,22 @@ def test_features_are_objects_and_the_untextured_fine_level_has_its_vertex_colou
     assert west.texture is None
 
 
+def test_features_carry_their_attributes_and_a_missing_buffer_leaves_its_field_out(slpk, tmp_path):
+    """OBJECTID (Oid32), a UTF-8 name (byte counts, NUL-terminated) and a Float64 aligned to 8 bytes,
+    value k for the node's k-th feature; the same through the 1.6 documents."""
+    legacy = sample.write_package(tmp_path / "v16.slpk", pages=False)
+    for path in (slpk, legacy):
+        info = load_district({"path": str(path)}, CRS, gsd=1.0).object_info()
+        assert info == {str(i): {"attributes": {"OBJECTID": i, "name": sample.feature_name(i), "height": i / 4}}
+                        for i in (101, 102, 203)}
+    path = _rewrite(slpk, tmp_path / "no-names.slpk", **{"nodes/2/attributes/f_1/0.bin.gz": None})
+    with pytest.warns(UserWarning, match=r"no-names\.slpk: attribute buffers missing or not of 2 values, those "
+                                         r"attributes left out: nodes/2/attributes/f_1/0 \(name\)"):
+        info = load_district({"path": str(path)}, CRS, gsd=1.0).object_info()
+    assert info["101"] == {"attributes": {"OBJECTID": 101, "height": 25.25}}
+    assert info["203"]["attributes"]["name"] == sample.feature_name(203)
+
+
 def test_an_unpacked_package_reads_as_the_package(slpk, tmp_path):
     folder = sample.write_package(tmp_path / "unpacked", packed=False)
     packed, unpacked = _by_node(_load(slpk, 1.0)), _by_node(_load(folder, 1.0))

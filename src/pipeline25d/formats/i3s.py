@@ -222,7 +222,12 @@ def _node_part(package: Package, layer: Layer, node: dict) -> MeshPart | None:
         texture = None
     part = MeshPart(vertices, faces, colors=colors if texture is None else None, uv=uv, texture=texture,
                     name=f"node {node.get('index')}")
-    return _with_objects(part, values) if layer.objects else part
+    if not layer.objects:
+        return part
+    from pipeline25d.formats.i3s_attributes import with_features
+
+    resource = node.get("index") if layer.legacy else (mesh.get("attribute") or {}).get("resource")
+    return with_features(part, values, package, layer.doc.get("attributeStorageInfo"), resource)
 
 
 def _geometry(package: Package, layer: Layer, geometry: dict, index) -> dict[str, np.ndarray]:
@@ -375,22 +380,6 @@ def _uv(uv0: np.ndarray, region: np.ndarray | None) -> np.ndarray:
         lo, hi = region[:, :2] / 65535.0, region[:, 2:4] / 65535.0
         uv = lo + np.clip(uv, 0, 1) * (hi - lo)
     return np.column_stack([uv[:, 0], 1 - uv[:, 1]]).astype(np.float32)
-
-
-def _with_objects(part: MeshPart, values: dict) -> MeshPart:
-    """The part with its features as objects: each face's feature from the ``faceRange`` list."""
-    ids, ranges = values.get("featureId"), values.get("faceRange")
-    if ids is None or ranges is None or not len(ids):
-        return part
-    face_objects = np.full(len(part.faces), -1, dtype=np.int64)
-    for k, (first, last) in enumerate(ranges.astype(np.int64)):
-        face_objects[max(first, 0):min(last, len(part.faces) - 1) + 1] = k
-    keys = [str(int(v)) for v in ids[:, 0]]
-    if (face_objects < 0).any():
-        keys.append(f"{part.name} (no feature)")           # faces no faceRange covers
-        face_objects[face_objects < 0] = len(keys) - 1
-    return MeshPart(part.vertices, part.faces, colors=part.colors, uv=part.uv, texture=part.texture,
-                    name=part.name, objects=tuple(keys), face_objects=face_objects.astype(np.int32))
 
 
 def _item(items, index) -> dict | None:

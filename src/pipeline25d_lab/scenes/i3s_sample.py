@@ -95,13 +95,16 @@ def write_package(target: Path, geographic: bool = False, draco: bool = False, u
         node = {"index": k, "parentIndex": 0 if k == 1 else 1, "obb": _obb(box_centre, half),
                 "mesh": {"geometry": {"definition": 0, "resource": k, "vertexCount": 6,
                                       "featureCount": 2 if k == 2 else 1},
-                         "material": {"definition": 1 if k == 1 else 0, "resource": k}}}
+                         "material": {"definition": 1 if k == 1 else 0, "resource": k},
+                         "attribute": {"resource": k}}}
         if k == 1:
             node.update(children=[2, 3], lodThreshold=threshold)
         nodes.append(node)
         entries[f"nodes/{k}/3dNodeIndexDocument.json.gz"] = _document(node)
         uv = np.array([(0, 1), (1, 1), (1, 0), (0, 1), (1, 0), (0, 0)], float)   # v = 0 at the north edge
         features = [(101, 0, 0), (102, 1, 1)] if k == 2 else [(200 + k, 0, 1)]
+        for key, data in _attribute_buffers([f[0] for f in features]).items():
+            entries[f"nodes/{k}/attributes/{key}/0.bin.gz"] = gzip.compress(data)
         if uncompressed:
             entries[f"nodes/{k}/geometries/0.bin.gz"] = gzip.compress(_geometry(offsets, uv, features))
         if draco:
@@ -125,6 +128,7 @@ def write_package(target: Path, geographic: bool = False, draco: bool = False, u
                                 {"pbrMetallicRoughness": {"baseColorTexture": {"textureSetDefinitionId": 0}}}],
         "textureSetDefinitions": [{"formats": [{"name": "0", "format": "png"}]}],
         "fullExtent": _extent(centre, geographic),
+        "attributeStorageInfo": ATTRIBUTE_FIELDS,
     }
     layer["store"] = {"rootNode": "./nodes/root", "defaultGeometrySchema": {
         "ordering": ["position", "uv0", "color"], "featureAttributeOrder": ["id", "faceRange"],
@@ -151,6 +155,33 @@ def write_package(target: Path, geographic: bool = False, draco: bool = False, u
             (target / name).parent.mkdir(parents=True, exist_ok=True)
             (target / name).write_bytes(data)
     return target
+
+
+#: the layer's fields: a feature's OBJECTID (its id), a name and a height
+ATTRIBUTE_FIELDS = [
+    {"key": "f_0", "name": "OBJECTID", "header": [{"property": "count", "valueType": "UInt32"}],
+     "ordering": ["attributeValues"], "attributeValues": {"valueType": "Oid32", "valuesPerElement": 1}},
+    {"key": "f_1", "name": "name", "header": [{"property": "count", "valueType": "UInt32"},
+                                              {"property": "attributeValuesByteCount", "valueType": "UInt32"}],
+     "ordering": ["attributeByteCounts", "attributeValues"], "attributeValues": {"valueType": "String"}},
+    {"key": "f_2", "name": "height", "header": [{"property": "count", "valueType": "UInt32"}],
+     "ordering": ["attributeValues"], "attributeValues": {"valueType": "Float64", "valuesPerElement": 1}},
+]
+
+
+def feature_name(feature_id: int) -> str:
+    return f"Gebäude {feature_id}"
+
+
+def _attribute_buffers(ids: list[int]) -> dict[str, bytes]:
+    """A node's attribute buffers as ArcGIS lays them out: a count, byte counts for text (each value
+    NUL-terminated), a Float64 aligned to 8 bytes after the 4-byte count."""
+    count = np.array([len(ids)], "<u4").tobytes()
+    names = [feature_name(i).encode() + b"\0" for i in ids]
+    return {"f_0": count + np.array(ids, "<u4").tobytes(),
+            "f_1": count + np.array([sum(map(len, names))], "<u4").tobytes()
+            + np.array([len(n) for n in names], "<u4").tobytes() + b"".join(names),
+            "f_2": count + bytes(4) + np.array([i / 4 for i in ids], "<f8").tobytes()}
 
 
 def _document(node: dict) -> bytes:
