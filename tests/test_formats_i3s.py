@@ -59,17 +59,37 @@ def test_a_geographic_layer_lands_where_pyproj_puts_its_lon_lat(tmp_path):
         np.testing.assert_allclose(got[f"node {k}"], want, atol=2e-3)
 
 
-def test_draco_geometry_is_read_where_no_plain_buffer_is_and_refused_for_a_geographic_layer(tmp_path):
-    plain = _by_node(_load(sample.write_package(tmp_path / "plain.slpk"), None))
-    draco = _by_node(_load(sample.write_package(tmp_path / "draco.slpk", draco=True, uncompressed=False), None))
-    assert sorted(draco) == sorted(plain)
-    for name in plain:                          # Draco keeps the triangles, not their order
-        np.testing.assert_allclose(np.unique(draco[name].round(3), axis=0), np.unique(plain[name].round(3), axis=0),
-                                   atol=1e-3)
-    geo = sample.write_package(tmp_path / "geo-draco.slpk", geographic=True, draco=True, uncompressed=False)
-    with pytest.raises(UnsupportedFeatureError, match=r"geo-draco\.slpk: nodes/2/geometries/1: Draco-compressed "
-                                                      r"geometry of a geographic layer"):
-        _load(geo, None)
+@pytest.mark.parametrize("geographic", [False, True])
+def test_draco_geometry_reads_as_the_plain_buffer_with_its_scale_and_features_from_draco_metadata(tmp_path,
+                                                                                                  geographic):
+    """Draco alone (ArcGIS's layout: a geographic layer's positions in units of i3s-scale degrees,
+    feature indices in a generic attribute, both named in Draco metadata DracoPy does not give):
+    the same triangles and objects as the plain buffer, to the quantisation's precision."""
+    plain = _load(sample.write_package(tmp_path / "plain.slpk", geographic=geographic), None)
+    draco = _load(sample.write_package(tmp_path / "draco.slpk", geographic=geographic, draco=True,
+                                       uncompressed=False), None)
+    got, want = {p.name: p for p in draco.parts}, {p.name: p for p in plain.parts}
+    assert sorted(got) == sorted(want)
+    for name, part in want.items():
+        np.testing.assert_allclose(got[name].vertices, part.vertices, atol=2e-3)
+        assert [got[name].objects[k] for k in got[name].face_objects] == \
+            [part.objects[k] for k in part.face_objects]
+    assert draco.object_info() == plain.object_info()
+
+
+def test_draco_metadata_is_read_from_the_header():
+    from pipeline25d.formats.i3s_draco import draco_metadata
+
+    offsets = sample.corners_lonlat(sample.node_corners()[2]) - sample.GEOGRAPHIC_CENTRE
+    data = sample._draco_buffer(offsets, np.zeros((6, 2)), [(101, 0, 0), (102, 1, 1)], geographic=True)
+    meta = draco_metadata(data)
+    (scaled,) = [m for m in meta.values() if "i3s-scale_x" in m]
+    assert np.frombuffer(scaled["i3s-scale_y"], "<f8")[0] == sample.DRACO_SCALE
+    (features,) = [m for m in meta.values() if "i3s-feature-ids" in m]
+    assert np.frombuffer(features["i3s-feature-ids"], "<i4").tolist() == [101, 102]
+    assert draco_metadata(data[:9] + bytes([0, 0]) + data[11:]) == {}           # the flag cleared: none
+    with pytest.raises(ValueError, match="cut short"):
+        draco_metadata(data[:16])
 
 
 def test_the_texture_is_the_package_image_with_its_top_row_at_v_1(slpk):

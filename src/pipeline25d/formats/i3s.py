@@ -23,8 +23,8 @@ centre: in degrees of longitude and latitude and metres of height for a geograph
 (``wkid`` 4326), in its units for a projected one. The layer's CRS is its ``wkid`` with its
 ``vcsWkid`` (a compound CRS) where its ``heightModelInfo`` says gravity-related heights; the
 input's ``crs`` key overrides it. A Draco-compressed buffer is read where the
-package has no uncompressed one, for projected layers only: a geographic layer's Draco
-positions carry their scale in Draco metadata that DracoPy does not give.
+package has no uncompressed one (:mod:`.i3s_draco`: a geographic layer's position scale and the
+feature ids are in its Draco metadata).
 
 **Textures**: the texture set's JPEG or PNG, else its KTX2 (:mod:`.ktx2`); DDS and KTX (ETC2) alone
 are missing textures (``missing_textures``). ``uv0`` has its origin at the image's top row (as
@@ -246,7 +246,9 @@ def _geometry(package: Package, layer: Layer, geometry: dict, index) -> dict[str
         if data is None:
             continue
         if "compressedAttributes" in buffers[k]:
-            return _draco(data, package, layer, name)
+            from pipeline25d.formats.i3s_draco import draco_values
+
+            return draco_values(data, layer.geographic, package.path, name)
         return _uncompressed(data, buffers[k], package, name)
     raise InputFileError(package.path, f"node {index}: no geometry buffer in the package ({', '.join(tried)})")
 
@@ -297,27 +299,6 @@ def _entry(package: Package, name: str, *suffixes: str) -> bytes:
     if data is None:
         raise InputFileError(package.path, f"{name} is not in the package")
     return data
-
-
-def _draco(data: bytes, package: Package, layer: Layer, name: str) -> dict[str, np.ndarray]:
-    if layer.geographic:
-        raise UnsupportedFeatureError(package.path, f"{name}: Draco-compressed geometry of a geographic layer "
-                                                    "(its position scale is Draco metadata DracoPy does not read); "
-                                                    "export the package with uncompressed geometry too")
-    import DracoPy
-
-    try:
-        mesh = DracoPy.decode(data)
-    except Exception as exc:          # DracoPy raises several types for corrupt data
-        raise InputFileError(package.path, f"{name}: Draco data cannot be decoded ({exc})") from None
-    faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3)
-    corners = faces.ravel()
-    values = {"position": np.asarray(mesh.points, dtype=np.float64)[corners]}
-    if getattr(mesh, "tex_coord", None) is not None and len(mesh.tex_coord):
-        values["uv0"] = np.asarray(mesh.tex_coord, dtype=np.float32)[corners]
-    if getattr(mesh, "colors", None) is not None and len(mesh.colors):
-        values["color"] = np.asarray(mesh.colors, dtype=np.uint8)[corners]
-    return values
 
 
 def _appearance(package: Package, layer: Layer, material: dict, values: dict,

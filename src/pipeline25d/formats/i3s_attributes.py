@@ -26,14 +26,18 @@ _NUMBERS = {"Int8": "i1", "UInt8": "u1", "Int16": "<i2", "UInt16": "<u2", "Int32
 
 
 def with_features(part: MeshPart, values: dict, package, fields, resource) -> MeshPart:
-    """The part with its features as objects (each face's feature from the ``faceRange`` list), their
+    """The part with its features as objects (each face's feature from the ``faceRange`` list, or a
+    Draco buffer's ``faceFeature``), their
     attributes from attribute resource ``resource`` where the layer lists ``fields``."""
     ids, ranges = values.get("featureId"), values.get("faceRange")
-    if ids is None or ranges is None or not len(ids):
+    if "faceFeature" in values:                       # a Draco buffer's: each face's feature
+        face_objects = values["faceFeature"].astype(np.int64)
+    elif ids is None or ranges is None or not len(ids):
         return part
-    face_objects = np.full(len(part.faces), -1, dtype=np.int64)
-    for k, (first, last) in enumerate(ranges.astype(np.int64)):
-        face_objects[max(first, 0):min(last, len(part.faces) - 1) + 1] = k
+    else:
+        face_objects = np.full(len(part.faces), -1, dtype=np.int64)
+        for k, (first, last) in enumerate(ranges.astype(np.int64)):
+            face_objects[max(first, 0):min(last, len(part.faces) - 1) + 1] = k
     keys = [str(int(v)) for v in ids[:, 0]]
     info = feature_info(package, fields, resource, keys, package.path) if fields and resource is not None else None
     if (face_objects < 0).any():

@@ -108,11 +108,7 @@ def write_package(target: Path, geographic: bool = False, draco: bool = False, u
         if uncompressed:
             entries[f"nodes/{k}/geometries/0.bin.gz"] = gzip.compress(_geometry(offsets, uv, features))
         if draco:
-            import DracoPy
-
-            entries[f"nodes/{k}/geometries/1.bin.gz"] = gzip.compress(DracoPy.encode(
-                offsets.astype(np.float32), np.arange(6).reshape(2, 3), quantization_bits=20,
-                tex_coord=uv.astype(np.float64)))
+            entries[f"nodes/{k}/geometries/1.bin.gz"] = gzip.compress(_draco_buffer(offsets, uv, features, geographic))
         if k == 1:
             entries[f"nodes/{k}/textures/0.png"] = texture_png()
     layer = {
@@ -182,6 +178,41 @@ def _attribute_buffers(ids: list[int]) -> dict[str, bytes]:
             "f_1": count + np.array([sum(map(len, names))], "<u4").tobytes()
             + np.array([len(n) for n in names], "<u4").tobytes() + b"".join(names),
             "f_2": count + bytes(4) + np.array([i / 4 for i in ids], "<f8").tobytes()}
+
+
+DRACO_SCALE = 1 / 111319.49079327357       # degrees per Draco unit, as ArcGIS writes i3s-scale_x and _y
+
+
+def _draco_buffer(offsets: np.ndarray, uv: np.ndarray, features: list[tuple[int, int, int]],
+                  geographic: bool) -> bytes:
+    """A Draco buffer as ArcGIS writes one: a geographic layer's x, y in units of
+    :data:`DRACO_SCALE` degrees, each vertex's feature index in a generic attribute, and I3S's
+    metadata (scale; attribute type and feature ids) spliced in after the 11-byte header."""
+    import struct
+
+    import DracoPy
+
+    points = offsets.copy()
+    if geographic:
+        points[:, :2] /= DRACO_SCALE
+    index = np.zeros((len(points), 1))
+    for k, (_, first, last) in enumerate(features):
+        index[3 * first:3 * last + 3] = k
+    data = DracoPy.encode(points, np.arange(len(points)).reshape(-1, 3), quantization_bits=24, preserve_order=True,
+                          tex_coord=uv.astype(np.float64), generic_attributes={7: index})
+    ids = {a["attribute_type"]: a["unique_id"] for a in DracoPy.decode(data).attributes}
+
+    def element(entries: dict[str, bytes]) -> bytes:      # every size below 128: one-byte varints
+        return bytes([len(entries)]) + b"".join(bytes([len(k)]) + k.encode() + bytes([len(v)]) + v
+                                                for k, v in entries.items()) + b"\0"
+
+    scale = struct.pack("<d", DRACO_SCALE)
+    position = element({"i3s-scale_x": scale, "i3s-scale_y": scale} if geographic else {})
+    feature = element({"i3s-attribute-type": b"feature-index\0",
+                       "i3s-feature-ids": np.array([f[0] for f in features], "<i4").tobytes()})
+    metadata = bytes([2, ids[0]]) + position + bytes([ids[4]]) + feature + element({})
+    flags = struct.unpack_from("<H", data, 9)[0] | 0x8000
+    return data[:9] + struct.pack("<H", flags) + metadata + data[11:]
 
 
 def _document(node: dict) -> bytes:
