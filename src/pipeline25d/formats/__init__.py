@@ -103,7 +103,8 @@ UP_AXIS_FORMATS = ("obj", "ply", "dae", "3ds")
 #: file suffix -> format; .json, .gml and .xml are told apart by their content (:func:`detect_format`).
 SUFFIXES = {".obj": "obj", ".ply": "ply", ".dae": "dae", ".glb": "glb", ".gltf": "gltf",
             ".b3dm": "b3dm", ".i3dm": "b3dm", ".cmpt": "b3dm", ".jsonl": "cityjson", ".osgb": "osgb",
-            ".3ds": "3ds", ".3mx": "3mx", ".3mxb": "3mx", ".slpk": "i3s"}
+            ".3ds": "3ds", ".3mx": "3mx", ".3mxb": "3mx", ".slpk": "i3s",
+            ".3tz": "3dtiles", ".3dtiles": "3dtiles", ".zip": "3dtiles"}        # tileset packages
 
 
 def is_osgb_dataset(path: Path) -> bool:

@@ -196,8 +196,10 @@ def _citygml(path: Path, spec: dict) -> tuple | None:
 
 def _tileset(path: Path, spec: dict) -> tuple | None:
     from pipeline25d.formats.tiles3d import ECEF
+    from pipeline25d.formats.tileset_packages import tileset_of
     from pipeline25d.formats.tileset_tree import read_json, tile_matrix
 
+    path = tileset_of(path)
     root = read_json(path)["root"]
     volume = root["boundingVolume"]
     transform = tile_matrix(root.get("transform"), path)

@@ -39,7 +39,9 @@ def input_has_objects(spec: dict) -> bool:
         if fmt in SURFACE_FORMATS:
             return False
         if fmt == "3dtiles":
-            content = _first_content(path)
+            from pipeline25d.formats.tileset_packages import tileset_of
+
+            content = _first_content(tileset_of(path))
             return content is None or _content_has_features(file_bytes(content))
         if fmt == "b3dm":
             return _content_has_features(file_bytes(path))

@@ -70,8 +70,11 @@ def read_tileset_pieces(path: Path, spec: dict, detail: Detail = Detail(),
                         piece_bytes: float | None = None) -> Iterator[Loaded]:
     """:func:`read_tileset` in pieces of contents that add up to ``piece_bytes`` on disk (None:
     :data:`PIECE_BYTES`), untextured parts merged within a piece: a tileset smaller than that is
-    one piece, the parts :func:`read_tileset` returns."""
-    path = Path(path)
+    one piece, the parts :func:`read_tileset` returns. A package (.3tz, .zip, .3dtiles) is read
+    as the folder it unpacks to (:mod:`.tileset_packages`)."""
+    from pipeline25d.formats.tileset_packages import tileset_of
+
+    path = tileset_of(Path(path))
     up_axis = str(read_json(path).get("asset", {}).get("gltfUpAxis", "Y")).upper()
     if up_axis not in UP_AXES:
         raise InputFileError(path, f"asset.gltfUpAxis {up_axis!r} is none of X, Y, Z")

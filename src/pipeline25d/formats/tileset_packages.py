@@ -1,0 +1,151 @@
+"""3D Tiles packages, read as the tileset folder they pack.
+
+* **3TZ** (``.3tz``, ``.3dtiles.zip``): a zip archive with the tileset at its top and an index
+  entry ``@3dtilesIndex1@`` (the 3D Tiles Archive Format; Cesium ion Self-Hosted and
+  3d-tiles-tools write it);
+* a **zipped tileset folder** (``.zip``), as Agisoft Metashape exports Cesium 3D Tiles: the
+  shallowest ``tileset.json`` in it is the root;
+* the **3DTILES** SQLite package (``.3dtiles``, 3d-tiles-tools): a table ``media(key, content)``.
+
+A package is unpacked once into a folder of the cache (``$PIPELINE25D_CACHE``, else
+``$XDG_CACHE_HOME/pipeline25d``, else ``~/.cache/pipeline25d``), named by the package's path,
+size and modification time, and read from there like any tileset folder: its side files stay
+inside it (:func:`~pipeline25d.formats.common.side_file`). An entry whose name is absolute or
+climbs out with ``..`` is refused, naming it; so is a package that needs more room than the
+cache's disk has free (keeping :data:`FREE_MARGIN` bytes). Unpacking writes to a temporary
+folder renamed into place, so an interrupted one leaves nothing that looks complete.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import posixpath
+import shutil
+import sqlite3
+import tempfile
+import time
+import zipfile
+from pathlib import Path
+
+from pipeline25d.core.errors import InputFileError
+
+log = logging.getLogger(__name__)
+
+SUFFIXES = (".3tz", ".3dtiles", ".zip")
+FREE_MARGIN = 1 << 30          # bytes left free on the cache's disk after unpacking
+INDEX_ENTRY = "@3dtilesIndex1@"
+
+
+def is_package(path: Path) -> bool:
+    """Whether ``path`` names a 3D Tiles package (by its suffix; ``.3dtiles.zip`` is a ``.zip``)."""
+    return path.suffix.lower() in SUFFIXES and path.is_file()
+
+
+def tileset_of(path: Path) -> Path:
+    """The root tileset JSON of ``path``: ``path`` itself, or for a package its unpacked copy's."""
+    path = Path(path)
+    if not is_package(path):
+        return path
+    folder = unpacked(path)
+    found = sorted(folder.rglob("tileset.json"), key=lambda p: (len(p.relative_to(folder).parts), str(p)))
+    if not found:
+        raise InputFileError(path, "is a package without a tileset.json (not a 3D Tiles package)")
+    return found[0]
+
+
+def cache_folder() -> Path:
+    base = os.environ.get("PIPELINE25D_CACHE")
+    if base:
+        return Path(base)
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "pipeline25d"
+
+
+def unpacked(path: Path) -> Path:
+    """The folder ``path`` unpacks to in the cache, unpacking it first where it is not there."""
+    stat = path.stat()
+    key = hashlib.sha256(f"{path.resolve()}\0{stat.st_size}\0{stat.st_mtime_ns}".encode()).hexdigest()[:16]
+    target = cache_folder() / "packages" / f"{path.name}-{key}"
+    if target.is_dir():
+        return target
+    target.parent.mkdir(parents=True, exist_ok=True)
+    started = time.monotonic()
+    entries = _sqlite_entries(path) if path.suffix.lower() == ".3dtiles" else _zip_entries(path)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=target.parent))
+    try:
+        count = entries(tmp)
+        try:
+            os.replace(tmp, target)
+        except OSError:               # another job unpacked it meanwhile: theirs is the same
+            shutil.rmtree(tmp, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    log.info("%s: unpacked %d files to %s in %.1f s", path, count, target, time.monotonic() - started)
+    return target
+
+
+def _entry_path(root: Path, name: str, package: Path) -> Path | None:
+    """Where entry ``name`` goes under ``root``; None for a folder or the 3TZ index entry."""
+    if name.endswith("/") or name == INDEX_ENTRY:
+        return None
+    clean = posixpath.normpath(name.replace("\\", "/"))
+    if clean.startswith("/") or clean == ".." or clean.startswith("../") or ":" in clean.split("/")[0]:
+        raise InputFileError(package, f"entry {name!r} lies outside the package (an absolute name or one "
+                                      "climbing out with ..)")
+    return root / clean
+
+
+def _room(package: Path, folder: Path, needed: int) -> None:
+    free = shutil.disk_usage(folder).free
+    if needed > free - FREE_MARGIN:
+        raise InputFileError(package, f"unpacking needs {needed / 1e9:.1f} GB, the cache {folder} has "
+                                      f"{free / 1e9:.1f} GB free (set PIPELINE25D_CACHE to a larger disk)")
+
+
+def _zip_entries(path: Path):
+    try:
+        archive = zipfile.ZipFile(path)
+    except (zipfile.BadZipFile, OSError) as exc:
+        raise InputFileError(path, f"is not a zip archive ({exc})") from None
+
+    def write(root: Path) -> int:
+        with archive:
+            infos = archive.infolist()
+            _room(path, root, sum(i.file_size for i in infos))
+            count = 0
+            for info in infos:
+                target = _entry_path(root, info.filename, path)
+                if target is None:
+                    continue
+                target.parent.mkdir(parents=True, exist_ok=True)
+                try:
+                    with archive.open(info) as src, open(target, "wb") as dst:
+                        shutil.copyfileobj(src, dst, 1 << 20)
+                except (zipfile.BadZipFile, EOFError, NotImplementedError, ValueError) as exc:
+                    raise InputFileError(path, f"entry {info.filename} cannot be read (a corrupt or cut-short "
+                                               f"archive: {exc})") from None
+                count += 1
+            return count
+    return write
+
+
+def _sqlite_entries(path: Path):
+    def write(root: Path) -> int:
+        try:
+            with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
+                (needed,) = db.execute("SELECT COALESCE(SUM(LENGTH(content)), 0) FROM media").fetchone()
+                _room(path, root, needed)
+                count = 0
+                for key, content in db.execute("SELECT key, content FROM media"):
+                    target = _entry_path(root, str(key), path)
+                    if target is None or content is None:
+                        continue
+                    target.parent.mkdir(parents=True, exist_ok=True)
+                    target.write_bytes(bytes(content))
+                    count += 1
+                return count
+        except sqlite3.Error as exc:
+            raise InputFileError(path, f"is not a 3DTILES package (SQLite with a media table: {exc})") from None
+    return write

@@ -1,0 +1,110 @@
+"""3D Tiles packages (3TZ, a zipped tileset folder, the 3DTILES SQLite package) read as the folder they
+pack: the same triangles, unpacked once into the cache, hostile entries refused."""
+
+from __future__ import annotations
+
+import gzip
+import json
+import sqlite3
+import zipfile
+
+import numpy as np
+import pytest
+
+from pipeline25d.core.errors import InputFileError
+from pipeline25d.formats import load_district
+from pipeline25d_lab.scenes.model_writers import SCENE_CRS, SQUARE, SQUARE_FACES, tileset, write_b3dm
+
+
+@pytest.fixture(autouse=True)
+def cache(tmp_path, monkeypatch):
+    folder = tmp_path / "cache"
+    monkeypatch.setenv("PIPELINE25D_CACHE", str(folder))
+    return folder
+
+
+@pytest.fixture
+def folder(tmp_path):
+    """A tileset folder: a root tile and a child in a subfolder, each a b3dm of the square."""
+    root = tmp_path / "tiles"
+    (root / "sub").mkdir(parents=True)
+    write_b3dm(root / "root.b3dm", SQUARE, SQUARE_FACES, None)
+    write_b3dm(root / "sub" / "child.b3dm", SQUARE + (0, 0, 5), SQUARE_FACES, None)
+    child = {"boundingVolume": {"sphere": [0, 0, 0, 1e7]}, "geometricError": 0, "content": {"uri": "sub/child.b3dm"}}
+    (root / "tileset.json").write_text(json.dumps(tileset("root.b3dm", [child])))
+    return root
+
+
+def _files(folder):
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def _zip(path, entries: dict[str, bytes]):
+    with zipfile.ZipFile(path, "w") as z:
+        for name, data in entries.items():
+            z.writestr(name, data)
+    return path
+
+
+def _vertices(path):
+    return np.concatenate([p.vertices for p in load_district({"path": str(path)}, SCENE_CRS).parts])
+
+
+def test_each_package_reads_as_the_folder_it_packs(folder, tmp_path):
+    want = _vertices(folder / "tileset.json")
+    files = _files(folder)
+    three_tz = _zip(tmp_path / "city.3tz", {**files, "@3dtilesIndex1@": bytes(24)})
+    metashape = _zip(tmp_path / "city.zip", {f"Tileset/{k}": v for k, v in files.items()})   # a folder inside
+    sqlite_package = tmp_path / "city.3dtiles"
+    with sqlite3.connect(sqlite_package) as db:
+        db.execute("CREATE TABLE media (key TEXT PRIMARY KEY, content BLOB)")
+        db.executemany("INSERT INTO media VALUES (?, ?)",               # contents gzipped, as 3d-tiles-tools may
+                       [(k, gzip.compress(v) if k.endswith(".b3dm") else v) for k, v in files.items()])
+    assert len(want) == 8
+    for package in (three_tz, metashape, sqlite_package):
+        np.testing.assert_array_equal(_vertices(package), want)
+
+
+def test_a_package_is_unpacked_once(folder, tmp_path, cache):
+    package = _zip(tmp_path / "city.3tz", _files(folder))
+    _vertices(package)
+    (unpacked,) = (cache / "packages").iterdir()
+    marker = unpacked / "read-again"
+    marker.write_text("the same folder is read again")
+    _vertices(package)
+    assert [p.name for p in (cache / "packages").iterdir()] == [unpacked.name] and marker.exists()
+
+
+def test_hostile_packages_are_refused_naming_the_package(folder, tmp_path, monkeypatch):
+    files = _files(folder)
+    slip = _zip(tmp_path / "slip.3tz", {**files, "../outside.b3dm": b"x"})
+    with pytest.raises(InputFileError, match=r"slip\.3tz: entry '\.\./outside\.b3dm' lies outside the package"):
+        _vertices(slip)
+    assert not (tmp_path / "outside.b3dm").exists()
+    empty = _zip(tmp_path / "no-tileset.zip", {"readme.txt": b"hello"})
+    with pytest.raises(InputFileError, match=r"no-tileset\.zip: is a package without a tileset\.json"):
+        _vertices(empty)
+    (tmp_path / "not-a-zip.3tz").write_bytes(b"3TZ? no")
+    with pytest.raises(InputFileError, match=r"not-a-zip\.3tz: is not a zip archive"):
+        _vertices(tmp_path / "not-a-zip.3tz")
+    (tmp_path / "not-sqlite.3dtiles").write_bytes(b"not a database, long enough to be looked at" * 10)
+    with pytest.raises(InputFileError, match=r"not-sqlite\.3dtiles: is not a 3DTILES package"):
+        _vertices(tmp_path / "not-sqlite.3dtiles")
+    from pipeline25d.formats import tileset_packages
+
+    monkeypatch.setattr(tileset_packages, "FREE_MARGIN", 1 << 62)          # no disk has that room
+    big = _zip(tmp_path / "big.3tz", files)
+    with pytest.raises(InputFileError, match=r"big\.3tz: unpacking needs .* GB free \(set PIPELINE25D_CACHE"):
+        _vertices(big)
+    assert not [p for p in (tmp_path / "cache" / "packages").iterdir() if p.name.startswith("big.3tz")]
+
+
+def test_the_box_before_reading_and_objects_look_inside_the_package(folder, tmp_path):
+    from pipeline25d.formats.boxes import input_box
+    from pipeline25d.formats.has_objects import input_has_objects
+
+    package = _zip(tmp_path / "city.3tz", _files(folder))
+    want, got = input_box({"path": str(folder / "tileset.json")}), input_box({"path": str(package)})
+    assert got is not None and got.crs == want.crs
+    np.testing.assert_array_equal(got.corners, want.corners)
+    assert input_has_objects({"path": str(package)}) == input_has_objects({"path": str(folder / "tileset.json")})
