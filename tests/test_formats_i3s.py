@@ -101,6 +101,23 @@ def test_the_texture_is_the_package_image_with_its_top_row_at_v_1(slpk):
     assert part.colors is None
 
 
+def test_a_dds_only_texture_set_is_decoded(slpk, tmp_path):
+    """ArcGIS's DDS (DXT1) texture, the set's only format: level 0 decoded to the image it encodes
+    (the sample's red and blue are DXT1 endpoint colours, so exactly)."""
+    import io
+
+    from PIL import Image
+
+    dds = io.BytesIO()
+    Image.open(io.BytesIO(sample.texture_png())).save(dds, format="DDS", pixel_format="DXT1")
+    layer = _layer(slpk, textureSetDefinitions=[{"formats": [{"name": "0_0_1", "format": "dds"}]}])
+    path = _rewrite(slpk, tmp_path / "dds.slpk", **{"3dSceneLayer.json.gz": layer, "nodes/1/textures/0.png": None,
+                                                     "nodes/1/textures/0_0_1.bin.dds": dds.getvalue()})
+    (part,) = _load(path, 2.0).parts
+    got = np.asarray(Image.open(io.BytesIO(part.texture)).convert("RGB"))
+    np.testing.assert_array_equal(got, np.asarray(Image.open(io.BytesIO(sample.texture_png())).convert("RGB")))
+
+
 def test_features_are_objects_and_the_untextured_fine_level_has_its_vertex_colours(slpk):
     parts = {p.name: p for p in _load(slpk, 1.0).parts}
     west = parts["node 2"]

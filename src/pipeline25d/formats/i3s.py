@@ -26,11 +26,11 @@ input's ``crs`` key overrides it. A Draco-compressed buffer is read where the
 package has no uncompressed one (:mod:`.i3s_draco`: a geographic layer's position scale and the
 feature ids are in its Draco metadata).
 
-**Textures**: the texture set's JPEG or PNG, else its KTX2 (:mod:`.ktx2`); DDS and KTX (ETC2) alone
-are missing textures (``missing_textures``). ``uv0`` has its origin at the image's top row (as
-glTF); a ``uvRegion`` (an atlas's sub-image) maps ``uv0``, clipped to [0, 1], into it. Without
-a texture, the vertex colours times the material's base colour. A ``3DObject`` layer's features
-(its buildings) are the parts' objects, keyed by feature id.
+**Textures**: the texture set's JPEG or PNG, else its KTX2 (:mod:`.ktx2`), else its DDS (S3TC/BC,
+level 0 decoded by Pillow); KTX (ETC2) alone is a missing texture (``missing_textures``). ``uv0``
+has its origin at the image's top row (as glTF); a ``uvRegion`` (an atlas's sub-image) maps ``uv0``,
+clipped to [0, 1], into it. Without a texture, the vertex colours times the material's base colour.
+A ``3DObject`` layer's features (its buildings) are the parts' objects, keyed by feature id.
 """
 
 from __future__ import annotations
@@ -57,7 +57,7 @@ _TYPES = {"Float32": "<f4", "Float64": "<f8", "UInt8": "u1", "UInt16": "<u2", "U
           "Int8": "i1", "Int16": "<i2", "Int32": "<i4"}
 _ORDER = ("position", "normal", "uv0", "color", "uvRegion", "featureId", "faceRange")
 _PER_FEATURE = ("featureId", "faceRange", "id")
-_TEXTURE_ORDER = ("jpg", "png", "ktx2")
+_TEXTURE_ORDER = ("jpg", "png", "ktx2", "dds")
 
 
 @dataclass(frozen=True)
@@ -334,8 +334,12 @@ def _texture(package: Package, candidates: list[tuple[str, str]], index, problem
     for fmt, name in candidates:
         data = package.read(name, f".{fmt}", f".bin.{fmt}")
         if data is None:
-            problem = problem or f"{name} is not in the package (as {fmt.upper()}, JPEG, PNG and KTX2 are read)"
+            problem = problem or f"{name} is not in the package (as {fmt.upper()}; JPEG, PNG, KTX2 and DDS are read)"
             continue
+        if data[:4] == b"DDS ":
+            data, problem = _dds_as_png(data, name)
+            if data is None:
+                continue
         if data[:12] == b"\xabKTX 20\xbb\r\n\x1a\n":
             from pipeline25d.formats import ktx2
 
@@ -351,6 +355,21 @@ def _texture(package: Package, candidates: list[tuple[str, str]], index, problem
     warnings.warn(f"{package.path}: the texture of node {index}: {problem}; its parts are drawn untextured",
                   MissingTextureWarning, stacklevel=5)
     return None
+
+
+def _dds_as_png(data: bytes, name: str) -> tuple[bytes | None, str | None]:
+    """A DDS texture's level 0 as PNG bytes (Pillow decodes DXT1/3/5 and BC4-7), or (None, the problem)."""
+    import io
+
+    from PIL import Image
+
+    try:
+        with Image.open(io.BytesIO(data)) as image:
+            out = io.BytesIO()
+            image.convert("RGBA" if "A" in image.mode else "RGB").save(out, format="PNG", compress_level=1)
+    except Exception as exc:        # Pillow raises several types for an unknown format or a cut file
+        return None, f"{name} cannot be read (DDS: {exc})"
+    return out.getvalue(), None
 
 
 def _uv(uv0: np.ndarray, region: np.ndarray | None) -> np.ndarray:
