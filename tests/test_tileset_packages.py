@@ -65,7 +65,7 @@ def test_each_package_reads_as_the_folder_it_packs(folder, tmp_path):
         np.testing.assert_array_equal(_vertices(package), want)
 
 
-def test_a_package_is_unpacked_once(folder, tmp_path, cache):
+def test_a_package_is_unpacked_once_and_again_when_replaced(folder, tmp_path, cache):
     package = _zip(tmp_path / "city.3tz", _files(folder))
     _vertices(package)
     (unpacked,) = (cache / "packages").iterdir()
@@ -73,6 +73,12 @@ def test_a_package_is_unpacked_once(folder, tmp_path, cache):
     marker.write_text("the same folder is read again")
     _vertices(package)
     assert [p.name for p in (cache / "packages").iterdir()] == [unpacked.name] and marker.exists()
+    files = _files(folder)                                    # the package replaced: a child moved up 5 m
+    write_b3dm(folder / "sub" / "child.b3dm", SQUARE + (0, 0, 10), SQUARE_FACES, None)
+    _zip(package, {**files, "sub/child.b3dm": (folder / "sub" / "child.b3dm").read_bytes()})
+    assert _vertices(package)[:, 2].max() - _vertices(folder / "tileset.json")[:, 2].min() > 9.9
+    (again,) = (cache / "packages").iterdir()                 # unpacked anew, the older copy gone
+    assert again.name != unpacked.name
 
 
 def test_hostile_packages_are_refused_naming_the_package(folder, tmp_path, monkeypatch):

@@ -8,12 +8,12 @@
 * the **3DTILES** SQLite package (``.3dtiles``, 3d-tiles-tools): a table ``media(key, content)``.
 
 A package is unpacked once into a folder of the cache (``$PIPELINE25D_CACHE``, else
-``$XDG_CACHE_HOME/pipeline25d``, else ``~/.cache/pipeline25d``), named by the package's path,
-size and modification time, and read from there like any tileset folder: its side files stay
-inside it (:func:`~pipeline25d.formats.common.side_file`). An entry whose name is absolute or
-climbs out with ``..`` is refused, naming it; so is a package that needs more room than the
-cache's disk has free (keeping :data:`FREE_MARGIN` bytes). Unpacking writes to a temporary
-folder renamed into place, so an interrupted one leaves nothing that looks complete.
+``$XDG_CACHE_HOME/pipeline25d``, else ``~/.cache/pipeline25d``), named by the package's path, size
+and modification time (the copy of an older version removed), and read from there like any tileset
+folder: its side files stay inside it (:func:`~pipeline25d.formats.common.side_file`). An entry
+whose name is absolute or climbs out with ``..`` is refused, naming it; so is a package that needs
+more room than the cache's disk has free (keeping :data:`FREE_MARGIN` bytes). Unpacking writes to a
+temporary folder renamed into place, so an interrupted one leaves nothing that looks complete.
 """
 
 from __future__ import annotations
@@ -63,10 +63,13 @@ def cache_folder() -> Path:
 
 
 def unpacked(path: Path) -> Path:
-    """The folder ``path`` unpacks to in the cache, unpacking it first where it is not there."""
+    """The folder ``path`` unpacks to in the cache, unpacking it first where it is not there. Named by
+    the package's path and, after it, its size and modification time: a package replaced in place (a
+    district updated) unpacks anew, and its older copies in the cache are removed."""
     stat = path.stat()
-    key = hashlib.sha256(f"{path.resolve()}\0{stat.st_size}\0{stat.st_mtime_ns}".encode()).hexdigest()[:16]
-    target = cache_folder() / "packages" / f"{path.name}-{key}"
+    place = hashlib.sha256(str(path.resolve()).encode()).hexdigest()[:12]
+    version = hashlib.sha256(f"{stat.st_size}\0{stat.st_mtime_ns}".encode()).hexdigest()[:8]
+    target = cache_folder() / "packages" / f"{path.name}-{place}-{version}"
     if target.is_dir():
         return target
     target.parent.mkdir(parents=True, exist_ok=True)
@@ -83,6 +86,9 @@ def unpacked(path: Path) -> Path:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     log.info("%s: unpacked %d files to %s in %.1f s", path, count, target, time.monotonic() - started)
+    for older in target.parent.glob(f"{path.name}-{place}-*"):
+        if older != target:
+            shutil.rmtree(older, ignore_errors=True)
     return target
 
 
