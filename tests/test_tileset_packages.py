@@ -96,6 +96,9 @@ def test_hostile_packages_are_refused_naming_the_package(folder, tmp_path, monke
     (tmp_path / "not-sqlite.3dtiles").write_bytes(b"not a database, long enough to be looked at" * 10)
     with pytest.raises(InputFileError, match=r"not-sqlite\.3dtiles: is not a 3DTILES package"):
         _vertices(tmp_path / "not-sqlite.3dtiles")
+    cut = _zip(tmp_path / "cut.3tz", {**files, "sub/child.b3dm": files["sub/child.b3dm"][:40]})
+    with pytest.raises(InputFileError, match=r"cut\.3tz!/sub/child\.b3dm: "):     # named inside the package
+        _vertices(cut)
     from pipeline25d.formats import tileset_packages
 
     monkeypatch.setattr(tileset_packages, "FREE_MARGIN", 1 << 62)          # no disk has that room

@@ -71,10 +71,14 @@ def read_tileset_pieces(path: Path, spec: dict, detail: Detail = Detail(),
     """:func:`read_tileset` in pieces of contents that add up to ``piece_bytes`` on disk (None:
     :data:`PIECE_BYTES`), untextured parts merged within a piece: a tileset smaller than that is
     one piece, the parts :func:`read_tileset` returns. A package (.3tz, .zip, .3dtiles) is read
-    as the folder it unpacks to (:mod:`.tileset_packages`)."""
-    from pipeline25d.formats.tileset_packages import tileset_of
+    as the folder it unpacks to (:mod:`.tileset_packages`), its errors naming the file in it."""
+    from pipeline25d.formats.tileset_packages import is_package, named_in_package, tileset_of, unpacked
 
-    path = tileset_of(Path(path))
+    if is_package(Path(path)):
+        yield from named_in_package(Path(path), unpacked(Path(path)),
+                                    read_tileset_pieces(tileset_of(Path(path)), spec, detail, piece_bytes))
+        return
+    path = Path(path)
     up_axis = str(read_json(path).get("asset", {}).get("gltfUpAxis", "Y")).upper()
     if up_axis not in UP_AXES:
         raise InputFileError(path, f"asset.gltfUpAxis {up_axis!r} is none of X, Y, Z")

@@ -27,9 +27,10 @@ import sqlite3
 import tempfile
 import time
 import zipfile
+from collections.abc import Iterator
 from pathlib import Path
 
-from pipeline25d.core.errors import InputFileError
+from pipeline25d.core.errors import FileProblem, InputFileError
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +54,19 @@ def tileset_of(path: Path) -> Path:
     if not found:
         raise InputFileError(path, "is a package without a tileset.json (not a 3D Tiles package)")
     return found[0]
+
+
+def named_in_package(package: Path, folder: Path, items: Iterator) -> Iterator:
+    """``items``, where an error names a file of ``package``'s unpacked ``folder``, naming it inside the
+    package instead (``city.3tz!/tiles/0.b3dm: ...``), as the user knows it."""
+    try:
+        yield from items
+    except FileProblem as exc:
+        inner = Path(exc.path)
+        if not inner.is_relative_to(folder):
+            raise
+        inside = f"{package}!/{inner.relative_to(folder).as_posix()}"
+        raise type(exc)(inside, exc.problem.replace(str(folder), f"{package}!")) from None
 
 
 def cache_folder() -> Path:
@@ -106,7 +120,7 @@ def _entry_path(root: Path, name: str, package: Path) -> Path | None:
 def _room(package: Path, folder: Path, needed: int) -> None:
     free = shutil.disk_usage(folder).free
     if needed > free - FREE_MARGIN:
-        raise InputFileError(package, f"unpacking needs {needed / 1e9:.1f} GB, the cache {folder} has "
+        raise InputFileError(package, f"unpacking needs {needed / 1e9:.1f} GB, the cache {folder.parent} has "
                                       f"{free / 1e9:.1f} GB free (set PIPELINE25D_CACHE to a larger disk)")
 
 
