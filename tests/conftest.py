@@ -19,6 +19,17 @@ DATA = REPO.parent / "shared" / "data"
 CHROMIUM = shutil.which("chromium")
 
 
+@pytest.fixture(scope="session", autouse=True)
+def package_cache(tmp_path_factory):
+    """Tileset packages a test reads unpack into a folder of the test run, not the user's cache
+    (``PIPELINE25D_CACHE``, inherited by the workflow runs a test starts)."""
+    folder = tmp_path_factory.mktemp("package-cache")
+    patch = pytest.MonkeyPatch()
+    patch.setenv("PIPELINE25D_CACHE", str(folder))
+    yield folder
+    patch.undo()
+
+
 def shared_file(path: Path) -> Path:
     """``path`` (a real dataset under ``../shared/data``), or skip the test where it is absent."""
     if not Path(path).exists():

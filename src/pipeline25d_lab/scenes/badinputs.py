@@ -166,6 +166,37 @@ def _missing_content(path: Path) -> None:
     path.write_text(json.dumps(tileset("nowhere.b3dm")))
 
 
+def _package(path: Path, entries: dict[str, bytes]) -> None:
+    """A zip of ``entries`` with fixed dates (the same bytes every time it is written)."""
+    import zipfile
+
+    with zipfile.ZipFile(path, "w") as z:
+        for name, data in entries.items():
+            z.writestr(zipfile.ZipInfo(name, date_time=(2020, 1, 1, 0, 0, 0)), data)
+
+
+def _tileset_entries(tile: bytes | None = None) -> dict[str, bytes]:
+    """A one-tile tileset's files: its JSON and its b3dm (``tile`` in its place, when given)."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        write_b3dm(Path(tmp) / "tile.b3dm", SQUARE, SQUARE_FACES, None)
+        b3dm = (Path(tmp) / "tile.b3dm").read_bytes()
+    return {"tileset.json": json.dumps(tileset("tile.b3dm")).encode(), "tile.b3dm": b3dm if tile is None else tile}
+
+
+def _package_climbing_out(path: Path) -> None:
+    _package(path, {**_tileset_entries(), "../escaped.b3dm": b"a tile written beside the package"})
+
+
+def _package_without_tileset(path: Path) -> None:
+    _package(path, {"readme.txt": b"a zip of something else"})
+
+
+def _package_tile_cut(path: Path) -> None:
+    _package(path, _tileset_entries(_tileset_entries()["tile.b3dm"][:40]))
+
+
 def _outside_area(path: Path) -> None:
     """UTM coordinates labelled with the Dutch EPSG:28992: far outside that CRS's area of use."""
     write_cityjson(path, SQUARE, SQUARE_FACES, None)
@@ -187,7 +218,10 @@ FORMATS: list[Format] = [
     Format("3dtiles", ".json", write_tileset,
            phrases={"truncated": "not valid JSON", "corrupt-header": "not valid JSON"},
            extra=[Case("3dtiles/cycle/tileset.json", "cycle", _cycle),
-                  Case("3dtiles/missing-content.json", "is missing", _missing_content)]),
+                  Case("3dtiles/missing-content.json", "is missing", _missing_content),
+                  Case("3dtiles/entry-climbing-out.3tz", "lies outside the package", _package_climbing_out),
+                  Case("3dtiles/no-tileset.zip", "without a tileset.json", _package_without_tileset),
+                  Case("3dtiles/tile-cut-short.3tz", "tile-cut-short.3tz!/tile.b3dm", _package_tile_cut)]),
     Format("cityjson", ".city.json", write_cityjson, textures=False,
            phrases={"truncated": "not valid JSON", "corrupt-header": "not valid JSON"},
            extra=[Case("cityjson/outside-area-of-use.city.json", "outside the area of use", _outside_area,
