@@ -143,20 +143,38 @@ def test_an_unreadable_texture_is_a_missing_texture(scene, tmp_path):
     assert sorted(p.texture is None for p in mesh.parts) == [False, True]
 
 
-def test_a_texture_file_outside_the_dataset_folder_is_a_missing_texture(scene, tmp_path):
-    """A textureFile resource that leads out of the folder (an exporter's path on its own machine)
-    is never read, even where it is a good image: an error naming it by default, untextured with
-    missing_textures: untextured, as a glTF, CityGML or CityJSON image there is."""
-    copy = tmp_path / "t"
+def _texture_as_file(scene, copy, image):
+    """A copy of the scene whose tile 0 texture (a buffer) is the textureFile ``image`` instead; its root."""
     root, good, size = _copy(scene, copy)
     start = 9 + size
     header = json.loads(good[9:start])
     res = header["resources"][0]                          # tile 0's JPEG, a buffer
     n = res.pop("size")
-    (tmp_path / "outside.jpg").write_bytes(good[start:start + n])
-    res.update(type="textureFile", file=os.path.relpath(tmp_path / "outside.jpg", root.parent))
+    image.write_bytes(good[start:start + n])
+    res.update(type="textureFile", file=os.path.relpath(image, root.parent))
     text = json.dumps(header).encode()
     root.write_bytes(b"3MXBO" + struct.pack("<I", len(text)) + text + good[start + n:])
+    return root
+
+
+def test_a_texture_file_in_another_letter_case_is_read_and_warned_of_once(scene, tmp_path):
+    copy = tmp_path / "t"
+    root = _texture_as_file(scene, copy, copy / "Data" / "tex0.jpg")
+    (copy / "Data" / "tex0.jpg").rename(copy / "Data" / "Tex0.jpg")
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        mesh = _load(copy / "scene.3mx", 1.0)
+    assert [str(w.message) for w in seen if "letter case" in str(w.message)] == [
+        f"{root}: texture file 'tex0.jpg' is 'Tex0.jpg' on disk (the letter case differs); that file is used"]
+    assert all(p.texture is not None for p in mesh.parts)
+
+
+def test_a_texture_file_outside_the_dataset_folder_is_a_missing_texture(scene, tmp_path):
+    """A textureFile resource that leads out of the folder (an exporter's path on its own machine)
+    is never read, even where it is a good image: an error naming it by default, untextured with
+    missing_textures: untextured, as a glTF, CityGML or CityJSON image there is."""
+    copy = tmp_path / "t"
+    _texture_as_file(scene, copy, tmp_path / "outside.jpg")
     with pytest.raises(InputFileError, match=r"root\.3mxb: texture 't0' lies outside the dataset folder .*"
                                              r"missing_textures"):
         _load(copy / "scene.3mx", 1.0)

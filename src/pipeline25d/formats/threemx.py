@@ -265,12 +265,12 @@ def _texture(group: Group, tid, folder: Path) -> bytes | None:
     problem = None
     if res is None or res.get("type") not in ("textureBuffer", "textureFile"):
         problem = "is not a texture resource of the file"
-    elif (problem := _outside(group, res, folder)) is None:
+    else:
         try:
-            data = _resource_bytes(group, res, folder, "texture file")
+            data, problem = _texture_bytes(group, res, folder)
         except FileNotFoundError:
             problem = "names a file that is missing"
-        else:
+        if problem is None:
             problem = "is neither JPEG nor PNG" if not png_or_jpeg(data) else image_problem(data)
     if problem:
         warnings.warn(f"{group.path}: texture {tid!r} {problem}; its parts are drawn untextured",
@@ -279,12 +279,14 @@ def _texture(group: Group, tid, folder: Path) -> bytes | None:
     return data
 
 
-def _outside(group: Group, res: dict, folder: Path) -> str | None:
-    """Where a ``textureFile`` leads outside the dataset folder, the problem (that image is not read:
-    a missing texture, as for glTF, CityGML and CityJSON images); else None."""
+def _texture_bytes(group: Group, res: dict, folder: Path) -> tuple[bytes | None, str | None]:
+    """(the texture resource's bytes, None), or (None, the problem) for a ``textureFile`` that leads
+    outside the dataset folder: that image is not read (a missing texture, as for glTF, CityGML and
+    CityJSON images). Its file is found once (a name in another letter case is warned of once)."""
     if "bytes" in res or not isinstance(res.get("file"), str):
-        return None
-    return texture_file(res["file"], group.path.parent, folder, group.path, "texture file", url=False)[1]
+        return _resource_bytes(group, res, folder, "texture file"), None
+    target, problem = texture_file(res["file"], group.path.parent, folder, group.path, "texture file", url=False)
+    return (None, problem) if target is None else (file_bytes(target), None)
 
 
 def _resource_bytes(group: Group, res: dict, folder: Path, what: str) -> bytes:
