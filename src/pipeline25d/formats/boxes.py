@@ -260,7 +260,8 @@ def _threemx(path: Path, spec: dict) -> tuple | None:
 
 
 def _i3s(path: Path, spec: dict) -> tuple | None:
-    from pipeline25d.formats.i3s import Layer, Package
+    from pipeline25d.formats.i3s import Layer
+    from pipeline25d.formats.slpk import Package
 
     layer = Layer.of(Package(path), spec)
     extent, keys = layer.doc.get("fullExtent"), ("xmin", "ymin", "zmin", "xmax", "ymax", "zmax")

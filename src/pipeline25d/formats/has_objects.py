@@ -46,7 +46,8 @@ def input_has_objects(spec: dict) -> bool:
         if fmt == "b3dm":
             return _content_has_features(file_bytes(path))
         if fmt == "i3s":                # a 3DObject layer's features are its objects; an IntegratedMesh has none
-            from pipeline25d.formats.i3s import Layer, Package
+            from pipeline25d.formats.i3s import Layer
+            from pipeline25d.formats.slpk import Package
 
             return Layer.of(Package(path), spec).objects
     except (Pipeline25dError, OSError, ValueError, KeyError, TypeError, AttributeError, struct.error,

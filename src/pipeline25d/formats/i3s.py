@@ -46,15 +46,18 @@ import numpy as np
 
 from pipeline25d.core.errors import InputFileError, MissingTextureWarning, UnsupportedFeatureError
 from pipeline25d.core.mesh import MeshPart
+from pipeline25d.formats import ktx2
 from pipeline25d.formats.common import Detail, Loaded, image_problem, png_or_jpeg
+from pipeline25d.formats.i3s_attributes import VALUE_TYPES
 from pipeline25d.formats.slpk import Package
 
 log = logging.getLogger(__name__)
 
 LAYER_TYPES = ("3DObject", "IntegratedMesh")
 PIECE_VERTICES = 2_000_000     # vertices of the nodes read into one piece (memory follows a piece)
-_TYPES = {"Float32": "<f4", "Float64": "<f8", "UInt8": "u1", "UInt16": "<u2", "UInt32": "<u4", "UInt64": "<u8",
-          "Int8": "i1", "Int16": "<i2", "Int32": "<i4"}
+#: the value types a geometry buffer's attributes may have (I3S's numeric types but object ids)
+_TYPES = {k: VALUE_TYPES[k] for k in ("Float32", "Float64", "UInt8", "UInt16", "UInt32", "UInt64", "Int8", "Int16",
+                                      "Int32")}
 _ORDER = ("position", "normal", "uv0", "color", "uvRegion", "featureId", "faceRange")
 _PER_FEATURE = ("featureId", "faceRange", "id")
 _TEXTURE_ORDER = ("jpg", "png", "ktx2", "dds")
@@ -258,20 +261,13 @@ def _uncompressed(data: bytes, layouts: dict | list[dict], package: Package, nam
     if len(data) < 8:
         raise InputFileError(package.path, f"{name} is shorter than its 8-byte header")
     n, features = (int(v) for v in np.frombuffer(data, "<u4", 2))
-    layouts = layouts if isinstance(layouts, list) else [layouts]
-    layout = next((lay for lay in layouts if _length(lay, n, features) == len(data)), layouts[0])
+    sized = [(lay, _fields(lay, n, features, package, name)) for lay in (layouts if isinstance(layouts, list)
+                                                                            else [layouts])]
+    layout, fields = next(((lay, f) for lay, f in sized if _length(lay, f) == len(data)), sized[0])
     at = int(layout.get("offset", 8))
     values = {}
-    for key in _ORDER:
-        field = layout.get(key)
-        if not isinstance(field, dict):
-            continue
-        dtype, width = _TYPES.get(field.get("type")), field.get("component", 1)
-        if dtype is None or not isinstance(width, int) or width < 1:
-            raise InputFileError(package.path, f"{name}: attribute {key} has type {field.get('type')!r} x "
-                                               f"{width!r}, which I3S does not define")
-        count = (features if key in _PER_FEATURE else n) * width
-        end = at + count * np.dtype(dtype).itemsize
+    for key, dtype, count, width in fields:
+        end = at + count * dtype.itemsize
         if end > len(data):
             raise InputFileError(package.path, f"{name} is cut short: attribute {key} ends at byte {end}, "
                                                f"the buffer has {len(data)} ({n} vertices, {features} features)")
@@ -283,15 +279,25 @@ def _uncompressed(data: bytes, layouts: dict | list[dict], package: Package, nam
     return values
 
 
-def _length(layout: dict, n: int, features: int) -> int:
-    """The byte length of a buffer of ``layout`` holding ``n`` vertices and ``features`` features."""
-    at = int(layout.get("offset", 8))
+def _fields(layout: dict, n: int, features: int, package: Package, name: str) -> list[tuple]:
+    """(key, dtype, values, values per element) of each attribute ``layout`` names, in buffer order,
+    for ``n`` vertices and ``features`` features; InputFileError for a type I3S does not define."""
+    fields = []
     for key in _ORDER:
         field = layout.get(key)
-        if isinstance(field, dict) and field.get("type") in _TYPES and isinstance(field.get("component", 1), int):
-            count = (features if key in _PER_FEATURE else n) * field.get("component", 1)
-            at += count * np.dtype(_TYPES[field["type"]]).itemsize
-    return at
+        if not isinstance(field, dict):
+            continue
+        dtype, width = _TYPES.get(field.get("type")), field.get("component", 1)
+        if dtype is None or not isinstance(width, int) or width < 1:
+            raise InputFileError(package.path, f"{name}: attribute {key} has type {field.get('type')!r} x "
+                                               f"{width!r}, which I3S does not define")
+        fields.append((key, np.dtype(dtype), (features if key in _PER_FEATURE else n) * width, width))
+    return fields
+
+
+def _length(layout: dict, fields: list[tuple]) -> int:
+    """The byte length of a buffer of ``layout`` holding ``fields`` (:func:`_fields`)."""
+    return int(layout.get("offset", 8)) + sum(count * dtype.itemsize for _, dtype, count, _ in fields)
 
 
 def _entry(package: Package, name: str, *suffixes: str) -> bytes:
@@ -340,9 +346,7 @@ def _texture(package: Package, candidates: list[tuple[str, str]], index, problem
             data, problem = _dds_as_png(data, name)
             if data is None:
                 continue
-        if data[:12] == b"\xabKTX 20\xbb\r\n\x1a\n":
-            from pipeline25d.formats import ktx2
-
+        if ktx2.is_ktx2(data):
             try:
                 return ktx2.ktx2_as_png(data)
             except ktx2.Ktx2Error as exc:

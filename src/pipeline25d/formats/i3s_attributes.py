@@ -21,14 +21,15 @@ import numpy as np
 from pipeline25d.core.mesh import MeshPart
 from pipeline25d.formats.attributes import Limiter, object_info
 
-_NUMBERS = {"Int8": "i1", "UInt8": "u1", "Int16": "<i2", "UInt16": "<u2", "Int32": "<i4", "UInt32": "<u4",
-            "Oid32": "<u4", "Int64": "<i8", "UInt64": "<u8", "Oid64": "<u8", "Float32": "<f4", "Float64": "<f8"}
+#: I3S's numeric value types (attribute buffers; a geometry buffer takes those but the object ids)
+VALUE_TYPES = {"Int8": "i1", "UInt8": "u1", "Int16": "<i2", "UInt16": "<u2", "Int32": "<i4", "UInt32": "<u4",
+               "Oid32": "<u4", "Int64": "<i8", "UInt64": "<u8", "Oid64": "<u8", "Float32": "<f4", "Float64": "<f8"}
 
 
 def with_features(part: MeshPart, values: dict, package, fields, resource) -> MeshPart:
     """The part with its features as objects (each face's feature from the ``faceRange`` list, or a
-    Draco buffer's ``faceFeature``), their
-    attributes from attribute resource ``resource`` where the layer lists ``fields``."""
+    Draco buffer's ``faceFeature``), their attributes from attribute resource ``resource`` where the
+    layer lists ``fields``."""
     ids, ranges = values.get("featureId"), values.get("faceRange")
     if "faceFeature" in values:                       # a Draco buffer's: each face's feature
         face_objects = values["faceFeature"].astype(np.int64)
@@ -77,7 +78,7 @@ def _values(data: bytes, field: dict, count: int) -> list | None:
     at, said = 0, {}
     try:
         for item in header:
-            dtype = np.dtype(_NUMBERS[item["valueType"]])
+            dtype = np.dtype(VALUE_TYPES[item["valueType"]])
             said[item["property"]] = int(np.frombuffer(data, dtype, 1, at)[0])
             at += dtype.itemsize
         if said.get("count") != count:
@@ -92,7 +93,7 @@ def _values(data: bytes, field: dict, count: int) -> list | None:
                 ends = at + np.cumsum(sizes)
                 return [data[e - n:e].rstrip(b"\0").decode("utf-8", "replace") for e, n in zip(ends, sizes)]
             elif part == "attributeValues":
-                dtype = np.dtype(_NUMBERS[kind])
+                dtype = np.dtype(VALUE_TYPES[kind])
                 at = -(-at // dtype.itemsize) * dtype.itemsize          # aligned to the value's size
                 return np.frombuffer(data, dtype, count, at).tolist()
     except (KeyError, TypeError, ValueError):

@@ -74,11 +74,11 @@ def read_tileset_pieces(path: Path, spec: dict, detail: Detail = Detail(),
     as the folder it unpacks to (:mod:`.tileset_packages`), its errors naming the file in it."""
     from pipeline25d.formats.tileset_packages import is_package, named_in_package, tileset_of, unpacked
 
-    if is_package(Path(path)):
-        yield from named_in_package(Path(path), unpacked(Path(path)),
-                                    read_tileset_pieces(tileset_of(Path(path)), spec, detail, piece_bytes))
-        return
     path = Path(path)
+    if is_package(path):
+        yield from named_in_package(path, unpacked(path), read_tileset_pieces(tileset_of(path), spec, detail,
+                                                                              piece_bytes))
+        return
     up_axis = str(read_json(path).get("asset", {}).get("gltfUpAxis", "Y")).upper()
     if up_axis not in UP_AXES:
         raise InputFileError(path, f"asset.gltfUpAxis {up_axis!r} is none of X, Y, Z")
