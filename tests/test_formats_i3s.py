@@ -179,6 +179,26 @@ def test_the_box_before_reading_and_objects_come_from_the_layer(slpk, tmp_path):
     assert all(not p.objects for p in _load(mesh, None).parts)
 
 
+def test_without_a_full_extent_the_box_is_the_store_footprint(slpk, tmp_path):
+    """ArcGIS Pro writes no fullExtent: the store's 2D extent in its indexCRS is the box's footprint,
+    its heights unknown (so an absurd gsd is refused before any job reads the package)."""
+    from pipeline25d.formats.boxes import input_box
+
+    with zipfile.ZipFile(slpk) as z:
+        store = json.loads(gzip.decompress(z.read("3dSceneLayer.json.gz")))["store"]
+    vertices = np.concatenate([p.vertices for p in _load(slpk, None).parts])
+    (x0, y0, _), (x1, y1, _) = vertices.min(0), vertices.max(0)
+    store.update(extent=[x0 - 1, y0 - 2, x1 + 3, y1 + 4], indexCRS="http://www.opengis.net/def/crs/EPSG/0/28992")
+    path = _rewrite(slpk, tmp_path / "no-full-extent.slpk",
+                    **{"3dSceneLayer.json.gz": _layer(slpk, fullExtent=None, store=store)})
+    box = input_box({"path": str(path)})
+    assert box.crs == CRS and not box.heights and box.source == "the I3S store's extent (its footprint)"
+    np.testing.assert_array_equal(box.corners[:, :2], [[x0 - 1, y0 - 2], [x1 + 3, y1 + 4]])
+    store.pop("extent")
+    assert input_box({"path": str(_rewrite(slpk, tmp_path / "no-extent.slpk", **{
+        "3dSceneLayer.json.gz": _layer(slpk, fullExtent=None, store=store)}))}) is None
+
+
 def _rewrite(source, target, **changes):
     """A copy of a package with entries replaced (bytes) or removed (None)."""
     with zipfile.ZipFile(source) as z:

@@ -16,7 +16,8 @@ cannot box is left to ingest, whose reader reports what is wrong with it. Per fo
 * an OSGB dataset: the coarsest level of the tiles at the ends of the ``Tile_±x_±y`` index
   ranges (at most four tiles, each one osgconv call), with ``metadata.xml``'s origin and SRS;
 * a 3MX scene: the boxes of its root files' nodes, with each layer's SRSOrigin and SRS;
-* an I3S scene layer package: its layer's ``fullExtent``;
+* an I3S scene layer package: its layer's ``fullExtent``, else its store's 2D ``extent`` in its
+  ``indexCRS`` (a footprint: ArcGIS Pro writes no ``fullExtent``);
 * glTF, GLB, b3dm, DAE, 3DS: None (the terrain job checks the estimate with every chunk's bounds).
 
 The box is in the input's CRS (``Box.crs``; None: the scene's), offsets and a ContextCapture
@@ -265,9 +266,15 @@ def _i3s(path: Path, spec: dict) -> tuple | None:
 
     layer = Layer.of(Package(path), spec)
     extent, keys = layer.doc.get("fullExtent"), ("xmin", "ymin", "zmin", "xmax", "ymax", "zmax")
-    if not isinstance(extent, dict) or not all(isinstance(extent.get(k), (int, float)) for k in keys):
+    if isinstance(extent, dict) and all(isinstance(extent.get(k), (int, float)) for k in keys):
+        return _box_of([extent[k] for k in keys]), layer.crs, "the I3S layer's fullExtent"
+    store = layer.doc.get("store") or {}        # ArcGIS Pro writes no fullExtent, but the store's 2D extent
+    xy, index = store.get("extent"), str(store.get("indexCRS", ""))
+    epsg = re.search(r"/EPSG/\d+/(\d+)$", index)
+    if not (isinstance(xy, list) and len(xy) == 4 and all(isinstance(v, (int, float)) for v in xy) and epsg):
         return None
-    return _box_of([extent[k] for k in keys]), layer.crs, "the I3S layer's fullExtent"
+    return (_box_of([xy[0], xy[1], 0.0, xy[2], xy[3], 0.0]), f"EPSG:{epsg.group(1)}",
+            "the I3S store's extent (its footprint)", False)
 
 
 _FINDERS: dict[str, Callable[[Path, dict], tuple | None]] = {

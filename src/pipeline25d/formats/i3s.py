@@ -170,7 +170,7 @@ class _NodePages:
 
 
 def drawn_nodes(nodes, gsd: float | None, metric: str) -> list[dict]:
-    """The nodes the level rule (module doc) draws at ``gsd``, from node 0 down."""
+    """The nodes the level rule (module doc) draws at ``gsd``, from the root (``nodes.root``) down."""
     drawn, stack, seen = [], [nodes.root], set()
     while stack:
         index = stack.pop()
