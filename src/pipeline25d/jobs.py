@@ -82,7 +82,7 @@ def render_block_job(job: Job) -> None:
 
     p = job.params
     render_block.render_block(p.plan, job.wildcards.block, p.block, p.lod_dir, p.tiles_dir, job.output[0],
-                              objects=p.objects)
+                              objects=p.objects, workers=job_workers(job.threads))
 
 
 def warp_job(job: Job) -> None:

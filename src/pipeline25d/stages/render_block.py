@@ -47,7 +47,7 @@ def _tile_current(tiles_dir: str | Path, tile: Tile, objects: bool) -> bool:
 
 
 def render_block(plan_path: str | Path, block_id: str, block: int, lod_dir: str | Path, tiles_dir: str | Path,
-                 out_manifest: str | Path, objects: bool = True) -> dict:
+                 out_manifest: str | Path, objects: bool = True, workers: int | None = None) -> dict:
     """Render the tiles of one render block (:func:`~pipeline25d.stages.plan.plan_blocks`) in one process
     and GL context.
 
@@ -56,7 +56,8 @@ def render_block(plan_path: str | Path, block_id: str, block: int, lod_dir: str 
     it is, so a changed district re-renders only its own tiles even though its block job runs
     again. ``objects``: each tile also gets its object ids (:mod:`.render_ids`), drawn by the
     colour pass itself (a second render target). The manifest (written last) lists the block's
-    tiles and which were rendered.
+    tiles and which were rendered. ``workers``: the cores the job may use now (one: a software
+    rasterizer draws in the job's thread, :func:`~pipeline25d.stages.render.create_context`).
     """
     from pipeline25d.stages.render import TileRenderer, create_context
     from pipeline25d.stages.render_ids import IdRenderer
@@ -67,7 +68,7 @@ def render_block(plan_path: str | Path, block_id: str, block: int, lod_dir: str 
     if todo:
         chunks = ChunkCache(lod_dir, todo)
         ground = _block_ground(pl, todo)
-        ctx = create_context()
+        ctx = create_context(workers)
         try:
             renderer = TileRenderer(ctx, ambient=todo[0].render["ambient"], samples=todo[0].render["samples"],
                                     shadows=pl.shadows is not None, ids=objects)
