@@ -59,16 +59,16 @@ def test_dry_run_of_the_default_config_counts_jobs_per_rule(tmp_path):
     out = snakemake(tmp_path, "-n").stdout
     # the id layer's mosaics, maps and tiles are made by the map's own warp and tms jobs (and the
     # mosaics and GCP tables by the warp job)
-    assert job_counts(out) == {"ingest": 4, "terrain": 1, "scene": 1, "plan": 9, "warp": 9,
+    assert job_counts(out) == {"ingest": 4, "terrain": 1, "scene": 1, "plan": 1, "warp": 9,
                                "tms": 9, "objects": 1, "heights_blocks": 1, "heights": 1, "report_figures": 1,
-                               "report": 1, "viewer": 1, "wms": 1, "all": 1, "total": 41}
+                               "report": 1, "viewer": 1, "wms": 1, "all": 1, "total": 33}
     id_files = (".ids.vrt", ".ids.tif", "/idtiles/", "/objects/")
     assert all(f in out for f in id_files)
     # objects off: no id mosaics, no id maps, no id tiles (not even declared), no objects table
     (tmp_path / "config.yaml").write_text(yaml.safe_dump({**config, "objects": {"enabled": False}}))
     off_out = snakemake(tmp_path, "-n").stdout
     off = job_counts(off_out)
-    assert "objects" not in off and off["total"] == 40 and not any(f in off_out for f in id_files)
+    assert "objects" not in off and off["total"] == 32 and not any(f in off_out for f in id_files)
     (tmp_path / "config.yaml").write_text(yaml.safe_dump(config))
     # Once the plans exist the tile jobs are known: one per non-empty tile, none for empty ones.
     pids = [f"az{a:03d}_el45" for a in range(0, 360, 45)] + ["az000_el90"]

@@ -72,9 +72,9 @@ def plan_job(job: Job) -> None:
     from pipeline25d.stages import plan
 
     p = job.params
-    plan.plan(job.wildcards.pid, list(job.input.lods), job.input.scene, job.input.candidates, p.gsd, p.tile_size,
-              p.max_error_px, p.crs, dict(p.render), job.output.plan, work=dict(p.work),
-              grounds_json=job.input.grounds)
+    plan.plans(dict(zip(p.perspectives, job.output.plans)), list(job.input.lods), job.input.scene,
+               job.input.candidates, p.gsd, p.tile_size, p.max_error_px, p.crs, dict(p.render), work=dict(p.work),
+               grounds_json=job.input.grounds)
 
 
 def render_block_job(job: Job) -> None:

@@ -4,7 +4,7 @@ Snakemake stays the engine (``snakemake -j2 --configfile …`` does the same wor
 door finds the workflow, passes the config and any further Snakemake options, and turns
 Snakemake's log into one line per finished job: jobs done of the total known so far, the
 stage (rule) that finished, the time spent and an estimate of the time left. The total grows
-while the plan checkpoints add jobs. Snakemake's whole log stays in
+while the plan checkpoint adds jobs. Snakemake's whole log stays in
 ``.snakemake/log/``; on a failure its last lines are shown.
 """
 

@@ -91,8 +91,9 @@ def all_lod_meta(wildcards):
 
 @parse_guard
 def plan_path(pid):
-    """The perspective's plan file (the plan checkpoint's output: the DAG waits for it)."""
-    return checkpoints.plan.get(pid=pid).output.plan
+    """The perspective's plan file (an output of the plan checkpoint: the DAG waits for it)."""
+    checkpoints.plan.get()
+    return f"{RESULTS}/plans/{pid}.json"
 
 
 @parse_guard

@@ -340,13 +340,25 @@ def plan(perspective_id: str, lod_indexes: list[str], scene_json: str | Path, ca
     checked against its limits before any tile is listed. ``grounds_json``: the scene stage's DTM
     under each chunk (:func:`pipeline25d.stages.scene.write_grounds`); without it, in terrain-relative
     mode, they are sampled here."""
+    return plans({perspective_id: out_plan}, lod_indexes, scene_json, candidates_csv, gsd, tile_size, max_error_px,
+                 crs, render, work, grounds_json)[0]
+
+
+def plans(out_plans: Mapping[str, str | Path], lod_indexes: list[str], scene_json: str | Path,
+          candidates_csv: str | Path, gsd: float, tile_size: int, max_error_px: float, crs: str, render: dict,
+          work: dict | None = None, grounds_json: str | Path | None = None) -> list[Plan]:
+    """:func:`plan` for each perspective id of ``out_plans`` into its file, in one process: the scene,
+    the chunks, their grounds and the GCP candidates are read once (one job for all views: one
+    start-up and one Snakemake checkpoint, whose every completion re-evaluates the DAG). Each
+    perspective is checked against ``work``'s limits before any is planned."""
     from pipeline25d.core.raster import DTM
     from pipeline25d.geometry.sun import plan_shadows
     from pipeline25d.stages import budget
 
     scene = Scene.read(scene_json)
     if work is not None:
-        budget.check_perspective(work, Perspective.from_id(perspective_id), np.array(scene.bounds))
+        for perspective_id in out_plans:
+            budget.check_perspective(work, Perspective.from_id(perspective_id), np.array(scene.bounds))
     render = dict(render)
     shadow_cfg = render.pop("shadows", None)
     shadows = plan_shadows(shadow_cfg, np.array(scene.bounds), crs, gsd) if shadow_cfg else None
@@ -358,13 +370,17 @@ def plan(perspective_id: str, lod_indexes: list[str], scene_json: str | Path, ca
     elif relative:
         grounds = chunk_grounds(chunks, DTM(scene.dtm, crs, continuous=True))
     terrain = {"projection": scene.projection, "dtm": scene.dtm if relative else None}
-    result = plan_perspective(Perspective.from_id(perspective_id), chunks, read_candidates(candidates_csv),
-                              scene.z0, gsd, tile_size, max_error_px, crs, render, terrain, shadows, grounds)
-    write_json(out_plan, result.to_json(), indent=None)   # megabytes for a city: compact
-    log.info("%s: %d tiles to render, %d empty tiles skipped", perspective_id, len(result.tiles),
-             result.n_tiles_skipped)
-    if shadows:
-        log.info("%s: sun at azimuth %.2f°, elevation %.2f° (%s); %d shadow casters from other tiles' chunks",
-                 perspective_id, shadows["azimuth"], shadows["elevation"], shadows["source"],
-                 sum(len(t.casters) for t in result.tiles))
-    return result
+    candidates = read_candidates(candidates_csv)
+    results = []
+    for perspective_id, out_plan in out_plans.items():
+        result = plan_perspective(Perspective.from_id(perspective_id), chunks, candidates, scene.z0, gsd, tile_size,
+                                  max_error_px, crs, render, terrain, shadows, grounds)
+        write_json(out_plan, result.to_json(), indent=None)   # megabytes for a city: compact
+        log.info("%s: %d tiles to render, %d empty tiles skipped", perspective_id, len(result.tiles),
+                 result.n_tiles_skipped)
+        if shadows:
+            log.info("%s: sun at azimuth %.2f°, elevation %.2f° (%s); %d shadow casters from other tiles' chunks",
+                     perspective_id, shadows["azimuth"], shadows["elevation"], shadows["source"],
+                     sum(len(t.casters) for t in result.tiles))
+        results.append(result)
+    return results
