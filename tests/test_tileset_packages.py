@@ -108,6 +108,17 @@ def test_hostile_packages_are_refused_naming_the_package(folder, tmp_path, monke
     assert not [p for p in (tmp_path / "cache" / "packages").iterdir() if p.name.startswith("big.3tz")]
 
 
+def test_a_warning_about_a_file_in_a_package_names_it_inside_the_package(folder, tmp_path, cache):
+    files = _files(folder)
+    package = _zip(tmp_path / "trailing.3tz", {**files, "sub/child.b3dm": files["sub/child.b3dm"] + bytes(12)})
+    with pytest.warns(UserWarning) as caught:
+        got = _vertices(package)
+    np.testing.assert_array_equal(got, _vertices(folder / "tileset.json"))   # the bytes after it ignored
+    said = [str(w.message) for w in caught]
+    assert f"{package}!/sub/child.b3dm: 12 bytes after the tile's byteLength ignored" in said
+    assert not any(str(cache) in text for text in said)          # the cache's copy is never named
+
+
 def test_the_box_before_reading_and_objects_look_inside_the_package(folder, tmp_path):
     from pipeline25d.formats.boxes import input_box
     from pipeline25d.formats.has_objects import input_has_objects

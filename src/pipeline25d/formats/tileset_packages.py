@@ -26,6 +26,7 @@ import shutil
 import sqlite3
 import tempfile
 import time
+import warnings
 import zipfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -57,16 +58,35 @@ def tileset_of(path: Path) -> Path:
 
 
 def named_in_package(package: Path, folder: Path, items: Iterator) -> Iterator:
-    """``items``, where an error names a file of ``package``'s unpacked ``folder``, naming it inside the
-    package instead (``city.3tz!/tiles/0.b3dm: ...``), as the user knows it."""
-    try:
-        yield from items
-    except FileProblem as exc:
-        inner = Path(exc.path)
-        if not inner.is_relative_to(folder):
-            raise
-        inside = f"{package}!/{inner.relative_to(folder).as_posix()}"
-        raise type(exc)(inside, exc.problem.replace(str(folder), f"{package}!")) from None
+    """``items``, where an error or a warning names a file of ``package``'s unpacked ``folder``, naming
+    it inside the package instead (``city.3tz!/tiles/0.b3dm: ...``), as the user knows it. Warnings
+    are caught while each item is made (never while the caller holds it) and issued again renamed."""
+    items = iter(items)
+    while True:
+        with warnings.catch_warnings(record=True) as caught:
+            try:
+                item = next(items)
+            except StopIteration:
+                item = _END
+            except FileProblem as exc:
+                inner = Path(exc.path)
+                if not inner.is_relative_to(folder):
+                    raise
+                inside = f"{package}!/{inner.relative_to(folder).as_posix()}"
+                raise type(exc)(inside, _inside(str(exc.problem), package, folder)) from None
+        for w in caught:
+            warnings.warn_explicit(_inside(str(w.message), package, folder), w.category, w.filename, w.lineno)
+        if item is _END:
+            return
+        yield item
+
+
+_END = object()
+
+
+def _inside(text: str, package: Path, folder: Path) -> str:
+    """``text`` with the unpacked ``folder`` named as ``package!`` (its files as ``package!/inner``)."""
+    return text.replace(str(folder), f"{package}!")
 
 
 def cache_folder() -> Path:
