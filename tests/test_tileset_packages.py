@@ -7,6 +7,7 @@ import gzip
 import json
 import sqlite3
 import zipfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -68,17 +69,43 @@ def test_each_package_reads_as_the_folder_it_packs(folder, tmp_path):
 def test_a_package_is_unpacked_once_and_again_when_replaced(folder, tmp_path, cache):
     package = _zip(tmp_path / "city.3tz", _files(folder))
     _vertices(package)
-    (unpacked,) = (cache / "packages").iterdir()
+    (unpacked,) = _copies(cache)
     marker = unpacked / "read-again"
     marker.write_text("the same folder is read again")
     _vertices(package)
-    assert [p.name for p in (cache / "packages").iterdir()] == [unpacked.name] and marker.exists()
+    assert _copies(cache) == [unpacked] and marker.exists()
     files = _files(folder)                                    # the package replaced: a child moved up 5 m
     write_b3dm(folder / "sub" / "child.b3dm", SQUARE + (0, 0, 10), SQUARE_FACES, None)
     _zip(package, {**files, "sub/child.b3dm": (folder / "sub" / "child.b3dm").read_bytes()})
     assert _vertices(package)[:, 2].max() - _vertices(folder / "tileset.json")[:, 2].min() > 9.9
-    (again,) = (cache / "packages").iterdir()                 # unpacked anew, the older copy gone
+    (again,) = _copies(cache)                                 # unpacked anew, the older copy gone
     assert again.name != unpacked.name
+    assert sorted(p.name for p in (cache / "packages").iterdir()) == [again.name, f"{again.name}.source.json"]
+
+
+def _copies(cache):
+    return sorted(p for p in (cache / "packages").iterdir() if p.is_dir())
+
+
+def test_the_copy_of_a_package_that_no_longer_exists_is_removed_once_old(folder, tmp_path, cache):
+    import os
+    import time
+
+    from pipeline25d.formats.tileset_packages import ORPHAN_AGE_S, sweep
+
+    gone, kept = (_zip(tmp_path / name, _files(folder)) for name in ("gone.3tz", "kept.3tz"))
+    _vertices(gone)
+    _vertices(kept)
+    (gone_copy, kept_copy) = _copies(cache)
+    gone.unlink()
+    assert sweep(cache / "packages") == [] and gone_copy.is_dir()      # just unpacked: perhaps still read
+    old = time.time() - ORPHAN_AGE_S - 60
+    for note in (cache / "packages").glob("*.source.json"):
+        os.utime(note, (old, old))
+    third = _zip(tmp_path / "third.3tz", _files(folder))
+    _vertices(third)                                           # unpacking a package sweeps the cache
+    assert [p.name.split("-")[0] for p in _copies(cache)] == ["kept.3tz", "third.3tz"]
+    assert not gone_copy.exists() and not Path(f"{gone_copy}.source.json").exists() and kept_copy.is_dir()
 
 
 def test_hostile_packages_are_refused_naming_the_package(folder, tmp_path, monkeypatch):

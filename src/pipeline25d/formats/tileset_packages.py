@@ -19,6 +19,7 @@ temporary folder renamed into place, so an interrupted one leaves nothing that l
 from __future__ import annotations
 
 import hashlib
+import json
 import logging
 import os
 import posixpath
@@ -31,6 +32,7 @@ import zipfile
 from collections.abc import Iterator
 from pathlib import Path
 
+from pipeline25d.core.atomic import write_json
 from pipeline25d.core.errors import FileProblem, InputFileError
 
 log = logging.getLogger(__name__)
@@ -99,7 +101,8 @@ def cache_folder() -> Path:
 def unpacked(path: Path) -> Path:
     """The folder ``path`` unpacks to in the cache, unpacking it first where it is not there. Named by
     the package's path and, after it, its size and modification time: a package replaced in place (a
-    district updated) unpacks anew, and its older copies in the cache are removed."""
+    district updated) unpacks anew, and its older copies in the cache are removed, as are the copies
+    of packages that no longer exist (:func:`sweep`)."""
     stat = path.stat()
     place = hashlib.sha256(str(path.resolve()).encode()).hexdigest()[:12]
     version = hashlib.sha256(f"{stat.st_size}\0{stat.st_mtime_ns}".encode()).hexdigest()[:8]
@@ -120,10 +123,48 @@ def unpacked(path: Path) -> Path:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     log.info("%s: unpacked %d files to %s in %.1f s", path, count, target, time.monotonic() - started)
+    write_json(_source_note(target), {"source": str(path.resolve())})
     for older in target.parent.glob(f"{path.name}-{place}-*"):
-        if older != target:
-            shutil.rmtree(older, ignore_errors=True)
+        if older != target and older.is_dir():
+            _remove_copy(older)
+    sweep(target.parent)
     return target
+
+
+#: a copy whose package no longer exists is removed once it was unpacked this long ago (s): never
+#: under a run that is still reading it
+ORPHAN_AGE_S = 3600
+
+
+def sweep(packages: Path, now: float | None = None) -> list[Path]:
+    """Remove the copies in ``packages`` (the cache's folder of unpacked packages) whose package no
+    longer exists at the path it was unpacked from and which were unpacked over
+    :data:`ORPHAN_AGE_S` ago; return them. Without it the cache would keep a copy of every package
+    ever read (a renamed or deleted download's, as large as its package unpacked)."""
+    now = time.time() if now is None else now
+    removed = []
+    for note in packages.glob("*.source.json"):
+        copy = packages / note.name.removesuffix(".source.json")
+        try:
+            source = Path(json.loads(note.read_text())["source"])
+            unpacked_at = note.stat().st_mtime
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+        if not source.exists() and now - unpacked_at > ORPHAN_AGE_S:
+            _remove_copy(copy)
+            removed.append(copy)
+            log.info("removed the cache's copy of %s (the package no longer exists): %s", source, copy)
+    return removed
+
+
+def _source_note(copy: Path) -> Path:
+    """The file beside an unpacked copy that names the package it came from."""
+    return copy.with_name(copy.name + ".source.json")
+
+
+def _remove_copy(copy: Path) -> None:
+    shutil.rmtree(copy, ignore_errors=True)
+    _source_note(copy).unlink(missing_ok=True)
 
 
 def _entry_path(root: Path, name: str, package: Path) -> Path | None:
