@@ -194,3 +194,36 @@ def test_a_nan_coordinate_in_slabs_is_refused_by_name_as_in_a_whole_read(tmp_pat
         load_district({"path": str(path), "crs": "EPSG:28992"}, "EPSG:28992")
     with pytest.raises(InputFileError, match=r"m\.obj: has NaN or infinite coordinates"):
         slabs_of(path, 10)
+
+
+@pytest.mark.parametrize("line, problem", [("f 1 2 x", "a face names a vertex by something other than a number"),
+                                           ("v 1.0 two 3.0", "a 'v' line holds something other than numbers")])
+def test_a_word_that_is_not_a_number_is_refused_naming_the_file(tmp_path, slabs_of, line, problem):
+    """NumPy's parser stops at such a word with a bare ValueError (on 8b0c25c the slab reader's error)."""
+    path = write_obj(tmp_path, 6, colours=True)
+    path.write_text(path.read_text() + line + "\n")
+    with pytest.raises(InputFileError, match=rf"m\.obj: {problem}"):
+        slabs_of(path, 10)
+
+
+def test_slab_texts_are_those_of_the_line_by_line_reader(tmp_path):
+    """The slabs' OBJ texts, cut on the file's bytes at once (words, keywords, faces of one size
+    formatted together), are the ones worked out by hand: tabs, CRLF, no last newline, negative
+    indices, a quad, vertex colours on one line, a third texture coordinate on one, statements
+    between faces."""
+    rows = ["mtllib m.mtl", "v\t1.5 2 3", "v 4 5 6 0.5 0.5 0.5", "v 7 8 9", "v 1 1 1", "vt 0 0", "vt 1 0",
+            "vt 1 1 0.5", "o a", "usemtl tex", "f 1/1 2/2 3/3\r", "f\t-4/-3 -3/-2 -2/-1 -1/-1", "s off", "g g1",
+            "f 2/1 3/2 4/3", "o b", "f 1/3 2/2 3/1"]
+    path = tmp_path / "q.obj"
+    path.write_text("\n".join(rows))                                  # no newline at the end
+    table = obj_slabs.VertexTable.read(path)
+    assert table.v.take(np.arange(4))[:, :3].tolist() == [[1.5, 2, 3], [4, 5, 6], [7, 8, 9], [1, 1, 1]]
+    assert np.isnan(table.v.take(np.array([0]))[0, 3:]).all()
+    got = list(obj_slabs.slab_texts(path, table, slab_faces=2))
+    # slab 1: the negative corners are vertices 1-4 and coordinates 1-3 (the last twice); slab 2 starts
+    # with the statements in force (o a, usemtl tex) and those before its first face (s, g)
+    assert got == [
+        b"mtllib m.mtl\no a\nusemtl tex\nv 1.5 2.0 3.0\nv 4.0 5.0 6.0 0.5 0.5 0.5\nv 7.0 8.0 9.0\nv 1.0 1.0 1.0\n"
+        b"vt 0.0 0.0\nvt 1.0 0.0\nvt 1.0 1.0 0.5\nf 1/1 2/2 3/3\nf 1/1 2/2 3/3 4/3\n",
+        b"mtllib m.mtl\no a\nusemtl tex\ns off\ng g1\nv 1.5 2.0 3.0\nv 4.0 5.0 6.0 0.5 0.5 0.5\nv 7.0 8.0 9.0\n"
+        b"v 1.0 1.0 1.0\nvt 0.0 0.0\nvt 1.0 0.0\nvt 1.0 1.0 0.5\nf 2/1 3/2 4/3\no b\nf 1/3 2/2 3/1\n"]
