@@ -144,6 +144,11 @@ def test_a_warning_about_a_file_in_a_package_names_it_inside_the_package(folder,
     said = [str(w.message) for w in caught]
     assert f"{package}!/sub/child.b3dm: 12 bytes after the tile's byteLength ignored" in said
     assert not any(str(cache) in text for text in said)          # the cache's copy is never named
+    both = _zip(tmp_path / "both.3tz", {**files, "root.b3dm": files["root.b3dm"] + bytes(4),
+                                        "sub/child.b3dm": files["sub/child.b3dm"][:40]})
+    with pytest.warns(UserWarning, match=r"both\.3tz!/root\.b3dm: 4 bytes after"):  # before the error, kept
+        with pytest.raises(InputFileError, match=r"both\.3tz!/sub/child\.b3dm: "):
+            _vertices(both)
 
 
 def test_the_box_before_reading_and_objects_look_inside_the_package(folder, tmp_path):

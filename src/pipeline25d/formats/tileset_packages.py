@@ -65,19 +65,21 @@ def named_in_package(package: Path, folder: Path, items: Iterator) -> Iterator:
     are caught while each item is made (never while the caller holds it) and issued again renamed."""
     items = iter(items)
     while True:
+        item, error = _END, None
         with warnings.catch_warnings(record=True) as caught:
             try:
                 item = next(items)
             except StopIteration:
-                item = _END
-            except FileProblem as exc:
-                inner = Path(exc.path)
-                if not inner.is_relative_to(folder):
-                    raise
-                inside = f"{package}!/{inner.relative_to(folder).as_posix()}"
-                raise type(exc)(inside, _inside(str(exc.problem), package, folder)) from None
+                pass
+            except Exception as exc:              # raised below, after the warnings made before it
+                error = exc
         for w in caught:
             warnings.warn_explicit(_inside(str(w.message), package, folder), w.category, w.filename, w.lineno)
+        if isinstance(error, FileProblem) and Path(error.path).is_relative_to(folder):
+            inside = f"{package}!/{Path(error.path).relative_to(folder).as_posix()}"
+            raise type(error)(inside, _inside(str(error.problem), package, folder)) from None
+        if error is not None:
+            raise error
         if item is _END:
             return
         yield item
