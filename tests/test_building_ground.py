@@ -288,7 +288,7 @@ def test_a_plan_from_the_scenes_chunk_grounds_equals_one_that_samples_the_dtm_it
     """The scene stage samples the DTM under every chunk once (terrain/grounds.json); a plan read
     from it is the plan that samples the DTM itself, byte for byte (tile spec hashes included)."""
     from pipeline25d.config import render_settings
-    from pipeline25d.stages.plan import plan
+    from pipeline25d.stages.plan import plans
     from pipeline25d.stages.scene import read_grounds
 
     path = write_cityjson(tmp_path / "city.json", boxes([(X0 + 20, Y0 + 20)]))
@@ -299,10 +299,10 @@ def test_a_plan_from_the_scenes_chunk_grounds_equals_one_that_samples_the_dtm_it
     assert all(g.lowest < g.highest and len(g.digest) == 12 for g in grounds.values())
     cfg = validate_schema({"scene": "t", "crs": CRS, "inputs": {"city": {"path": str(path)}}, "gsd": 0.5})
     lods = [str(tmp_path / "lod" / "city" / "index.json")]
-    args = ("az045_el45", lods, tmp_path / "scene.json", tmp_path / "candidates.csv", 0.5, 256,
-            cfg["lod"]["max_error_px"], CRS, render_settings(cfg))
-    plan(*args, tmp_path / "read.json", grounds_json=tmp_path / "terrain" / "grounds.json")
-    plan(*args, tmp_path / "sampled.json")
+    args = (lods, tmp_path / "scene.json", tmp_path / "candidates.csv", 0.5, 256, cfg["lod"]["max_error_px"], CRS,
+            render_settings(cfg))
+    plans({"az045_el45": tmp_path / "read.json"}, *args, grounds_json=tmp_path / "terrain" / "grounds.json")
+    plans({"az045_el45": tmp_path / "sampled.json"}, *args)
     assert (tmp_path / "read.json").read_bytes() == (tmp_path / "sampled.json").read_bytes()
     assert b'"ground"' in (tmp_path / "read.json").read_bytes()
 

@@ -331,26 +331,18 @@ def block_spec_hash(tiles: Sequence[Tile]) -> str:
     return hashlib.sha256("|".join(keys).encode()).hexdigest()[:16]
 
 
-def plan(perspective_id: str, lod_indexes: list[str], scene_json: str | Path, candidates_csv: str | Path,
-         gsd: float, tile_size: int, max_error_px: float, crs: str, render: dict, out_plan: str | Path,
-         work: dict | None = None, grounds_json: str | Path | None = None) -> Plan:
-    """Plan one perspective (see :mod:`pipeline25d.stages.plan`); ``render`` holds render + marker settings,
-    and the ``shadows`` block when shadows are enabled (:func:`pipeline25d.config.render_settings`).
-    ``work`` (:func:`pipeline25d.stages.budget.settings`): the map's estimated pixels and tiles are
-    checked against its limits before any tile is listed. ``grounds_json``: the scene stage's DTM
-    under each chunk (:func:`pipeline25d.stages.scene.write_grounds`); without it, in terrain-relative
-    mode, they are sampled here."""
-    return plans({perspective_id: out_plan}, lod_indexes, scene_json, candidates_csv, gsd, tile_size, max_error_px,
-                 crs, render, work, grounds_json)[0]
-
-
 def plans(out_plans: Mapping[str, str | Path], lod_indexes: list[str], scene_json: str | Path,
           candidates_csv: str | Path, gsd: float, tile_size: int, max_error_px: float, crs: str, render: dict,
           work: dict | None = None, grounds_json: str | Path | None = None) -> list[Plan]:
-    """:func:`plan` for each perspective id of ``out_plans`` into its file, in one process: the scene,
-    the chunks, their grounds and the GCP candidates are read once (one job for all views: one
-    start-up and one Snakemake checkpoint, whose every completion re-evaluates the DAG). Each
-    perspective is checked against ``work``'s limits before any is planned."""
+    """Plan each perspective id of ``out_plans`` into its file (see :mod:`pipeline25d.stages.plan`), in
+    one process: the scene, the chunks, their grounds and the GCP candidates are read once (one job
+    for all views: one start-up and one Snakemake checkpoint, whose every completion re-evaluates
+    the DAG). ``render`` holds render + marker settings, and the ``shadows`` block when shadows are
+    enabled (:func:`pipeline25d.config.render_settings`). ``work``
+    (:func:`pipeline25d.stages.budget.settings`): each map's estimated pixels and tiles are checked
+    against its limits before any perspective is planned. ``grounds_json``: the scene stage's DTM
+    under each chunk (:func:`pipeline25d.stages.scene.write_grounds`); without it, in
+    terrain-relative mode, they are sampled here."""
     from pipeline25d.core.raster import DTM
     from pipeline25d.geometry.sun import plan_shadows
     from pipeline25d.stages import budget
