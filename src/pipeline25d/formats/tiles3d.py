@@ -72,12 +72,13 @@ def read_tileset_pieces(path: Path, spec: dict, detail: Detail = Detail(),
     :data:`PIECE_BYTES`), untextured parts merged within a piece: a tileset smaller than that is
     one piece, the parts :func:`read_tileset` returns. A package (.3tz, .zip, .3dtiles) is read
     as the folder it unpacks to (:mod:`.tileset_packages`), its errors naming the file in it."""
-    from pipeline25d.formats.tileset_packages import is_package, named_in_package, tileset_of, unpacked
+    from pipeline25d.formats.tileset_packages import is_package, named_in_package, root_tileset, unpacked
 
     path = Path(path)
     if is_package(path):
-        yield from named_in_package(path, unpacked(path), read_tileset_pieces(tileset_of(path), spec, detail,
-                                                                              piece_bytes))
+        folder = unpacked(path)                    # located (and unpacked where new) once
+        yield from named_in_package(path, folder, read_tileset_pieces(root_tileset(path, folder), spec, detail,
+                                                                      piece_bytes))
         return
     up_axis = str(read_json(path).get("asset", {}).get("gltfUpAxis", "Y")).upper()
     if up_axis not in UP_AXES:

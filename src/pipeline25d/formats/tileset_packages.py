@@ -50,12 +50,14 @@ def is_package(path: Path) -> bool:
 def tileset_of(path: Path) -> Path:
     """The root tileset JSON of ``path``: ``path`` itself, or for a package its unpacked copy's."""
     path = Path(path)
-    if not is_package(path):
-        return path
-    folder = unpacked(path)
+    return root_tileset(path, unpacked(path)) if is_package(path) else path
+
+
+def root_tileset(package: Path, folder: Path) -> Path:
+    """The root tileset JSON in ``package``'s unpacked ``folder``: its shallowest ``tileset.json``."""
     found = sorted(folder.rglob("tileset.json"), key=lambda p: (len(p.relative_to(folder).parts), str(p)))
     if not found:
-        raise InputFileError(path, "is a package without a tileset.json (not a 3D Tiles package)")
+        raise InputFileError(package, "is a package without a tileset.json (not a 3D Tiles package)")
     return found[0]
 
 
