@@ -360,12 +360,17 @@ def _warp_of(results: Path, pid: str) -> tuple:
     return meta["method"], meta["order"], meta["n_observed"], meta["rmsd_m"]
 
 
-def _tile_specs(results: Path) -> dict[str, str]:
+def _tile_specs(results: Path, key: str = "spec_hash") -> dict[str, str]:
+    """Each plan tile's spec hash (or ``key``: image_hash) by "<pid>/<row>_<col>.tif"."""
     out = {}
     for plan_file in (results / "plans").glob("*.json"):
         for t in json.loads(plan_file.read_text())["tiles"]:
-            out[f"{plan_file.stem}/{t['row']}_{t['col']}.tif"] = t["spec_hash"]
+            out[f"{plan_file.stem}/{t['row']}_{t['col']}.tif"] = t[key]
     return out
+
+
+def _changed(after: dict, before: dict) -> set:
+    return {k for k in after if after[k] != before.get(k)}
 
 
 def test_rerun_does_nothing_and_a_changed_district_rerenders_only_its_tiles(plane_run):
@@ -387,8 +392,10 @@ def test_rerun_does_nothing_and_a_changed_district_rerenders_only_its_tiles(plan
     assert {p: p.stat().st_mtime_ns for p in (results / "lod").rglob("*.npz")} == lod_before
 
     # A real change to one chunk of d3 re-renders the tiles that draw that chunk, and besides
-    # them only tiles whose own spec changed (a GCP candidate beside the change), nothing else.
-    specs_before = _tile_specs(results)
+    # them only tiles whose own image spec changed, nothing else; a tile whose GCP candidates
+    # alone changed (a candidate beside the change) observes them again and keeps its image.
+    specs_before, images_before = _tile_specs(results), _tile_specs(results, "image_hash")
+    gcps_before = _tile_mtimes(results, ".gcps.csv")
     index = json.loads((results / "chunks" / "d3" / "index.json").read_text())
     cid, info = sorted(index["chunks"].items())[0]
     (lo, hi) = info["bounds"]
@@ -405,10 +412,12 @@ def test_rerun_does_nothing_and_a_changed_district_rerenders_only_its_tiles(plan
         for t in plan["tiles"]:
             if any(c["district"] == "d3" and c["id"] == cid for c in t["chunks"]):
                 draws_chunk.add(f"{plan_file.stem}/{t['row']}_{t['col']}.tif")
-    specs_after = _tile_specs(results)
-    respecified = {k for k in specs_after if specs_after[k] != specs_before.get(k)}
-    assert changed == draws_chunk | respecified, (changed - draws_chunk, respecified)
-    assert 0 < len(changed) < len(after)
+    respecified = _changed(_tile_specs(results), specs_before)
+    reimaged = _changed(_tile_specs(results, "image_hash"), images_before)
+    assert changed == draws_chunk | reimaged, (changed - draws_chunk, reimaged)
+    assert 0 < len(changed) < len(after) and reimaged <= respecified
+    observed = {k.replace(".gcps.csv", ".tif") for k in _changed(_tile_mtimes(results, ".gcps.csv"), gcps_before)}
+    assert observed == respecified
     # the id tiles: rendered again with their colour tiles, and no others
     ids_after = _tile_mtimes(results, ".ids.tif")
     assert set(ids_after) == set(after) and {k for k in ids_after if ids_after[k] != ids_before[k]} == changed
@@ -433,6 +442,7 @@ def test_rerun_does_nothing_and_a_changed_district_rerenders_only_its_tiles(plan
     updates = json.loads((results / "report" / "report.json").read_text())["updates"]
     for pid, u in updates.items():
         assert u["tiles_redone"] == len({k for k in changed if k.startswith(f"{pid}/")})
+        assert u["gcps_redone"] == len({k for k in respecified - changed if k.startswith(f"{pid}/")})
         assert u["web_tiles_redone"] == len({k for k in redone if k.startswith(f"{pid}/")})
         assert u["web_tiles"] == len({k for k in web_after if k.startswith(f"{pid}/")})
     assert "## Redone since the last report" in (results / "report" / "report.md").read_text()
@@ -447,6 +457,52 @@ def test_rerun_does_nothing_and_a_changed_district_rerenders_only_its_tiles(plan
     assert all(v != before.get(k) for k, v in _tile_mtimes(results).items())
     updates = json.loads((results / "report" / "report.json").read_text())["updates"]
     assert all(u["tiles_redone"] == u["tiles"] for u in updates.values())
+
+
+def test_new_gcp_spacing_observes_gcps_again_and_keeps_every_image(plane_run, tmp_path, monkeypatch):
+    """Another gcp.spacing moves the GCP candidates, not what any tile draws: the tiles whose
+    candidates changed run their marker pass alone and keep their images (files untouched), and
+    what they observe and keep is what a render of their block from nothing gives."""
+    from osgeo import gdal
+
+    from pipeline25d.stages.render_block import render_block
+
+    workdir, results = plane_run
+    images, ids, gcps = (_tile_mtimes(results, s) for s in (".tif", ".ids.tif", ".gcps.csv"))
+    specs, image_specs = _tile_specs(results), _tile_specs(results, "image_hash")
+    config = yaml.safe_load((workdir / "config.yaml").read_text())
+    config["gcp"] = {**config["gcp"], "spacing": config["gcp"]["spacing"] * 1.5}
+    (workdir / "config.yaml").write_text(yaml.safe_dump(config))
+    snakemake(workdir)
+    respecified = _changed(_tile_specs(results), specs)
+    assert respecified and _tile_specs(results, "image_hash") == image_specs
+    assert _tile_mtimes(results) == images and _tile_mtimes(results, ".ids.tif") == ids
+    observed = {k.replace(".gcps.csv", ".tif") for k in _changed(_tile_mtimes(results, ".gcps.csv"), gcps)}
+    assert observed == respecified
+    manifests = {p: json.loads(p.read_text()) for p in (results / "tiles").glob("*/block_*.json")}
+    assert sum(m["rendered"] for m in manifests.values()) == 0
+    assert sum(m["gcps_only"] for m in manifests.values()) == len(respecified)
+    updates = json.loads((results / "report" / "report.json").read_text())["updates"]
+    assert all(u["tiles_redone"] == 0 for u in updates.values())
+    assert sum(u["gcps_redone"] for u in updates.values()) == len(respecified)
+    # a block of an oblique view with GCPs observed again, rendered from nothing: the same files
+    path, manifest = next((p, m) for p, m in sorted(manifests.items())
+                          if m["gcps_only"] and not m["perspective"].endswith("el90"))
+    pid, block = manifest["perspective"], path.stem.removeprefix("block_")
+    monkeypatch.chdir(workdir)                  # the plan names the DTM relative to the workflow
+    fresh = render_block(results / "plans" / f"{pid}.json", block, config.get("render", {}).get("block", 4),
+                         results / "lod", tmp_path, tmp_path / "block.json", objects=True, workers=1)
+    assert fresh["rendered"] == len(manifest["tiles"]) and fresh["gcps_only"] == 0
+    seen = 0
+    for t in manifest["tiles"]:
+        key = f"{t['row']}_{t['col']}"
+        kept, made = results / "tiles" / pid / key, tmp_path / key
+        assert Path(f"{kept}.gcps.csv").read_bytes() == Path(f"{made}.gcps.csv").read_bytes(), key
+        seen += len(Path(f"{made}.gcps.csv").read_text().splitlines()) - 1
+        for suffix in (".tif", ".ids.tif"):
+            a, b = (gdal.Open(f"{f}{suffix}").ReadAsArray() for f in (kept, made))
+            assert np.array_equal(a, b), (key, suffix)
+    assert seen > 0
 
 
 def test_plain_loop_reference_draws_the_same_tiles(small_run):

@@ -97,12 +97,17 @@ def objects_enabled(config: dict[str, Any]) -> bool:
     return any(input_has_objects(spec) for spec in config["inputs"].values())
 
 
+#: the ``gcp`` settings of the GCP marker pass, part of every tile's render settings; they change
+#: what a tile observes, not its image (:func:`pipeline25d.stages.plan.image_hash`)
+MARKER_SETTINGS = ("marker_px", "depth_bias", "max_float_px")
+
+
 def render_settings(config: dict[str, Any]) -> dict[str, Any]:
     """What changes a tile's pixels (the render block size does not): the render and marker
     settings, and the ``shadows`` block only when shadows are enabled, so a config without
     shadows plans and renders exactly as before they existed."""
-    out = {**{k: v for k, v in config["render"].items() if k != "block"}, "marker_px": config["gcp"]["marker_px"],
-           "depth_bias": config["gcp"]["depth_bias"], "max_float_px": config["gcp"]["max_float_px"]}
+    out = {**{k: v for k, v in config["render"].items() if k != "block"},
+           **{k: config["gcp"][k] for k in MARKER_SETTINGS}}
     shadows = config.get("shadows", {})
     if shadows.get("enabled"):
         out["shadows"] = {k: v for k, v in shadows.items() if k != "enabled"}

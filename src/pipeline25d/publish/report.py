@@ -243,13 +243,14 @@ def render_markdown(rep: dict) -> str:
         lines += coarser_section(rep["coarser"])
     if rep.get("updates"):
         lines += ["", "## Redone since the last report", "",
-                  "Map tiles whose spec (chunks, LODs, GCPs, frame, render settings) changed are rendered again;"
+                  "Map tiles whose image spec (chunks, LODs, frame, render settings) changed are rendered again;"
+                  " those whose GCP candidates alone changed keep their image and observe their GCPs again;"
                   " web tiles are cut again only where the map's pixels changed (see README, District updates).", "",
-                  "| perspective | map tiles redone | of | web tiles redone | of | web cut |",
-                  "|---|---:|---:|---:|---:|---|"]
+                  "| perspective | map tiles redone | GCPs only | of | web tiles redone | of | web cut |",
+                  "|---|---:|---:|---:|---:|---:|---|"]
         for pid, u in rep["updates"].items():
-            lines.append(f"| {pid} | {u['tiles_redone']} | {u['tiles']} | {u['web_tiles_redone']} | {u['web_tiles']} | "
-                         f"{u['web_cut']} |")
+            lines.append(f"| {pid} | {u['tiles_redone']} | {u['gcps_redone']} | {u['tiles']} | {u['web_tiles_redone']} "
+                         f"| {u['web_tiles']} | {u['web_cut']} |")
     return "\n".join(lines) + "\n"
 
 
@@ -344,8 +345,9 @@ def write_report(config: dict, results: str | Path, out_json: str | Path, out_md
 
 def updates_since_last_report(results: Path, perspectives: list[dict]) -> tuple[dict, dict]:
     """What the runs since the last report redid, per perspective: map tiles rendered again
-    (tiles whose spec hash is not the one last reported) and web tiles cut again (from the
-    tms jobs' own figures, counted once: a tms job that did not run since adds nothing).
+    (tiles whose image hash is not the one last reported), map tiles whose GCPs alone were
+    observed again (the spec hash changed, the image hash did not) and web tiles cut again (from
+    the tms jobs' own figures, counted once: a tms job that did not run since adds nothing).
     Returns that and the state to remember (work/reported.json)."""
     state_path = results / "work" / "reported.json"
     last = json.loads(state_path.read_text()) if state_path.exists() else {}
@@ -354,14 +356,17 @@ def updates_since_last_report(results: Path, perspectives: list[dict]) -> tuple[
         pid = p["id"]
         plan = read_plan(results / "plans" / f"{pid}.json")
         specs = {t.key: t.spec_hash for t in plan.tiles}
+        images = {t.key: t.image_hash for t in plan.tiles}
         stats_path = results / "work" / "tms" / f"{pid}.json"
         stats = json.loads(stats_path.read_text())
         stamp = stats_path.stat().st_mtime_ns
         before = last.get(pid, {})
-        tiles_redone = sum(1 for k, h in specs.items() if before.get("specs", {}).get(k) != h)
+        respecified = {k for k, h in specs.items() if before.get("specs", {}).get(k) != h}
+        tiles_redone = sum(1 for k in respecified if not images[k] or before.get("images", {}).get(k) != images[k])
         web_redone = 0 if before.get("tms_stamp") == stamp else stats["web_tiles_redone"]
-        out[pid] = {"tiles": len(specs), "tiles_redone": tiles_redone, "web_tiles": stats["web_tiles"],
+        out[pid] = {"tiles": len(specs), "tiles_redone": tiles_redone, "gcps_redone": len(respecified) - tiles_redone,
+                    "web_tiles": stats["web_tiles"],
                     "web_tiles_redone": web_redone,
                     "web_cut": "none" if not web_redone else "full" if stats["full"] else "update"}
-        seen[pid] = {"specs": specs, "tms_stamp": stamp}
+        seen[pid] = {"specs": specs, "images": images, "tms_stamp": stamp}
     return out, seen

@@ -114,7 +114,8 @@ def plan_perspective(p: Perspective, chunks: Sequence[LodChunk], candidates: Seq
         tile = tiles[key]
         tile["chunks"].sort(key=lambda t: (t["district"], t["id"]))
         tile["render"] = render
-        tile["spec_hash"] = hashlib.sha256(json.dumps([frame, tile], sort_keys=True).encode()).hexdigest()[:16]
+        tile["spec_hash"] = _digest([frame, tile])
+        tile["image_hash"] = image_hash(frame, tile)
         out_tiles.append(tile)
     out = {
         "perspective": {"id": p.id, "azimuth": p.azimuth, "elevation": p.elevation},
@@ -323,6 +324,21 @@ def plan_block(blocks: Mapping[str, tuple[Tile, ...]], block_id: str, plan_id: s
     if block_id not in blocks:
         raise KeyError(f"block {block_id} is not in the plan of {plan_id}")
     return blocks[block_id]
+
+
+def _digest(value) -> str:
+    return hashlib.sha256(json.dumps(value, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def image_hash(frame: dict, tile: dict) -> str:
+    """The hash of what a tile's image (and object ids) depend on: its spec less its GCP candidates
+    and the marker settings. A tile whose spec changed but not this keeps its image, and only its
+    GCPs are observed again (:func:`pipeline25d.stages.render_block.render_block`)."""
+    from pipeline25d.config import MARKER_SETTINGS
+
+    image = {k: v for k, v in tile.items() if k not in ("gcps", "spec_hash", "image_hash")}
+    image["render"] = {k: v for k, v in tile["render"].items() if k not in MARKER_SETTINGS}
+    return _digest([frame, image])
 
 
 def block_spec_hash(tiles: Sequence[Tile]) -> str:

@@ -247,8 +247,9 @@ class TileShadow:
 @dataclass(frozen=True)
 class Tile:
     """One tile of a plan: its place on the global grid, the chunks it draws, the view-depth range,
-    its content box (what can hold data), the GCP candidates it shows, its render settings and
-    the hash of everything its pixels depend on."""
+    its content box (what can hold data), the GCP candidates it shows, its render settings, the
+    hash of everything its files depend on (``spec_hash``) and of what its image depends on
+    (``image_hash``: the same less its GCPs)."""
 
     row: int
     col: int
@@ -259,6 +260,7 @@ class Tile:
     render: Mapping[str, Any]
     spec_hash: str
     shadow: TileShadow | None = None
+    image_hash: str = ""       # its spec less its GCPs (plan.image_hash); "" in plans made before it
 
     @classmethod
     def from_json(cls, data: Mapping[str, Any]) -> Tile:
@@ -266,7 +268,7 @@ class Tile:
         return cls(data["row"], data["col"], tuple(ChunkRef.from_json(c) for c in data["chunks"]),
                    tuple(data["depth_range"]), tuple(data["content"]),
                    tuple(GcpCandidate.from_json(g) for g in data["gcps"]), frozen(data["render"]), data["spec_hash"],
-                   TileShadow.from_json(shadow) if shadow is not None else None)
+                   TileShadow.from_json(shadow) if shadow is not None else None, data.get("image_hash", ""))
 
     def to_json(self) -> dict[str, Any]:
         out = {"row": self.row, "col": self.col, "chunks": [c.to_json() for c in self.chunks],
@@ -276,6 +278,8 @@ class Tile:
             out["shadow"] = self.shadow.to_json()
         out["render"] = thawed(self.render)
         out["spec_hash"] = self.spec_hash
+        if self.image_hash:
+            out["image_hash"] = self.image_hash
         return out
 
     @property

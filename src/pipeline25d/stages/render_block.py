@@ -1,9 +1,10 @@
 """The render job: one block of a perspective's tiles in one process and GL context.
 
-A tile's files (GeoTIFF, its object ids where ``objects.enabled``, GCPs seen, spec hash) are
-written atomically, spec hash last: a tile whose ``.spec`` matches its plan entry (and which has
-its ids tile where ids are asked for) is complete and kept, so a changed district re-renders
-only its own tiles.
+A tile's files (GeoTIFF, its object ids where ``objects.enabled``, GCPs seen, spec and image
+hashes) are written atomically, hashes last: a tile whose ``.spec`` matches its plan entry (and
+which has its ids tile where ids are asked for) is complete and kept, so a changed district
+re-renders only its own tiles. One whose image hash alone matches (its GCP candidates changed,
+not what it draws) keeps its image and observes its GCPs again.
 """
 
 from __future__ import annotations
@@ -38,12 +39,16 @@ def tile_files(tiles_dir: str | Path, row: int, col: int) -> dict[str, Path]:
             "spec": Path(f"{base}.spec")}
 
 
-def _tile_current(tiles_dir: str | Path, tile: Tile, objects: bool) -> bool:
-    """True if the tile's files exist (its ids tile where ``objects``) and were rendered for its
-    current spec hash."""
+def _tile_state(tiles_dir: str | Path, tile: Tile, objects: bool) -> str:
+    """"current" if the tile's files exist (its ids tile where ``objects``) and were rendered for
+    its spec hash; "image" if only its GCPs are not (its image files were rendered for its image
+    hash: only its spec's GCP part changed); else "none". The spec file holds both hashes."""
     files = tile_files(tiles_dir, tile.row, tile.col)
     needed = [f for k, f in files.items() if k != "ids" or objects]
-    return all(f.exists() for f in needed) and files["spec"].read_text().strip() == tile.spec_hash
+    if not all(f.exists() for f in needed):
+        return "none"
+    spec, image = (files["spec"].read_text().split() + ["", ""])[:2]
+    return "current" if spec == tile.spec_hash else "image" if tile.image_hash and image == tile.image_hash else "none"
 
 
 def render_block(plan_path: str | Path, block_id: str, block: int, lod_dir: str | Path, tiles_dir: str | Path,
@@ -54,19 +59,23 @@ def render_block(plan_path: str | Path, block_id: str, block: int, lod_dir: str 
     Each tile gets its own files (:func:`tile_files`), written GCPs, GeoTIFF, then spec hash,
     each atomically: a tile whose ``.spec`` matches its plan entry is complete and is kept as
     it is, so a changed district re-renders only its own tiles even though its block job runs
-    again. ``objects``: each tile also gets its object ids (:mod:`.render_ids`), drawn by the
-    colour pass itself (a second render target). The manifest (written last) lists the block's
-    tiles and which were rendered. ``workers``: the cores the job may use now (one: a software
-    rasterizer draws in the job's thread, :func:`~pipeline25d.stages.render.create_context`).
+    again. A tile whose image hash still matches (only its GCP candidates or the marker
+    settings changed: another perspective added, a new ``gcp.spacing``) keeps its image and
+    gets only its marker pass again. ``objects``: each tile also gets its object ids
+    (:mod:`.render_ids`), drawn by the colour pass itself (a second render target). The manifest
+    (written last) lists the block's tiles, how many were rendered and how many only observed
+    their GCPs again. ``workers``: the cores the job may use now (one: a software rasterizer
+    draws in the job's thread, :func:`~pipeline25d.stages.render.create_context`).
     """
     from pipeline25d.stages.render import TileRenderer, create_context
     from pipeline25d.stages.render_ids import IdRenderer
 
     pl = read_plan(plan_path)
     tiles = plan_block(read_plan_blocks(plan_path, block), block_id, pl.id)
-    todo = [t for t in tiles if not _tile_current(tiles_dir, t, objects)]
+    state = {t.key: _tile_state(tiles_dir, t, objects) for t in tiles}
+    todo = [t for t in tiles if state[t.key] != "current"]
     if todo:
-        chunks = ChunkCache(lod_dir, todo)
+        chunks = ChunkCache(lod_dir, todo, shaded={t.key for t in todo if state[t.key] == "none"})
         ground = _block_ground(pl, todo)
         ctx = create_context(workers)
         try:
@@ -74,32 +83,37 @@ def render_block(plan_path: str | Path, block_id: str, block: int, lod_dir: str 
                                     shadows=pl.shadows is not None, ids=objects)
             id_renderer = IdRenderer(ctx, samples=todo[0].render["samples"]) if objects else None
             for k, tile in enumerate(todo, 1):
-                casters = chunks.take(tile.casters) if pl.shadows is not None else None
+                image = state[tile.key] == "none"
+                casters = chunks.take(tile.casters) if pl.shadows is not None and image else None
                 rgba, seen, ids = render_plan_tile(renderer, pl, tile, chunks.take(tile.chunks), ground, casters,
-                                                   id_renderer)
+                                                   id_renderer, image=image)
                 _write_tile(pl, tile, rgba, seen, tiles_dir, ids)
-                log.info("%s tile %d_%d (%d of %d): coverage %.1f%%, GCPs seen %d of %d", pl.id,
-                         tile.row, tile.col, k, len(todo), 100 * float((rgba[..., 3] > 0).mean()),
-                         len(seen), len(tile.gcps))
+                log.info("%s tile %d_%d (%d of %d): %s, GCPs seen %d of %d", pl.id, tile.row, tile.col, k,
+                         len(todo), f"coverage {100 * float((rgba[..., 3] > 0).mean()):.1f}%" if image else
+                         "image kept", len(seen), len(tile.gcps))
         finally:
             ctx.release()
+    rendered = sum(state[t.key] == "none" for t in tiles)
     manifest = {"perspective": pl.id, "block": block_id,
                 "tiles": [{"row": t.row, "col": t.col, "spec_hash": t.spec_hash} for t in tiles],
-                "rendered": len(todo), "kept": len(tiles) - len(todo), "objects": bool(objects)}
+                "rendered": rendered, "gcps_only": len(todo) - rendered, "kept": len(tiles) - len(todo),
+                "objects": bool(objects)}
     write_json(out_manifest, manifest)
-    log.info("block %s: %d tiles rendered, %d unchanged kept", block_id, len(todo),
-             len(tiles) - len(todo))
+    log.info("block %s: %d tiles rendered, %d only observed their GCPs again, %d unchanged kept", block_id,
+             rendered, len(todo) - rendered, len(tiles) - len(todo))
     return manifest
 
 
 class ChunkCache:
-    """Chunk LODs loaded once per block job and dropped after the last tile that draws them."""
+    """Chunk LODs loaded once per block job and dropped after the last tile that draws them.
+    ``shaded``: the keys of the tiles whose shadow casters are taken too (None: all)."""
 
-    def __init__(self, lod_dir: str | Path, tiles: Sequence[Tile]):
+    def __init__(self, lod_dir: str | Path, tiles: Sequence[Tile], shaded: set[str] | None = None):
         from collections import Counter
 
         self.lod_dir = Path(lod_dir)
-        self.uses = Counter(self._key(c) for t in tiles for c in (*t.chunks, *t.casters))
+        self.uses = Counter(self._key(c) for t in tiles
+                            for c in (*t.chunks, *(t.casters if shaded is None or t.key in shaded else ())))
         self.loaded: dict[tuple, tuple[np.ndarray, list]] = {}
 
     @staticmethod
@@ -139,11 +153,13 @@ def ground_window(tiles: Sequence[Tile]) -> Extent:
 
 
 def render_plan_tile(renderer, pl: Plan, tile: Tile, chunks: list, ground, casters: list | None = None,
-                     id_renderer=None) -> tuple[np.ndarray, list[Observation], np.ndarray | None]:
+                     id_renderer=None, image: bool = True) -> tuple[np.ndarray | None, list[Observation],
+                                                                   np.ndarray | None]:
     """(RGBA image, GCP observations, object ids or None) of one plan tile from its loaded chunks;
     ``ground`` = DTM(x, y) in terrain-relative mode, else None; ``casters``: its loaded shadow
     casters (plans with shadows); ``id_renderer``: an :class:`~.render_ids.IdRenderer` for the
-    tile's ids (None: none), drawn by the colour pass as a second render target."""
+    tile's ids (None: none), drawn by the colour pass as a second render target. ``image``
+    False: the GCP observations alone (the same), no colour pass (image and ids None)."""
     from pipeline25d.stages.render import TileView
     from pipeline25d.stages.render_ids import part_face_ids
 
@@ -152,8 +168,11 @@ def render_plan_tile(renderer, pl: Plan, tile: Tile, chunks: list, ground, caste
     camera, pixel = pl.camera, pl.pixel_size
     content, size = pl.content(tile)          # where its chunks can draw: the tile or less
     view = TileView(persp, pl.z0, content, depth, size, ground, camera)
+    rgba = ids = None
     with renderer.upload(chunks, view) as geometry:          # once for both passes
-        if id_renderer is None:
+        if not image:
+            pass
+        elif id_renderer is None:
             rgba, ids = renderer.render_color(geometry, view, shadow_view(pl, tile), casters), None
         else:     # one pass: the ids are a second render target of the colour pass
             rgba, ids = id_renderer.with_colour(renderer, geometry, view, part_face_ids, shadow_view(pl, tile), casters)
@@ -183,10 +202,11 @@ def shadow_view(pl: Plan, tile: Tile):
     return ShadowView(frame, tuple(tile.shadow.window), tuple(tile.shadow.depth), s["ambient"], s["bias"], s["radius"])
 
 
-def _write_tile(pl: Plan, tile: Tile, rgba: np.ndarray, seen: list[Observation], tiles_dir: str | Path,
+def _write_tile(pl: Plan, tile: Tile, rgba: np.ndarray | None, seen: list[Observation], tiles_dir: str | Path,
                 ids: np.ndarray | None = None) -> None:
-    """GCPs, GeoTIFF, its ids (or none: a stale ids tile removed), then the spec hash that marks
-    the tile complete (see :func:`render_block`)."""
+    """GCPs, GeoTIFF, its ids (or none: a stale ids tile removed), then the spec and image hashes
+    that mark the tile complete (see :func:`render_block`). ``rgba`` None: the image files are
+    kept as they are (rendered for the tile's image hash), its GCPs alone are written."""
     from pipeline25d.core.atomic import write_text
     from pipeline25d.core.crs import horizontal_wkt
     from pipeline25d.core.geotiff import write_geotiff, write_rgba_geotiff
@@ -196,12 +216,13 @@ def _write_tile(pl: Plan, tile: Tile, rgba: np.ndarray, seen: list[Observation],
     # the paper camera's tiles lie on its image plane, which is no CRS: the warp georeferences them
     wkt = "" if pl.camera == "paper" else horizontal_wkt(pl.crs)
     write_csv(files["gcps"], seen, OBSERVATION_FIELDS)
-    write_rgba_geotiff(files["tif"], rgba, pl.tile_grid(tile), wkt)
-    if ids is None:
-        files["ids"].unlink(missing_ok=True)
-    else:
-        write_geotiff(files["ids"], ids, pl.tile_grid(tile), wkt, "UInt32", ID_OPTIONS, nodata=0)
-    write_text(files["spec"], tile.spec_hash + "\n")
+    if rgba is not None:
+        write_rgba_geotiff(files["tif"], rgba, pl.tile_grid(tile), wkt)
+        if ids is None:
+            files["ids"].unlink(missing_ok=True)
+        else:
+            write_geotiff(files["ids"], ids, pl.tile_grid(tile), wkt, "UInt32", ID_OPTIONS, nodata=0)
+    write_text(files["spec"], f"{tile.spec_hash} {tile.image_hash}\n")
 
 
 def marker_depth_tolerance(p: Perspective, gsd: float, max_float_px: float) -> float:
