@@ -60,9 +60,10 @@ def render_block(plan_path: str | Path, block_id: str, block: int, lod_dir: str 
     each atomically: a tile whose ``.spec`` matches its plan entry is complete and is kept as
     it is, so a changed district re-renders only its own tiles even though its block job runs
     again. A tile whose image hash still matches (only its GCP candidates or the marker
-    settings changed: another perspective added, a new ``gcp.spacing``) keeps its image and
-    gets only its marker pass again. ``objects``: each tile also gets its object ids
-    (:mod:`.render_ids`), drawn by the colour pass itself (a second render target). The manifest
+    settings changed: another perspective added, a new ``gcp.spacing``, with a DTM that does
+    not move with the check points) keeps its image and gets only its marker pass again.
+    ``objects``: each tile also gets its object ids (:mod:`.render_ids`), drawn by the colour
+    pass itself (a second render target). The manifest
     (written last) lists the block's tiles, how many were rendered and how many only observed
     their GCPs again. ``workers``: the cores the job may use now (one: a software rasterizer
     draws in the job's thread, :func:`~pipeline25d.stages.render.create_context`).
