@@ -245,7 +245,8 @@ def render_markdown(rep: dict) -> str:
         lines += ["", "## Redone since the last report", "",
                   "Map tiles whose image spec (chunks, LODs, frame, render settings) changed are rendered again;"
                   " those whose GCP candidates alone changed keep their image and observe their GCPs again;"
-                  " web tiles are cut again only where the map's pixels changed (see README, District updates).", "",
+                  " web tiles are cut again only where the map's pixels changed"
+                  " (see docs/how-it-works.md, District updates).", "",
                   "| perspective | map tiles redone | GCPs only | of | web tiles redone | of | web cut |",
                   "|---|---:|---:|---:|---:|---:|---|"]
         for pid, u in rep["updates"].items():
