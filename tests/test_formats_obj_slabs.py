@@ -145,10 +145,40 @@ def test_a_face_beyond_the_vertices_names_the_file(tmp_path, slabs_of):
         slabs_of(path, 10)
 
 
-def test_faces_with_and_without_texture_coordinates_are_refused_by_name(tmp_path, slabs_of):
+def without_plain_texture_coordinates(path: Path) -> list[str]:
+    """``path``'s lines with no texture coordinates on the faces of its untextured material (as
+    exporters write them)."""
+    lines, plain = path.read_text().splitlines(), False
+    for k, line in enumerate(lines):
+        plain = line == "usemtl plain" if line.startswith("usemtl") else plain
+        if plain and line.startswith("f "):
+            lines[k] = "f " + " ".join(c.split("/")[0] for c in line.split()[1:])
+    return lines
+
+
+@pytest.mark.parametrize("faces", [7, 97, 10_000])
+def test_faces_with_and_without_texture_coordinates_read_as_the_whole_file(tmp_path, slabs_of, faces):
+    """The slabs' triangles are the whole file's, textured where it has texture coordinates,
+    whatever the slab size."""
+    path = write_obj(tmp_path, 12)
+    lines = without_plain_texture_coordinates(path)
+    path.write_text("\n".join(lines) + "\n")
+    assert sum(line.startswith("f ") and "/" not in line for line in lines) > 50
+    whole = meshfile.load_mesh_file(path).parts
+    got = triangles([part for piece in slabs_of(path, faces) for part in piece.parts])
+    assert got == triangles(whole) and len(got) == 2 * 12 * 12 + 1
+    assert {t[3]: t[2] is not None for t in got} == {"tex": True, "plain": False}
+
+
+def test_a_face_with_texture_coordinates_on_some_corners_is_refused_by_name(tmp_path, slabs_of):
+    """trimesh reads such a face one way or another as the faces around it go; slabs refuse it."""
     path = write_obj(tmp_path, 6)
-    path.write_text(path.read_text() + "f 1 2 3\n")
-    with pytest.raises(InputFileError, match=r"m\.obj: mixes faces with and without texture coordinates"):
+    lines = without_plain_texture_coordinates(path)
+    k = next(k for k in range(lines.index("usemtl plain"), len(lines)) if lines[k].startswith("f "))
+    a, b, *rest = lines[k].split()[1:]
+    lines[k] = " ".join(["f", a, f"{b}/1", *rest])
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputFileError, match=r"m\.obj: a face gives texture coordinates for some of its corners"):
         slabs_of(path, 10_000)
 
 

@@ -11,8 +11,10 @@ the same float64) and its statements. Each slab is one piece of the district
 (:func:`pipeline25d.formats.district_pieces`), chunked as it comes; ingest joins a chunk's parts
 of one texture from several slabs (:class:`pipeline25d.stages.ingest._Spool`). A slab's
 triangles, their colours, texture coordinates, textures and objects are those of the whole
-file's read; normals are dropped (the renderer shades from the faces). Statements are read one
-to a line (no ``\\`` continuations).
+file's read; normals are dropped (the renderer shades from the faces). Faces with texture
+coordinates and faces without (an untextured material's) may mix; a face with them on some of
+its corners only is refused (trimesh reads it one way or another as the faces around it go).
+Statements are read one to a line (no ``\\`` continuations).
 
 A 402 MB OBJ of 5.12 M textured triangles, chunked by :func:`pipeline25d.stages.ingest.ingest`
 (one run each): whole, 1.53 GB at the peak in 38 s; in slabs on one core, 0.78 GB in 84 s (the
@@ -256,17 +258,18 @@ class _Slab:
         sizes, v, vt = _corners(self.faces, np.concatenate(self.counts), path)
         _in_range(v, len(table.v), path, "vertex")
         has_vt = vt >= 0
-        if has_vt.any() and not has_vt.all():
-            raise InputFileError(path, "mixes faces with and without texture coordinates; this reader needs one "
-                                       "or the other in a file of its size")
         used_v, local = _renumbered(v)
         out = [*table.mtllib, *self.start.values(), _rows(b"v", table.v.take(used_v))]
         numbers = [local + 1]
-        if has_vt.any():
-            _in_range(vt, len(table.vt), path, "texture coordinate")
-            used_vt, local_vt = _renumbered(vt)
+        if has_vt.any():                        # faces without them (an untextured material's) keep none
+            given = np.add.reduceat(has_vt, np.cumsum(sizes) - sizes)
+            if ((given > 0) & (given < sizes)).any():
+                raise InputFileError(path, "a face gives texture coordinates for some of its corners only")
+            _in_range(vt[has_vt], len(table.vt), path, "texture coordinate")
+            used_vt, local_vt = _renumbered(vt[has_vt])
             out.append(_rows(b"vt", table.vt.take(used_vt)))
-            numbers.append(local_vt + 1)
+            numbers.append(np.zeros(len(vt), np.int64))
+            numbers[1][has_vt] = local_vt + 1
         faces, at = _face_lines(sizes, numbers), 0
         for entry in self.body:
             if isinstance(entry, int):
@@ -279,13 +282,18 @@ class _Slab:
 
 def _face_lines(sizes: np.ndarray, numbers: list[np.ndarray]) -> list[bytes]:
     """Each face's line ``f 1/1 2/2 3/3`` from its corners' 1-based vertex numbers (and texture
-    coordinates' where ``numbers`` has two arrays); faces of one size are formatted at once."""
+    coordinates' where ``numbers`` has two arrays, 0 at a corner that has none: written ``f 1 2 3``
+    there, as the file wrote it); faces of one size are formatted at once."""
     corner = "/".join(["%d"] * len(numbers))
-    if len(sizes) and (sizes == sizes[0]).all():
+    mixed = len(numbers) == 2 and not numbers[1].all()      # a file mixing faces with and without them
+    if len(sizes) and (sizes == sizes[0]).all() and not mixed:
         face = "f " + " ".join([corner] * int(sizes[0]))
         values = np.column_stack(numbers).ravel().tolist()
         return ("\n".join([face] * len(sizes)) % tuple(values)).encode().split(b"\n")
-    corners = [corner % c for c in zip(*(n.tolist() for n in numbers))]
+    if mixed:
+        corners = [f"{a}/{t}" if t else str(a) for a, t in zip(*(n.tolist() for n in numbers))]
+    else:
+        corners = [corner % c for c in zip(*(n.tolist() for n in numbers))]
     ends = np.cumsum(sizes).tolist()
     return [("f " + " ".join(corners[e - n:e])).encode() for e, n in zip(ends, sizes.tolist())]
 
