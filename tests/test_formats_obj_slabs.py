@@ -211,6 +211,23 @@ def test_an_obj_with_windows_line_ends_reads_as_with_unix_ones_whole_and_in_slab
     assert {t[1] for t in expected} == {"part0", "part1", "part2"}
 
 
+@pytest.mark.parametrize("layout", ["tabs", "indented"])
+def test_an_obj_written_with_tabs_or_indented_reads_as_a_plain_one_whole_and_in_slabs(tmp_path, slabs_of, layout):
+    """Whitespace is whitespace: tabs between words, or lines indented, read as the same file
+    written with single spaces (trimesh alone read no triangle of either)."""
+    plain = write_obj(tmp_path / "plain", 9)
+    folder = tmp_path / layout
+    path = write_obj(folder, 9)
+    lines = path.read_text().splitlines()
+    lines = [ln.replace(" ", "\t") for ln in lines] if layout == "tabs" else \
+        [f"  {ln}" if k % 2 else f"\t {ln}" for k, ln in enumerate(lines)]
+    path.write_text("\n".join(lines) + "\n")
+    want = triangles(meshfile.load_mesh_file(plain).parts)
+    assert len(want) == 2 * 9 * 9 + 1 and {t[3] for t in want} == {"tex", "plain"}
+    assert triangles(meshfile.load_mesh_file(path).parts) == want
+    assert triangles([part for piece in slabs_of(path, 31) for part in piece.parts]) == want
+
+
 def test_a_nan_coordinate_in_slabs_is_refused_by_name_as_in_a_whole_read(tmp_path, slabs_of):
     """NaN marks a shorter line's missing values in the slab reader's table; a NaN the file writes
     must not pass as one (its vertex would lose a coordinate)."""

@@ -37,6 +37,8 @@ def load_mesh_file(path: str | Path, text: bytes | None = None, files: "_Files |
     kind = path.suffix.lstrip(".").upper()
     model = f"{'an' if kind[:1] in 'AEIOU' else 'a'} {kind} model"
     repaired = None if text is not None else {"OBJ": _check_obj, "DAE": _check_dae}.get(kind, lambda p: None)(path)
+    if kind == "OBJ" and text is None:
+        text = tidied_obj_text(path.read_bytes())
     files = files or _Files(str(path))
     source = ({"file_obj": io.BytesIO(text), "file_type": "obj"} if text is not None else
               {"file_obj": str(path)} if repaired is None else {"file_obj": io.BytesIO(repaired), "file_type": "dae"})
@@ -95,6 +97,15 @@ def _objects_joined(parts: list[MeshPart], path: Path, text: str, several: bool 
 #: OBJ statements and the fewest values each takes; a last line with fewer was cut short.
 OBJ_VALUES = {"v": 3, "vt": 2, "vn": 3, "f": 3}
 OBJ_HEAD = 4096        # bytes of an OBJ checked for binary data
+
+
+def tidied_obj_text(data: bytes) -> bytes | None:
+    """An OBJ's text with tabs as spaces and no whitespace before a line's keyword, where it has
+    either; None where it has neither. trimesh finds statements by a newline, the keyword and a
+    space: a file written with tabs or indented read as no triangle at all."""
+    if not (b"\t" in data or data[:1] == b" " or b"\n " in data):
+        return None
+    return re.sub(rb"(?m)^ +", b"", data.replace(b"\t", b" "))
 
 
 def _check_obj(path: Path) -> None:

@@ -21,7 +21,7 @@ A 402 MB OBJ of 5.12 M textured triangles, chunked by :func:`pipeline25d.stages.
 slabs' read alone: 0.54 GB); on two (a slab parsed in a worker while the next is cut), 0.85 GB in
 52 s. Memory then grows with the vertices (40-56 bytes each), not the faces.
 
-Both passes cut lines into words on a block's bytes at once (:class:`_Words`), and a slab's faces
+Both passes cut lines into words on a block's bytes at once (:class:`~.obj_lines.Words`), and a slab's faces
 of one size are formatted together: the slabs' texts are the same bytes as a line-by-line cut's,
 in half the time. A 138 MB OBJ of 2 M textured triangles (a height field), read on two cores, two
 runs each: in slabs 14.3-14.5 s at 0.45 GB, line by line 28.1-28.7 s at 0.51 GB; trimesh on the
@@ -39,6 +39,7 @@ import numpy as np
 
 from pipeline25d.core.errors import InputFileError
 from pipeline25d.formats.common import Detail, Loaded
+from pipeline25d.formats.obj_lines import OTHER, VT, F, V, Words, face_tokens, kinds, line_blocks
 
 log = logging.getLogger(__name__)
 
@@ -46,8 +47,6 @@ log = logging.getLogger(__name__)
 SLAB_FILE_BYTES = 128 * 2 ** 20
 #: faces per slab
 SLAB_FACES = 200_000
-#: bytes of lines read at a time
-READ_BYTES = 8 * 2 ** 20
 #: statements that change what the faces after them belong to, carried into the next slab
 STATE = (b"o", b"g", b"usemtl", b"s")
 
@@ -101,8 +100,8 @@ class VertexTable:
         mtllib: list[bytes] = []
         objects: set[bytes] = set()
         n_faces = 0
-        for lines in _line_blocks(path):
-            kind = _kinds(lines)
+        for lines in line_blocks(path):
+            kind = kinds(lines)
             n_faces += int((kind == F).sum())
             v_rows.append(_values([lines[i] for i in np.flatnonzero(kind == V).tolist()], path, "v"))
             vt_rows.append(_values([lines[i] for i in np.flatnonzero(kind == VT).tolist()], path, "vt"))
@@ -113,34 +112,12 @@ class VertexTable:
         return cls(Rows(v_rows), Rows(vt_rows), mtllib, objects, n_faces)
 
 
-#: line kinds: a vertex, a texture coordinate, a face, anything else
-V, VT, F, OTHER = 1, 2, 3, 0
-
-
-def _kinds(lines: list[bytes]) -> np.ndarray:
-    """Each line's kind (:data:`V`, :data:`VT`, :data:`F`, :data:`OTHER`) by its keyword: both passes
-    count the v and vt lines alike, so an index names the same row in each."""
-    heads = np.array(lines, dtype="S3")         # each line's first three bytes
-    two = heads.astype("S2")
-    kind = np.full(len(lines), OTHER, dtype=np.int8)
-    kind[(two == b"v ") | (two == b"v\t")] = V
-    kind[(two == b"f ") | (two == b"f\t")] = F
-    kind[(heads == b"vt ") | (heads == b"vt\t")] = VT
-    return kind
-
-
-def _line_blocks(path: Path) -> Iterator[list[bytes]]:
-    with open(path, "rb") as fh:
-        while lines := fh.readlines(READ_BYTES):
-            yield lines
-
-
 def _values(lines: list[bytes], path: Path, what: str) -> np.ndarray:
     """(n, k) float64 values after the keyword of ``lines``; k the most values a line has, NaN
     where a line has fewer. Lines of one width are parsed at once (C's strtod, as trimesh does)."""
     if not lines:
         return np.zeros((0, 0))
-    words = _Words(lines)
+    words = Words(lines)
     widths = words.count
     if (widths == widths[0]).all():                 # the usual file: lines of one width, parsed at once
         flat = _parsed(words.numbers_text(), np.float64, path, f"a '{what}' line holds something other than numbers")
@@ -202,8 +179,8 @@ def slab_texts(path: Path, table: VertexTable, slab_faces: int = SLAB_FACES) -> 
     state: dict[bytes, bytes] = {}              # statement keyword -> its last line
     nv = nvt = 0                                # v and vt lines so far (negative indices count back from them)
     slab = _Slab(state)
-    for lines in _line_blocks(path):
-        kind = _kinds(lines)
+    for lines in line_blocks(path):
+        kind = kinds(lines)
         seen = np.column_stack([nv + np.cumsum(kind == V), nvt + np.cumsum(kind == VT)])
         faces = np.flatnonzero(kind == F)
         statements = [i for i in np.flatnonzero(kind == OTHER).tolist() if _word(lines[i]) in STATE]
@@ -301,7 +278,7 @@ def _face_lines(sizes: np.ndarray, numbers: list[np.ndarray]) -> list[bytes]:
 def _corners(lines: list[bytes], counts: np.ndarray, path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(corners of each face line, each corner's 0-based vertex index, its texture coordinate's or -1),
     negative indices counted back from ``counts`` (the v and vt lines before each face)."""
-    sizes, slashes, text = _face_tokens(lines)
+    sizes, slashes, text = face_tokens(lines)
     fields = _parsed(text.replace(b"//", b"/0/").replace(b"/", b" "), np.int64, path,
                      "a face names a vertex by something other than a number")
     width = slashes + 1
@@ -314,46 +291,6 @@ def _corners(lines: list[bytes], counts: np.ndarray, path: Path) -> tuple[np.nda
     v = np.where(v > 0, v - 1, at[:, 0] + v)
     t = np.where(t > 0, t - 1, np.where(t < 0, at[:, 1] + t, -1))
     return sizes, v, t
-
-
-_SPACE = np.zeros(256, dtype=bool)
-_SPACE[list(b" \t\r\n\v\f")] = True                 # what bytes.split() splits on
-
-
-class _Words:
-    """The words of OBJ lines (as ``line.split()`` cuts them), found on the lines' bytes at once: each
-    word's first byte, the line it is on, whether it is its line's keyword, and the lines' text with
-    the keywords blanked (numbers alone, for ``np.fromstring``). Each line but a file's last ends in
-    a newline; each starts with its keyword (:func:`_kinds`)."""
-
-    def __init__(self, lines: list[bytes]):
-        buf = np.frombuffer(b"".join(lines), dtype=np.uint8)
-        space = _SPACE[buf]
-        self.buf = buf
-        self.starts = np.flatnonzero(~space & np.concatenate([[True], space[:-1]]))
-        self.line_of = np.searchsorted(np.flatnonzero(buf == 10), self.starts)
-        self.keyword = np.concatenate([[True], self.line_of[1:] != self.line_of[:-1]])[:len(self.starts)]
-        self.count = np.bincount(self.line_of[~self.keyword], minlength=len(lines)).astype(np.int64)
-
-    def numbers_text(self) -> bytes:
-        """The lines' text with each keyword (``v``, ``vt`` or ``f``) blanked."""
-        blank = self.buf.copy()
-        at = self.starts[self.keyword]
-        for _ in range(2):                                 # v, vt, f: at most two bytes
-            blank[at] = 32
-            at = at + 1
-            at = at[at < len(blank)]
-            at = at[~_SPACE[blank[at]]]                    # the keyword goes on
-        return blank.tobytes()
-
-
-def _face_tokens(lines: list[bytes]) -> tuple[np.ndarray, np.ndarray, bytes]:
-    """(corners of each face line, the slashes in each corner, the lines' text with their ``f`` blanked)."""
-    words = _Words(lines)
-    corners = words.starts[~words.keyword]
-    slashes = np.bincount(np.searchsorted(corners, np.flatnonzero(words.buf == 47), side="right") - 1,
-                          minlength=len(corners))
-    return words.count, slashes.astype(np.int64), words.numbers_text()
 
 
 def _renumbered(idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
