@@ -54,6 +54,16 @@ def test_a_hostile_file_is_refused_naming_the_file_and_the_problem(name):
     assert "Traceback" not in str(err.value)
 
 
+@pytest.mark.parametrize("name", ["gone.obj", "gone.ply", "gone.glb", "gone.b3dm", "gone.json", "gone.gml",
+                                  "gone.3tz", "gone.slpk"])
+def test_a_model_file_that_is_not_there_is_refused_by_name(tmp_path, name):
+    """The config refuses a path that is not there; the reader too (a file gone since, another caller)."""
+    from pipeline25d.core.errors import InputFileError
+
+    with pytest.raises(InputFileError, match=re.escape(f"{tmp_path / name}: does not exist")):
+        load_district({"path": str(tmp_path / name)}, SCENE_CRS)
+
+
 @pytest.mark.parametrize("name", [n for n, c in CASES.items() if c.error is None])
 def test_a_file_read_with_a_warning_keeps_every_good_triangle(name):
     """Degenerate triangles dropped, XML defects outside the geometry recovered, missing children

@@ -161,6 +161,7 @@ def test_a_y_up_obj_is_turned_z_up_by_the_reader_and_the_box(tmp_path):
     np.testing.assert_array_equal(got.parts[0].faces, want.parts[0].faces)
     box = input_box({"path": str(tmp_path / "y.obj"), "offset": offset, "up_axis": "y"})
     np.testing.assert_allclose(box.corners, [z_up.min(axis=0) + offset, z_up.max(axis=0) + offset])
+    (tmp_path / "m.glb").write_bytes(b"glTF")                 # refused before it is read
     with pytest.raises(ConfigError, match="up_axis applies to obj, ply, dae, 3ds files, not glb"):
         load_district({"path": str(tmp_path / "m.glb"), "up_axis": "y"}, "EPSG:28992")
 

@@ -159,6 +159,8 @@ def reader_of(spec: dict, base_dir: Path = Path(".")) -> tuple[Path, str, Reader
     path = base_dir / spec["path"]
     from pipeline25d.formats.slpk import is_scene_layer_folder
 
+    if not path.exists():               # the config refuses it; here for a file gone since, and other callers
+        raise InputFileError(path, "does not exist")
     if path.is_dir() and not is_osgb_dataset(path) and not is_scene_layer_folder(path):
         raise InputFileError(path, "is a directory, not a model file (nor an OSGB dataset folder with Data/, "
                                    "nor an unpacked I3S scene layer package with 3dSceneLayer.json)")
