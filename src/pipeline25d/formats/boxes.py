@@ -38,7 +38,7 @@ import numpy as np
 
 SCAN_BYTES = 256 * 2 ** 20            # a text file larger than this is not scanned at parse time
 BINARY_SCAN_BYTES = 4 * 2 ** 30        # a binary PLY's vertex block is read in place up to this size
-_OBJ_VERTEX = re.compile(rb"^[ \t]*v[ \t]+(\S+)[ \t]+(\S+)[ \t]+(\S+)", re.M)
+_OBJ_VERTEX = re.compile(rb"^(?:\xef\xbb\xbf)?[ \t]*v[ \t]+(\S+)[ \t]+(\S+)[ \t]+(\S+)", re.M)
 _TILE_NAME = re.compile(r"Tile_([+-]?\d+)_([+-]?\d+)$")
 _COARSEST = 1.0e12                     # a map pixel this large draws every OSGB tile at its coarsest level
 

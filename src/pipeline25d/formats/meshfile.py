@@ -99,13 +99,18 @@ OBJ_VALUES = {"v": 3, "vt": 2, "vn": 3, "f": 3}
 OBJ_HEAD = 4096        # bytes of an OBJ checked for binary data
 
 
+#: the byte order mark some Windows tools write first in a UTF-8 text
+UTF8_BOM = b"\xef\xbb\xbf"
+
+
 def tidied_obj_text(data: bytes) -> bytes | None:
-    """An OBJ's text with tabs as spaces and no whitespace before a line's keyword, where it has
-    either; None where it has neither. trimesh finds statements by a newline, the keyword and a
-    space: a file written with tabs or indented read as no triangle at all."""
-    if not (b"\t" in data or data[:1] == b" " or b"\n " in data):
+    """An OBJ's text without a byte order mark, with tabs as spaces and no whitespace before a
+    line's keyword, where it has any of them; None where it has none. trimesh finds statements by
+    a newline, the keyword and a space: a file written with tabs or indented read as no triangle
+    at all, and a mark before a first ``v`` line dropped that vertex (every index after it off by one)."""
+    if not (b"\t" in data or data[:1] == b" " or b"\n " in data or data.startswith(UTF8_BOM)):
         return None
-    return re.sub(rb"(?m)^ +", b"", data.replace(b"\t", b" "))
+    return re.sub(rb"(?m)^ +", b"", data.removeprefix(UTF8_BOM).replace(b"\t", b" "))
 
 
 def _check_obj(path: Path) -> None:

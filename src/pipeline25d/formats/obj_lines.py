@@ -48,11 +48,14 @@ def line_blocks(path: Path) -> Iterator[list[bytes]]:
 
 @lru_cache(maxsize=4)
 def _loose(path: str, mtime_ns: int) -> bool:
-    """Whether the OBJ holds a tab or an indented line (one look at the file for both passes)."""
+    """Whether the OBJ starts with a byte order mark or holds a tab or an indented line (one look at
+    the file for both passes)."""
     import mmap
 
+    from pipeline25d.formats.meshfile import UTF8_BOM
+
     with open(path, "rb") as fh, mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mm:
-        return mm.find(b"\t") >= 0 or mm[:1] == b" " or mm.find(b"\n ") >= 0
+        return mm[:3] == UTF8_BOM or mm.find(b"\t") >= 0 or mm[:1] == b" " or mm.find(b"\n ") >= 0
 
 
 _SPACE = np.zeros(256, dtype=bool)
