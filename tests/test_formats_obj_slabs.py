@@ -18,7 +18,7 @@ from conftest import REPO
 from PIL import Image
 
 from pipeline25d.core.errors import InputFileError
-from pipeline25d.formats import meshfile, obj_slabs
+from pipeline25d.formats import meshfile, obj_lines, obj_slabs
 from pipeline25d.stages.chunks import unpack_parts
 from pipeline25d.stages.ingest import write_chunks
 
@@ -211,26 +211,29 @@ def test_an_obj_with_windows_line_ends_reads_as_with_unix_ones_whole_and_in_slab
     assert {t[1] for t in expected} == {"part0", "part1", "part2"}
 
 
-@pytest.mark.parametrize("layout", ["tabs", "indented", "bom"])
+@pytest.mark.parametrize("layout", ["tabs", "indented", "bom", "cr", "cr-indented"])
 def test_an_obj_written_with_tabs_indented_or_a_bom_reads_as_a_plain_one_whole_and_in_slabs(tmp_path, slabs_of,
-                                                                                            layout):
-    """Whitespace is whitespace: tabs between words, or lines indented, read as the same file
-    written with single spaces (trimesh alone read no triangle of either); a UTF-8 byte order mark
-    before a first ``v`` line is no part of it (trimesh dropped that vertex: every index off by one)."""
+                                                                                            layout, monkeypatch):
+    """Whitespace is whitespace: tabs between words, lines indented, or lines ended by CR alone
+    (classic Mac OS) read as the same file written with single spaces and LF (trimesh alone read no
+    triangle of any of them); a UTF-8 byte order mark before a first ``v`` line is no part of it
+    (trimesh dropped that vertex: every index off by one)."""
     plain = write_obj(tmp_path / "plain", 9)
     folder = tmp_path / layout
     path = write_obj(folder, 9)
     lines = path.read_text().splitlines()
     if layout == "tabs":
         lines = [ln.replace(" ", "\t") for ln in lines]
-    elif layout == "indented":
+    elif layout.endswith("indented"):
         lines = [f"  {ln}" if k % 2 else f"\t {ln}" for k, ln in enumerate(lines)]
-    else:
+    elif layout == "bom":
         lines = ["\ufeff" + lines[1], *lines[2:], lines[0]]           # the mark, a vertex, ..., mtllib last
-    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    end = "\r" if layout.startswith("cr") else "\n"
+    path.write_bytes((end.join(lines) + end).encode())
     want = triangles(meshfile.load_mesh_file(plain).parts)
     assert len(want) == 2 * 9 * 9 + 1 and {t[3] for t in want} == {"tex", "plain"}
     assert triangles(meshfile.load_mesh_file(path).parts) == want
+    monkeypatch.setattr(obj_lines, "READ_BYTES", 997)        # lines read in many blocks, cut between them
     assert triangles([part for piece in slabs_of(path, 31) for part in piece.parts]) == want
 
 

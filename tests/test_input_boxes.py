@@ -166,11 +166,13 @@ def test_a_y_up_obj_is_turned_z_up_by_the_reader_and_the_box(tmp_path):
         load_district({"path": str(tmp_path / "m.glb"), "up_axis": "y"}, "EPSG:28992")
 
 
-def test_an_indented_obj_with_tabs_has_the_box_of_its_model(tmp_path):
+@pytest.mark.parametrize("end", ["\n", "\r"], ids=["lf", "cr"])
+def test_an_indented_obj_with_tabs_has_the_box_of_its_model(tmp_path, end):
     """The box the run plans from before ingest reads an OBJ's vertices as the reader does: on
-    indented lines and between tabs."""
+    indented lines, between tabs, after a byte order mark, with lines ended by CR alone."""
     xyz = np.array([[85000.5, 447000.25, 1.0], [85010.0, 447000.0, 3.5], [85010.0, 447008.0, -2.0]])
-    (tmp_path / "m.obj").write_text("".join(f"  v\t{x}\t{y} {z}\n" for x, y, z in xyz) + "\tf 1 2 3\n")
+    text = "\ufeff" + "".join(f"  v\t{x}\t{y} {z}{end}" for x, y, z in xyz) + f"\tf 1 2 3{end}"
+    (tmp_path / "m.obj").write_bytes(text.encode())
     spec = {"path": str(tmp_path / "m.obj")}
     np.testing.assert_array_equal(input_box(spec).corners, [xyz.min(axis=0), xyz.max(axis=0)])
     np.testing.assert_array_equal(load_district(spec, "EPSG:28992").parts[0].vertices, xyz)

@@ -38,7 +38,7 @@ import numpy as np
 
 SCAN_BYTES = 256 * 2 ** 20            # a text file larger than this is not scanned at parse time
 BINARY_SCAN_BYTES = 4 * 2 ** 30        # a binary PLY's vertex block is read in place up to this size
-_OBJ_VERTEX = re.compile(rb"^(?:\xef\xbb\xbf)?[ \t]*v[ \t]+(\S+)[ \t]+(\S+)[ \t]+(\S+)", re.M)
+_OBJ_VERTEX = re.compile(rb"^[ \t]*v[ \t]+(\S+)[ \t]+(\S+)[ \t]+(\S+)", re.M)
 _TILE_NAME = re.compile(r"Tile_([+-]?\d+)_([+-]?\d+)$")
 _COARSEST = 1.0e12                     # a map pixel this large draws every OSGB tile at its coarsest level
 
@@ -103,7 +103,11 @@ def _box_of(points: np.ndarray) -> np.ndarray | None:
 def _obj(path: Path, spec: dict) -> tuple | None:
     if not _small(path):
         return None
-    return _box_of(np.array(_OBJ_VERTEX.findall(path.read_bytes()), dtype=np.float64)), None, "the OBJ vertices"
+    from pipeline25d.formats.meshfile import tidied_obj_text
+
+    data = path.read_bytes()
+    data = tidied_obj_text(data) or data                     # as the reader reads it (line ends, marks)
+    return _box_of(np.array(_OBJ_VERTEX.findall(data), dtype=np.float64)), None, "the OBJ vertices"
 
 
 _PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",

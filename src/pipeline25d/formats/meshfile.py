@@ -104,12 +104,15 @@ UTF8_BOM = b"\xef\xbb\xbf"
 
 
 def tidied_obj_text(data: bytes) -> bytes | None:
-    """An OBJ's text without a byte order mark, with tabs as spaces and no whitespace before a
-    line's keyword, where it has any of them; None where it has none. trimesh finds statements by
-    a newline, the keyword and a space: a file written with tabs or indented read as no triangle
-    at all, and a mark before a first ``v`` line dropped that vertex (every index after it off by one)."""
-    if not (b"\t" in data or data[:1] == b" " or b"\n " in data or data.startswith(UTF8_BOM)):
+    """An OBJ's text without a byte order mark, with tabs as spaces, no whitespace before a line's
+    keyword and LF line ends where it has only CRs (classic Mac OS), where it has any of them; None
+    where it has none. trimesh finds statements by a newline, the keyword and a space: a file
+    written with tabs, indented or with CRs alone read as no triangle at all, and a mark before a
+    first ``v`` line dropped that vertex (every index after it off by one)."""
+    cr_only = b"\n" not in data and b"\r" in data
+    if not (cr_only or b"\t" in data or data[:1] == b" " or b"\n " in data or data.startswith(UTF8_BOM)):
         return None
+    data = data.replace(b"\r", b"\n") if cr_only else data
     return re.sub(rb"(?m)^ +", b"", data.removeprefix(UTF8_BOM).replace(b"\t", b" "))
 
 

@@ -39,23 +39,38 @@ def line_blocks(path: Path) -> Iterator[list[bytes]]:
     (:func:`~.meshfile.tidied_obj_text`: tabs, indented lines)."""
     from pipeline25d.formats.meshfile import tidied_obj_text
 
-    loose = _loose(str(path), path.stat().st_mtime_ns)
+    loose, cr_only = _loose(str(path), path.stat().st_mtime_ns)
     with open(path, "rb") as fh:
-        while lines := fh.readlines(READ_BYTES):
+        for lines in _cr_blocks(fh) if cr_only else iter(lambda: fh.readlines(READ_BYTES), []):
             tidied = tidied_obj_text(b"".join(lines)) if loose else None
             yield lines if tidied is None else tidied.splitlines(keepends=True)
 
 
+def _cr_blocks(fh) -> Iterator[list[bytes]]:
+    """The lines of a file whose lines end in CR alone (classic Mac OS), a block at a time, ending in LF."""
+    rest = b""
+    while data := fh.read(READ_BYTES):
+        data = rest + data
+        cut = data.rfind(b"\r") + 1
+        rest = data[cut:]
+        if cut:
+            yield data[:cut].replace(b"\r", b"\n").splitlines(keepends=True)
+    if rest:
+        yield rest.splitlines(keepends=True)
+
+
 @lru_cache(maxsize=4)
-def _loose(path: str, mtime_ns: int) -> bool:
-    """Whether the OBJ starts with a byte order mark or holds a tab or an indented line (one look at
-    the file for both passes)."""
+def _loose(path: str, mtime_ns: int) -> tuple[bool, bool]:
+    """(whether the OBJ starts with a byte order mark or holds a tab or an indented line, whether its
+    lines end in CR alone): one look at the file for both passes."""
     import mmap
 
     from pipeline25d.formats.meshfile import UTF8_BOM
 
     with open(path, "rb") as fh, mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mm:
-        return mm[:3] == UTF8_BOM or mm.find(b"\t") >= 0 or mm[:1] == b" " or mm.find(b"\n ") >= 0
+        cr_only = mm.find(b"\n") < 0 and mm.find(b"\r") >= 0
+        indented = mm[:1] == b" " or mm.find(b"\r " if cr_only else b"\n ") >= 0
+        return mm[:3] == UTF8_BOM or mm.find(b"\t") >= 0 or indented, cr_only
 
 
 _SPACE = np.zeros(256, dtype=bool)
