@@ -1,9 +1,9 @@
 """An OBJ's lines a block at a time, and their words, cut on a block's bytes at once.
 
 What :mod:`pipeline25d.formats.obj_slabs` reads a large OBJ with: each line's kind by its keyword
-(:func:`kinds`), a block's lines tidied as a whole read's text (tabs, indented lines:
-:func:`~pipeline25d.formats.meshfile.tidied_obj_text`), and the words of v, vt and f lines found
-on the lines' bytes at once (:class:`Words`), not line by line in Python.
+(:func:`kinds`), a block's lines tidied as a whole read's text (tabs, indented lines, a byte order
+mark, CRs alone as line ends: :func:`~pipeline25d.formats.meshfile.tidied_obj_text`), and the words
+of v, vt and f lines found on the lines' bytes at once (:class:`Words`), not line by line in Python.
 """
 
 from __future__ import annotations
