@@ -36,10 +36,10 @@ def kinds(lines: list[bytes]) -> np.ndarray:
 
 def line_blocks(path: Path) -> Iterator[list[bytes]]:
     """The file's lines a block at a time, tidied as a whole read's where the file needs it
-    (:func:`~.meshfile.tidied_obj_text`: tabs, indented lines)."""
+    (:func:`~.meshfile.tidied_obj_text`: tabs, indented lines, a byte order mark, CRs alone)."""
     from pipeline25d.formats.meshfile import tidied_obj_text
 
-    loose, cr_only = _loose(str(path), path.stat().st_mtime_ns)
+    loose, cr_only = _layout(str(path), path.stat().st_mtime_ns)
     with open(path, "rb") as fh:
         for lines in _cr_blocks(fh) if cr_only else iter(lambda: fh.readlines(READ_BYTES), []):
             tidied = tidied_obj_text(b"".join(lines)) if loose else None
@@ -60,17 +60,21 @@ def _cr_blocks(fh) -> Iterator[list[bytes]]:
 
 
 @lru_cache(maxsize=4)
-def _loose(path: str, mtime_ns: int) -> tuple[bool, bool]:
+def _layout(path: str, mtime_ns: int) -> tuple[bool, bool]:
     """(whether the OBJ starts with a byte order mark or holds a tab or an indented line, whether its
-    lines end in CR alone): one look at the file for both passes."""
-    import mmap
-
+    lines end in CR alone, as its first block's do): one look at the file for both passes, read a
+    block at a time (a map of the file would count it all in the job's peak memory)."""
     from pipeline25d.formats.meshfile import UTF8_BOM
 
-    with open(path, "rb") as fh, mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mm:
-        cr_only = mm.find(b"\n") < 0 and mm.find(b"\r") >= 0
-        indented = mm[:1] == b" " or mm.find(b"\r " if cr_only else b"\n ") >= 0
-        return mm[:3] == UTF8_BOM or mm.find(b"\t") >= 0 or indented, cr_only
+    with open(path, "rb") as fh:
+        data = fh.read(READ_BYTES)
+        cr_only = b"\n" not in data and b"\r" in data
+        indent = (b"\r" if cr_only else b"\n") + b" "
+        loose, last = data.startswith((UTF8_BOM, b" ")), b""
+        while data and not loose:
+            loose = b"\t" in data or (last + data).find(indent) >= 0
+            last, data = data[-1:], fh.read(READ_BYTES)
+    return loose, cr_only
 
 
 _SPACE = np.zeros(256, dtype=bool)
