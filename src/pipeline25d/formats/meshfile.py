@@ -103,16 +103,25 @@ OBJ_HEAD = 4096        # bytes of an OBJ checked for binary data
 UTF8_BOM = b"\xef\xbb\xbf"
 
 
+def _cr_only(data: bytes) -> bool:
+    return b"\n" not in data and b"\r" in data
+
+
+def needs_tidying(data: bytes) -> bool:
+    """Whether an OBJ's text (or a run of its lines) holds what :func:`tidied_obj_text` tidies."""
+    return (_cr_only(data) or b"\t" in data or data[:1] == b" " or b"\n " in data
+            or data.startswith(UTF8_BOM))
+
+
 def tidied_obj_text(data: bytes) -> bytes | None:
     """An OBJ's text without a byte order mark, with tabs as spaces, no whitespace before a line's
     keyword and LF line ends where it has only CRs (classic Mac OS), where it has any of them; None
     where it has none. trimesh finds statements by a newline, the keyword and a space: a file
     written with tabs, indented or with CRs alone read as no triangle at all, and a mark before a
     first ``v`` line dropped that vertex (every index after it off by one)."""
-    cr_only = b"\n" not in data and b"\r" in data
-    if not (cr_only or b"\t" in data or data[:1] == b" " or b"\n " in data or data.startswith(UTF8_BOM)):
+    if not needs_tidying(data):
         return None
-    data = data.replace(b"\r", b"\n") if cr_only else data
+    data = data.replace(b"\r", b"\n") if _cr_only(data) else data
     return re.sub(rb"(?m)^ +", b"", data.removeprefix(UTF8_BOM).replace(b"\t", b" "))
 
 

@@ -64,16 +64,15 @@ def _layout(path: str, mtime_ns: int) -> tuple[bool, bool]:
     """(whether the OBJ starts with a byte order mark or holds a tab or an indented line, whether its
     lines end in CR alone, as its first block's do): one look at the file for both passes, read a
     block at a time (a map of the file would count it all in the job's peak memory)."""
-    from pipeline25d.formats.meshfile import UTF8_BOM
+    from pipeline25d.formats.meshfile import needs_tidying
 
     with open(path, "rb") as fh:
         data = fh.read(READ_BYTES)
         cr_only = b"\n" not in data and b"\r" in data
-        indent = (b"\r" if cr_only else b"\n") + b" "
-        loose, last = data.startswith((UTF8_BOM, b" ")), b""
-        while data and not loose:
-            loose = b"\t" in data or (last + data).find(indent) >= 0
-            last, data = data[-1:], fh.read(READ_BYTES)
+        loose, last = False, b""
+        while data and not loose:           # each block with the byte before it: a line start across blocks
+            text = last + (data.replace(b"\r", b"\n") if cr_only else data)
+            loose, last, data = needs_tidying(text), text[-1:], fh.read(READ_BYTES)
     return loose, cr_only
 
 
