@@ -63,10 +63,10 @@ def render_block(plan_path: str | Path, block_id: str, block: int, lod_dir: str 
     settings changed: another perspective added, a new ``gcp.spacing``, with a DTM that does
     not move with the check points) keeps its image and gets only its marker pass again.
     ``objects``: each tile also gets its object ids (:mod:`.render_ids`), drawn by the colour
-    pass itself (a second render target). The manifest
-    (written last) lists the block's tiles, how many were rendered and how many only observed
-    their GCPs again. ``workers``: the cores the job may use now (one: a software rasterizer
-    draws in the job's thread, :func:`~pipeline25d.stages.render.create_context`).
+    pass itself (a second render target). The manifest (written last) lists the block's tiles, how
+    many were rendered and how many only observed their GCPs again. ``workers``: the cores the job
+    may use now (one: a software rasterizer draws in the job's thread,
+    :func:`~pipeline25d.stages.render.create_context`).
     """
     from pipeline25d.stages.render import TileRenderer, create_context
     from pipeline25d.stages.render_ids import IdRenderer
@@ -171,11 +171,9 @@ def render_plan_tile(renderer, pl: Plan, tile: Tile, chunks: list, ground, caste
     view = TileView(persp, pl.z0, content, depth, size, ground, camera)
     rgba = ids = None
     with renderer.upload(chunks, view) as geometry:          # once for both passes
-        if not image:
-            pass
-        elif id_renderer is None:
-            rgba, ids = renderer.render_color(geometry, view, shadow_view(pl, tile), casters), None
-        else:     # one pass: the ids are a second render target of the colour pass
+        if image and id_renderer is None:
+            rgba = renderer.render_color(geometry, view, shadow_view(pl, tile), casters)
+        elif image:     # one pass: the ids are a second render target of the colour pass
             rgba, ids = id_renderer.with_colour(renderer, geometry, view, part_face_ids, shadow_view(pl, tile), casters)
         seen = []
         if tile.gcps:
