@@ -37,8 +37,9 @@ def load_mesh_file(path: str | Path, text: bytes | None = None, files: "_Files |
     kind = path.suffix.lstrip(".").upper()
     model = f"{'an' if kind[:1] in 'AEIOU' else 'a'} {kind} model"
     repaired = None if text is not None else {"OBJ": _check_obj, "DAE": _check_dae}.get(kind, lambda p: None)(path)
-    if kind == "OBJ" and text is None:
-        text = tidied_obj_text(path.read_bytes())
+    if kind == "OBJ" and text is None:           # read once: for trimesh and for its objects' statements
+        data = path.read_bytes()
+        text = tidied_obj_text(data) or data
     files = files or _Files(str(path))
     source = ({"file_obj": io.BytesIO(text), "file_type": "obj"} if text is not None else
               {"file_obj": str(path)} if repaired is None else {"file_obj": io.BytesIO(repaired), "file_type": "dae"})
@@ -63,7 +64,7 @@ def load_mesh_file(path: str | Path, text: bytes | None = None, files: "_Files |
         parts.append(_part(geom, vertices, str(name), encoded, files.asked))
     if not parts:
         raise InputFileError(path, "contains no triangles")
-    statements = (text if text is not None else path.read_bytes()).decode("utf-8", "replace") if split else ""
+    statements = text.decode("utf-8", "replace") if split else ""
     return Mesh(_objects_joined(parts, path, statements, objects) if split else parts, source=str(path))
 
 
