@@ -12,6 +12,7 @@ imports its stage when it runs, so a job pays only for the modules it uses.
 from __future__ import annotations
 
 import logging
+import os
 import time
 from collections.abc import Callable
 from typing import Any
@@ -20,6 +21,7 @@ from pipeline25d.core import cores
 from pipeline25d.core.cores import allowed_cores, job_workers
 from pipeline25d.core.logsetup import log_job_resources, log_to, process_age, stop_on_error
 from pipeline25d.core.stopping import end_if_stopped
+from pipeline25d.jobhost import HOSTED_ENV
 
 log = logging.getLogger(__name__)
 
@@ -208,6 +210,8 @@ def run(job: Job) -> None:
     startup, t0 = process_age(), time.monotonic()
     cores.mark()                      # the idle cores a step asks for are read over the time since
     log_to(job.log[0])
+    if os.environ.get(HOSTED_ENV):
+        log.info("run by a fork of the run's job host (its modules imported once per run)")
     with stop_on_error():
         RULES[job.rule](job)
     end_if_stopped()                  # stopped, though some code dropped the signal's exception: failed

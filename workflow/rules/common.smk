@@ -6,6 +6,7 @@
 from functools import wraps
 from pathlib import Path
 
+from pipeline25d import jobhost
 from pipeline25d.config import (check_semantics, chunk_size, objects_enabled, perspectives, render_settings,
                                 validate_schema)
 from pipeline25d.analysis.height_sources import plan as heights_plan
@@ -142,3 +143,22 @@ def heights_block_files(wildcards):
 
     _, _, jobs = read_blocks(checkpoints.heights_blocks.get().output.blocks)
     return [f"{RESULTS}/work/heights/block_{j}.json" for j in jobs]
+
+
+# A warm host for the jobs of a run with enough of them on this machine (pipeline25d.jobhost):
+# started once the run knows its jobs, stopped (and waited for) when it ends.
+JOB_HOST = []
+
+
+onstart:
+    with stop_on_error(log=False):
+        if jobhost.wanted(len(workflow.dag), workflow.local_exec):
+            JOB_HOST.append(jobhost.start())
+
+
+onsuccess:
+    jobhost.stop(JOB_HOST.pop() if JOB_HOST else None)
+
+
+onerror:
+    jobhost.stop(JOB_HOST.pop() if JOB_HOST else None)

@@ -1,0 +1,169 @@
+"""The job host (pipeline25d.jobhost): a hosted job has its own streams, folder, environment and
+status; a stop to its process stops it, and so does its process's death; without a host a job runs
+itself; a workflow run with a host makes the same files as one without."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import pytest
+
+from pipeline25d import jobhost
+from pipeline25d.core.errors import ConfigError
+
+TESTS = Path(__file__).parent
+
+
+@pytest.fixture
+def host(monkeypatch):
+    """A host started by this process, its socket in this process's environment; stopped after."""
+    monkeypatch.delenv(jobhost.SOCKET_ENV, raising=False)
+    started = jobhost.start()
+    path = os.environ[jobhost.SOCKET_ENV]
+    deadline = time.monotonic() + 60
+    while not os.path.exists(path):
+        assert started.poll() is None, "the host ended before it listened"
+        assert time.monotonic() < deadline, "the host did not listen within 60 s"
+        time.sleep(0.05)
+    yield path
+    jobhost.stop(started)
+    assert not os.path.exists(path)
+
+
+def job_process(runner: str, job: dict, cwd: Path, **env) -> subprocess.Popen:
+    """A process that hands ``job`` to the host (as workflow/scripts/job.py does) and runs it itself
+    if there is none, printing where it ran."""
+    code = ("import sys; sys.path.insert(0, %r)\n"
+            "from pipeline25d.jobhost import run_on_host\n"
+            "import jobhost_runners\n"
+            "job = %r\n"
+            "if not run_on_host(job, %r):\n"
+            "    print('ran itself', flush=True)\n"
+            "    getattr(jobhost_runners, %r.split(':')[1])(job)\n") % (str(TESTS), job, runner, runner)
+    return subprocess.Popen([sys.executable, "-c", code], cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env={**os.environ, **env})
+
+
+def test_a_hosted_job_has_its_own_folder_environment_streams_and_status(host, tmp_path):
+    out = tmp_path / "seen.txt"
+    proc = job_process("jobhost_runners:report", {"out": str(out), "status": 3}, tmp_path, JOBHOST_TEST_VALUE="mine")
+    stdout, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 3
+    assert "ran itself" not in stdout
+    assert stdout == "to stdout from the child\n" and "to stderr from the child" in stderr
+    cwd, value, pid = out.read_text().splitlines()
+    assert (cwd, value) == (str(tmp_path), "mine")
+    assert int(pid) != proc.pid                   # a fork of the host ran it, not the job's process
+
+
+def test_a_failing_hosted_job_prints_its_traceback_and_fails(host, tmp_path):
+    proc = job_process("jobhost_runners:fail", {}, tmp_path)
+    _, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 1 and "RuntimeError: a job that fails with a traceback" in stderr
+
+
+def _started(proc, pid_file: Path) -> int:
+    deadline = time.monotonic() + 60
+    while not pid_file.exists():
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    time.sleep(0.2)
+    return int(pid_file.read_text())
+
+
+def _gone(pid: int, within_s: float = 20) -> bool:
+    deadline = time.monotonic() + within_s
+    while time.monotonic() < deadline:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return True
+        time.sleep(0.05)
+    return False
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_a_stop_to_the_job_process_stops_its_hosted_job(host, tmp_path, sig):
+    files = {"pid": str(tmp_path / "pid"), "ended": str(tmp_path / "ended")}
+    proc = job_process("jobhost_runners:wait", files, tmp_path)
+    child = _started(proc, tmp_path / "pid")
+    proc.send_signal(sig)
+    proc.communicate(timeout=30)
+    assert proc.returncode in (128 + signal.SIGTERM, 128 + signal.SIGINT, 1)   # stopped, not finished
+    assert _gone(child), "the hosted job still runs after its process was stopped"
+    assert (tmp_path / "ended").read_text() == "stopped"     # it ran its clean-up, as a stopped job does
+
+
+def test_a_job_process_killed_outright_stops_its_hosted_job(host, tmp_path):
+    files = {"pid": str(tmp_path / "pid"), "ended": str(tmp_path / "ended")}
+    proc = job_process("jobhost_runners:wait", files, tmp_path)
+    child = _started(proc, tmp_path / "pid")
+    proc.kill()
+    proc.communicate(timeout=30)
+    assert _gone(child), "the hosted job still runs after its process was killed"
+    assert (tmp_path / "ended").read_text() == "stopped"
+
+
+def test_without_a_host_the_job_runs_itself(tmp_path, monkeypatch):
+    monkeypatch.delenv(jobhost.SOCKET_ENV, raising=False)
+    out = tmp_path / "seen.txt"
+    proc = job_process("jobhost_runners:report", {"out": str(out), "status": 0}, tmp_path)
+    stdout, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 0 and stdout.startswith("ran itself")
+    # a socket named but not there (a host not listening yet, or gone): the same
+    proc = job_process("jobhost_runners:report", {"out": str(out), "status": 0}, tmp_path,
+                       **{jobhost.SOCKET_ENV: str(tmp_path / "no-such-socket")})
+    stdout, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 0 and stdout.startswith("ran itself")
+    assert int(out.read_text().splitlines()[2]) == proc.pid
+
+
+def test_a_host_is_wanted_for_local_runs_of_enough_jobs(monkeypatch):
+    monkeypatch.delenv(jobhost.SWITCH_ENV, raising=False)
+    assert jobhost.wanted(jobhost.MIN_JOBS, local=True)
+    assert not jobhost.wanted(jobhost.MIN_JOBS - 1, local=True)
+    assert not jobhost.wanted(500, local=False)
+    monkeypatch.setenv(jobhost.SWITCH_ENV, "off")
+    assert not jobhost.wanted(500, local=True)
+    monkeypatch.setenv(jobhost.SWITCH_ENV, "yes")
+    with pytest.raises(ConfigError, match="PIPELINE25D_JOB_HOST: 'yes' is neither 'auto' nor 'off'"):
+        jobhost.wanted(500, local=True)
+
+
+@pytest.mark.slow
+def test_a_run_with_a_host_makes_the_files_a_run_without_one_makes(tmp_path):
+    from pipeline25d_lab.harness.bench import results_of, run_workflow
+    from pipeline25d_lab.harness.killtest import demo_config, output_digests
+
+    config = demo_config(tmp_path / "scene", 0.25, [{"azimuth": 45, "elevation": 45}, {"azimuth": 0, "elevation": 90}])
+    hosted, plain = tmp_path / "hosted", tmp_path / "plain"
+    before = _hosts()
+    env = {k: v for k, v in os.environ.items() if k not in (jobhost.SOCKET_ENV, jobhost.SWITCH_ENV)}
+    run_workflow(hosted, config, cores=2, env=env)
+    run_workflow(plain, config, cores=2, env={**env, jobhost.SWITCH_ENV: "off"})
+    digests = output_digests(results_of(hosted, config))
+    assert digests and digests == output_digests(results_of(plain, config))
+
+    def hosted_jobs(work: Path) -> tuple[int, int]:
+        logs = list((results_of(work, config) / "logs").rglob("*.log"))
+        return sum("job host" in f.read_text() for f in logs), len(logs)
+
+    n, of = hosted_jobs(hosted)
+    # the first jobs may start before the host listens
+    assert of >= jobhost.MIN_JOBS and n >= of // 2, f"{n} of {of} jobs hosted"
+    assert hosted_jobs(plain)[0] == 0
+    assert _hosts() <= before                     # the run's host ended, its socket's folder removed
+
+
+def _hosts() -> set[str]:
+    """Running hosts' pids and their sockets' folders."""
+    pids = subprocess.run(["pgrep", "-f", "pipeline25d.jobhost"], capture_output=True, text=True).stdout.split()
+    folders = {str(p) for p in Path(tempfile.gettempdir()).glob("p25d-host-*")}
+    return set(pids) | folders
