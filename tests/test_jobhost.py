@@ -125,6 +125,33 @@ def test_without_a_host_the_job_runs_itself(tmp_path, monkeypatch):
     assert int(out.read_text().splitlines()[2]) == proc.pid
 
 
+def test_a_host_that_ends_before_starting_the_job_leaves_it_to_run_itself(tmp_path):
+    """A host stopped between taking a job and forking for it (the run ending): no child has the job."""
+    import socket
+    import threading
+
+    path = str(tmp_path / "socket")
+    listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    listener.bind(path)
+    listener.listen(1)
+
+    def take_and_end() -> None:
+        conn, _ = listener.accept()
+        _, fds, _, _ = socket.recv_fds(conn, 8, 3)
+        for fd in fds:                  # the job's streams, as the host closes its copies
+            os.close(fd)
+        conn.close()
+
+    taker = threading.Thread(target=take_and_end)
+    taker.start()
+    out = tmp_path / "seen.txt"
+    proc = job_process("jobhost_runners:report", {"out": str(out), "status": 0}, tmp_path, **{jobhost.SOCKET_ENV: path})
+    stdout, _ = proc.communicate(timeout=60)
+    taker.join()
+    listener.close()
+    assert proc.returncode == 0 and stdout.startswith("ran itself")
+
+
 def test_a_host_is_wanted_for_local_runs_of_enough_jobs(monkeypatch):
     monkeypatch.delenv(jobhost.SWITCH_ENV, raising=False)
     assert jobhost.wanted(jobhost.MIN_JOBS, local=True)

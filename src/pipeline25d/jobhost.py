@@ -50,6 +50,7 @@ PRELOAD = ("numpy", "osgeo.gdal", "osgeo.gdal_array", "osgeo.osr", "pyproj", "af
 _HEADER = struct.Struct("!Q")      # the request's length
 _STATUS = struct.Struct("!i")      # the child's exit status
 _STOP = b"S"                       # a stop signal, sent on to the child
+_STARTED = b"R"                    # the child's first word: it has the job (before it, the job runs itself)
 
 
 # -- the job's side ---------------------------------------------------------------------------
@@ -69,7 +70,10 @@ def run_on_host(job, runner: str = "pipeline25d.jobs:run") -> bool:
                                 "path": list(sys.path)})
         socket.send_fds(conn, [_HEADER.pack(len(request))], [0, 1, 2])
         conn.sendall(request)
-    except OSError:                # no host listening (yet, or any more): nothing was started
+        started = _receive(conn, 1) == _STARTED
+    except OSError:                # no host listening (yet, or any more)
+        started = False
+    if not started:                # nothing was started: the job runs itself
         conn.close()
         return False
 
@@ -239,13 +243,14 @@ def _child(conn: socket.socket, fds: list[int], body: bytes) -> int:
     for target, fd in enumerate(fds):
         os.dup2(fd, target)
         os.close(fd)
+    conn.sendall(_STARTED)
+    _stop_on_word(conn)
     request = pickle.loads(body)
     os.chdir(request["cwd"])
     os.environ.clear()
     os.environ.update(request["env"])
     sys.path[:] = request["path"]
     _job_threads()
-    _stop_on_word(conn)
     os.environ[HOSTED_ENV] = "1"
     status = 1
     try:
@@ -303,6 +308,7 @@ def _stop_on_word(conn: socket.socket) -> None:
     signal.signal(signal.SIGIO, on_io)
     fcntl.fcntl(conn.fileno(), fcntl.F_SETOWN, os.getpid())
     fcntl.fcntl(conn.fileno(), fcntl.F_SETFL, fcntl.fcntl(conn.fileno(), fcntl.F_GETFL) | os.O_ASYNC)
+    on_io(signal.SIGIO, None)                       # a stop, or the end, that came before
 
 
 def main(argv: list[str] | None = None) -> int:
