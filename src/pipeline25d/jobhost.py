@@ -29,6 +29,10 @@ import signal
 import socket
 import struct
 import sys
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import subprocess
 
 #: the environment variable that names the host's socket to a run's jobs
 SOCKET_ENV = "PIPELINE25D_JOB_HOST_SOCKET"
@@ -117,7 +121,7 @@ def wanted(jobs: int, local: bool) -> bool:
     return switch == "auto" and local and jobs >= MIN_JOBS and sys.platform.startswith("linux")
 
 
-def start() -> "subprocess.Popen | None":  # noqa: F821 (imported below)
+def start() -> subprocess.Popen:
     """Start a host for this process's jobs (they find it through :data:`SOCKET_ENV`)."""
     import subprocess
     import tempfile
@@ -130,7 +134,7 @@ def start() -> "subprocess.Popen | None":  # noqa: F821 (imported below)
     return host
 
 
-def stop(host: "subprocess.Popen | None") -> None:  # noqa: F821
+def stop(host: subprocess.Popen | None) -> None:
     """Stop ``host`` and wait for it (its CPU, and its jobs', then count as this process's children)."""
     import shutil
 
@@ -186,7 +190,8 @@ def serve(path: str, parent: int) -> int:
 
 
 def _end_with(parent: int) -> None:
-    """SIGTERM this process when ``parent`` ends (Linux), or now if it already has."""
+    """SIGTERM this process when ``parent`` ends (Linux), or now if it already has. (The kernel
+    watches the thread that started it: Snakemake runs its ``onstart`` on its main thread.)"""
     import ctypes
 
     PR_SET_PDEATHSIG = 1
