@@ -31,3 +31,14 @@ def wait(job: dict) -> None:
 
 def fail(job: dict) -> None:
     raise RuntimeError("a job that fails with a traceback")
+
+
+def first_count(job: dict) -> None:
+    """Count the idle cores as a job's first step does (its workers), noting whether it waited."""
+    import json
+
+    from pipeline25d.core import cores
+
+    slept: list[float] = []
+    cores.time.sleep = slept.append
+    Path(job["out"]).write_text(json.dumps({"idle": cores.idle_cores(), "slept": slept}))

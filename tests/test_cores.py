@@ -53,6 +53,23 @@ def test_a_marked_job_counts_its_own_work_since_the_mark_as_idle_and_does_not_wa
     assert (own_busy, child_busy, slept) == (pytest.approx(2.0), pytest.approx(1.0), [])
 
 
+def test_a_job_marked_from_another_process_reading_counts_since_it_without_waiting(monkeypatch):
+    """A job forked by the job host: marked with the host's earlier reading, its first count covers
+    the time since then at once; its own CPU (from its fork) and that of the process that handed it
+    over count as its own, the host's own CPU not. 0.3 s on 2 CPUs, one of them busy: 0.05 CPU-s
+    this process's, 0.1 the handing process's."""
+    readings = iter([(30.0, 60.0)])
+    monkeypatch.setattr(cores, "_cpu_times", lambda: next(readings))
+    monkeypatch.setattr(cores, "_own_cpu_s", lambda: 0.05)
+    monkeypatch.setattr(cores, "_ticks", lambda: 100)
+    monkeypatch.setattr(cores.os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(cores.time, "monotonic", lambda: 100.3)
+    slept: list[float] = []
+    monkeypatch.setattr(cores.time, "sleep", slept.append)
+    cores.mark(since=((0.0, 0.0), 7.0, 100.0), cpu_elsewhere_s=0.1)
+    assert (idle_cores(0.1), slept) == (pytest.approx(1.0 + 0.15 / 0.3), [])
+
+
 def test_a_marked_job_counts_its_own_busy_core_on_this_machine(monkeypatch):
     """The same on this machine's own /proc/stat: a job busy since its mark finds at least the share
     of a core it used itself idle (other work on the machine only takes the other cores away), and

@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 
 from pipeline25d import jobhost
+from pipeline25d.core import cores
 from pipeline25d.core.errors import ConfigError
 
 TESTS = Path(__file__).parent
@@ -60,6 +61,19 @@ def test_a_hosted_job_has_its_own_folder_environment_streams_and_status(host, tm
     cwd, value, pid = out.read_text().splitlines()
     assert (cwd, value) == (str(tmp_path), "mine")
     assert int(pid) != proc.pid                   # a fork of the host ran it, not the job's process
+
+
+def test_a_hosted_job_counts_idle_cores_without_waiting(host, tmp_path):
+    """Its first count covers the time since the host's last reading (see cores.mark); a job run
+    by its own process marks its start and waits out the rest of cores.SAMPLE_S."""
+    import json
+
+    time.sleep(2 * cores.SAMPLE_S)                # the host's reading, taken as it started listening, ages
+    out = tmp_path / "count.json"
+    proc = job_process("jobhost_runners:first_count", {"out": str(out)}, tmp_path)
+    proc.communicate(timeout=60)
+    count = json.loads(out.read_text())
+    assert proc.returncode == 0 and count["slept"] == [] and 0 <= count["idle"] <= (os.cpu_count() or 1) + 0.2
 
 
 def test_a_failing_hosted_job_prints_its_traceback_and_fails(host, tmp_path):

@@ -70,8 +70,9 @@ def run_on_host(job, runner: str = "pipeline25d.jobs:run") -> bool:
     conn = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     try:
         conn.connect(path)
+        times = os.times()
         request = pickle.dumps({"job": job, "runner": runner, "cwd": os.getcwd(), "env": dict(os.environ),
-                                "path": list(sys.path)})
+                                "path": list(sys.path), "cpu_s": times.user + times.system})
         socket.send_fds(conn, [_HEADER.pack(len(request))], [0, 1, 2])
         conn.sendall(request)
         started = _receive(conn, 1) == _STARTED
@@ -169,10 +170,14 @@ def serve(path: str, parent: int) -> int:
             pass
     gc.collect()
     gc.freeze()                                   # the children's collections leave these pages shared
+    from pipeline25d.core import cores
+
     listener = _listen(path)
     signal.signal(signal.SIGCHLD, _reap)
+    latest = cores.reading()
     while True:
         conn, _ = listener.accept()
+        previous, latest = latest, cores.reading()    # the machine's idle time since the last job came
         try:
             request = _request(conn)
         except OSError:
@@ -183,7 +188,7 @@ def serve(path: str, parent: int) -> int:
             continue
         if os.fork() == 0:
             listener.close()
-            return _child(conn, *request)
+            return _child(conn, *request, previous)
         for fd in request[0]:
             os.close(fd)
         conn.close()
@@ -237,10 +242,15 @@ def _request(conn: socket.socket) -> tuple[list[int], bytes] | None:
     return fds, body
 
 
-def _child(conn: socket.socket, fds: list[int], body: bytes) -> int:
+def _child(conn: socket.socket, fds: list[int], body: bytes, since: tuple) -> int:
     """Run the pickled request's job in this forked child as its own process would; send its
-    status; return it."""
+    status; return it. ``since``: the host's reading of the machine's CPU times before this job
+    came (:func:`pipeline25d.core.cores.reading`): the job's first count of idle cores covers the
+    time since, where that is long enough and recent, instead of waiting for a count of its own."""
     import pickle
+    import time
+
+    from pipeline25d.core import cores
 
     signal.signal(signal.SIGCHLD, signal.SIG_DFL)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
@@ -256,6 +266,8 @@ def _child(conn: socket.socket, fds: list[int], body: bytes) -> int:
     os.environ.update(request["env"])
     sys.path[:] = request["path"]
     _job_threads()
+    recent = cores.SAMPLE_S <= time.monotonic() - since[2] <= cores.RECENT_S
+    cores.mark(since if recent else None, request["cpu_s"])
     os.environ[HOSTED_ENV] = "1"
     status = 1
     try:

@@ -208,7 +208,8 @@ def run(job: Job) -> None:
     """Run the rule's function of a Snakemake script job, logged to its log file with its resources
     and times (start-up before the function, the function, CPU)."""
     startup, t0 = process_age(), time.monotonic()
-    cores.mark()                      # the idle cores a step asks for are read over the time since
+    if not os.environ.get(HOSTED_ENV):    # (the host's fork was marked as it was forked)
+        cores.mark()                  # the idle cores a step asks for are read over the time since
     log_to(job.log[0])
     if os.environ.get(HOSTED_ENV):
         log.info("run by a fork of the run's job host (its modules imported once per run)")

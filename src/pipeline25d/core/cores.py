@@ -82,10 +82,24 @@ def idle_cores(interval: float = SAMPLE_S) -> float | None:
     return idle + (_last[1] - own) / ((now[1] - first[1]) / per_s)
 
 
-def mark() -> None:
-    """Start the reading the next :func:`idle_cores` covers (a job calls this when it starts)."""
+def mark(since: tuple | None = None, cpu_elsewhere_s: float = 0.0) -> None:
+    """Start the reading the next :func:`idle_cores` covers (a job calls this when it starts).
+
+    ``since``: a :func:`reading` taken earlier by another process (the job host's, before it forked
+    this job: :mod:`pipeline25d.jobhost`), so that the job's first count covers the time since then
+    without a wait; this process's CPU is counted from its fork, and ``cpu_elsewhere_s`` (the CPU of
+    the job's own process, which handed the job over) as its own too."""
     global _last
-    _last = (_cpu_times(), _own_cpu_s(), time.monotonic())
+    if since is None:
+        _last = (_cpu_times(), _own_cpu_s(), time.monotonic())
+    else:
+        _last = (since[0], -cpu_elsewhere_s, since[2])
+
+
+def reading() -> tuple[tuple[float, float] | None, float, float]:
+    """(/proc/stat's idle and total jiffies, this process's CPU seconds, when): what :func:`mark`
+    takes, for another process's ``mark(since=...)``."""
+    return _cpu_times(), _own_cpu_s(), time.monotonic()
 
 
 def _own_cpu_s() -> float:
