@@ -61,6 +61,7 @@ def test_a_hosted_job_has_its_own_folder_environment_streams_and_status(host, tm
     cwd, value, pid = out.read_text().splitlines()
     assert (cwd, value) == (str(tmp_path), "mine")
     assert int(pid) != proc.pid                   # a fork of the host ran it, not the job's process
+    assert os.stat(os.path.dirname(host)).st_mode & 0o777 == 0o700    # only this user's jobs reach the host
 
 
 def test_a_hosted_job_counts_idle_cores_without_waiting(host, tmp_path):
@@ -164,6 +165,24 @@ def test_a_host_that_ends_before_starting_the_job_leaves_it_to_run_itself(tmp_pa
     taker.join()
     listener.close()
     assert proc.returncode == 0 and stdout.startswith("ran itself")
+
+
+def test_a_host_stopped_by_its_parent_s_end_removes_its_socket_folder(tmp_path):
+    """Snakemake killed outright runs no onerror: the host, told by the kernel, cleans up itself."""
+    folder = tempfile.mkdtemp(prefix="p25d-host-")
+    path = os.path.join(folder, "socket")
+    start_host = f"subprocess.Popen([sys.executable, '-m', 'pipeline25d.jobhost', {path!r}, str(os.getpid())])\n"
+    parent = subprocess.Popen([sys.executable, "-c", f"import subprocess, sys, os, time\n{start_host}time.sleep(60)"])
+    deadline = time.monotonic() + 60
+    while not os.path.exists(path):
+        assert time.monotonic() < deadline, "the host did not listen within 60 s"
+        time.sleep(0.05)
+    parent.kill()
+    parent.wait()
+    deadline = time.monotonic() + 30
+    while os.path.exists(folder) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not os.path.exists(folder)
 
 
 def test_a_host_is_wanted_for_local_runs_of_enough_jobs(monkeypatch):

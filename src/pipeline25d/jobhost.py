@@ -127,7 +127,8 @@ def start() -> subprocess.Popen:
     import subprocess
     import tempfile
 
-    folder = tempfile.mkdtemp(prefix="p25d-host-")           # short: a socket's path has 107 bytes at most
+    # private (0700: only this user's jobs can hand the host a job) and short (a socket's path has 107 bytes at most)
+    folder = tempfile.mkdtemp(prefix="p25d-host-")
     path = os.path.join(folder, "socket")
     host = subprocess.Popen([sys.executable, "-m", "pipeline25d.jobhost", path, str(os.getpid())],
                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, env=_host_env())
@@ -156,7 +157,19 @@ def _host_env() -> dict[str, str]:
 # -- the host ---------------------------------------------------------------------------------
 def serve(path: str, parent: int) -> int:
     """Import :data:`PRELOAD`, listen on ``path`` and fork a child per job until stopped. Returns
-    the exit status: the host's (0) or, in a child, its job's."""
+    the exit status: the host's (0) or, in a child, its job's. The host removes ``path``'s folder
+    as it ends, however it is stopped (Snakemake killed outright runs no ``onerror``)."""
+    host = os.getpid()
+    try:
+        return _serve(path, parent)
+    finally:
+        if os.getpid() == host:
+            import shutil
+
+            shutil.rmtree(os.path.dirname(path), ignore_errors=True)
+
+
+def _serve(path: str, parent: int) -> int:
     _end_with(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)               # Ctrl-C stops the jobs, not the host
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
