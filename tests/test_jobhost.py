@@ -111,7 +111,8 @@ def test_a_stop_to_the_job_process_stops_its_hosted_job(host, tmp_path, sig):
     child = _started(proc, tmp_path / "pid")
     proc.send_signal(sig)
     proc.communicate(timeout=30)
-    assert proc.returncode in (128 + signal.SIGTERM, 128 + signal.SIGINT, 1)   # stopped, not finished
+    # stopped, not finished (a signal just before the job's process takes it over ends it at once)
+    assert proc.returncode in (128 + signal.SIGTERM, 128 + signal.SIGINT, 1, -sig)
     assert _gone(child), "the hosted job still runs after its process was stopped"
     assert (tmp_path / "ended").read_text() == "stopped"     # it ran its clean-up, as a stopped job does
 
