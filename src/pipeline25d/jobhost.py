@@ -98,12 +98,12 @@ def run_on_host(job, runner: str = "pipeline25d.jobs:run") -> bool:
 
 
 def _receive(conn: socket.socket, n: int) -> bytes | None:
-    """Exactly ``n`` bytes, or None if the connection ends first."""
+    """Exactly ``n`` bytes, or None if the connection ends or fails first."""
     data = b""
     while len(data) < n:
         try:
             more = conn.recv(n - len(data))
-        except ConnectionError:
+        except OSError:
             return None
         if not more:
             return None
@@ -191,11 +191,7 @@ def _serve(path: str, parent: int) -> int:
     while True:
         conn, _ = listener.accept()
         previous, latest = latest, cores.reading()    # the machine's idle time since the last job came
-        try:
-            request = _request(conn)
-        except OSError:
-            conn.close()
-            continue
+        request = _request(conn)
         if request is None:
             conn.close()
             continue
@@ -242,12 +238,12 @@ def _reap(signum, frame) -> None:
 
 def _request(conn: socket.socket) -> tuple[list[int], bytes] | None:
     """(standard stream fds, pickled request) from a job process, or None if it sent less."""
-    header, fds, _, _ = socket.recv_fds(conn, _HEADER.size, 3)
-    if len(header) != _HEADER.size or len(fds) != 3:
-        for fd in fds:
-            os.close(fd)
+    try:
+        header, fds, _, _ = socket.recv_fds(conn, _HEADER.size, 3)
+    except OSError:
         return None
-    body = _receive(conn, _HEADER.unpack(header)[0])
+    whole = len(header) == _HEADER.size and len(fds) == 3
+    body = _receive(conn, _HEADER.unpack(header)[0]) if whole else None
     if body is None:
         for fd in fds:
             os.close(fd)

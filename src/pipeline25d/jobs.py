@@ -208,10 +208,11 @@ def run(job: Job) -> None:
     """Run the rule's function of a Snakemake script job, logged to its log file with its resources
     and times (start-up before the function, the function, CPU)."""
     startup, t0 = process_age(), time.monotonic()
-    if not os.environ.get(HOSTED_ENV):    # (the host's fork was marked as it was forked)
+    hosted = bool(os.environ.get(HOSTED_ENV))
+    if not hosted:                    # (the host's fork was marked as it was forked)
         cores.mark()                  # the idle cores a step asks for are read over the time since
     log_to(job.log[0])
-    if os.environ.get(HOSTED_ENV):
+    if hosted:
         log.info("run by a fork of the run's job host (its modules imported once per run)")
     with stop_on_error():
         RULES[job.rule](job)

@@ -90,10 +90,7 @@ def mark(since: tuple | None = None, cpu_elsewhere_s: float = 0.0) -> None:
     without a wait; this process's CPU is counted from its fork, and ``cpu_elsewhere_s`` (the CPU of
     the job's own process, which handed the job over) as its own too."""
     global _last
-    if since is None:
-        _last = (_cpu_times(), _own_cpu_s(), time.monotonic())
-    else:
-        _last = (since[0], -cpu_elsewhere_s, since[2])
+    _last = reading() if since is None else (since[0], -cpu_elsewhere_s, since[2])
 
 
 def reading() -> tuple[tuple[float, float] | None, float, float]:

@@ -104,13 +104,14 @@ OBJ_HEAD = 4096        # bytes of an OBJ checked for binary data
 UTF8_BOM = b"\xef\xbb\xbf"
 
 
-def _cr_only(data: bytes) -> bool:
+def cr_only(data: bytes) -> bool:
+    """Whether an OBJ's text (or its first block) ends its lines with CR alone (classic Mac OS)."""
     return b"\n" not in data and b"\r" in data
 
 
 def needs_tidying(data: bytes) -> bool:
     """Whether an OBJ's text (or a run of its lines) holds what :func:`tidied_obj_text` tidies."""
-    return (_cr_only(data) or b"\t" in data or data[:1] == b" " or b"\n " in data
+    return (cr_only(data) or b"\t" in data or data[:1] == b" " or b"\n " in data
             or data.startswith(UTF8_BOM))
 
 
@@ -122,7 +123,7 @@ def tidied_obj_text(data: bytes) -> bytes | None:
     first ``v`` line dropped that vertex (every index after it off by one)."""
     if not needs_tidying(data):
         return None
-    data = data.replace(b"\r", b"\n") if _cr_only(data) else data
+    data = data.replace(b"\r", b"\n") if cr_only(data) else data
     return re.sub(rb"(?m)^ +", b"", data.removeprefix(UTF8_BOM).replace(b"\t", b" "))
 
 

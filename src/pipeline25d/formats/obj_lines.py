@@ -64,16 +64,16 @@ def _layout(path: str, mtime_ns: int) -> tuple[bool, bool]:
     """(whether the OBJ starts with a byte order mark or holds a tab or an indented line, whether its
     lines end in CR alone, as its first block's do): one look at the file for both passes, read a
     block at a time (a map of the file would count it all in the job's peak memory)."""
-    from pipeline25d.formats.meshfile import needs_tidying
+    from pipeline25d.formats.meshfile import cr_only, needs_tidying
 
     with open(path, "rb") as fh:
         data = fh.read(READ_BYTES)
-        cr_only = b"\n" not in data and b"\r" in data
+        crs = cr_only(data)
         loose, last = False, b""
         while data and not loose:           # each block with the byte before it: a line start across blocks
-            text = last + (data.replace(b"\r", b"\n") if cr_only else data)
+            text = last + (data.replace(b"\r", b"\n") if crs else data)
             loose, last, data = needs_tidying(text), text[-1:], fh.read(READ_BYTES)
-    return loose, cr_only
+    return loose, crs
 
 
 _SPACE = np.zeros(256, dtype=bool)
