@@ -86,6 +86,34 @@ def test_gcp_markers_centroid_and_occlusion(gl_ctx):
     assert err.max() < 0.15, err
 
 
+@pytest.mark.parametrize("azimuth,elevation", [(0, 45), (135, 30), (0, 90)])
+def test_marker_window_gives_the_whole_tiles_observations(gl_ctx, azimuth, elevation):
+    """The marker pass drawn only over its markers' images (render_block.marker_window) gives the
+    same observations, to the bit, as over the whole tile and its margin; the window is a fraction
+    of the tile and holds every marker's pixels."""
+    from pipeline25d.stages.render import marker_images
+    from pipeline25d.stages.render_block import marker_window
+
+    p = Perspective(azimuth, elevation)
+    origin = np.array([E0, N0, Z0])
+    ground = ground_part(E0 - 50, N0 - 50, E0 + 150, N0 + 150, Z0)
+    box = box_part((E0 + 20, N0 + 20, Z0), (E0 + 40, N0 + 30, Z0 + 20))
+    rng = np.random.default_rng(7)
+    pts = np.column_stack([E0 + rng.uniform(5, 30, 9), N0 + rng.uniform(30, 55, 9), np.full(9, Z0)])
+    slopes = np.zeros((len(pts), 2))
+    whole = view(p, 8)
+    extent, size = marker_window(whole, *marker_images(pts, slopes, 6 * GSD, whole))
+    assert size[0] * size[1] < 0.5 * whole.size[0] * whole.size[1]
+    window = TileView(p, Z0, extent, whole.depth_range, size)
+    cands = [GcpCandidate(f"g{i}", x, y, z, 0.0, 0.0, 0.0, "gcp") for i, (x, y, z) in enumerate(pts)]
+    got = []
+    for v in (whole, window):
+        full, sums = TileRenderer(gl_ctx).render_markers([(origin, [ground, box])], v, pts, slopes, 6 * GSD, 0.3, 0.1)
+        got.append((full, observations(cands, full, sums, (v.extent.xmin, v.extent.ymax), GSD)))
+    assert got[0][1] and got[0][1] == got[1][1]
+    assert np.array_equal(got[0][0], got[1][0])                 # every marker's whole image, in both
+
+
 def test_markers_on_bare_ground_beside_a_building_only_model(gl_ctx):
     """A model of a building and a small paved patch, no ground (a buildings-only city): markers
     with nothing of the model under them (bare ground, the DTM's) are accepted at their analytic

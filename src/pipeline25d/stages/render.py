@@ -5,9 +5,10 @@ Two passes share the tile's matrices (see :mod:`pipeline25d.geometry.camera`):
 * colour: textured or vertex-coloured triangles, flat Lambert shading for untextured
   surfaces, depth test, MSAA; the result is un-premultiplied RGBA, transparent where
   nothing was drawn.
-* GCP markers (the paper's method): the model in black plus one small disk per GCP, lying
-  in the ground's local plane, in a unique colour, depth-tested with a small bias toward
-  the camera. A marker that is only partly visible is buried or hidden and rejected; one
+* GCP markers (the paper's method): one small disk per GCP, lying in the ground's local
+  plane, in a unique colour, compared in its fragment shader with the model's depth drawn
+  before it (moved a small bias toward the camera: is it in front; is it on the model's
+  surface). A marker that is only partly visible is buried or hidden and rejected; one
   whose depth disagrees with the model's surface under it floats and is rejected; a fully
   visible one's pixel centroid is its sub-pixel image position.
 * depth: the view depth of the nearest surface per pixel (the DSM pass, seen from nadir).
@@ -66,6 +67,9 @@ FACE_WIDTH = 4096    # face ids per row of a mesh's face-id texture (the ids ren
 FACE_UNIT = 2        # its texture unit (0: the model's texture, 1: the shadow map)
 
 FRAGMENT_SHADER = _shader("tile.frag")
+MARKER_SHADER = _shader("marker.frag")
+MODEL_DEPTH_UNIT = 3  # the marker pass's model depth (render_markers)
+MARKER_OVER, MARKER_ON, MARKER_SEEN = 1, 2, 4   # marker.frag's flags in a marker pixel's alpha
 
 
 @dataclass(frozen=True)
@@ -214,6 +218,8 @@ class TileRenderer:
         self.prog = ctx.program(vertex_shader=_variant(VERTEX_SHADER, *defines),
                                 fragment_shader=_variant(FRAGMENT_SHADER, *defines))
         self._set(u_faces=FACE_UNIT)     # its own unit: never a colour texture's (sampler types differ)
+        self.marker_prog = ctx.program(vertex_shader=VERTEX_SHADER, fragment_shader=MARKER_SHADER)
+        self.marker_prog["u_model_depth"].value = MODEL_DEPTH_UNIT
         self._textures = TextureCache(ctx, self.anisotropy, TEXTURE_BUDGET)
         self._targets: dict[str, tuple[tuple, dict]] = {}
 
@@ -237,8 +243,9 @@ class TileRenderer:
         return self._textures.get(data)
 
     def _vao(self, positions: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None,
-             uv: np.ndarray | None = None, ground: np.ndarray | None = None) -> "_GpuMesh":
-        """Upload one mesh (positions already relative to its origin) as a vertex array."""
+             uv: np.ndarray | None = None, ground: np.ndarray | None = None, prog=None) -> "_GpuMesh":
+        """Upload one mesh (positions already relative to its origin) as a vertex array of ``prog``
+        (the tile program by default)."""
         ctx = self.ctx
         content = [(ctx.buffer(np.ascontiguousarray(positions, dtype="f4")), "3f", "in_pos")]
         if ground is not None:
@@ -248,7 +255,7 @@ class TileRenderer:
         if uv is not None:
             content.append((ctx.buffer(np.ascontiguousarray(uv, dtype="f4")), "2f", "in_uv"))
         ibo = ctx.buffer(np.ascontiguousarray(faces, dtype="u4"))
-        vao = ctx.vertex_array(self.prog, content, index_buffer=ibo, index_element_size=4)
+        vao = ctx.vertex_array(prog or self.prog, content, index_buffer=ibo, index_element_size=4)
         return _GpuMesh(vao, [b for b, _, _ in content] + [ibo])
 
     def upload(self, chunks: list[tuple[np.ndarray, list[MeshPart]]], view: TileView | None) -> "TileGeometry":
@@ -314,17 +321,6 @@ class TileRenderer:
                 if ids is not None:
                     ids.bind(mesh, FACE_UNIT)
                 mesh.vao.render()
-
-    def _draw_depth(self, fbo, geometry: "TileGeometry", view: TileView) -> None:
-        """The model into ``fbo``'s depth alone, its colour writes masked off: the black it would
-        write is read by neither the depth pass nor the marker pass (marker ids are read from
-        RGB, and black is no id). On llvmpipe a 1040² marker pass's model draw took 38-47 ms
-        masked, 66-75 ms writing black."""
-        fbo.color_mask = (False, False, False, False)
-        try:
-            self._draw_chunks(geometry, view, black=True)
-        finally:
-            fbo.color_mask = (True, True, True, True)
 
     def _write(self, name: str, matrix: np.ndarray) -> None:
         """A 4×4 float64 matrix into a mat4 uniform (as float32), if the program uses it."""
@@ -426,23 +422,27 @@ class TileRenderer:
 
         ctx, (w, h) = self.ctx, view.size
         depth = ctx.depth_texture((w, h))
-        fbo = ctx.framebuffer(color_attachments=[ctx.renderbuffer((w, h), 4)], depth_attachment=depth)
+        fbo = ctx.framebuffer(depth_attachment=depth)     # depth alone: no colour to write or clear
         fbo.use()
-        ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+        ctx.clear(depth=1.0)
         ctx.enable(moderngl.DEPTH_TEST)
         ctx.disable(moderngl.CULL_FACE)
         with self._geometry(chunks, view) as geometry:
-            self._draw_depth(fbo, geometry, view)
+            self._draw_chunks(geometry, view, black=True)
         out = view.depth_metres(_read_depth(depth, w, h))
         fbo.release()
         depth.release()
         return out
 
-    def _plain_targets(self, w: int, h: int) -> dict:
-        """A single-sample framebuffer of RGBA colour and a readable depth texture."""
-        colour, depth = self.ctx.renderbuffer((w, h), 4), self.ctx.depth_texture((w, h))
-        return {"colour": colour, "depth": depth,
-                "fbo": self.ctx.framebuffer(color_attachments=[colour], depth_attachment=depth)}
+    def _marker_targets(self, w: int, h: int) -> dict:
+        """The marker pass's targets: the model's depth (a texture the markers read) in a framebuffer
+        of its own, and the markers' RGBA with a depth buffer of theirs."""
+        ctx = self.ctx
+        model = ctx.depth_texture((w, h))
+        model.compare_func = ""                  # plain depth values for texelFetch
+        colour, depth = ctx.renderbuffer((w, h), 4), ctx.depth_renderbuffer((w, h))
+        return {"model": model, "model_fbo": ctx.framebuffer(depth_attachment=model), "colour": colour,
+                "depth": depth, "fbo": ctx.framebuffer(color_attachments=[colour], depth_attachment=depth)}
 
     def render_markers(self, chunks: "Chunks", view: TileView,
                        points: np.ndarray, slopes: np.ndarray, radius_m: float, depth_bias_m: float,
@@ -450,63 +450,57 @@ class TileRenderer:
         """Marker pixel statistics for (n, 3) GCPs on ground of slope (n, 2) (dz/dx, dz/dy).
 
         Returns (counts_full, sums): counts_full[i] = pixels of marker i drawn alone;
-        sums[i] = (count, Σcol, Σrow, agree) with the model drawn first (pixel centres at +0.5,
-        row 0 = north). ``agree`` counts marker pixels where the model's surface depth is
-        within ``depth_tolerance_m`` of the marker's own: fewer than counts_full means the
-        marker floats above the model (or over a hole) somewhere. A marker with nothing of the
-        model under any of its pixels stands on bare ground (the DTM where a buildings-only
-        model draws nothing: the scene stage puts sites there only for such models) and agrees
-        whole; one partly over the model and partly over nothing lies on its edge and does not.
+        sums[i] = (count, Σcol, Σrow, agree) of its pixels that stay in front of the model when
+        the marker is moved ``depth_bias_m`` toward the camera (pixel centres at +0.5, row 0 =
+        north). ``agree`` counts marker pixels where the model's surface depth is within
+        ``depth_tolerance_m`` of the marker's own: fewer than counts_full means the marker
+        floats above the model (or over a hole) somewhere. A marker with nothing of the model
+        under any of its pixels stands on bare ground (the DTM where a buildings-only model
+        draws nothing: the scene stage puts sites there only for such models) and agrees whole;
+        one partly over the model and partly over nothing lies on its edge and does not.
+
+        Two draws: the model's depth, then the markers (depth-tested among themselves), each
+        fragment comparing itself with the model's depth there (``shaders/marker.frag``); one read.
         """
         import moderngl
 
         ctx, (w, h) = self.ctx, view.size
-        t = self._targets_for("markers", (w, h), lambda: self._plain_targets(w, h))
-        depth, fbo = t["depth"], t["fbo"]
-        fbo.use()
-        ctx.enable(moderngl.DEPTH_TEST)
-        ctx.disable(moderngl.CULL_FACE)
+        t = self._targets_for("markers", (w, h), lambda: self._marker_targets(w, h))
         n = len(points)
         origin = points.mean(axis=0) if n else np.zeros(3)
-        verts, faces, colors = marker_geometry(points - origin, slopes, radius_m)
-        ground = view.ground_offsets(verts + origin, origin)
         dmin, dmax = view.depth_range
-
-        def draw_markers(bias_m: float):
-            if not n:
-                return
+        ctx.enable(moderngl.DEPTH_TEST)
+        ctx.disable(moderngl.CULL_FACE)
+        t["model_fbo"].use()
+        ctx.clear(depth=1.0)
+        with self._geometry(chunks, view) as geometry:
+            self._draw_chunks(geometry, view, black=True)     # depth alone: no colour to write
+        t["fbo"].use()
+        ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+        if n:
+            verts, faces, colors = marker_geometry(points - origin, slopes, radius_m)
             matrix = view.matrix(origin)
-            self.prog["u_mvp"].write(matrix.T.astype("f4").tobytes())
-            self._set(u_mode=0, u_shade=False, u_sunlit=False, u_zbias=2.0 * bias_m / (dmax - dmin),
-                      u_shear=view.shear(matrix))
-            mesh = self._vao(verts, faces, colors, ground=ground)
+            prog = self.marker_prog
+            prog["u_mvp"].write(matrix.T.astype("f4").tobytes())
+            for name, value in {"u_shear": view.shear(matrix), "u_zbias": 0.0, "u_depth_span": dmax - dmin,
+                                "u_tolerance": min(depth_tolerance_m, np.finfo(np.float32).max),
+                                "u_seen_shift": depth_bias_m / (dmax - dmin)}.items():
+                if name in prog:
+                    prog[name].value = value
+            t["model"].use(location=MODEL_DEPTH_UNIT)
+            mesh = self._vao(verts, faces, colors, ground=view.ground_offsets(verts + origin, origin), prog=prog)
             mesh.vao.render()
             mesh.release()
-            self._set(u_zbias=0.0)
-
-        ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
-        draw_markers(0.0)
-        alone = _marker_ids(fbo, w, h)
-        rows, cols = np.nonzero(alone)                # only marker pixels are compared below
-        marker_depth = _read_depth(depth, w, h)[rows, cols]
-        ctx.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
-        with self._geometry(chunks, view) as geometry:
-            self._draw_depth(fbo, geometry, view)
-        model_depth = _read_depth(depth, w, h)[rows, cols]
-        draw_markers(depth_bias_m)
-        seen = _marker_ids(fbo, w, h)
-        # window depth is linear in view depth (orthographic); a cleared model pixel (1.0) never agrees
-        over_model = model_depth < 1.0
-        gap = np.abs(model_depth - marker_depth).astype(np.float64) * (dmax - dmin)
-        agree = (gap <= depth_tolerance_m) & over_model
-        which = alone[rows, cols]
-        alone_stats = _marker_stats(which, rows, cols, n, agree)
-        bare = (_marker_stats(which, rows, cols, n, over_model)[:, 3] == 0) & (alone_stats[:, 0] > 0)
+        pixels = np.frombuffer(t["fbo"].read(components=4), dtype="<u4").reshape(h, w)[::-1]
+        rows, cols = np.nonzero(pixels & 0xFFFFFF)           # only marker pixels count below
+        pixels = pixels[rows, cols]
+        which, flags = pixels & 0xFFFFFF, pixels >> 24
+        alone_stats = _marker_stats(which, rows, cols, n, flags & MARKER_ON > 0)
+        bare = (_marker_stats(which, rows, cols, n, flags & MARKER_OVER > 0)[:, 3] == 0) & (alone_stats[:, 0] > 0)
         alone_stats[bare, 3] = alone_stats[bare, 0]
         full = alone_stats[:, 0].copy()
         full[_overlapping(points, slopes, radius_m, view)] = 0   # one marker hides another: no clean centroid
-        which = seen[rows, cols]          # a marker drawn over the model covers some of its own pixels alone
-        kept = which > 0
+        kept = flags & MARKER_SEEN > 0    # a marker drawn over the model covers some of its own pixels alone
         sums = _marker_stats(which[kept], rows[kept], cols[kept], n)
         sums[:, 3] = alone_stats[:, 3]
         return full, sums
@@ -528,23 +522,32 @@ def _shadow_uniforms(shadow: ShadowView) -> dict:
             "u_radius": shadow.radius, "u_shadow_ambient": shadow.ambient}
 
 
-def _overlapping(points: np.ndarray, slopes: np.ndarray, radius_m: float, view: TileView) -> np.ndarray:
-    """(n,) bool: markers whose images could touch another marker's image in this view.
+def marker_images(points: np.ndarray, slopes: np.ndarray, radius_m: float,
+                  view: TileView) -> tuple[np.ndarray, np.ndarray]:
+    """Where (n, 3) markers of slope (n, 2) fall in ``view``'s image plane: their (n, 2) centres and
+    the (n,) radius around each that holds its whole image (plus 2 pixels).
 
     Each marker's image is an ellipse around its projected centre whose longest semi-axis
     is radius·σ_max(J), J the 2×2 Jacobian of the map projection on the marker's plane.
     """
     from pipeline25d.geometry.camera import image_stretch, project, project_above_ground
 
-    n = len(points)
-    if n < 2:
-        return np.zeros(n, dtype=bool)
     p = view.perspective
     if view.ground is None:
         centres = project(points, p, view.z0, view.camera)[:, :2]
     else:
         centres = project_above_ground(points, view.ground(points[:, 0], points[:, 1]), p)[:, :2]
     reach = image_stretch(p, slopes, view.camera) * radius_m + 2 * (view.extent.width / view.size[0])   # + 2 px
+    return centres, reach
+
+
+def _overlapping(points: np.ndarray, slopes: np.ndarray, radius_m: float, view: TileView) -> np.ndarray:
+    """(n,) bool: markers whose images could touch another marker's image in this view
+    (:func:`marker_images`)."""
+    n = len(points)
+    if n < 2:
+        return np.zeros(n, dtype=bool)
+    centres, reach = marker_images(points, slopes, radius_m, view)
     out = np.zeros(n, dtype=bool)
     for lo in range(0, n, 1024):   # pairwise in blocks: a tile holds hundreds of markers, not millions
         d = np.hypot(*(centres[lo:lo + 1024, None, :] - centres[None, :, :]).transpose(2, 0, 1))
@@ -589,13 +592,6 @@ def _read_depth(texture, w: int, h: int) -> np.ndarray:
 def _read_rgba(fbo, w: int, h: int) -> np.ndarray:
     """(h, w, 4) uint8 framebuffer contents with row 0 at the top (north); GL's row 0 is the bottom."""
     return np.frombuffer(fbo.read(components=4), dtype=np.uint8).reshape(h, w, 4)[::-1]
-
-
-def _marker_ids(fbo, w: int, h: int) -> np.ndarray:
-    """(h, w) marker id + 1 per pixel (0 = none) from the colour buffer (id = R + 256 G + 65536 B),
-    row 0 at the top."""
-    rgba = np.frombuffer(fbo.read(components=4), dtype="<u4").reshape(h, w)[::-1]
-    return rgba & 0xFFFFFF
 
 
 def _marker_stats(which: np.ndarray, rows: np.ndarray, cols: np.ndarray, n: int,

@@ -161,7 +161,7 @@ def render_plan_tile(renderer, pl: Plan, tile: Tile, chunks: list, ground, caste
     casters (plans with shadows); ``id_renderer``: an :class:`~.render_ids.IdRenderer` for the
     tile's ids (None: none), drawn by the colour pass as a second render target. ``image``
     False: the GCP observations alone (the same), no colour pass (image and ids None)."""
-    from pipeline25d.stages.render import TileView
+    from pipeline25d.stages.render import TileView, marker_images
     from pipeline25d.stages.render_ids import part_face_ids
 
     persp, t, gsd, cfg = pl.perspective, pl.tile_size, pl.gsd, tile.render
@@ -178,15 +178,30 @@ def render_plan_tile(renderer, pl: Plan, tile: Tile, chunks: list, ground, caste
         seen = []
         if tile.gcps:
             margin = int(np.ceil(cfg["marker_px"])) + 2
-            extent = pl.tile_extent(tile.row, tile.col, margin)
-            view = TileView(persp, pl.z0, extent, depth, (t + 2 * margin, t + 2 * margin), ground, camera)
             pts = np.array([[c.x, c.y, c.z] for c in tile.gcps])
             slopes = np.array([[c.sx, c.sy] for c in tile.gcps])
+            view = TileView(persp, pl.z0, pl.tile_extent(tile.row, tile.col, margin), depth,
+                            (t + 2 * margin, t + 2 * margin), ground, camera)
+            extent, size = marker_window(view, *marker_images(pts, slopes, cfg["marker_px"] * gsd, view))
+            view = TileView(persp, pl.z0, extent, depth, size, ground, camera)
             full, sums = renderer.render_markers(geometry, view, pts, slopes, cfg["marker_px"] * gsd,
                                                  cfg["depth_bias"],
                                                  marker_depth_tolerance(persp, gsd, cfg["max_float_px"]))
             seen = observations(tile.gcps, full, sums, (extent.xmin, extent.ymax), pixel)
     return rgba, seen, ids
+
+
+def marker_window(view, centres: np.ndarray, reach: np.ndarray) -> tuple[Extent, tuple[int, int]]:
+    """The part of a tile's marker ``view`` that holds its markers' images (centres and reach from
+    :func:`~pipeline25d.stages.render.marker_images`), in whole pixels of the view's grid: the
+    marker pass draws only there (a tile's edge or a sparse one draws a fraction of its pixels)."""
+    e, (w, h) = view.extent, view.size
+    px = e.width / w
+    lo, hi = (centres - reach[:, None]).min(axis=0), (centres + reach[:, None]).max(axis=0)
+    c0, c1 = min(max(math.floor((lo[0] - e.xmin) / px), 0), w - 1), min(math.ceil((hi[0] - e.xmin) / px), w)
+    r0, r1 = min(max(math.floor((e.ymax - hi[1]) / px), 0), h - 1), min(math.ceil((e.ymax - lo[1]) / px), h)
+    c1, r1 = max(c1, c0 + 1), max(r1, r0 + 1)
+    return Extent(e.xmin + c0 * px, e.ymax - r1 * px, e.xmin + c1 * px, e.ymax - r0 * px), (c1 - c0, r1 - r0)
 
 
 def shadow_view(pl: Plan, tile: Tile):
