@@ -22,7 +22,9 @@ from pipeline25d.core.raster import gdal
 
 RGBA = ("Red", "Green", "Blue", "Alpha")      # colour interpretations of an RGBA image's bands
 RGBA_OPTIONS = ("COMPRESS=ZSTD", "ZSTD_LEVEL=1", "TILED=YES", "PHOTOMETRIC=RGB", "ALPHA=YES")
-FLOAT_OPTIONS = ("COMPRESS=DEFLATE", "PREDICTOR=3", "TILED=YES", "SPARSE_OK=TRUE",
+#: heights: zstd at level 1 with the float predictor wrote the 3 x 3 Delft scene's 1585 x 1375 DSM in
+#: 0.05 s against DEFLATE's 0.18 s (its default level), 0.5 % smaller; read back 0.03 against 0.04 s
+FLOAT_OPTIONS = ("COMPRESS=ZSTD", "ZSTD_LEVEL=1", "PREDICTOR=3", "TILED=YES", "SPARSE_OK=TRUE",
                  f"BLOCKXSIZE={TIFF_TILE}", f"BLOCKYSIZE={TIFF_TILE}")
 
 
@@ -91,7 +93,7 @@ def write_rgba_geotiff(path: str | Path, rgba: np.ndarray, grid: Grid, wkt: str)
 
 @contextmanager
 def float_geotiff_writer(path: str | Path, grid: Grid, wkt: str) -> Iterator[Callable[[np.ndarray, int, int], None]]:
-    """``write(values, row, col)`` puts an (h, w) block of heights at (row, col) of a tiled, deflated
+    """``write(values, row, col)`` puts an (h, w) block of heights at (row, col) of a tiled, compressed
     float32 GeoTIFF (NaN nodata) that appears at ``path`` when the ``with`` ends without error.
 
     Float32 keeps heights to ~1e-5 m at 100 m, finer than the nadir render's depth steps.
@@ -115,7 +117,7 @@ def float_geotiff_writer(path: str | Path, grid: Grid, wkt: str) -> Iterator[Cal
 
 
 def write_float_geotiff(path: str | Path, values: np.ndarray, grid: Grid, wkt: str) -> None:
-    """An (h, w) float raster as a tiled, deflated float32 GeoTIFF (NaN nodata), atomically."""
+    """An (h, w) float raster as a tiled, compressed float32 GeoTIFF (NaN nodata), atomically."""
     with float_geotiff_writer(path, grid, wkt) as write:
         for row in range(0, grid.height, TIFF_TILE):     # a row of tiles at a time
             write(values[row:row + TIFF_TILE], row, 0)

