@@ -25,6 +25,7 @@ SCRIPT = textwrap.dedent("""
     from pipeline25d.core.atomic import write_bytes
 
     folder, sig = sys.argv[1], getattr(signal, sys.argv[2])
+    signal.signal(signal.SIGINT, signal.default_int_handler)    # as from a terminal, whoever started pytest
     log_to(os.path.join(folder, "job.log"))
     opened = PIL.Image.open
 

