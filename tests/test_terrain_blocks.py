@@ -408,3 +408,21 @@ def test_dtm_heights_at_points_equal_each_points_own_window_sampled_alone():
         want[i] = window.sample(np.array([px]), np.array([py]))[0]
     assert np.isfinite(want).sum() > 2500          # NaN: a window wholly in the empty columns
     np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("share", [0.2, 0.8])
+def test_the_cloths_ground_reads_the_same_from_either_index_vector(share):
+    """CSF returns the ground's indices and the rest's; the mask is read from the shorter, and it
+    is the ground's either way (mostly off-ground and mostly ground)."""
+    import CSF
+
+    from pipeline25d.stages.terrain.ground import _indexed
+
+    rng = np.random.default_rng(3)
+    truth = rng.random(5000) < share
+    ground, off = CSF.VecInt(), CSF.VecInt()
+    for i in np.flatnonzero(truth).tolist():
+        ground.append(i)
+    for i in np.flatnonzero(~truth).tolist():
+        off.append(i)
+    assert np.array_equal(_indexed(len(truth), ground, off), truth)

@@ -137,12 +137,23 @@ def _cloth_of(residual: np.ndarray, valid: np.ndarray, xs: np.ndarray, ys: np.nd
     ground, off = CSF.VecInt(), CSF.VecInt()
     with threadpool_limits(limits=1, user_api="openmp"):
         csf.do_filtering(ground, off, exportCloth=False)
-    del off
-    flat = np.zeros(int(valid.sum()), dtype=bool)
-    flat[np.asarray(ground, dtype=np.int64)] = True
+    flat = _indexed(int(valid.sum()), ground, off)
     mask = np.zeros_like(valid)
     mask[valid] = flat
     return mask
+
+
+def _indexed(n: int, ground, off) -> np.ndarray:
+    """(n,) bool: the points CSF put in ``ground`` (its indices; every other point is in ``off``),
+    read from the shorter of the two (SWIG vectors are read an element at a time: 0.08-0.12 s a
+    million)."""
+    if len(ground) <= len(off):
+        flat = np.zeros(n, dtype=bool)
+        flat[np.fromiter(ground, dtype=np.int64, count=len(ground))] = True
+    else:
+        flat = np.ones(n, dtype=bool)
+        flat[np.fromiter(off, dtype=np.int64, count=len(off))] = False
+    return flat
 
 
 def ground_blocks(read: Callable[[slice, slice], np.ndarray], grid: Grid, max_object_m: float,
