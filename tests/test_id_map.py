@@ -16,7 +16,8 @@ from pipeline25d.core.raster import gdal
 from pipeline25d.stages.gcps import OBSERVATION_FIELDS, write_csv
 from pipeline25d.stages.maps import patch as map_patch
 from pipeline25d.stages.maps.ids import conform, id_map
-from pipeline25d.stages.maps.warp import build_mosaic, warp_to_cog
+from pipeline25d.stages.maps.mosaic_sources import build_mosaic
+from pipeline25d.stages.maps.warp import warp_to_cog
 from pipeline25d.stages.records import Observation
 
 GSD, TILE, CRS = 0.5, 128, "EPSG:25832"

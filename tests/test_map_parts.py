@@ -12,8 +12,9 @@ from conftest import grid_plan
 from pipeline25d.core.geotiff import write_rgba_geotiff
 from pipeline25d.core.grid import Grid
 from pipeline25d.core.raster import gdal
+from pipeline25d.stages.maps.mosaic_sources import build_mosaic
 from pipeline25d.stages.maps.parts import COG_BLOCK, map_grid, overview_factors, tile_parts
-from pipeline25d.stages.maps.warp import build_mosaic, warp_to_cog
+from pipeline25d.stages.maps.warp import warp_to_cog
 from pipeline25d.stages.records import Observation
 
 GSD, TILE = 0.5, 128

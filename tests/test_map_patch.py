@@ -15,8 +15,9 @@ from pipeline25d.core.geotiff import write_rgba_geotiff
 from pipeline25d.core.grid import Grid
 from pipeline25d.core.raster import gdal
 from pipeline25d.stages.maps import patch as map_patch
+from pipeline25d.stages.maps.mosaic_sources import build_mosaic
 from pipeline25d.stages.maps.patch import blank, block_window, patched_map
-from pipeline25d.stages.maps.warp import build_mosaic, gdal_gcps, raster_grid, warp_to_cog
+from pipeline25d.stages.maps.warp import gdal_gcps, raster_grid, warp_to_cog
 from pipeline25d.stages.records import Observation
 
 GSD, TILE, ROWS, COLS = 0.5, 128, 10, 12

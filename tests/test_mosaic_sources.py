@@ -9,8 +9,8 @@ from pipeline25d.core.crs import horizontal_wkt
 from pipeline25d.core.geotiff import write_geotiff, write_rgba_geotiff
 from pipeline25d.core.grid import Grid
 from pipeline25d.core.raster import gdal
-from pipeline25d.stages.maps.mosaic_sources import plain_sources
-from pipeline25d.stages.maps.warp import build_mosaic, run_tool
+from pipeline25d.stages.maps.mosaic_sources import build_mosaic, plain_sources
+from pipeline25d.stages.maps.warp import run_tool
 
 GSD, TILE, CRS = 0.5, 64, "EPSG:25832"
 

@@ -119,11 +119,11 @@ def test_each_cog_encode_takes_the_cores_idle_when_it_runs(monkeypatch, tmp_path
     where more (core.cores.job_workers, measured then, not when the job started)."""
     from pipeline25d import jobs
     from pipeline25d.stages import gcps
-    from pipeline25d.stages.maps import warp
+    from pipeline25d.stages.maps import mosaic_sources, warp
 
     seen, gathered = {}, []
     monkeypatch.setattr(warp, "warp", lambda *a, **k: seen.update(k, args=a))
-    monkeypatch.setattr(warp, "build_mosaic", lambda tiles, vrt: gathered.append((tiles, vrt)))
+    monkeypatch.setattr(mosaic_sources, "build_mosaic", lambda tiles, vrt: gathered.append((tiles, vrt)))
     monkeypatch.setattr(gcps, "gather_gcps", lambda tiles, csv: gathered.append((tiles, csv)))
     job = SimpleNamespace(input=SimpleNamespace(plan="p.json"),
                           output=SimpleNamespace(mosaic="m.vrt", gcps="g.csv", cog="c.tif", meta="c.json"),
@@ -152,7 +152,7 @@ def test_each_cog_encode_takes_the_cores_idle_when_it_runs(monkeypatch, tmp_path
 
 def _tiny_run(root, pid="p"):
     """A finished run's files for one map: two render tiles, their mosaic VRT and the map COG."""
-    from pipeline25d.stages.maps.warp import build_mosaic
+    from pipeline25d.stages.maps.mosaic_sources import build_mosaic
 
     wkt = horizontal_wkt("EPSG:25832")
     tiles = root / "tiles" / pid

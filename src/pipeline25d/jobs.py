@@ -89,10 +89,10 @@ def render_block_job(job: Job) -> None:
 
 def warp_job(job: Job) -> None:
     from pipeline25d.stages import gcps
-    from pipeline25d.stages.maps import warp
+    from pipeline25d.stages.maps import mosaic_sources, warp
 
     p, o = job.params, job.output
-    warp.build_mosaic(sorted(p.tiles), o.mosaic)
+    mosaic_sources.build_mosaic(sorted(p.tiles), o.mosaic)
     gcps.gather_gcps(list(p.gcp_tiles), o.gcps)
     threads = job.threads                            # each COG encode adds the cores idle when it runs
     cells: dict = {}                                 # the mosaic's digests, made once for both maps
@@ -101,7 +101,7 @@ def warp_job(job: Job) -> None:
     if hasattr(o, "ids"):                            # objects.enabled: the tiles' object ids, by the warp just chosen
         from pipeline25d.stages.maps.ids import id_map
 
-        warp.build_mosaic(sorted(p.id_tiles), o.id_mosaic)
+        mosaic_sources.build_mosaic(sorted(p.id_tiles), o.id_mosaic)
         id_map(o.id_mosaic, o.mosaic, o.gcps, o.meta, o.cog, o.ids, o.id_stats, work_dir=p.id_work,
                threads=threads, cells_memo=cells)
 

@@ -290,10 +290,12 @@ class TileRenderer:
         with self.upload(chunks, view) as geometry:
             yield geometry
 
-    def _set(self, **uniforms) -> None:
+    def _set(self, prog=None, **uniforms) -> None:
+        """Set the uniforms ``prog`` (the tile program by default) uses; it ignores the others."""
+        prog = prog or self.prog
         for name, value in uniforms.items():
-            if name in self.prog:
-                self.prog[name].value = value
+            if name in prog:
+                prog[name].value = value
 
     # -- drawing ---------------------------------------------------------------
     def _draw_chunks(self, geometry: "TileGeometry", view: TileView, black: bool = False,
@@ -482,11 +484,9 @@ class TileRenderer:
             matrix = view.matrix(origin)
             prog = self.marker_prog
             prog["u_mvp"].write(matrix.T.astype("f4").tobytes())
-            for name, value in {"u_shear": view.shear(matrix), "u_zbias": 0.0, "u_depth_span": dmax - dmin,
-                                "u_tolerance": min(depth_tolerance_m, np.finfo(np.float32).max),
-                                "u_seen_shift": depth_bias_m / (dmax - dmin)}.items():
-                if name in prog:
-                    prog[name].value = value
+            self._set(prog, u_shear=view.shear(matrix), u_zbias=0.0, u_depth_span=dmax - dmin,
+                      u_tolerance=min(depth_tolerance_m, np.finfo(np.float32).max),
+                      u_seen_shift=depth_bias_m / (dmax - dmin))
             t["model"].use(location=MODEL_DEPTH_UNIT)
             mesh = self._vao(verts, faces, colors, ground=view.ground_offsets(verts + origin, origin), prog=prog)
             mesh.vao.render()

@@ -177,14 +177,14 @@ def render_plan_tile(renderer, pl: Plan, tile: Tile, chunks: list, ground, caste
             rgba, ids = id_renderer.with_colour(renderer, geometry, view, part_face_ids, shadow_view(pl, tile), casters)
         seen = []
         if tile.gcps:
-            margin = int(np.ceil(cfg["marker_px"])) + 2
+            margin, radius = int(np.ceil(cfg["marker_px"])) + 2, cfg["marker_px"] * gsd
             pts = np.array([[c.x, c.y, c.z] for c in tile.gcps])
             slopes = np.array([[c.sx, c.sy] for c in tile.gcps])
             view = TileView(persp, pl.z0, pl.tile_extent(tile.row, tile.col, margin), depth,
                             (t + 2 * margin, t + 2 * margin), ground, camera)
-            extent, size = marker_window(view, *marker_images(pts, slopes, cfg["marker_px"] * gsd, view))
+            extent, size = marker_window(view, *marker_images(pts, slopes, radius, view))
             view = TileView(persp, pl.z0, extent, depth, size, ground, camera)
-            full, sums = renderer.render_markers(geometry, view, pts, slopes, cfg["marker_px"] * gsd,
+            full, sums = renderer.render_markers(geometry, view, pts, slopes, radius,
                                                  cfg["depth_bias"],
                                                  marker_depth_tolerance(persp, gsd, cfg["max_float_px"]))
             seen = observations(tile.gcps, full, sums, (extent.xmin, extent.ymax), pixel)

@@ -29,7 +29,6 @@ from pipeline25d.core.errors import GdalToolError
 from pipeline25d.core.grid import Grid
 from pipeline25d.core.raster import gdal, tool_env
 from pipeline25d.stages.gcps import read_observations
-from pipeline25d.stages.maps.mosaic_sources import build_mosaic  # noqa: F401 (the warp job's first step)
 from pipeline25d.stages.maps.patch import transformer_options
 from pipeline25d.stages.plan import read_plan
 from pipeline25d.stages.records import Observation, Plan
