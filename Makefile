@@ -31,7 +31,7 @@ run: deps
 
 test: deps
 	$(VENV)/bin/lint-imports
-	$(VENV)/bin/ruff check src tests workflow/scripts
+	$(VENV)/bin/ruff check src tests
 	$(PY) -m pytest -q; rc=$$?; \
 	  if [ $$rc -eq 5 ]; then echo "pytest collected no tests"; exit 1; fi; exit $$rc
 

@@ -38,13 +38,13 @@ def host(monkeypatch):
 
 
 def job_process(runner: str, job: dict, cwd: Path, **env) -> subprocess.Popen:
-    """A process that hands ``job`` to the host (as workflow/scripts/job.py does) and runs it itself
-    if there is none, printing where it ran."""
+    """A process that hands ``job`` to the host (as a rule's command does) and runs it itself if
+    there is none, printing where it ran."""
     code = ("import sys; sys.path.insert(0, %r)\n"
-            "from pipeline25d.jobhost import run_on_host\n"
+            "from pipeline25d.jobhost import hand\n"
             "import jobhost_runners\n"
             "job = %r\n"
-            "if not run_on_host(job, %r):\n"
+            "if not hand(%r, job, sys.path):\n"
             "    print('ran itself', flush=True)\n"
             "    getattr(jobhost_runners, %r.split(':')[1])(job)\n") % (str(TESTS), job, runner, runner)
     return subprocess.Popen([sys.executable, "-c", code], cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -172,7 +172,8 @@ def test_a_host_stopped_by_its_parent_s_end_removes_its_socket_folder(tmp_path):
     """Snakemake killed outright runs no onerror: the host, told by the kernel, cleans up itself."""
     folder = tempfile.mkdtemp(prefix="p25d-host-")
     path = os.path.join(folder, "socket")
-    start_host = f"subprocess.Popen([sys.executable, '-m', 'pipeline25d.jobhost', {path!r}, str(os.getpid())])\n"
+    start_host = (f"subprocess.Popen([sys.executable, '-m', 'pipeline25d.jobhost', 'serve', {path!r}, "
+                  "str(os.getpid())])\n")
     parent = subprocess.Popen([sys.executable, "-c", f"import subprocess, sys, os, time\n{start_host}time.sleep(60)"])
     deadline = time.monotonic() + 60
     while not os.path.exists(path):

@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 REPO = Path(__file__).parents[1]
-PATHS = ["src", "tests", "workflow/scripts"]
+PATHS = ["src", "tests"]
 
 
 def test_ruff_finds_nothing():

@@ -4,9 +4,10 @@ Every Snakemake job is a new Python process, and before it does any work it impo
 pyproj, SciPy and the stage's modules: 0.15-0.35 s of CPU per job, much of a small job's time. A
 run with :data:`MIN_JOBS` jobs or more to do on this machine starts a host when it starts
 (``onstart`` in workflow/rules/common.smk) and stops it when it ends. The host imports those
-modules once (:data:`PRELOAD`); each job's script (workflow/scripts/job.py) then hands its job to
-the host, which forks a child that runs it (:func:`pipeline25d.jobs.run`, as the script would)
-with the job's own standard streams, working folder, environment and thread settings.
+modules once (:data:`PRELOAD`); each job's command (this file run as a stdlib-only script,
+:func:`client`) then hands its job to the host, which forks a child that runs it
+(:func:`pipeline25d.jobs.run_args`, as ``python -m pipeline25d.jobs`` would) with the job's own
+standard streams, working folder, environment and thread settings.
 
 - **The job process stays the job.** It waits for the child's exit status and exits with it, so
   Snakemake sees the same process, streams and status. A stop signal to it (Snakemake cancelling,
@@ -15,7 +16,7 @@ with the job's own standard streams, working folder, environment and thread sett
   outright, raises SIGIO in the child, which stops it as a SIGTERM would
   (:mod:`pipeline25d.core.stopping`: no output put in place after it).
 - **Anything amiss, the job runs as before.** No host (a short run, ``PIPELINE25D_JOB_HOST=off``,
-  a cluster job, a host not yet listening or gone): the script runs the job itself.
+  a cluster job, a host not yet listening or gone): the command becomes ``python -m pipeline25d.jobs``.
 - **Accounting.** The host is Snakemake's child and each job's process is the host's child until
   reaped, so the run's CPU (``RUSAGE_CHILDREN`` of whoever started Snakemake) still holds every job.
   A job's own log has its CPU from the fork on; its start-up (``startup_s``) is then near zero.
@@ -45,7 +46,7 @@ SWITCH_ENV = "PIPELINE25D_JOB_HOST"
 MIN_JOBS = 12
 #: what the host imports: the modules most jobs import, not those few jobs need (trimesh alone is 0.8 s)
 PRELOAD = ("numpy", "osgeo.gdal", "osgeo.gdal_array", "osgeo.osr", "pyproj", "affine", "moderngl",
-           "scipy.ndimage", "PIL.Image", "osgeo_utils.gdal2tiles", "snakemake.script",
+           "scipy.ndimage", "PIL.Image", "osgeo_utils.gdal2tiles",
            "pipeline25d.jobs", "pipeline25d.stages.ingest", "pipeline25d.stages.lod",
            "pipeline25d.stages.terrain.build", "pipeline25d.stages.scene", "pipeline25d.stages.plan",
            "pipeline25d.stages.render_block", "pipeline25d.stages.maps.warp", "pipeline25d.stages.tiles.web",
@@ -58,21 +59,30 @@ _STARTED = b"R"                    # the child's first word: it has the job (bef
 
 
 # -- the job's side ---------------------------------------------------------------------------
-def run_on_host(job, runner: str = "pipeline25d.jobs:run") -> bool:
-    """Hand Snakemake's ``job`` to the run's host and exit with its child's status; False (nothing
+def client(argv: list[str]) -> int:
+    """``python -I -S jobhost.py job RULE THREADS SPEC LOG``: every rule's command (workflow/rules/
+    common.smk). Hands the job to the run's host, or becomes ``python -m pipeline25d.jobs`` with the
+    same arguments where there is none. Stdlib only: it starts in 0.02 CPU-s."""
+    if not hand("pipeline25d.jobs:run_args", argv):
+        os.execv(sys.executable, [sys.executable, "-m", "pipeline25d.jobs", *argv])
+    return 0                                         # (not reached: hand exits with the job's status)
+
+
+def hand(runner: str, job, path: list[str] | None = None) -> bool:
+    """Hand ``job`` (JSON data) to the run's host and exit with its child's status; False (nothing
     done) where there is no host to hand it to. The child calls ``runner`` (``module:function``)
-    on the job."""
-    path = os.environ.get(SOCKET_ENV)
-    if not path or "SLURM_JOB_ID" in os.environ:      # a cluster job runs where the scheduler put it
+    on the job, with ``path`` as its ``sys.path`` if given (else the host's)."""
+    socket_path = os.environ.get(SOCKET_ENV)
+    if not socket_path or "SLURM_JOB_ID" in os.environ:     # a cluster job runs where the scheduler put it
         return False
-    import pickle
+    import json
 
     conn = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     try:
-        conn.connect(path)
+        conn.connect(socket_path)
         times = os.times()
-        request = pickle.dumps({"job": job, "runner": runner, "cwd": os.getcwd(), "env": dict(os.environ),
-                                "path": list(sys.path), "cpu_s": times.user + times.system})
+        request = json.dumps({"job": job, "runner": runner, "cwd": os.getcwd(), "env": dict(os.environ),
+                              "path": path, "cpu_s": times.user + times.system}).encode()
         socket.send_fds(conn, [_HEADER.pack(len(request))], [0, 1, 2])
         conn.sendall(request)
         started = _receive(conn, 1) == _STARTED
@@ -130,7 +140,7 @@ def start() -> subprocess.Popen:
     # private (0700: only this user's jobs can hand the host a job) and short (a socket's path has 107 bytes at most)
     folder = tempfile.mkdtemp(prefix="p25d-host-")
     path = os.path.join(folder, "socket")
-    host = subprocess.Popen([sys.executable, "-m", "pipeline25d.jobhost", path, str(os.getpid())],
+    host = subprocess.Popen([sys.executable, "-m", "pipeline25d.jobhost", "serve", path, str(os.getpid())],
                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, env=_host_env())
     os.environ[SOCKET_ENV] = path
     return host
@@ -237,7 +247,7 @@ def _reap(signum, frame) -> None:
 
 
 def _request(conn: socket.socket) -> tuple[list[int], bytes] | None:
-    """(standard stream fds, pickled request) from a job process, or None if it sent less."""
+    """(standard stream fds, JSON request) from a job process, or None if it sent less."""
     try:
         header, fds, _, _ = socket.recv_fds(conn, _HEADER.size, 3)
     except OSError:
@@ -252,11 +262,11 @@ def _request(conn: socket.socket) -> tuple[list[int], bytes] | None:
 
 
 def _child(conn: socket.socket, fds: list[int], body: bytes, since: tuple) -> int:
-    """Run the pickled request's job in this forked child as its own process would; send its
+    """Run the request's job in this forked child as its own process would; send its
     status; return it. ``since``: the host's reading of the machine's CPU times before this job
     came (:func:`pipeline25d.core.cores.reading`): the job's first count of idle cores covers the
     time since, where that is long enough and recent, instead of waiting for a count of its own."""
-    import pickle
+    import json
     import time
 
     from pipeline25d.core import cores
@@ -269,11 +279,12 @@ def _child(conn: socket.socket, fds: list[int], body: bytes, since: tuple) -> in
         os.close(fd)
     conn.sendall(_STARTED)
     _stop_on_word(conn)
-    request = pickle.loads(body)
+    request = json.loads(body)
     os.chdir(request["cwd"])
     os.environ.clear()
     os.environ.update(request["env"])
-    sys.path[:] = request["path"]
+    if request["path"] is not None:
+        sys.path[:] = request["path"]
     _job_threads()
     recent = cores.SAMPLE_S <= time.monotonic() - since[2] <= cores.RECENT_S
     cores.mark(since if recent else None, request["cpu_s"])
@@ -338,8 +349,12 @@ def _stop_on_word(conn: socket.socket) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m pipeline25d.jobhost SOCKET PARENT_PID``: the host (started by :func:`start`)."""
-    path, parent = argv if argv is not None else sys.argv[1:]
+    """``python -m pipeline25d.jobhost serve SOCKET PARENT_PID``: the host (started by :func:`start`);
+    ``jobhost.py job RULE THREADS SPEC LOG``: a job (:func:`client`)."""
+    word, *args = argv if argv is not None else sys.argv[1:]
+    if word == "job":
+        return client(args)
+    path, parent = args
     return serve(path, int(parent))
 
 

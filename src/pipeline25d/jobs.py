@@ -1,12 +1,14 @@
 """The one seam between the Snakemake rules and the stages: one function per rule.
 
-Every rule runs ``workflow/scripts/job.py``, which hands Snakemake's job object to :func:`run`.
-``run`` logs the job to its rule's log file, makes it stop cleanly on SIGTERM and on a
-:class:`~pipeline25d.core.errors.Pipeline25dError` (its message, no traceback), calls the
-rule's function here and logs what the job read and its peak memory
-(:func:`~pipeline25d.core.logsetup.log_job_resources`). Each function only unpacks the rule's named inputs, outputs and
-parameters and calls its stage; the work itself lives in the stage modules. A function
-imports its stage when it runs, so a job pays only for the modules it uses.
+Every rule's command (``JOB`` in workflow/rules/common.smk) hands its job, a
+:class:`~pipeline25d.jobspec.JobSpec`, to :func:`run`: in a fork of the run's job host
+(:mod:`pipeline25d.jobhost`) or as ``python -m pipeline25d.jobs RULE THREADS SPEC LOG``. ``run``
+logs the job to its rule's log file, makes it stop cleanly on SIGTERM and on a
+:class:`~pipeline25d.core.errors.Pipeline25dError` (its message, no traceback), calls the rule's
+function here and logs what the job read and its peak memory
+(:func:`~pipeline25d.core.logsetup.log_job_resources`). Each function only unpacks the rule's
+named inputs, outputs and parameters and calls its stage; the work itself lives in the stage
+modules. A function imports its stage when it runs, so a job pays only for the modules it uses.
 """
 
 from __future__ import annotations
@@ -25,8 +27,8 @@ from pipeline25d.jobhost import HOSTED_ENV
 
 log = logging.getLogger(__name__)
 
-#: Snakemake's job object as a script sees it (``snakemake``): input, output, params, wildcards,
-#: threads, log, rule, each with named and positional access.
+#: a job (:class:`~pipeline25d.jobspec.JobSpec`, or anything with its attributes): input, output,
+#: params, wildcards, threads, log, rule; input and output with named and positional access.
 Job = Any
 
 
@@ -204,8 +206,17 @@ RULES: dict[str, Callable[[Job], None]] = {
 }
 
 
+def run_args(args: list[str]) -> None:
+    """Run the job that a rule's command names: ``[RULE, THREADS, SPEC, LOG]`` (:func:`pipeline25d.jobspec.load`)."""
+    from pipeline25d.jobspec import load
+
+    with stop_on_error(log=False):
+        job = load(*args)
+    run(job)
+
+
 def run(job: Job) -> None:
-    """Run the rule's function of a Snakemake script job, logged to its log file with its resources
+    """Run the rule's function of a job, logged to its log file with its resources
     and times (start-up before the function, the function, CPU)."""
     startup, t0 = process_age(), time.monotonic()
     hosted = bool(os.environ.get(HOSTED_ENV))
@@ -218,3 +229,9 @@ def run(job: Job) -> None:
         RULES[job.rule](job)
     end_if_stopped()                  # stopped, though some code dropped the signal's exception: failed
     log_job_resources(startup, time.monotonic() - t0)
+
+
+if __name__ == "__main__":
+    import sys
+
+    run_args(sys.argv[1:])

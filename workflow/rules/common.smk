@@ -3,10 +3,14 @@
 # or unreadable input, DTM or GCP file, an estimate beyond a limit, an unreadable plan) prints
 # "pipeline25d: error: <file or key>: <problem>" and exits 1 without a traceback, as a job's does.
 
+import shlex
+import sys
 from functools import wraps
 from pathlib import Path
 
-from pipeline25d import jobhost
+from snakemake.io import apply_wildcards
+
+from pipeline25d import jobhost, jobspec
 from pipeline25d.config import (check_semantics, chunk_size, objects_enabled, perspectives, render_settings,
                                 validate_schema)
 from pipeline25d.analysis.height_sources import plan as heights_plan
@@ -64,6 +68,32 @@ with stop_on_error(log=False):
     EXTENT = cheap_extent(config, RESULTS)
     if EXTENT is not None:
         budget.check(WORK, budget.estimate(WORK, *EXTENT))
+
+
+# Every rule's command: a stdlib-only process (pipeline25d.jobhost run as a script, no Snakemake
+# to import) that hands the job to the run's job host, or runs python -m pipeline25d.jobs itself.
+# Its job is the rule's `job` parameter (job() below): the file that describes the job's named
+# files, parameters and wildcards (pipeline25d.jobspec).
+JOB = (f"{shlex.quote(sys.executable)} -I -S {shlex.quote(jobhost.__file__)} job "
+       "{rule} {threads} {params.job:q} {log:q}")
+
+
+def job(**params):
+    """A rule's parameters (``**``-added to its own), with ``job``: a function that writes the job's
+    description file (pipeline25d.jobspec) and is its path. The parameters themselves stay the
+    rule's, for Snakemake to re-run a job whose parameters changed (it leaves out a parameter that
+    takes the job's files, as ``job`` does); in the description they are as Snakemake gives them:
+    a function called with the wildcards, a string with the wildcards filled in."""
+
+    def describe(wildcards, input, output):
+        with stop_on_error(log=False):
+            values = {name: value(wildcards) if callable(value)
+                      else apply_wildcards(value, wildcards) if isinstance(value, str) else value
+                      for name, value in params.items()}
+            return jobspec.write(f"{RESULTS}/work/jobs", jobspec.encode(input, output, values,
+                                                                        dict(wildcards.items())))
+
+    return {**params, "job": describe}
 
 
 def with_ids(**files):

@@ -19,11 +19,13 @@ checkpoint heights_blocks:
     output:
         blocks=f"{RESULTS}/work/heights/blocks.json",
     params:
-        config=HEIGHTS_CONFIG,
+        **job(
+            config=HEIGHTS_CONFIG,
+        ),
     log:
         f"{RESULTS}/logs/heights/blocks.log",
-    script:
-        "../scripts/job.py"
+    shell:
+        JOB
 
 
 rule heights_block:
@@ -34,13 +36,15 @@ rule heights_block:
     output:
         f"{RESULTS}/work/heights/block_{{hblock}}.json",
     params:
-        config=HEIGHTS_CONFIG,
-        pids=PERSPECTIVE_IDS,
-        rows_dir=HEIGHTS_ROWS,
+        **job(
+            config=HEIGHTS_CONFIG,
+            pids=PERSPECTIVE_IDS,
+            rows_dir=HEIGHTS_ROWS,
+        ),
     log:
         f"{RESULTS}/logs/heights/block_{{hblock}}.log",
-    script:
-        "../scripts/job.py"
+    shell:
+        JOB
 
 
 rule heights:
@@ -55,11 +59,13 @@ rule heights:
         csv=f"{RESULTS}/heights.csv",
         json=f"{RESULTS}/heights.json",
     params:
-        config=HEIGHTS_CONFIG,
-        pids=PERSPECTIVE_IDS,
-        rows_dir=HEIGHTS_ROWS,
+        **job(
+            config=HEIGHTS_CONFIG,
+            pids=PERSPECTIVE_IDS,
+            rows_dir=HEIGHTS_ROWS,
+        ),
     priority: 1
     log:
         f"{RESULTS}/logs/heights.log",
-    script:
-        "../scripts/job.py"
+    shell:
+        JOB

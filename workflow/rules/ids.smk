@@ -15,12 +15,14 @@ rule objects:
         csv=f"{RESULTS}/objects/objects.csv",
         shards=directory(f"{RESULTS}/objects/shards"),
     params:
-        config={k: config[k] for k in ("crs", "inputs") if k in config},
-        districts=DISTRICTS,
+        **job(
+            config={k: config[k] for k in ("crs", "inputs") if k in config},
+            districts=DISTRICTS,
+        ),
     log:
         f"{RESULTS}/logs/objects.log",
-    script:
-        "../scripts/job.py"
+    shell:
+        JOB
 
 
 # the id layer exists where the id maps are made (objects.enabled)

@@ -19,14 +19,16 @@ rule ingest:
         index=f"{RESULTS}/chunks/{{district}}/index.json",
         lod=f"{RESULTS}/lod/{{district}}/index.json",
     params:
-        spec=lambda wc: config["inputs"][wc.district],
-        crs=config["crs"],
-        chunk_size=chunk_size(config),
-        max_error=MAX_LOD_ERROR,
-        max_levels=config["lod"]["max_levels"],
-        gsd=config["gsd"],
-        slot=lambda wc: OBJECT_SLOTS[wc.district],
+        **job(
+            spec=lambda wc: config["inputs"][wc.district],
+            crs=config["crs"],
+            chunk_size=chunk_size(config),
+            max_error=MAX_LOD_ERROR,
+            max_levels=config["lod"]["max_levels"],
+            gsd=config["gsd"],
+            slot=lambda wc: OBJECT_SLOTS[wc.district],
+        ),
     log:
         f"{RESULTS}/logs/ingest/{{district}}.log",
-    script:
-        "../scripts/job.py"
+    shell:
+        JOB

@@ -15,20 +15,22 @@ rule scene:
         # the DTM under each chunk, sampled once for every perspective's plan (terrain-relative mode)
         grounds=f"{RESULTS}/terrain/grounds.json",
     params:
-        terrain=config["terrain"],
-        z0=config["z0"],
-        projection=config["projection"],
-        gcp=config["gcp"],
-        crs=config["crs"],
-        gsd=config["gsd"],
-        perspectives=PERSPECTIVE_IDS,
-        ground=config["ground"],
+        **job(
+            terrain=config["terrain"],
+            z0=config["z0"],
+            projection=config["projection"],
+            gcp=config["gcp"],
+            crs=config["crs"],
+            gsd=config["gsd"],
+            perspectives=PERSPECTIVE_IDS,
+            ground=config["ground"],
+        ),
     # the DTM's blocks are interpolated on both cores (nothing else can run beside this job)
     threads: 2
     log:
         f"{RESULTS}/logs/scene.log",
-    script:
-        "../scripts/job.py"
+    shell:
+        JOB
 
 
 # Every perspective's plan in one job: the scene, chunks and GCP candidates read once, one start-up,
@@ -46,15 +48,17 @@ checkpoint plan:
     output:
         plans=expand(f"{RESULTS}/plans/{{pid}}.json", pid=PERSPECTIVE_IDS),
     params:
-        perspectives=PERSPECTIVE_IDS,
-        gsd=config["gsd"],
-        tile_size=config["tile_size"],
-        max_error_px=config["lod"]["max_error_px"],
-        crs=config["crs"],
-        render=RENDER_SETTINGS,
-        work=WORK,
+        **job(
+            perspectives=PERSPECTIVE_IDS,
+            gsd=config["gsd"],
+            tile_size=config["tile_size"],
+            max_error_px=config["lod"]["max_error_px"],
+            crs=config["crs"],
+            render=RENDER_SETTINGS,
+            work=WORK,
+        ),
     priority: 4
     log:
         f"{RESULTS}/logs/plan.log",
-    script:
-        "../scripts/job.py"
+    shell:
+        JOB

@@ -13,12 +13,14 @@ rule render_block:
     output:
         f"{RESULTS}/tiles/{{pid}}/block_{{block}}.json",
     params:
-        plan=f"{RESULTS}/plans/{{pid}}.json",
-        lod_dir=f"{RESULTS}/lod",
-        tiles_dir=f"{RESULTS}/tiles/{{pid}}",
-        block=RENDER_BLOCK,
-        spec_hash=block_hash,
-        objects=OBJECTS,
+        **job(
+            plan=f"{RESULTS}/plans/{{pid}}.json",
+            lod_dir=f"{RESULTS}/lod",
+            tiles_dir=f"{RESULTS}/tiles/{{pid}}",
+            block=RENDER_BLOCK,
+            spec_hash=block_hash,
+            objects=OBJECTS,
+        ),
     # Ready jobs run plans first, then renders, warps, the maps' figures, web tiles (priorities 4 to 0):
     # every render is done before the web tiles, so the run does not end on one perspective's render,
     # warp and cut in a row with a core idle (Snakemake's greedy scheduler otherwise prefers the jobs
@@ -26,5 +28,5 @@ rule render_block:
     priority: 3
     log:
         f"{RESULTS}/logs/render/{{pid}}/block_{{block}}.log",
-    script:
-        "../scripts/job.py"
+    shell:
+        JOB

@@ -15,14 +15,16 @@ rule report_figures:
     output:
         f"{RESULTS}/work/report/figures.json",
     params:
-        perspectives=PERSPECTIVE_IDS,
-        gsd=config["gsd"],
-        results=RESULTS,
+        **job(
+            perspectives=PERSPECTIVE_IDS,
+            gsd=config["gsd"],
+            results=RESULTS,
+        ),
     priority: 1
     log:
         f"{RESULTS}/logs/report_figures.log",
-    script:
-        "../scripts/job.py"
+    shell:
+        JOB
 
 
 rule report:
@@ -45,12 +47,14 @@ rule report:
         md=f"{RESULTS}/report/report.md",
         html=f"{RESULTS}/report/report.html",
     params:
-        config=config,
-        results=RESULTS,
+        **job(
+            config=config,
+            results=RESULTS,
+        ),
     log:
         f"{RESULTS}/logs/report.log",
-    script:
-        "../scripts/job.py"
+    shell:
+        JOB
 
 
 rule viewer:
@@ -63,9 +67,11 @@ rule viewer:
     output:
         f"{RESULTS}/viewer/index.html",
     params:
-        viewer=config["viewer"],
-        results=RESULTS,
+        **job(
+            viewer=config["viewer"],
+            results=RESULTS,
+        ),
     log:
         f"{RESULTS}/logs/viewer.log",
-    script:
-        "../scripts/job.py"
+    shell:
+        JOB

@@ -12,15 +12,17 @@ rule terrain:
         meta=f"{RESULTS}/terrain/terrain.json",
         ground=[f"{RESULTS}/terrain/ground.tif"] if config["terrain"] == "auto" else [],
     params:
-        inputs=config["inputs"],
-        crs=config["crs"],
-        gsd=config["gsd"],
-        terrain=config["terrain"],
-        ground=config["ground"],
-        work=WORK,
+        **job(
+            inputs=config["inputs"],
+            crs=config["crs"],
+            gsd=config["gsd"],
+            terrain=config["terrain"],
+            ground=config["ground"],
+            work=WORK,
+        ),
     # the ground filter's blocks run on both cores (nothing else can run beside this job)
     threads: 2
     log:
         f"{RESULTS}/logs/terrain.log",
-    script:
-        "../scripts/job.py"
+    shell:
+        JOB

@@ -13,20 +13,22 @@ rule tms:
         stats=f"{RESULTS}/work/tms/{{pid}}.json",
         **with_ids(id_tiles=directory(f"{RESULTS}/idtiles/{{pid}}"), id_stats=f"{RESULTS}/work/idtiles/{{pid}}.json"),
     params:
-        zoom=config["tms"]["zoom"],
-        tile_format=config["tms"]["format"],
-        quality=config["tms"]["quality"],
-        webp_method=config["tms"]["webp_method"],
-        work=f"{RESULTS}/work/tms/{{pid}}",
-        cells_note=MAP_CELLS_NOTE,
-        id_work=f"{RESULTS}/work/idtiles/{{pid}}",
+        **job(
+            zoom=config["tms"]["zoom"],
+            tile_format=config["tms"]["format"],
+            quality=config["tms"]["quality"],
+            webp_method=config["tms"]["webp_method"],
+            work=f"{RESULTS}/work/tms/{{pid}}",
+            cells_note=MAP_CELLS_NOTE,
+            id_work=f"{RESULTS}/work/idtiles/{{pid}}",
+        ),
     # one core (a job holding two waited for both to be free), and the cores idle when it starts
     # (core.cores); on a cluster profiles/slurm gives it two
     threads: 1
     log:
         f"{RESULTS}/logs/tms/{{pid}}.log",
-    script:
-        "../scripts/job.py"
+    shell:
+        JOB
 
 
 # With tms.pmtiles: the pyramid also as one PMTiles archive per perspective (pipeline25d.stages.tiles.archive),
@@ -36,7 +38,9 @@ rule pmtiles:
         tiles=rules.tms.output.tiles,
     output:
         f"{RESULTS}/pmtiles/{{pid}}.pmtiles",
+    params:
+        **job(),
     log:
         f"{RESULTS}/logs/pmtiles/{{pid}}.log",
-    script:
-        "../scripts/job.py"
+    shell:
+        JOB

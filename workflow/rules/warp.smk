@@ -19,14 +19,16 @@ rule warp:
         meta=f"{RESULTS}/maps/{{pid}}.json",
         **with_ids(id_mosaic=ID_MOSAIC, ids=ID_MAP, id_stats=ID_STAT),
     params:
-        tiles=lambda wc: perspective_tiles(wc, ".tif"),
-        gcp_tiles=lambda wc: perspective_tiles(wc, ".gcps.csv"),
-        **with_ids(id_tiles=lambda wc: perspective_tiles(wc, ".ids.tif")),
-        warp=config["warp"],
-        maps=config["maps"],
-        work=f"{RESULTS}/work/warp/{{pid}}",
-        cells_note=MAP_CELLS_NOTE,
-        id_work=f"{RESULTS}/work/ids/{{pid}}",
+        **job(
+            tiles=lambda wc: perspective_tiles(wc, ".tif"),
+            gcp_tiles=lambda wc: perspective_tiles(wc, ".gcps.csv"),
+            **with_ids(id_tiles=lambda wc: perspective_tiles(wc, ".ids.tif")),
+            warp=config["warp"],
+            maps=config["maps"],
+            work=f"{RESULTS}/work/warp/{{pid}}",
+            cells_note=MAP_CELLS_NOTE,
+            id_work=f"{RESULTS}/work/ids/{{pid}}",
+        ),
     # one core: the warp used 1.13 of two and, holding two, kept render jobs off the other (with the
     # web tiles on one core too: a 3 x 3 Delft city 126 s -> 101 and 111 s in two runs); each COG
     # encode takes the cores idle when it runs too (stages.maps.warp.encode_options); on a cluster
@@ -35,5 +37,5 @@ rule warp:
     priority: 2
     log:
         f"{RESULTS}/logs/warp/{{pid}}.log",
-    script:
-        "../scripts/job.py"
+    shell:
+        JOB

@@ -9,7 +9,9 @@ rule wms:
     output:
         mapfile=f"{RESULTS}/wms/{config['scene']}.map",
     params:
-        scene=config["scene"],
+        **job(
+            scene=config["scene"],
+        ),
     # one core, and the cores idle when it starts (core.cores): each map's row raster (the id
     # layer) on its own thread; holding two, it waited for the last web-tile job to end (make bench:
     # 12 s alone at the end of the run)
@@ -17,5 +19,5 @@ rule wms:
     priority: 1
     log:
         f"{RESULTS}/logs/wms.log",
-    script:
-        "../scripts/job.py"
+    shell:
+        JOB
