@@ -229,3 +229,24 @@ def _hosts() -> set[str]:
     pids = subprocess.run(["pgrep", "-f", "pipeline25d.jobhost"], capture_output=True, text=True).stdout.split()
     folders = {str(p) for p in Path(tempfile.gettempdir()).glob("p25d-host-*")}
     return set(pids) | folders
+
+
+def test_a_host_ends_on_sigterm_even_inside_code_that_swallows_exceptions(tmp_path):
+    """A library swallowing every exception during the host's imports once kept a host, stopped by
+    SIGTERM's SystemExit, running (and Snakemake waiting for it): its handler ends it outright."""
+    folder = tmp_path / "p25d-host-x"
+    folder.mkdir()
+    code = ("import os, signal, sys, time\n"
+            "from pipeline25d.jobhost import _ender\n"
+            f"signal.signal(signal.SIGTERM, _ender(os.getpid(), {str(folder)!r}))\n"
+            "print('ready', flush=True)\n"
+            "while True:\n"
+            "    try:\n"
+            "        time.sleep(0.01)\n"
+            "    except BaseException:\n"               # as a bare except: in an imported module
+            "        pass\n")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline() == "ready\n"
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=30) == 0
+    assert not folder.exists()

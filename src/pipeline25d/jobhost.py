@@ -52,6 +52,9 @@ PRELOAD = ("numpy", "osgeo.gdal", "osgeo.gdal_array", "osgeo.osr", "pyproj", "af
            "pipeline25d.stages.render_block", "pipeline25d.stages.maps.warp", "pipeline25d.stages.tiles.web",
            "pipeline25d.publish.report_figures", "pipeline25d.publish.report")
 
+#: seconds :func:`stop` waits for the host to end after SIGTERM before it kills it
+STOP_WAIT_S = 10
+
 _HEADER = struct.Struct("!Q")      # the request's length
 _STATUS = struct.Struct("!i")      # the child's exit status
 _STOP = b"S"                       # a stop signal, sent on to the child
@@ -149,11 +152,16 @@ def start() -> subprocess.Popen:
 def stop(host: subprocess.Popen | None) -> None:
     """Stop ``host`` and wait for it (its CPU, and its jobs', then count as this process's children)."""
     import shutil
+    import subprocess
 
     path = os.environ.pop(SOCKET_ENV, None)
     if host is not None and host.poll() is None:
         host.terminate()
-        host.wait()
+        try:
+            host.wait(timeout=STOP_WAIT_S)
+        except subprocess.TimeoutExpired:        # (it has nothing to save: its jobs are their own processes)
+            host.kill()
+            host.wait()
     if path:
         shutil.rmtree(os.path.dirname(path), ignore_errors=True)
 
@@ -182,7 +190,7 @@ def serve(path: str, parent: int) -> int:
 def _serve(path: str, parent: int) -> int:
     _end_with(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)               # Ctrl-C stops the jobs, not the host
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
+    signal.signal(signal.SIGTERM, _ender(os.getpid(), os.path.dirname(path)))
     import gc
     import importlib
 
@@ -211,6 +219,21 @@ def _serve(path: str, parent: int) -> int:
         for fd in request[0]:
             os.close(fd)
         conn.close()
+
+
+def _ender(host: int, folder: str):
+    """The host's SIGTERM handler: remove ``folder`` and end at once. Not by raising SystemExit: one
+    raised inside an import, which some libraries' own handlers swallow, or inside the interpreter's
+    shutdown after another stop, left the host running, and Snakemake waiting for it (twice in many
+    stopped runs). A fork that has not yet taken its job's signals ends the same way, folder kept."""
+    def end(signum, frame) -> None:
+        if os.getpid() == host:
+            import shutil
+
+            shutil.rmtree(folder, ignore_errors=True)
+        os._exit(0)
+
+    return end
 
 
 def _end_with(parent: int) -> None:

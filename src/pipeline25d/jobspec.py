@@ -61,13 +61,13 @@ def encode(input: Any, output: Any, params: dict[str, Any], wildcards: dict[str,
                        "wildcards": dict(wildcards)}, separators=(",", ":"))
 
 
-def write(folder: str | Path, text: str) -> str:
-    """The path of a file in ``folder`` holding ``text`` (made now unless a run made it before),
-    named by its digest."""
+def write(folder: str | Path, text: str, make: bool = True) -> str:
+    """The path of a file in ``folder`` holding ``text``, named by its digest: made now (where
+    ``make``) unless a run made it before."""
     from pipeline25d.core.atomic import write_text
 
     path = Path(folder) / f"{hashlib.sha256(text.encode()).hexdigest()[:32]}.json"
-    if not path.exists():
+    if make and not path.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
         write_text(path, text)
     return str(path)

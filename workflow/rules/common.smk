@@ -73,7 +73,9 @@ with stop_on_error(log=False):
 # Every rule's command: a stdlib-only process (pipeline25d.jobhost run as a script, no Snakemake
 # to import) that hands the job to the run's job host, or runs python -m pipeline25d.jobs itself.
 # Its job is the rule's `job` parameter (job() below): the file that describes the job's named
-# files, parameters and wildcards (pipeline25d.jobspec).
+# files, parameters and wildcards (pipeline25d.jobspec), kept beside Snakemake's own records of
+# the run, not among its results (and not made in a dry run).
+JOB_SPECS = ".snakemake/pipeline25d/jobs"
 JOB = (f"{shlex.quote(sys.executable)} -I -S {shlex.quote(jobhost.__file__)} job "
        "{rule} {threads} {params.job:q} {log:q}")
 
@@ -90,8 +92,8 @@ def job(**params):
             values = {name: value(wildcards) if callable(value)
                       else apply_wildcards(value, wildcards) if isinstance(value, str) else value
                       for name, value in params.items()}
-            return jobspec.write(f"{RESULTS}/work/jobs", jobspec.encode(input, output, values,
-                                                                        dict(wildcards.items())))
+            return jobspec.write(JOB_SPECS, jobspec.encode(input, output, values, dict(wildcards.items())),
+                                 make=not workflow.dryrun)
 
     return {**params, "job": describe}
 
