@@ -63,7 +63,7 @@ RESOURCES_LINE = "job resources: rchar %d read_bytes %d wchar %d write_bytes %d 
 
 
 #: the line :func:`log_job_resources` adds when told the job's times: the process's start-up (interpreter,
-#: Snakemake's job object, imports) before the rule's function, the function itself, and CPU seconds
+#: the job's description, imports) before the rule's function, the function itself, and CPU seconds
 JOB_TIME_LINE = "job time: startup_s %.2f run_s %.2f cpu_s %.2f children_cpu_s %.2f"
 
 
