@@ -109,3 +109,14 @@ def test_a_rule_s_command_runs_its_job_with_a_host_and_without(tmp_path, hosted,
         assert reader.metadata()["name"] == "az045_el45"          # the job's wildcard
         assert reader.get(14, 8400, 5390) == tile.read_bytes()
     assert ("job host" in log.read_text()) == hosted
+
+
+def test_descriptions_unused_for_a_week_are_removed_and_used_ones_kept(tmp_path):
+    out = _named(OutputFiles, [("map", "maps/a.tif")])
+    old, used, fresh = (jobspec.write(tmp_path, jobspec.encode(InputFiles(), out, {"n": n}, {})) for n in range(3))
+    week = jobspec.KEEP_UNUSED_S
+    for path in (old, used):
+        os.utime(path, (0, Path(path).stat().st_mtime - week - 60))
+    assert jobspec.write(tmp_path, jobspec.encode(InputFiles(), out, {"n": 1}, {})) == used   # a run uses it again
+    assert jobspec.prune(tmp_path) == 1
+    assert not Path(old).exists() and Path(used).exists() and Path(fresh).exists()

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -61,16 +62,39 @@ def encode(input: Any, output: Any, params: dict[str, Any], wildcards: dict[str,
                        "wildcards": dict(wildcards)}, separators=(",", ":"))
 
 
+#: a job description no run has used for this long is removed as a run ends (:func:`prune`)
+KEEP_UNUSED_S = 7 * 24 * 3600
+
+
 def write(folder: str | Path, text: str, make: bool = True) -> str:
     """The path of a file in ``folder`` holding ``text``, named by its digest: made now (where
-    ``make``) unless a run made it before."""
+    ``make``) unless a run made it before, whose file is then marked used now."""
     from pipeline25d.core.atomic import write_text
 
     path = Path(folder) / f"{hashlib.sha256(text.encode()).hexdigest()[:32]}.json"
-    if make and not path.exists():
-        path.parent.mkdir(parents=True, exist_ok=True)
-        write_text(path, text)
+    if make:
+        try:
+            os.utime(path)
+        except FileNotFoundError:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            write_text(path, text)
     return str(path)
+
+
+def prune(folder: str | Path, unused_s: float = KEEP_UNUSED_S) -> int:
+    """Remove the job descriptions in ``folder`` that no run has used for ``unused_s`` seconds (each
+    job's is marked used as its run builds it); how many. A run still going has marked its own."""
+    import time
+
+    removed = 0
+    for path in Path(folder).glob("*.json"):
+        try:
+            if time.time() - path.stat().st_mtime > unused_s:
+                path.unlink()
+                removed += 1
+        except FileNotFoundError:                    # another run's prune took it first
+            pass
+    return removed
 
 
 def load(rule: str, threads: str | int, spec: str | Path, log: str) -> JobSpec:

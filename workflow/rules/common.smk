@@ -190,6 +190,7 @@ onstart:
 
 onsuccess:
     jobhost.stop(JOB_HOST.pop() if JOB_HOST else None)
+    jobspec.prune(JOB_SPECS)
 
 
 onerror:
