@@ -1,6 +1,6 @@
 """A job as its rule's shell command hands it on: named files, parameters and wildcards in a JSON file.
 
-Every rule's command (``JOB`` in workflow/rules/common.smk) is ``python -I -S jobhost.py RULE THREADS
+Every rule's command (``JOB`` in workflow/rules/common.smk) is ``python -I -S jobhost.py job RULE THREADS
 SPEC LOG``: a stdlib-only process that hands the job to the run's host, or runs ``python -m
 pipeline25d.jobs`` itself (:mod:`pipeline25d.jobhost`). It does not import Snakemake, which a
 ``script:`` job's preamble does (0.12 of its 0.15 CPU-s before any work). SPEC is the file
