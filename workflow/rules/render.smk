@@ -18,9 +18,11 @@ rule render_block:
             lod_dir=f"{RESULTS}/lod",
             tiles_dir=f"{RESULTS}/tiles/{{pid}}",
             block=RENDER_BLOCK,
-            spec_hash=block_hash,
             objects=OBJECTS,
         ),
+        # for Snakemake's re-run check alone (the job does not read it): beside job(), not in it,
+        # so that building the job does not hash the block's tiles twice
+        spec_hash=block_hash,
     # Ready jobs run plans first, then renders, warps, the maps' figures, web tiles (priorities 4 to 0):
     # every render is done before the web tiles, so the run does not end on one perspective's render,
     # warp and cut in a row with a core idle (Snakemake's greedy scheduler otherwise prefers the jobs
