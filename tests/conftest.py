@@ -3,14 +3,17 @@ served to headless Chromium (test_viewer_browser, test_viewer_identify)."""
 
 from __future__ import annotations
 
+import os
 import shutil
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import trimesh
 
+from pipeline25d import jobhost
 from pipeline25d.core.mesh import MeshPart
 from pipeline25d.publish.serve import make_server
 
@@ -138,3 +141,20 @@ def grid_plan(cells, gsd: float, tile_size: int, crs: str = "EPSG:25832", conten
     tiles = tuple(Tile(r, c, (), (0.0, 1.0), tuple(contents.get((r, c), tile_extent(gsd, tile_size, r, c))), (), {},
                        f"{r}_{c}") for r, c in cells)
     return Plan(Perspective(0, 90), crs, 0.0, gsd, gsd, tile_size, "plane", None, tiles, len(tiles), 0)
+
+
+@pytest.fixture
+def host(monkeypatch):
+    """A job host (pipeline25d.jobhost) started by this process, its socket in this process's
+    environment; stopped after."""
+    monkeypatch.delenv(jobhost.SOCKET_ENV, raising=False)
+    started = jobhost.start()
+    path = os.environ[jobhost.SOCKET_ENV]
+    deadline = time.monotonic() + 60
+    while not os.path.exists(path):
+        assert started.poll() is None, "the host ended before it listened"
+        assert time.monotonic() < deadline, "the host did not listen within 60 s"
+        time.sleep(0.05)
+    yield path
+    jobhost.stop(started)
+    assert not os.path.exists(path)

@@ -21,22 +21,6 @@ from pipeline25d.core.errors import ConfigError
 TESTS = Path(__file__).parent
 
 
-@pytest.fixture
-def host(monkeypatch):
-    """A host started by this process, its socket in this process's environment; stopped after."""
-    monkeypatch.delenv(jobhost.SOCKET_ENV, raising=False)
-    started = jobhost.start()
-    path = os.environ[jobhost.SOCKET_ENV]
-    deadline = time.monotonic() + 60
-    while not os.path.exists(path):
-        assert started.poll() is None, "the host ended before it listened"
-        assert time.monotonic() < deadline, "the host did not listen within 60 s"
-        time.sleep(0.05)
-    yield path
-    jobhost.stop(started)
-    assert not os.path.exists(path)
-
-
 def job_process(runner: str, job: dict, cwd: Path, **env) -> subprocess.Popen:
     """A process that hands ``job`` to the host (as a rule's command does) and runs it itself if
     there is none, printing where it ran."""

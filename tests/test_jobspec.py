@@ -69,11 +69,10 @@ def test_a_job_whose_file_is_gone_says_so(tmp_path):
 
 
 @pytest.mark.parametrize("hosted", [False, True])
-def test_a_rule_s_command_runs_its_job_with_a_host_and_without(tmp_path, hosted, monkeypatch):
+def test_a_rule_s_command_runs_its_job_with_a_host_and_without(tmp_path, hosted, request):
     """The command every rule runs (python -I -S jobhost.py job ...): the job's function runs on the
     host's fork or, without a host, in the process the command becomes; its log says which."""
     import tempfile
-    import time
 
     from PIL import Image
 
@@ -85,22 +84,11 @@ def test_a_rule_s_command_runs_its_job_with_a_host_and_without(tmp_path, hosted,
     inp = _named(InputFiles, [("tiles", str(tmp_path / "tms"))])
     spec = jobspec.write(tmp_path / "jobs", jobspec.encode(inp, out, {}, {"pid": "az045_el45"}))
     env = {k: v for k, v in os.environ.items() if k != jobhost.SOCKET_ENV}
-    host = None
     if hosted:
-        monkeypatch.delenv(jobhost.SOCKET_ENV, raising=False)
-        host = jobhost.start()
-        env[jobhost.SOCKET_ENV] = os.environ[jobhost.SOCKET_ENV]
-        deadline = time.monotonic() + 60
-        while not os.path.exists(env[jobhost.SOCKET_ENV]):
-            assert time.monotonic() < deadline, "the host did not listen within 60 s"
-            time.sleep(0.05)
+        env[jobhost.SOCKET_ENV] = request.getfixturevalue("host")
     log = tmp_path / "pmtiles.log"
-    try:
-        done = subprocess.run([sys.executable, "-I", "-S", jobhost.__file__, "job", "pmtiles", "1", spec, str(log)],
-                              cwd=tempfile.gettempdir(), env=env, capture_output=True, text=True, timeout=120)
-    finally:
-        if host is not None:
-            jobhost.stop(host)
+    done = subprocess.run([sys.executable, "-I", "-S", jobhost.__file__, "job", "pmtiles", "1", spec, str(log)],
+                          cwd=tempfile.gettempdir(), env=env, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     from pmtiles.reader import MmapSource, Reader
 
