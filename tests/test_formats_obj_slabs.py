@@ -214,13 +214,14 @@ def test_an_obj_with_windows_line_ends_reads_as_with_unix_ones_whole_and_in_slab
     assert {t[1] for t in expected} == {"part0", "part1", "part2"}
 
 
-@pytest.mark.parametrize("layout", ["tabs", "indented", "bom", "cr", "cr-indented"])
+@pytest.mark.parametrize("layout", ["tabs", "indented", "bom", "cr", "cr-indented", "comments"])
 def test_an_obj_written_with_tabs_indented_or_a_bom_reads_as_a_plain_one_whole_and_in_slabs(tmp_path, slabs_of,
                                                                                             layout, monkeypatch):
     """Whitespace is whitespace: tabs between words, lines indented, or lines ended by CR alone
     (classic Mac OS) read as the same file written with single spaces and LF (trimesh alone read no
     triangle of any of them); a UTF-8 byte order mark before a first ``v`` line is no part of it
-    (trimesh dropped that vertex: every index off by one)."""
+    (trimesh dropped that vertex: every index off by one); a comment after a vertex, a texture
+    coordinate or a face is no part of it (trimesh refused the file: "unmatched data")."""
     plain = write_obj(tmp_path / "plain", 9)
     folder = tmp_path / layout
     path = write_obj(folder, 9)
@@ -231,6 +232,9 @@ def test_an_obj_written_with_tabs_indented_or_a_bom_reads_as_a_plain_one_whole_a
         lines = [f"  {ln}" if k % 2 else f"\t {ln}" for k, ln in enumerate(lines)]
     elif layout == "bom":
         lines = ["\ufeff" + lines[1], *lines[2:], lines[0]]           # the mark, a vertex, ..., mtllib last
+    elif layout == "comments":
+        notes = (" # note", "\t#tab", "#", " ## 1 2 3")
+        lines = [f"{ln}{notes[k % 4]}" if ln.split()[0] in ("v", "vt", "f") else ln for k, ln in enumerate(lines)]
     end = "\r" if layout.startswith("cr") else "\n"
     path.write_bytes((end.join(lines) + end).encode())
     want = triangles(meshfile.load_mesh_file(plain).parts)
