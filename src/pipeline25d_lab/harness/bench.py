@@ -85,9 +85,11 @@ def make_scene(out_dir: Path, nx: int, ny: int, decimate: float | None = None, s
     return districts
 
 
-def bench_config(name: str, districts: dict, gsd: float, perspectives: str) -> dict:
+def bench_config(name: str, districts: dict, gsd: float, perspectives: str, samples: int | None = None) -> dict:
+    """The bench's config; ``samples``: the colour pass's MSAA samples (None: the schema's default)."""
     return {"scene": name, "crs": "EPSG:28992", "terrain": "auto", "gsd": gsd, "tile_size": 1024,
             "perspectives": perspectives, "gcp": {"spacing": 20},
+            **({"render": {"samples": samples}} if samples is not None else {}),
             "inputs": {k: {"path": str(p), "crs": "EPSG:28992"} for k, p in districts.items()}}
 
 
@@ -287,6 +289,8 @@ def main(argv: list[str] | None = None) -> int:
                          "the packed twin (spread 1) to give the sparse : packed wall-time ratio")
     ap.add_argument("--stretch", type=float, default=1.0,
                     help="scale each district's x and y (not z) by this: a coarse mesh over a large area")
+    ap.add_argument("--samples", type=int, choices=(0, 2, 4, 8), default=None,
+                    help="the colour pass's MSAA samples (render.samples; default: the schema's)")
     ap.add_argument("--collect", action="store_true",
                     help="collect the figures of the last finished run again instead of running "
                          "(wall time from its log)")
@@ -299,7 +303,7 @@ def main(argv: list[str] | None = None) -> int:
         return sparse_against_packed(name, nx, ny, args)
     work = REPO / "bench" / name
     districts = make_scene(work / "scene", nx, ny, args.decimate, stretch=args.stretch)
-    config = bench_config(name, districts, args.gsd, args.perspectives)
+    config = bench_config(name, districts, args.gsd, args.perspectives, args.samples)
     try:
         wall = logged_wall(work) if args.collect else run_workflow(work, config, args.cores)
     except WorkflowRunError as exc:
