@@ -158,3 +158,17 @@ def host(monkeypatch):
     yield path
     jobhost.stop(started)
     assert not os.path.exists(path)
+
+
+def held_out(holdout_csv: Path, candidates_csv: Path) -> np.ndarray:
+    """(n, 2) x, y where the scene stage left the ground out of the DTM, after checking that every
+    check point is one of them (its own ground unseen by the DTM)."""
+    import csv
+
+    from pipeline25d.stages.gcps import read_candidates
+
+    with open(holdout_csv, newline="") as fh:
+        held = {row["id"]: (float(row["x"]), float(row["y"])) for row in csv.DictReader(fh)}
+    checks = [c for c in read_candidates(candidates_csv) if c.role == "check"]
+    assert all(held[c.id] == (c.x, c.y) for c in checks), "a check point whose ground the DTM saw"
+    return np.array(list(held.values())).reshape(-1, 2)

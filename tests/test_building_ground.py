@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import DATA, shared_file
+from conftest import DATA, held_out, shared_file
 
 from pipeline25d.config import chunk_size, perspectives, validate_schema
 from pipeline25d.core.errors import GroundError
@@ -55,7 +55,7 @@ def run_stages(tmp_path: Path, inputs: dict, gsd: float = 0.5, edit_ground=None,
         edit_ground(t / "ground.tif")
     scene_setup(lods, t / "dsm.tif", "auto", t / "ground.tif", "auto", "auto", cfg["gcp"], crs, gsd,
                 [p.id for p in perspectives(cfg)], tmp_path / "scene.json", tmp_path / "candidates.csv",
-                t / "dtm.tif", cfg["ground"]["max_object_size"], t / "grounds.json")
+                t / "dtm.tif", cfg["ground"]["max_object_size"], t / "grounds.json", out_holdout=t / "dtm_holdout.csv")
     return record, json.loads((tmp_path / "scene.json").read_text()), t / "dtm.tif"
 
 
@@ -76,11 +76,10 @@ def cell_centres_in(path: Path, box) -> tuple[np.ndarray, np.ndarray, np.ndarray
 
 def assert_plane_but_near_check_points(folder: Path, scene: dict, x, y, z) -> None:
     """DTM heights ``z`` at cell centres (x, y): the plane to the file's 1 mm vertices and float32,
-    except within a cell of the discs left out of the DTM around check points (scene stage), where
-    the interpolation across the disc is within 0.15 m of it."""
-    from pipeline25d.stages.gcps import read_candidates
-
-    checks = np.array([[c.x, c.y] for c in read_candidates(folder / "candidates.csv") if c.role == "check"])
+    except within a cell of the discs left out of the DTM (scene stage: round every check point,
+    and round a check square's site that no view sees), where the interpolation across the disc is
+    within 0.15 m of it."""
+    checks = held_out(folder / "terrain" / "dtm_holdout.csv", folder / "candidates.csv")
     near = np.zeros(len(x), bool)
     if len(checks):
         near = np.hypot(x[:, None] - checks[:, 0], y[:, None] - checks[:, 1]).min(axis=1) \

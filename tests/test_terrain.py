@@ -9,7 +9,7 @@ import pytest
 from conftest import grid_plan
 
 from pipeline25d.core.grid import Grid
-from pipeline25d.geometry.perspectives import Perspective
+from pipeline25d.geometry.perspectives import PRESETS, Perspective
 from pipeline25d.stages.gcp_sites import SiteRules, select_sites
 from pipeline25d.stages.maps.warp import MIN_CHECK_POINTS, choose, residuals
 from pipeline25d.stages.records import Observation
@@ -267,3 +267,56 @@ def test_a_rounded_hilltop_with_buildings_on_it_stays_ground():
     exact = (interpolate_dtm(np.where(objects, np.nan, terrain), search_cells=30) - terrain)[objects]
     rms = lambda e: float(np.sqrt(np.mean(e ** 2)))  # noqa: E731
     assert rms(err) < rms(exact) + 0.2 and np.abs(err).max() < np.abs(exact).max() + 0.5, (rms(err), rms(exact))
+
+
+def test_a_check_squares_site_and_so_the_dtms_holdout_do_not_depend_on_the_perspectives():
+    """The tower scene seen from the south at 30°, then also from the north: the check squares'
+    sites (chosen by the default perspectives, what the DTM leaves out) are the same places for
+    both view sets, so adding a view cannot move the DTM (every tile would be drawn again); a
+    check square whose site no view sees keeps its hole but gives no site; the GCP squares still
+    take the option seen in the most of the config's views; with the default perspectives the
+    sites are those chosen without check squares."""
+    n = 200
+    grid = Grid.north_up(E0, N0 + n, 1.0, n, n)
+    dsm = np.full((n, n), 10.0)
+    dsm[90:110, 90:110] = 40.0
+    dtm = np.full((n, n), 10.0)
+    rules = SiteRules(spacing=8.0, radius=1.0, clearance=2.0)
+
+    def checks(cols, rows):
+        return (np.asarray(cols) + np.asarray(rows)) % 2 == 0
+
+    south = select_sites(dsm, dtm, grid, rules, [Perspective(0, 30)], check_square=checks)
+    both = select_sites(dsm, dtm, grid, rules, [Perspective(0, 30), Perspective(180, 30)], check_square=checks)
+    free = select_sites(dsm, dtm, grid, rules, [Perspective(0, 30)])
+    def held_of(sites):
+        return np.column_stack([sites[f"held_{k}"] for k in ("col", "row", "x", "y")])
+
+    held = held_of(south)
+    np.testing.assert_array_equal(held, held_of(both))
+    assert len(held) > 200 and checks(held[:, 0], held[:, 1]).all()
+    at = {(int(c), int(r)): (x, y) for c, r, x, y in held}
+    for sites in (south, both):
+        is_check = checks(sites["square_col"], sites["square_row"])
+        assert is_check.sum() > 150 and (~is_check).sum() > 150
+        for c, r, x, y in zip(sites["square_col"][is_check], sites["square_row"][is_check], sites["x"][is_check],
+                              sites["y"][is_check]):
+            assert at[int(c), int(r)] == (x, y)
+    # north of the tower the south view sees no ground: those check squares are held out but give no site
+    hidden = (held[:, 2] > E0 + 90) & (held[:, 2] < E0 + 110) & (held[:, 3] > N0 + 113) & (held[:, 3] < N0 + 150)
+    south_squares = set(zip(south["square_col"].tolist(), south["square_row"].tolist()))
+    assert hidden.sum() >= 3 and not any((int(c), int(r)) in south_squares for c, r in held[hidden, :2])
+    # a GCP square's site is where the choice by views alone puts it
+    chosen = {(c, r): (x, y) for c, r, x, y in zip(free["square_col"].tolist(), free["square_row"].tolist(),
+                                                   free["x"].tolist(), free["y"].tolist())}
+    gcp = ~checks(south["square_col"], south["square_row"])
+    for c, r, x, y in zip(south["square_col"][gcp].tolist(), south["square_row"][gcp].tolist(),
+                          south["x"][gcp].tolist(), south["y"][gcp].tolist()):
+        assert chosen[c, r] == (x, y)
+    default = [Perspective(az, el) for az, el in PRESETS["eight-45+nadir"]]
+    plain, held_too = (select_sites(dsm, dtm, grid, rules, default, check_square=c) for c in (None, checks))
+    for key in ("x", "y", "z", "square_col", "square_row", "clear"):
+        np.testing.assert_array_equal(plain[key], held_too[key])
+    is_check = checks(held_too["square_col"], held_too["square_row"])
+    np.testing.assert_array_equal(np.column_stack([held_too["x"][is_check], held_too["y"][is_check]]),
+                                  np.column_stack([held_too["held_x"], held_too["held_y"]]))

@@ -179,20 +179,18 @@ def test_blockwise_dtm_by_forked_workers_equals_one_process(scene, tmp_path):
 
     from pipeline25d.core.cores import fork_pool
     from pipeline25d.core.geotiff import write_float_geotiff
-    from pipeline25d.stages.records import GcpCandidate
-    from pipeline25d.stages.scene import _held_out_read, _without_check_points
+    from pipeline25d.stages.scene import _held_out_read, _without_held_out
 
     grid, dsm, _, whole = scene
     seed = np.where(whole, dsm, np.nan)
     seed[100:420, 150:500] = np.nan
     write_float_geotiff(tmp_path / "ground.tif", seed, grid, "")
     raster = FloatRaster(tmp_path / "ground.tif")
-    cands = [GcpCandidate(f"c{i}", E0 + 43.0 + 90 * (i % 8), N0 + 37.0 + 90 * (i // 8), 0.0, 0.0, 0.0, 0.0,
-                          "gcp" if i % 3 else "check") for i in range(56)]
-    held_out = partial(_held_out_read, raster, grid, cands, 6.0)
+    held = np.array([[E0 + 43.0 + 90 * (i % 8), N0 + 37.0 + 90 * (i // 8)] for i in range(56) if not i % 3])
+    held_out = partial(_held_out_read, raster, grid, held, 6.0)
     window = (slice(40, 600), slice(30, 700))
     np.testing.assert_array_equal(pickle.loads(pickle.dumps(held_out))(*window),
-                                  _without_check_points(raster.read(*window), grid, cands, 6.0, window))
+                                  _without_held_out(raster.read(*window), grid, held, 6.0, window))
     assert np.isnan(held_out(*window)).sum() > np.isnan(seed[window]).sum()      # some ground was held out
 
     def needed(core):

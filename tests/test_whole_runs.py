@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from conftest import held_out
 from test_workflow import NO_OBJECTS, snakemake
 
 from pipeline25d_lab.scenes import building_city as bc
@@ -136,7 +137,7 @@ def test_a_buildings_only_city_over_5_km_runs_with_its_check_points_within_half_
     points, their error (the report's, and recomputed from the observations against their true
     ground position) is under 0.5 px; z0 is finite; the DTM under the buildings is the plane."""
     from pipeline25d.core.geotiff import read_float_geotiff
-    from pipeline25d.stages.gcps import read_candidates, read_observations
+    from pipeline25d.stages.gcps import read_observations
 
     results, fps, seconds = sparse_run
     report = json.loads((results / "report" / "report.json").read_text())
@@ -163,7 +164,7 @@ def test_a_buildings_only_city_over_5_km_runs_with_its_check_points_within_half_
     # within 0.15 m inside the discs left out around check points (interpolated across, as designed)
     dtm, grid = read_float_geotiff(results / "terrain" / "dtm.tif")
     gx, gy = grid.cell_centres()
-    checks = np.array([[c.x, c.y] for c in read_candidates(results / "gcps" / "candidates.csv") if c.role == "check"])
+    checks = held_out(results / "terrain" / "dtm_holdout.csv", results / "gcps" / "candidates.csv")
     for x0, y0, x1, y1 in fps:
         under = (gx > x0) & (gx < x1) & (gy > y0) & (gy < y1)
         x, y, z = gx[under], gy[under], dtm[under].astype(np.float64)

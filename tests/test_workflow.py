@@ -561,3 +561,35 @@ def test_a_sparse_scene_costs_its_content(sparse_run):
         whole = (math.ceil(ds.RasterXSize * 0.5 / tile_m) + 1) * (math.ceil(ds.RasterYSize * 0.5 / tile_m) + 1)
         assert 0 < len(z17) <= near_parts < whole / 3, (len(z17), near_parts, whole)   # tiles only where parts are
         assert p["rmsd_px"] is not None and p["rmsd_px"] < 0.5, p
+
+
+def test_a_perspective_added_with_terrain_from_the_model_draws_no_kept_tile_again(small_run, tmp_path):
+    """terrain: auto. Another perspective moves the GCP sites its views choose, but not the check
+    squares' sites, which the DTM leaves out (stages.gcp_sites.select_sites): the terrain job does
+    not run again, the DTM and the ground under every chunk are the same bytes, and the views
+    already made observe their GCPs again but keep every tile image; the new view is rendered
+    whole. (On main before this, every tile of every view was drawn again, and the terrain made
+    again: its check of the work asked for took the perspectives as a parameter.)"""
+    import shutil
+
+    workdir = tmp_path / "small"
+    shutil.copytree(small_run[0], workdir, symlinks=True)
+    results = workdir / "results" / "small"
+    kept = {name: (results / "terrain" / name).read_bytes() for name in ("dtm.tif", "grounds.json", "dtm_holdout.csv")}
+    terrain_log = (results / "logs" / "terrain.log").read_text()
+    images, specs = _tile_mtimes(results), _tile_specs(results)
+    config = yaml.safe_load((workdir / "config.yaml").read_text())
+    config["perspectives"] = [*config["perspectives"], {"azimuth": 135, "elevation": 45}]
+    (workdir / "config.yaml").write_text(yaml.safe_dump(config))
+    snakemake(workdir)
+    assert {name: (results / "terrain" / name).read_bytes() for name in kept} == kept
+    assert (results / "logs" / "terrain.log").read_text() == terrain_log
+    assert len(kept["dtm_holdout.csv"].splitlines()) > 5                  # check squares were held out
+    after = _tile_mtimes(results)
+    assert {k: after[k] for k in images} == images                        # no kept tile drawn again
+    new = {k for k in after if k.startswith("az135_el45/")}
+    assert new and set(after) == set(images) | new
+    respecified = _changed(_tile_specs(results), specs) - new
+    manifests = [json.loads(p.read_text()) for p in (results / "tiles").glob("*/block_*.json")]
+    assert sum(m["rendered"] for m in manifests) == len(new)
+    assert sum(m["gcps_only"] for m in manifests) == len(respecified) > 0

@@ -69,7 +69,8 @@ def scene_job(job: Job) -> None:
     p = job.params
     scene.scene_setup(list(job.input.lods), job.input.dsm, p.terrain, _first(job.input.terrain), p.z0, p.projection,
                       dict(p.gcp), p.crs, p.gsd, list(p.perspectives), job.output.scene, job.output.candidates,
-                      _first(job.output.dtm), p.ground["max_object_size"], job.output.grounds, processes=job.threads)
+                      _first(job.output.dtm), p.ground["max_object_size"], job.output.grounds, processes=job.threads,
+                      out_holdout=_first(job.output.holdout))
 
 
 def plan_job(job: Job) -> None:

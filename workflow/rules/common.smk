@@ -80,18 +80,21 @@ JOB = (f"{shlex.quote(sys.executable)} -I -S {shlex.quote(jobhost.__file__)} job
        "{rule} {threads} {params.job:q} {log:q}")
 
 
-def job(**params):
+def job(described=None, **params):
     """A rule's parameters (``**``-added to its own), with ``job``: a function that writes the job's
     description file (pipeline25d.jobspec) and is its path. The parameters themselves stay the
     rule's, for Snakemake to re-run a job whose parameters changed (it leaves out a parameter that
     takes the job's files, as ``job`` does); in the description they are as Snakemake gives them:
-    a function called with the wildcards, a string with the wildcards filled in."""
+    a function called with the wildcards, a string with the wildcards filled in. ``described``:
+    parameters of the description alone, which do not re-run the job when they change (what a job
+    only checks, such as the work a config asks for)."""
 
     def describe(wildcards, input, output):
         with stop_on_error(log=False):
             values = {name: value(wildcards) if callable(value)
                       else apply_wildcards(value, wildcards) if isinstance(value, str) else value
                       for name, value in params.items()}
+            values.update(described or {})
             return jobspec.write(JOB_SPECS, jobspec.encode(input, output, values, dict(wildcards.items())),
                                  make=not workflow.dryrun)
 

@@ -12,6 +12,8 @@ rule scene:
         scene=f"{RESULTS}/scene.json",
         candidates=f"{RESULTS}/gcps/candidates.csv",
         dtm=[f"{RESULTS}/terrain/dtm.tif"] if config["terrain"] == "auto" else [],
+        # where the DTM leaves the ground out: each check square's site (stages.scene)
+        holdout=[f"{RESULTS}/terrain/dtm_holdout.csv"] if config["terrain"] == "auto" else [],
         # the DTM under each chunk, sampled once for every perspective's plan (terrain-relative mode)
         grounds=f"{RESULTS}/terrain/grounds.json",
     params:

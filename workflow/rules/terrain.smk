@@ -18,7 +18,9 @@ rule terrain:
             gsd=config["gsd"],
             terrain=config["terrain"],
             ground=config["ground"],
-            work=WORK,
+            # checked against config["limits"] before the DSM is made; not a re-run: another
+            # perspective or limit makes the same terrain
+            described={"work": WORK},
         ),
     # the ground filter's blocks run on both cores (nothing else can run beside this job)
     threads: 2

@@ -11,8 +11,10 @@ grid. A cell is a possible site where
 * the line of sight toward the camera stays above the DSM in at least one requested view
   (checked for the marker's centre and its two side rims).
 
-The scene is divided into squares of ``spacing`` metres; each square gets the valid site
-nearest its centre, so candidates are evenly spread at the configured density. The render
+The scene is divided into squares of ``spacing`` metres; each square gets the valid site seen
+in the most views, nearest its centre among equals, so candidates are evenly spread at the
+configured density. A check square counts the default perspectives' views, not the config's
+(the DTM leaves its site's ground out, and must not move with the perspectives). The render
 still decides per view (see :mod:`pipeline25d.stages.render`): this only avoids wasting candidates.
 
 The per-cell tests run block by block (blocks of whole squares, each read with the few cells
@@ -23,14 +25,17 @@ DSM, which may be float32.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from pipeline25d.core.grid import Block, Grid, cell_blocks
-from pipeline25d.geometry.perspectives import Perspective
+from pipeline25d.geometry.perspectives import PRESETS, Perspective
 
 OPTIONS_PER_SQUARE = 6       # nearest-to-centre sites tested for line of sight per square
+#: the views a check square's options are ranked by (the default perspectives), not the config's
+REFERENCE_VIEWS = [Perspective(az, el) for az, el in PRESETS["eight-45+nadir"]]
 SIGHT_MARGIN_M = 0.05        # the DSM must stay this far below a line of sight
 MAX_SIGHT_M = 400.0          # longest line of sight checked (horizontal metres)
 SITE_BLOCK_CELLS = 1 << 20   # cells of a block of the per-cell tests (~100 bytes a cell)
@@ -71,12 +76,21 @@ def local_slope(dsm: np.ndarray, k: int, res: float) -> tuple[np.ndarray, np.nda
 
 
 def select_sites(dsm: np.ndarray, dtm: np.ndarray, grid: Grid, rules: SiteRules,
-                 perspectives: list[Perspective], max_cells: int = SITE_BLOCK_CELLS) -> dict[str, np.ndarray]:
+                 perspectives: list[Perspective], max_cells: int = SITE_BLOCK_CELLS,
+                 check_square: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None) -> dict[str, np.ndarray]:
     """Candidate sites: arrays x, y, z (DSM at the site), ground (DTM), sx, sy (slopes),
     square_col/square_row (the spacing square) and clear ((n, len(perspectives)) bool: the
-    lines of sight of that view are clear).
+    lines of sight of that view are clear); and held_x, held_y, held_col, held_row: the check
+    squares' sites, whose ground the DTM leaves out.
 
     ``dsm``, ``dtm``: (height, width) of ``grid``, float64 or float32 (tests run in float64).
+    ``check_square``: which squares (arrays of cols, rows) hold check points
+    (:func:`pipeline25d.stages.gcps.check_squares`; None: none). The check squares' sites are
+    those the default perspectives (REFERENCE_VIEWS) choose, whatever the config has: so the
+    ground the DTM leaves out, and the DTM, do not move when a perspective is added or removed
+    (every tile would be drawn again). With the default perspectives, the config's own sites.
+    A check site the config's views drop (hidden in all, or too near another for them) gives no
+    candidate but stays held out; one the reference drops is no check point in any config.
     """
     xs, ys = grid.column_x(), grid.row_y()
     k = max(1, int(math.ceil(rules.radius / grid.res)))
@@ -87,15 +101,42 @@ def select_sites(dsm: np.ndarray, dtm: np.ndarray, grid: Grid, rules: SiteRules,
     with_model = [b for b in blocks if np.isfinite(dsm[b.window]).any()] or blocks[:1]
     parts = [_square_options(dsm, dtm, grid, rules, block, k) for block in with_model]
     o = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
-    clear = _clear_lines_of_sight(dsm, grid, o["x"], o["y"], o["z"], np.column_stack([o["sx"], o["sy"]]),
-                                  rules.radius, perspectives)
-    # Per square, the option seen in the most views, nearest the centre among equals. A site
-    # hidden in some views still serves the others (each view's render rejects what it cannot see).
-    views = clear.sum(axis=1)
-    keep = views > 0
-    o, views, clear = {key: v[keep] for key, v in o.items()}, views[keep], clear[keep]
-    by_rank = np.lexsort((o["dist"], -views, o["sq_y"], o["sq_x"]))
+    slopes = np.column_stack([o["sx"], o["sy"]])
+    clear = _clear_lines_of_sight(dsm, grid, o["x"], o["y"], o["z"], slopes, rules.radius, perspectives)
+    checks = check_square(o["sq_x"], o["sq_y"]) if check_square is not None else np.zeros(len(clear), bool)
+    if not checks.any():
+        return {**_chosen(o, clear.sum(axis=1), clear, grid, rules, perspectives), **_held(None, np.zeros(0, bool))}
+    same = sorted(p.id for p in perspectives) == sorted(p.id for p in REFERENCE_VIEWS)
+    reference = clear if same else _clear_lines_of_sight(dsm, grid, o["x"], o["y"], o["z"], slopes, rules.radius,
+                                                         REFERENCE_VIEWS)
+    ref = _chosen(o, reference.sum(axis=1), reference, grid, rules, REFERENCE_VIEWS)
+    held = check_square(ref["square_col"], ref["square_row"])
+    # a check square takes the reference's site; one the reference does not keep gives no site
+    sites = _chosen(o, np.where(checks, reference.sum(axis=1), clear.sum(axis=1)), clear, grid, rules, perspectives)
+    kept = set(zip(ref["square_col"][held].tolist(), ref["square_row"][held].tolist()))
+    ok = ~check_square(sites["square_col"], sites["square_row"]) | np.array(
+        [sq in kept for sq in zip(sites["square_col"].tolist(), sites["square_row"].tolist())], dtype=bool)
+    return {**{key: v[ok] for key, v in sites.items()}, **_held(ref, held)}
+
+
+def _held(ref: dict[str, np.ndarray] | None, held: np.ndarray) -> dict[str, np.ndarray]:
+    """The held_* arrays of :func:`select_sites`: the reference's check sites (none: empty)."""
+    if ref is None:
+        return {"held_x": np.zeros(0), "held_y": np.zeros(0), "held_col": np.zeros(0, np.int64),
+                "held_row": np.zeros(0, np.int64)}
+    return {"held_x": ref["x"][held], "held_y": ref["y"][held], "held_col": ref["square_col"][held],
+            "held_row": ref["square_row"][held]}
+
+
+def _chosen(o: dict[str, np.ndarray], rank: np.ndarray, clear: np.ndarray, grid: Grid, rules: SiteRules,
+            perspectives: list[Perspective]) -> dict[str, np.ndarray]:
+    """The sites of :func:`select_sites` among the options ``o`` of every square: per square the
+    option of the highest ``rank`` (views that see it), nearest the centre among equals; kept
+    where one of ``clear``'s views sees it (each view's render rejects what it cannot see) and
+    thinned so that no two markers touch in ``perspectives``."""
+    by_rank = np.lexsort((o["dist"], -rank, o["sq_y"], o["sq_x"]))
     first = by_rank[_starts_of_runs(o["sq_x"][by_rank], o["sq_y"][by_rank])]
+    first = first[clear[first].any(axis=1)]
     o, clear = {key: v[first] for key, v in o.items()}, clear[first]
     # Off the cell centre by a fraction of a cell (a hash of the square, so stable): markers
     # centred on pixel corners would give exact centroids and hide the method's own resolution.

@@ -10,7 +10,7 @@ the GCP's sub-pixel image position in the perspective's grid.
 from __future__ import annotations
 
 import csv
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -31,26 +31,43 @@ def candidates_from_sites(sites: dict[str, np.ndarray], holdout: float, seed: in
     """
     rows = []
     for i in range(len(sites["x"])):
-        col, row = int(sites["square_col"][i]), int(sites["square_row"][i])
         values = {k: round(float(sites[k][i]), 3) for k in ("x", "y", "z", "ground")}
         values.update({k: round(float(sites[k][i]), 4) for k in ("sx", "sy")})
-        rows.append({"id": f"g{col}_{row}", **values})
+        rows.append({"id": square_id(sites["square_col"][i], sites["square_row"][i]), **values})
     return assign_roles(rows, holdout, seed)
+
+
+def square_id(col: int, row: int) -> str:
+    """The id of the automatic candidate of spacing square (``col``, ``row``)."""
+    return f"g{int(col)}_{int(row)}"
+
+
+def is_check(pid: str, holdout: float, seed: int) -> bool:
+    """Whether the point ``pid`` is a check point: a draw from a hash of (seed, id) below ``holdout``."""
+    import hashlib
+
+    digest = hashlib.sha256(f"{seed}:{pid}".encode()).digest()
+    return int.from_bytes(digest[:8], "big") / 2 ** 64 < holdout
+
+
+def check_squares(holdout: float, seed: int) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+    """Which spacing squares (arrays of cols, rows) hold check points: the roles
+    :func:`candidates_from_sites` gives, known before any site is chosen (see
+    :func:`pipeline25d.stages.gcp_sites.select_sites`)."""
+    def checks(cols: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        return np.array([is_check(square_id(c, r), holdout, seed) for c, r in zip(cols, rows)], dtype=bool)
+
+    return checks
 
 
 def assign_roles(points: list[dict], holdout: float, seed: int) -> list[GcpCandidate]:
     """Candidates of ``points`` (id, x, y, z, ground, sx, sy): a ``holdout`` share as 'check', the rest 'gcp'.
 
-    The draw is a hash of (seed, id), so each point's role is stable: adding or removing
-    other points never turns a check point into a GCP or back.
+    The draw is a hash of (seed, id) (:func:`is_check`), so each point's role is stable: adding or
+    removing other points never turns a check point into a GCP or back.
     """
-    import hashlib
-
-    def draw(pid: str) -> float:
-        digest = hashlib.sha256(f"{seed}:{pid}".encode()).digest()
-        return int.from_bytes(digest[:8], "big") / 2 ** 64
-
-    return [GcpCandidate.from_row({**p, "role": "check" if draw(str(p["id"])) < holdout else "gcp"}) for p in points]
+    return [GcpCandidate.from_row({**p, "role": "check" if is_check(str(p["id"]), holdout, seed) else "gcp"})
+            for p in points]
 
 
 def write_csv(path: str | Path, rows: Sequence[GcpCandidate], fields: list[str]) -> None:

@@ -16,13 +16,13 @@ from typing import NamedTuple
 
 import numpy as np
 
-from pipeline25d.core.atomic import write_json
+from pipeline25d.core.atomic import write_json, write_text
 from pipeline25d.core.errors import ConfigError, GroundError
 from pipeline25d.core.grid import Window
 from pipeline25d.geometry.perspectives import Perspective
-from pipeline25d.stages.gcps import CANDIDATE_FIELDS, assign_roles, read_csv, write_csv
+from pipeline25d.stages.gcps import CANDIDATE_FIELDS, assign_roles, read_csv, square_id, write_csv
 from pipeline25d.stages.lod import lod_chunks, scene_bounds
-from pipeline25d.stages.records import ChunkGround, GcpCandidate, Scene
+from pipeline25d.stages.records import ChunkGround, Scene
 
 log = logging.getLogger(__name__)
 
@@ -33,7 +33,8 @@ GROUND_MARGIN_M = 2.0   # widens a chunk's ground range (tile assignment in terr
 def scene_setup(lod_indexes: list[str], dsm_path: str | Path, terrain: str, terrain_path: str | Path | None,
                 z0_cfg, projection: str, gcp_cfg: dict, scene_crs: str, gsd: float, perspective_ids: list[str],
                 out_scene: str | Path, out_candidates: str | Path, out_dtm: str | Path | None = None,
-                max_object_size: float = 100.0, out_grounds: str | Path | None = None, processes: int = 1) -> dict:
+                max_object_size: float = 100.0, out_grounds: str | Path | None = None, processes: int = 1,
+                out_holdout: str | Path | None = None) -> dict:
     """Reference plane z0, projection mode, GCP candidates (with check-point roles) and, for
     ``terrain: auto``, the DTM.
 
@@ -46,7 +47,10 @@ def scene_setup(lod_indexes: list[str], dsm_path: str | Path, terrain: str, terr
     ``terrain_path``: the ground heights from :func:`build_terrain` (auto) or the user's DTM.
     With auto, the ground around each check point (within :func:`holdout_radius`) is left
     out of the DTM's interpolation, so a check point measures how well the DTM predicts
-    ground it has not seen, not the DSM against itself.
+    ground it has not seen, not the DSM against itself. Where it is left out does not depend
+    on the perspectives (:func:`~pipeline25d.stages.gcp_sites.select_sites`), so neither does
+    the DTM: a perspective added later draws no kept tile again. ``out_holdout``: those
+    places (CSV: id, x, y; auto only), each check square's site, seen in a view or not.
 
     Memory: the DSM and the DTM are held whole as float32, 8 bytes a cell, which loses
     nothing (the DSM is read from its float32 GeoTIFF, GDAL's fill computes in float32);
@@ -62,7 +66,7 @@ def scene_setup(lod_indexes: list[str], dsm_path: str | Path, terrain: str, terr
     with fork_pool(processes) if several else nullcontext() as pool:
         return _scene_setup(lod_indexes, dsm_src, terrain, terrain_path, z0_cfg, projection, gcp_cfg, scene_crs, gsd,
                             perspective_ids, out_scene, out_candidates, out_dtm, search, out_grounds,
-                            DtmWorkers(pool, processes if pool else 1))
+                            DtmWorkers(pool, processes if pool else 1), out_holdout)
 
 
 class DtmWorkers(NamedTuple):
@@ -75,19 +79,19 @@ class DtmWorkers(NamedTuple):
 def _scene_setup(lod_indexes: list[str], dsm_src, terrain: str, terrain_path: str | Path | None, z0_cfg,
                  projection: str, gcp_cfg: dict, scene_crs: str, gsd: float, perspective_ids: list[str],
                  out_scene: str | Path, out_candidates: str | Path, out_dtm: str | Path | None, search: int,
-                 out_grounds: str | Path | None, workers: DtmWorkers) -> Scene:
+                 out_grounds: str | Path | None, workers: DtmWorkers, out_holdout: str | Path | None = None) -> Scene:
     """:func:`scene_setup` once its workers are forked."""
     from pipeline25d.core.crs import horizontal_wkt
     from pipeline25d.core.geotiff import FloatRaster, write_float_geotiff
     from pipeline25d.core.raster import DTM
     from pipeline25d.stages.gcp_sites import SiteRules, select_sites
-    from pipeline25d.stages.gcps import candidates_from_sites
+    from pipeline25d.stages.gcps import candidates_from_sites, check_squares
 
     chunks = lod_chunks(lod_indexes)
     bounds, lo, hi = scene_bounds(chunks)
     grid = dsm_src.grid
     dsm = dsm_src.read_all(np.float32)
-    seed_src, radius, height_fn = None, None, None
+    seed_src, radius, height_fn, held, ids = None, None, None, np.zeros((0, 2)), []
     if terrain == "flat":
         level = float(z0_cfg) if z0_cfg != "auto" else float(np.median(bounds[:, 0, 2]))
         dtm = np.broadcast_to(level, grid.shape)
@@ -114,13 +118,16 @@ def _scene_setup(lod_indexes: list[str], dsm_src, terrain: str, terrain_path: st
                           clearance=gcp_cfg["clearance"], max_height=gcp_cfg["max_height"],
                           max_roughness=gcp_cfg["max_roughness"], max_slope=gcp_cfg["max_slope"])
         surface = dsm if seed_src is None else with_bare_ground(dsm, dtm, seed_src.read_all(np.float32))
-        cands = candidates_from_sites(select_sites(surface, dtm, grid, rules, perspectives),
-                                      gcp_cfg["holdout"], gcp_cfg["seed"])
+        sites = select_sites(surface, dtm, grid, rules, perspectives,
+                             check_square=check_squares(gcp_cfg["holdout"], gcp_cfg["seed"]))
+        cands = candidates_from_sites(sites, gcp_cfg["holdout"], gcp_cfg["seed"])
         del surface
         if seed_src is not None:
             radius = holdout_radius(rules, grid.res)
+            held = np.round(np.column_stack([sites["held_x"], sites["held_y"]]), 3)    # as the candidates
+            ids = [square_id(c, r) for c, r in zip(sites["held_col"], sites["held_row"])]
             del dtm
-            dtm = _interpolated_dtm(partial(_held_out_read, seed_src, grid, cands, radius), grid, search, needed,
+            dtm = _interpolated_dtm(partial(_held_out_read, seed_src, grid, held, radius), grid, search, needed,
                                     workers)
             _check_ground(dtm, grid, chunks, terrain_path, 4 * search * grid.res, covered)
             xy = np.array([[c.x, c.y] for c in cands]).reshape(-1, 2)
@@ -136,6 +143,8 @@ def _scene_setup(lod_indexes: list[str], dsm_src, terrain: str, terrain_path: st
                              gcp_cfg["holdout"], gcp_cfg["seed"])
     if terrain == "auto":
         write_float_geotiff(out_dtm, dtm, grid, horizontal_wkt(scene_crs))
+    if out_holdout is not None:
+        write_text(out_holdout, "id,x,y\n" + "".join(f"{i},{x:.3f},{y:.3f}\n" for i, (x, y) in zip(ids, held)))
     dtm_path = out_dtm if terrain == "auto" else terrain_path
     scene = Scene(bounds=(tuple(lo.tolist()), tuple(hi.tolist())), z0=z0, terrain=terrain, projection=projection,
                   dtm=None if terrain == "flat" else str(dtm_path), n_candidates=len(cands),
@@ -182,10 +191,10 @@ def _interpolated_dtm(read, grid, search: int, needed=None, workers: DtmWorkers 
     return dtm
 
 
-def _held_out_read(seed_src, grid, cands: list[GcpCandidate], radius: float, rows: slice, cols: slice) -> np.ndarray:
-    """The ground heights of (rows, cols) without those within ``radius`` of a check point
-    (:func:`_without_check_points`); a module function, so a worker can be sent it."""
-    return _without_check_points(seed_src.read(rows, cols), grid, cands, radius, (rows, cols))
+def _held_out_read(seed_src, grid, held: np.ndarray, radius: float, rows: slice, cols: slice) -> np.ndarray:
+    """The ground heights of (rows, cols) without those within ``radius`` of the ``held`` (n, 2)
+    points (:func:`_without_held_out`); a module function, so a worker can be sent it."""
+    return _without_held_out(seed_src.read(rows, cols), grid, held, radius, (rows, cols))
 
 
 def _check_ground(dtm: np.ndarray, grid, chunks: list, ground_path, reach_m: float, covered: np.ndarray) -> None:
@@ -300,9 +309,10 @@ def holdout_radius(rules, res: float) -> float:
     return rules.radius + rules.clearance + 2 * res
 
 
-def _without_check_points(seed: np.ndarray, grid, cands: list[GcpCandidate], radius: float,
-                          window: tuple[slice, slice] | None = None) -> np.ndarray:
-    """A copy of the ground heights with the cells within ``radius`` of each check point set to NaN.
+def _without_held_out(seed: np.ndarray, grid, held: np.ndarray, radius: float,
+                      window: tuple[slice, slice] | None = None) -> np.ndarray:
+    """A copy of the ground heights with the cells within ``radius`` of each ``held`` (n, 2)
+    point (the check squares' sites) set to NaN.
 
     ``window``: ``seed`` holds only these (rows, cols) of ``grid``.
     """
@@ -310,15 +320,13 @@ def _without_check_points(seed: np.ndarray, grid, cands: list[GcpCandidate], rad
     rows, cols = window or (slice(0, grid.height), slice(0, grid.width))
     xs, ys = grid.column_x(), grid.row_y()
     k = int(np.ceil(radius / grid.res)) + 1
-    for c in cands:
-        if c.role != "check":
-            continue
-        col, row = (int(v) for v in grid.colrow(c.x, c.y))
+    for x, y in held:
+        col, row = (int(v) for v in grid.colrow(x, y))
         r0, r1 = max(row - k, rows.start), min(row + k + 1, rows.stop)
         c0, c1 = max(col - k, cols.start), min(col + k + 1, cols.stop)
         if r0 >= r1 or c0 >= c1:
             continue
-        near = np.hypot(xs[None, c0:c1] - c.x, ys[r0:r1, None] - c.y) <= radius
+        near = np.hypot(xs[None, c0:c1] - x, ys[r0:r1, None] - y) <= radius
         out[r0 - rows.start:r1 - rows.start, c0 - cols.start:c1 - cols.start][near] = np.nan
     return out
 
