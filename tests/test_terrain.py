@@ -320,3 +320,20 @@ def test_a_check_squares_site_and_so_the_dtms_holdout_do_not_depend_on_the_persp
     is_check = checks(held_too["square_col"], held_too["square_row"])
     np.testing.assert_array_equal(np.column_stack([held_too["x"][is_check], held_too["y"][is_check]]),
                                   np.column_stack([held_too["held_x"], held_too["held_y"]]))
+
+
+def test_check_squares_are_the_squares_whose_candidates_are_check_points():
+    """The check squares known before any site is chosen are the squares whose candidates get the
+    role check (the same hash of seed and id), a ``holdout`` share of them within binomial noise;
+    each square is drawn once however many options it has."""
+    from pipeline25d.stages.gcps import candidates_from_sites, check_squares
+
+    rng = np.random.default_rng(7)
+    cols, rows = rng.integers(-300, 300, 4000), rng.integers(-300, 300, 4000)
+    sites = {"x": cols * 20.0 + 3, "y": rows * 20.0 + 5, "z": np.zeros(4000), "ground": np.zeros(4000),
+             "sx": np.zeros(4000), "sy": np.zeros(4000), "square_col": cols, "square_row": rows}
+    for holdout, seed in ((0.2, 0), (0.5, 11)):
+        roles = np.array([c.role == "check" for c in candidates_from_sites(sites, holdout, seed)])
+        drawn = check_squares(holdout, seed)(np.repeat(cols, 3).astype(float), np.repeat(rows, 3).astype(float))
+        np.testing.assert_array_equal(drawn, np.repeat(roles, 3))
+        assert abs(roles.mean() - holdout) < 4 * np.sqrt(holdout * (1 - holdout) / 4000)

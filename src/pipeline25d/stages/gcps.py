@@ -55,7 +55,10 @@ def check_squares(holdout: float, seed: int) -> Callable[[np.ndarray, np.ndarray
     :func:`candidates_from_sites` gives, known before any site is chosen (see
     :func:`pipeline25d.stages.gcp_sites.select_sites`)."""
     def checks(cols: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        return np.array([is_check(square_id(c, r), holdout, seed) for c, r in zip(cols, rows)], dtype=bool)
+        squares, at = np.unique(np.column_stack([cols, rows]).astype(np.int64).reshape(-1, 2), axis=0,
+                                return_inverse=True)        # each square drawn once, not once per option
+        drawn = np.array([is_check(square_id(c, r), holdout, seed) for c, r in squares], dtype=bool)
+        return drawn[at.reshape(-1)]
 
     return checks
 
