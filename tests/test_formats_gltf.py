@@ -259,6 +259,31 @@ def test_webp_textures(tmp_path):
     np.testing.assert_array_equal(np.asarray(Image.open(io.BytesIO(part.texture)).convert("RGB")), texels)
 
 
+def test_a_webp_cut_short_is_drawn_untextured_with_a_warning_naming_the_image(tmp_path):
+    """A WEBP that Pillow cannot decode (cut short) leaves its parts untextured and says which image of
+    which file, and why; its RGBA twin keeps its alpha as PNG."""
+    from PIL import Image
+
+    from pipeline25d.core.errors import MissingTextureWarning
+
+    texels = np.random.default_rng(6).integers(0, 256, (8, 8, 4), dtype=np.uint8)
+    out = io.BytesIO()
+    Image.fromarray(texels).save(out, format="WEBP", lossless=True)
+    material = {"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}
+    for data, whole in ((out.getvalue(), True), (out.getvalue()[:40], False)):
+        doc, binary = _with_image(*_gltf(material=material), data, "image/webp")
+        doc["textures"] = [{"extensions": {"EXT_texture_webp": {"source": 0}}}]
+        doc["extensionsRequired"] = doc["extensionsUsed"] = ["EXT_texture_webp"]
+        if whole:
+            part = parse_gltf_bytes(_glb(doc, binary), tmp_path / "w.glb")[0]
+            np.testing.assert_array_equal(np.asarray(Image.open(io.BytesIO(part.texture))), texels)
+            continue
+        with pytest.warns(MissingTextureWarning, match=r"cut\.glb: image 0 cannot be read \(WEBP: .+\); its parts "
+                                                       r"are drawn untextured"):
+            part = parse_gltf_bytes(_glb(doc, binary), tmp_path / "cut.glb")[0]
+        assert part.texture is None
+
+
 def test_unsupported_required_extension(tmp_path):
     doc, binary = _gltf(extra={"extensionsRequired": ["KHR_example_unknown"]})
     path = _write_gltf(tmp_path / "unknown.gltf", doc, binary)

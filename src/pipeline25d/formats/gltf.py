@@ -46,7 +46,7 @@ from pipeline25d.core.errors import InputFileError, MissingTextureWarning, Unsup
 from pipeline25d.core.mesh import MeshPart, repeated
 from pipeline25d.formats import gltf1, ktx2, meshopt
 from pipeline25d.formats.attributes import Limiter
-from pipeline25d.formats.common import Y_UP_TO_Z_UP, image_problem, png_or_jpeg, side_file, texture_file
+from pipeline25d.formats.common import Y_UP_TO_Z_UP, image_as_png, image_problem, png_or_jpeg, side_file, texture_file
 from pipeline25d.formats.feature_info import feature_prefix, feature_properties
 from pipeline25d.formats.gltf1 import COMPONENT_DTYPES, TYPE_SIZES
 from pipeline25d.formats.gzipped import file_bytes
@@ -371,19 +371,11 @@ class _Document:
 def _webp_as_png(data: bytes, path: Path, index: int) -> bytes | None:
     """A WEBP image (``EXT_texture_webp``) as PNG bytes, which the chunks and the render job take;
     None with a warning when it cannot be decoded."""
-    import io
-
-    from PIL import Image
-
-    try:
-        with Image.open(io.BytesIO(data)) as img:
-            out = io.BytesIO()
-            img.save(out, format="PNG", compress_level=1)
-    except (OSError, ValueError, SyntaxError) as exc:
-        warnings.warn(f"{path}: image {index} cannot be read (WEBP: {exc}); its parts are drawn untextured",
+    png, problem = image_as_png(data)
+    if png is None:
+        warnings.warn(f"{path}: image {index} cannot be read (WEBP: {problem}); its parts are drawn untextured",
                       MissingTextureWarning, stacklevel=5)
-        return None
-    return out.getvalue()
+    return png
 
 
 def _ktx2_as_png(data: bytes, path: Path, index: int) -> bytes | None:

@@ -47,7 +47,7 @@ import numpy as np
 from pipeline25d.core.errors import InputFileError, MissingTextureWarning, UnsupportedFeatureError
 from pipeline25d.core.mesh import MeshPart
 from pipeline25d.formats import ktx2
-from pipeline25d.formats.common import Detail, Loaded, image_problem, png_or_jpeg
+from pipeline25d.formats.common import Detail, Loaded, image_as_png, image_problem, png_or_jpeg
 from pipeline25d.formats.i3s_attributes import VALUE_TYPES
 from pipeline25d.formats.slpk import Package
 
@@ -363,17 +363,8 @@ def _texture(package: Package, candidates: list[tuple[str, str]], index, problem
 
 def _dds_as_png(data: bytes, name: str) -> tuple[bytes | None, str | None]:
     """A DDS texture's level 0 as PNG bytes (Pillow decodes DXT1/3/5 and BC4-7), or (None, the problem)."""
-    import io
-
-    from PIL import Image
-
-    try:
-        with Image.open(io.BytesIO(data)) as image:
-            out = io.BytesIO()
-            image.convert("RGBA" if "A" in image.mode else "RGB").save(out, format="PNG", compress_level=1)
-    except Exception as exc:        # Pillow raises several types for an unknown format or a cut file
-        return None, f"{name} cannot be read (DDS: {exc})"
-    return out.getvalue(), None
+    png, problem = image_as_png(data)
+    return png, None if png is not None else f"{name} cannot be read (DDS: {problem})"
 
 
 def _uv(uv0: np.ndarray, region: np.ndarray | None) -> np.ndarray:
