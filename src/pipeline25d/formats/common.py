@@ -82,23 +82,6 @@ def raw_tga(data: bytes) -> bool:
     return len(data) >= 18 and data[1] == 0 and data[2] == 2 and data[16] in (24, 32)
 
 
-def image_as_png(data: bytes) -> tuple[bytes | None, str | None]:
-    """An image Pillow decodes (a glTF's WEBP, an I3S package's DDS) as PNG bytes, RGB or RGBA,
-    which the chunks and the render job take (level 1: fast); (None, Pillow's problem) when it
-    cannot be decoded."""
-    import io
-
-    from PIL import Image
-
-    try:
-        with Image.open(io.BytesIO(data)) as image:
-            out = io.BytesIO()
-            image.convert("RGBA" if "A" in image.mode else "RGB").save(out, format="PNG", compress_level=1)
-    except Exception as exc:        # Pillow raises several types for an unknown format or a cut file
-        return None, str(exc)
-    return out.getvalue(), None
-
-
 def drawn_as_is(data: bytes) -> bool:
     """Whether a texture's bytes are kept as they are (a PNG, a JPEG, an uncompressed TGA), not re-encoded as PNG."""
     return png_or_jpeg(data) or raw_tga(data)

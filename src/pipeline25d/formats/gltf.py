@@ -46,7 +46,8 @@ from pipeline25d.core.errors import InputFileError, MissingTextureWarning, Unsup
 from pipeline25d.core.mesh import MeshPart, repeated
 from pipeline25d.formats import gltf1, ktx2, meshopt
 from pipeline25d.formats.attributes import Limiter
-from pipeline25d.formats.common import Y_UP_TO_Z_UP, image_as_png, image_problem, png_or_jpeg, side_file, texture_file
+from pipeline25d.formats.common import Y_UP_TO_Z_UP, image_problem, png_or_jpeg, side_file, texture_file
+from pipeline25d.formats.decoded_png import image_as_png
 from pipeline25d.formats.feature_info import feature_prefix, feature_properties
 from pipeline25d.formats.gltf1 import COMPONENT_DTYPES, TYPE_SIZES
 from pipeline25d.formats.gzipped import file_bytes

@@ -47,7 +47,8 @@ import numpy as np
 from pipeline25d.core.errors import InputFileError, MissingTextureWarning, UnsupportedFeatureError
 from pipeline25d.core.mesh import MeshPart
 from pipeline25d.formats import ktx2
-from pipeline25d.formats.common import Detail, Loaded, image_as_png, image_problem, png_or_jpeg
+from pipeline25d.formats.common import Detail, Loaded, image_problem, png_or_jpeg
+from pipeline25d.formats.decoded_png import image_as_png
 from pipeline25d.formats.i3s_attributes import VALUE_TYPES
 from pipeline25d.formats.slpk import Package
 
