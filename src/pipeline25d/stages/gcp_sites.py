@@ -105,22 +105,24 @@ def select_sites(dsm: np.ndarray, dtm: np.ndarray, grid: Grid, rules: SiteRules,
     clear = _clear_lines_of_sight(dsm, grid, o["x"], o["y"], o["z"], slopes, rules.radius, perspectives)
     checks = check_square(o["sq_x"], o["sq_y"]) if check_square is not None else np.zeros(len(clear), bool)
     if not checks.any():
-        return {**_chosen(o, clear.sum(axis=1), clear, grid, rules, perspectives), **_held(None, np.zeros(0, bool))}
+        return {**_chosen(o, clear.sum(axis=1), clear, grid, rules, perspectives), **_held(None)}
     same = sorted(p.id for p in perspectives) == sorted(p.id for p in REFERENCE_VIEWS)
     reference = clear if same else _clear_lines_of_sight(dsm, grid, o["x"], o["y"], o["z"], slopes, rules.radius,
                                                          REFERENCE_VIEWS)
     ref = _chosen(o, reference.sum(axis=1), reference, grid, rules, REFERENCE_VIEWS)
     held = check_square(ref["square_col"], ref["square_row"])
     # a check square takes the reference's site; one the reference does not keep gives no site
-    sites = _chosen(o, np.where(checks, reference.sum(axis=1), clear.sum(axis=1)), clear, grid, rules, perspectives)
+    # (the default perspectives: the reference's sites are the config's, chosen and thinned alike)
+    sites = ref if same else _chosen(o, np.where(checks, reference.sum(axis=1), clear.sum(axis=1)), clear, grid,
+                                     rules, perspectives)
     kept = set(zip(ref["square_col"][held].tolist(), ref["square_row"][held].tolist()))
     ok = ~check_square(sites["square_col"], sites["square_row"]) | np.array(
         [sq in kept for sq in zip(sites["square_col"].tolist(), sites["square_row"].tolist())], dtype=bool)
     return {**{key: v[ok] for key, v in sites.items()}, **_held(ref, held)}
 
 
-def _held(ref: dict[str, np.ndarray] | None, held: np.ndarray) -> dict[str, np.ndarray]:
-    """The held_* arrays of :func:`select_sites`: the reference's check sites (none: empty)."""
+def _held(ref: dict[str, np.ndarray] | None, held: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """The held_* arrays of :func:`select_sites`: the reference's sites where ``held`` (None: empty)."""
     if ref is None:
         return {"held_x": np.zeros(0), "held_y": np.zeros(0), "held_col": np.zeros(0, np.int64),
                 "held_row": np.zeros(0, np.int64)}
