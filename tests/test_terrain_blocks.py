@@ -141,18 +141,22 @@ def test_ground_blocks_in_processes_equal_one_process(scene):
     assert sum(int(g.sum()) for _, _, g in two) > 0.5 * np.isfinite(dsm).sum()
 
 
-def test_blockwise_dtm_equals_the_whole_grid(scene):
-    """Exact: the fill looks ``search`` cells far and the window reaches twice that; a hole in the
-    ground wider than the window (cells take their nearest filled cell) makes a block read again wider."""
+@pytest.mark.parametrize("plane", [0, 8])
+def test_blockwise_dtm_equals_the_whole_grid(scene, plane):
+    """Exact: the fill looks ``search`` cells far (with local planes, 3 x ``plane`` + 1) and the
+    window reaches farther; a hole in the ground wider than the window (cells take their nearest
+    filled cell) makes a block read again wider."""
     grid, dsm, _, whole = scene
     seed = np.where(whole, dsm, np.nan)
     seed[100:420, 150:500] = np.nan                     # no ground for 160 m around (300, 325)
     seed[600:, :] = np.nan
-    expected = interpolate_dtm(seed, 20)
+    expected = interpolate_dtm(seed, 20, plane_cells=plane)
     got = np.full(dsm.shape, np.nan)
-    for block, values in dtm_blocks(_read(seed), grid, 20, SMALL_BLOCKS):
+    for block, values in dtm_blocks(_read(seed), grid, 20, SMALL_BLOCKS, plane_cells=plane):
         got[block.core] = values
     np.testing.assert_array_equal(got, expected)
+    if plane:
+        assert not np.array_equal(expected, interpolate_dtm(seed, 20))         # the planes moved the gaps
 
 
 def test_a_one_block_dtm_is_filled_in_exact_halves(scene):
@@ -268,11 +272,12 @@ def test_empty_land_is_not_filtered_and_the_districts_are_as_alone(monkeypatch):
         assert (ground[rows, cols] == alone).mean() >= 0.995
 
 
-def test_dtm_only_where_it_is_needed():
+@pytest.mark.parametrize("plane", [0, 8])
+def test_dtm_only_where_it_is_needed(plane):
     """Blocks ``needed`` rejects stay NaN without a fill; the others equal the whole grid's DTM."""
     grid, dsm = sparse_scene()
     seed = np.where(np.isfinite(dsm) & (np.arange(dsm.shape[1]) % 7 != 0), dsm, np.nan)
-    expected = interpolate_dtm(seed, 20, reach_cells=80)
+    expected = interpolate_dtm(seed, 20, reach_cells=80, plane_cells=plane)
     asked = []
 
     def has_model(core):
@@ -283,7 +288,8 @@ def test_dtm_only_where_it_is_needed():
         return has_model(core)
 
     got = np.full(grid.shape, -1.0)
-    for block, values in dtm_blocks(_read(seed), grid, 20, 512 * 512, needed=needed, reach_cells=80):
+    for block, values in dtm_blocks(_read(seed), grid, 20, 512 * 512, needed=needed, reach_cells=80,
+                                    plane_cells=plane):
         got[block.core] = values
     used = np.zeros(grid.shape, bool)
     for core in asked:

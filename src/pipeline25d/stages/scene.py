@@ -84,8 +84,9 @@ def _scene_setup(lod_indexes: list[str], dsm_src, terrain: str, terrain_path: st
     from pipeline25d.core.crs import horizontal_wkt
     from pipeline25d.core.geotiff import FloatRaster, write_float_geotiff
     from pipeline25d.core.raster import DTM
-    from pipeline25d.stages.gcp_sites import SiteRules, select_sites
+    from pipeline25d.stages.gcp_sites import select_sites
     from pipeline25d.stages.gcps import candidates_from_sites, check_squares
+    from pipeline25d.stages.terrain.gap_planes import gap_plane_cells
 
     chunks = lod_chunks(lod_indexes)
     bounds, lo, hi = scene_bounds(chunks)
@@ -98,7 +99,12 @@ def _scene_setup(lod_indexes: list[str], dsm_src, terrain: str, terrain_path: st
     elif terrain == "auto":
         seed_src = FloatRaster(terrain_path)
         needed = _under_chunks(bounds, grid)
-        dtm = _interpolated_dtm(seed_src.read, grid, search, needed, workers)
+        plane = gap_plane_cells(grid.res, holdout_radius(site_rules(gcp_cfg, gsd), grid.res)
+                                if gcp_cfg["source"] == "auto" else 0.0)
+        # with GCPs of its own, this DTM only chooses their sites, which stand on ground cells: the
+        # plain fill (the DTM is filled again, along local planes, without the check points' ground)
+        dtm = _interpolated_dtm(seed_src.read, grid, search, needed, workers,
+                                0 if gcp_cfg["source"] == "auto" else plane)
     else:
         height_fn = DTM(terrain_path, scene_crs, continuous=True).sample
         dtm = _sampled_dtm(height_fn, grid)
@@ -114,9 +120,7 @@ def _scene_setup(lod_indexes: list[str], dsm_src, terrain: str, terrain_path: st
                           "not terrain: flat")
     perspectives = [Perspective.from_id(pid) for pid in perspective_ids]
     if gcp_cfg["source"] == "auto":
-        rules = SiteRules(spacing=gcp_cfg["spacing"], radius=gcp_cfg["marker_px"] * gsd,
-                          clearance=gcp_cfg["clearance"], max_height=gcp_cfg["max_height"],
-                          max_roughness=gcp_cfg["max_roughness"], max_slope=gcp_cfg["max_slope"])
+        rules = site_rules(gcp_cfg, gsd)
         surface = dsm if seed_src is None else with_bare_ground(dsm, dtm, seed_src.read_all(np.float32))
         sites = select_sites(surface, dtm, grid, rules, perspectives,
                              check_square=check_squares(gcp_cfg["holdout"], gcp_cfg["seed"]))
@@ -128,7 +132,7 @@ def _scene_setup(lod_indexes: list[str], dsm_src, terrain: str, terrain_path: st
             ids = [square_id(c, r) for c, r in zip(sites["held_col"], sites["held_row"])]
             del dtm
             dtm = _interpolated_dtm(partial(_held_out_read, seed_src, grid, held, radius), grid, search, needed,
-                                    workers)
+                                    workers, plane)
             _check_ground(dtm, grid, chunks, terrain_path, 4 * search * grid.res, covered)
             xy = np.array([[c.x, c.y] for c in cands]).reshape(-1, 2)
             cands = [replace(c, ground=round(float(g), 3)) for c, g in zip(cands, _sample_continuous(dtm, grid, xy))]
@@ -174,8 +178,10 @@ def with_bare_ground(dsm: np.ndarray, dtm: np.ndarray, seed: np.ndarray) -> np.n
     return out
 
 
-def _interpolated_dtm(read, grid, search: int, needed=None, workers: DtmWorkers = DtmWorkers(None, 1)) -> np.ndarray:
-    """The DTM (float32, exact: GDAL's fill computes in float32) from the ground heights ``read(rows, cols)``.
+def _interpolated_dtm(read, grid, search: int, needed=None, workers: DtmWorkers = DtmWorkers(None, 1),
+                      plane: int = 0) -> np.ndarray:
+    """The DTM (float32) from the ground heights ``read(rows, cols)``, its gaps filled along local
+    planes of ``plane`` cells (:func:`gap_plane_cells`).
 
     With ``needed`` (a sparse scene's blocks under the model), the DTM reaches 4 x ``search``
     cells (twice the largest object) beyond the ground and is NaN elsewhere: empty land costs nothing.
@@ -186,7 +192,7 @@ def _interpolated_dtm(read, grid, search: int, needed=None, workers: DtmWorkers 
     dtm = np.empty(grid.shape, np.float32)
     reach = None if needed is None else 4 * search
     for block, values in dtm_blocks(read, grid, search, needed=needed, reach_cells=reach, pool=workers.pool,
-                                    ahead=workers.count):
+                                    ahead=workers.count, plane_cells=plane):
         dtm[block.core] = values
     return dtm
 
@@ -298,6 +304,15 @@ def _sample_continuous(values: np.ndarray, grid, xy: np.ndarray) -> np.ndarray:
         window = DTM.from_array(values[rows, cols], grid.window(rows, cols), continuous=True)
         out[i] = window.sample(np.array([x]), np.array([y]))[0]
     return out
+
+
+def site_rules(gcp_cfg: dict, gsd: float):
+    """The GCP sites' :class:`~pipeline25d.stages.gcp_sites.SiteRules` from the config's ``gcp``."""
+    from pipeline25d.stages.gcp_sites import SiteRules
+
+    return SiteRules(spacing=gcp_cfg["spacing"], radius=gcp_cfg["marker_px"] * gsd, clearance=gcp_cfg["clearance"],
+                     max_height=gcp_cfg["max_height"], max_roughness=gcp_cfg["max_roughness"],
+                     max_slope=gcp_cfg["max_slope"])
 
 
 def holdout_radius(rules, res: float) -> float:

@@ -14,7 +14,8 @@
    that name no buildings, ``shapes`` finds them by their shape); an input made of buildings
    alone is not filtered (its surface holds roofs only).
 3. **DTM**: ground cells keep the DSM's height; the rest (under buildings, trees) is filled
-   by GDAL's inverse-distance ``FillNodata``.
+   by GDAL's inverse-distance ``FillNodata``, corrected along local planes where ground surrounds
+   the gap (``gap_planes``; the scene stage fills it, without the check points' ground).
 All heights are float64 metres in the scene CRS; the rasters are written as float32 GeoTIFFs.
 
 Memory follows a block, not the city: the DSM is written tile by tile as it is rendered, and
@@ -24,6 +25,6 @@ window reaching far enough around its core that the core comes out as on the who
 
 Modules: ``dsm`` (the nadir height map), ``ground`` (ground cells: the envelope and the cloth),
 ``bases`` (ground from building bases), ``shapes`` (buildings by their shape),
-``dtm`` (the fill between ground cells), ``build`` (the terrain stage's job); the cell grid
-and its float GeoTIFFs are :mod:`pipeline25d.core.grid`.
+``dtm`` (the fill between ground cells), ``gap_planes`` (its local planes), ``build`` (the
+terrain stage's job); the cell grid and its float GeoTIFFs are :mod:`pipeline25d.core.grid`.
 """

@@ -1,4 +1,5 @@
-"""The DTM between ground cells: GDAL's inverse-distance fill, block by block, only where it is needed."""
+"""The DTM between ground cells: GDAL's inverse-distance fill corrected by local planes
+(:mod:`~pipeline25d.stages.terrain.gap_planes`), block by block, only where it is needed."""
 
 from __future__ import annotations
 
@@ -14,8 +15,11 @@ from pipeline25d.core.raster import fill_nearest, gdal
 log = logging.getLogger(__name__)
 
 
-def interpolate_dtm(seed: np.ndarray, search_cells: int, reach_cells: float | None = None) -> np.ndarray:
-    """Fill the NaN cells of ``seed`` (ground heights) with GDAL's inverse-distance FillNodata.
+def interpolate_dtm(seed: np.ndarray, search_cells: int, reach_cells: float | None = None,
+                    plane_cells: int = 0) -> np.ndarray:
+    """Fill the NaN cells of ``seed`` (ground heights) with GDAL's inverse-distance FillNodata,
+    corrected by the local planes of boxes ``plane_cells`` cells round each gap cell (0: none;
+    :func:`~pipeline25d.stages.terrain.gap_planes.plane_corrected`).
 
     The search reaches ``search_cells`` (half the widest object is enough); cells beyond it
     take their nearest value, up to ``reach_cells`` from it (default: everywhere; beyond, NaN:
@@ -24,7 +28,24 @@ def interpolate_dtm(seed: np.ndarray, search_cells: int, reach_cells: float | No
     """
     if not np.isfinite(seed).any():
         raise ValueError("no ground cells to build a DTM from")
-    return fill_nearest(_fill_nodata(seed, search_cells), reach_cells)
+    return fill_nearest(_filled(seed, search_cells, plane_cells), reach_cells)
+
+
+def fill_reach(search_cells: int, plane_cells: int = 0) -> int:
+    """Cells of the ground heights (rows and columns) a cell of the fill depends on."""
+    from pipeline25d.stages.terrain.gap_planes import plane_reach
+
+    return max(int(search_cells), 1, plane_reach(plane_cells) if plane_cells else 0)
+
+
+def _filled(seed: np.ndarray, search_cells: int, plane_cells: int = 0) -> np.ndarray:
+    """:func:`_fill_nodata`, then the local planes' correction (``plane_cells`` > 0)."""
+    filled = _fill_nodata(seed, search_cells)
+    if not plane_cells:
+        return filled
+    from pipeline25d.stages.terrain.gap_planes import plane_corrected
+
+    return plane_corrected(seed, filled, int(plane_cells), _fill_nodata)
 
 
 def _fill_nodata(seed: np.ndarray, search_cells: int) -> np.ndarray:
@@ -89,7 +110,7 @@ def dtm_blocks(read: Callable[[slice, slice], np.ndarray], grid: Grid, search_ce
                max_cells: int = BLOCK_CELLS,
                needed: Callable[[tuple[slice, slice]], bool] | None = None,
                reach_cells: float | None = None, pool: Executor | None = None,
-               ahead: int = 1) -> Iterator[tuple[Block, np.ndarray]]:
+               ahead: int = 1, plane_cells: int = 0) -> Iterator[tuple[Block, np.ndarray]]:
     """(block, DTM of its core): :func:`interpolate_dtm` of the ground heights ``read(rows, cols)``
     (float64, NaN: not ground), block by block, equal to the whole grid's.
 
@@ -98,53 +119,54 @@ def dtm_blocks(read: Callable[[slice, slice], np.ndarray], grid: Grid, search_ce
     :func:`interpolate_dtm`; it also bounds how wide a block is read. ``pool``: forked workers
     (:func:`~pipeline25d.core.cores.fork_pool`) that fill the blocks, ``ahead`` at once, each
     reading its own window (``read`` must then pickle); the same values, in the same order.
+    ``plane_cells``: as in :func:`interpolate_dtm`.
 
-    A window reaches search + 1 cells beyond its core, so the fill is exact on the core. A core
-    cell it leaves empty takes its nearest filled cell, the whole grid's when that lies within
-    the window's margin less search + 1; where one does not (no ground that near), the block is
+    A window reaches :func:`fill_reach` + 1 cells beyond its core, so the fill is exact on the
+    core. A core cell it leaves empty takes its nearest filled cell, the whole grid's when that
+    lies within the window's margin less that reach; where one does not (no ground that near), the block is
     read again with twice the margin. With ``reach_cells`` the first window sees that far.
     """
     from pipeline25d.core.cores import map_ahead
 
-    blocks = dtm_layout(grid, search_cells, max_cells)
+    blocks = dtm_layout(grid, search_cells, max_cells, plane_cells)
     wanted = [needed is None or needed(block.core) for block in blocks]
-    filled = map_ahead(pool, block_dtm, ((read, grid, b.core, search_cells, reach_cells)
+    filled = map_ahead(pool, block_dtm, ((read, grid, b.core, search_cells, reach_cells, plane_cells)
                                          for b, w in zip(blocks, wanted) if w), ahead)
     for block, w in zip(blocks, wanted):
         yield block, next(filled) if w else np.full(tuple(s.stop - s.start for s in block.core), np.nan)
 
 
-def dtm_layout(grid: Grid, search_cells: int, max_cells: int = BLOCK_CELLS) -> list[Block]:
-    """The blocks :func:`dtm_blocks` fills: each core's window reaches search + 1 cells beyond it
+def dtm_layout(grid: Grid, search_cells: int, max_cells: int = BLOCK_CELLS, plane_cells: int = 0) -> list[Block]:
+    """The blocks :func:`dtm_blocks` fills: each core's window reaches :func:`fill_reach` + 1 cells beyond it
     (a mid-sized grid halved, so that two workers share it: the fill is exact either way)."""
-    return cell_blocks(grid.height, grid.width, max(int(search_cells), 1) + 1, max_cells, halve=True)
+    return cell_blocks(grid.height, grid.width, fill_reach(search_cells, plane_cells) + 1, max_cells, halve=True)
 
 
 def block_dtm(read: Callable[[slice, slice], np.ndarray], grid: Grid, core: tuple[slice, slice], search_cells: int,
-              reach_cells: float | None = None) -> np.ndarray:
+              reach_cells: float | None = None, plane_cells: int = 0) -> np.ndarray:
     """The DTM of one block's ``core`` (:func:`dtm_blocks`), from as wide a window as it needs."""
-    reach = max(int(search_cells), 1) + 1
+    reach = fill_reach(search_cells, plane_cells) + 1
     # with a reach, the first window already sees as far as any cell may take a value from
     margin = reach if reach_cells is None else reach + int(np.ceil(reach_cells)) + 1
-    while (values := _dtm_core(read, grid, core, margin, search_cells, reach_cells)) is None:
+    while (values := _dtm_core(read, grid, core, margin, search_cells, reach_cells, plane_cells)) is None:
         margin *= 2
     return values
 
 
 def _dtm_core(read: Callable[[slice, slice], np.ndarray], grid: Grid, core: tuple[slice, slice], margin: int,
-              search_cells: int, reach_cells: float | None = None) -> np.ndarray | None:
+              search_cells: int, reach_cells: float | None = None, plane_cells: int = 0) -> np.ndarray | None:
     """The DTM of ``core`` from a window ``margin`` cells wider, or None if that is too narrow."""
     window = tuple(widen(s, margin, n) for s, n in zip(core, grid.shape))
     inner = Block(core, window).inner
     if all(w.start == 0 and w.stop == n for w, n in zip(window, grid.shape)):
-        return interpolate_dtm(read(*window), search_cells, reach_cells)[inner]
-    filled = _fill_nodata(read(*window), search_cells)
+        return interpolate_dtm(read(*window), search_cells, reach_cells, plane_cells)[inner]
+    filled = _filled(read(*window), search_cells, plane_cells)
     values = filled[inner].copy()
     empty = ~np.isfinite(values)
     if not empty.any():
         return values
-    # nearest filled cell among those the fill got exactly (search + 1 inside the window's cut sides)
-    reach = max(int(search_cells), 1) + 1
+    # nearest filled cell among those the fill got exactly (its reach + 1 inside the window's cut sides)
+    reach = fill_reach(search_cells, plane_cells) + 1
     exact = tuple(slice(0 if w.start == 0 else reach, (w.stop - w.start) - (0 if w.stop == n else reach))
                   for w, n in zip(window, grid.shape))
     source = np.full(filled.shape, np.nan)
