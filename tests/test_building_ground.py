@@ -77,8 +77,11 @@ def cell_centres_in(path: Path, box) -> tuple[np.ndarray, np.ndarray, np.ndarray
 def assert_plane_but_near_check_points(folder: Path, scene: dict, x, y, z) -> None:
     """DTM heights ``z`` at cell centres (x, y): the plane to the file's 1 mm vertices and float32,
     except within a cell of the discs left out of the DTM (scene stage: round every check point,
-    and round a check square's site that no view sees), where the interpolation across the disc is
-    within 0.15 m of it."""
+    and round a check square's site that no view sees), where the fill across the disc follows
+    the local plane wherever the plain fill would be 2 x KEEP_M off (0.10-0.12 m on these slopes
+    before the planes, 0.05-0.08 m after)."""
+    from pipeline25d.stages.terrain.gap_planes import KEEP_M
+
     checks = held_out(folder / "terrain" / "dtm_holdout.csv", folder / "candidates.csv")
     near = np.zeros(len(x), bool)
     if len(checks):
@@ -86,7 +89,7 @@ def assert_plane_but_near_check_points(folder: Path, scene: dict, x, y, z) -> No
             <= scene["dtm_check_holdout_m"] + 2.0
     assert (~near).sum() > 0.5 * len(x)
     np.testing.assert_allclose(z[~near], plane(x[~near], y[~near]), atol=1e-3)
-    np.testing.assert_allclose(z, plane(x, y), atol=0.15)
+    np.testing.assert_allclose(z, plane(x, y), atol=2 * KEEP_M)
 
 
 # ----------------------------------------------------------------------------- samples and the TIN
