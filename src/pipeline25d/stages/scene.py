@@ -93,18 +93,18 @@ def _scene_setup(lod_indexes: list[str], dsm_src, terrain: str, terrain_path: st
     grid = dsm_src.grid
     dsm = dsm_src.read_all(np.float32)
     seed_src, radius, height_fn, held, ids = None, None, None, np.zeros((0, 2)), []
+    rules = site_rules(gcp_cfg, gsd) if gcp_cfg["source"] == "auto" else None
     if terrain == "flat":
         level = float(z0_cfg) if z0_cfg != "auto" else float(np.median(bounds[:, 0, 2]))
         dtm = np.broadcast_to(level, grid.shape)
     elif terrain == "auto":
         seed_src = FloatRaster(terrain_path)
         needed = _under_chunks(bounds, grid)
-        plane = gap_plane_cells(grid.res, holdout_radius(site_rules(gcp_cfg, gsd), grid.res)
-                                if gcp_cfg["source"] == "auto" else 0.0)
+        radius = holdout_radius(rules, grid.res) if rules is not None else None
+        plane = gap_plane_cells(grid.res, radius or 0.0)
         # with GCPs of its own, this DTM only chooses their sites, which stand on ground cells: the
         # plain fill (the DTM is filled again, along local planes, without the check points' ground)
-        dtm = _interpolated_dtm(seed_src.read, grid, search, needed, workers,
-                                0 if gcp_cfg["source"] == "auto" else plane)
+        dtm = _interpolated_dtm(seed_src.read, grid, search, needed, workers, 0 if rules is not None else plane)
     else:
         height_fn = DTM(terrain_path, scene_crs, continuous=True).sample
         dtm = _sampled_dtm(height_fn, grid)
@@ -119,15 +119,13 @@ def _scene_setup(lod_indexes: list[str], dsm_src, terrain: str, terrain_path: st
         raise ConfigError("config key projection: terrain-relative projection needs a terrain (auto or a DTM path), "
                           "not terrain: flat")
     perspectives = [Perspective.from_id(pid) for pid in perspective_ids]
-    if gcp_cfg["source"] == "auto":
-        rules = site_rules(gcp_cfg, gsd)
+    if rules is not None:
         surface = dsm if seed_src is None else with_bare_ground(dsm, dtm, seed_src.read_all(np.float32))
         sites = select_sites(surface, dtm, grid, rules, perspectives,
                              check_square=check_squares(gcp_cfg["holdout"], gcp_cfg["seed"]))
         cands = candidates_from_sites(sites, gcp_cfg["holdout"], gcp_cfg["seed"])
         del surface
         if seed_src is not None:
-            radius = holdout_radius(rules, grid.res)
             held = np.round(np.column_stack([sites["held_x"], sites["held_y"]]), 3)    # as the candidates
             ids = [square_id(c, r) for c, r in zip(sites["held_col"], sites["held_row"])]
             del dtm

@@ -126,7 +126,7 @@ def local_planes(seed: np.ndarray, half: int, where: np.ndarray) -> np.ndarray:
     r = np.arange(h, dtype=np.int64)[:, None]
     c = np.arange(w, dtype=np.int64)[None, :]
     m = ground.astype(np.int64)
-    z = np.where(ground, np.rint(np.where(ground, seed, 0.0) / HEIGHT_UNIT), 0).astype(np.int64)
+    z = np.rint(np.where(ground, seed, 0.0) / HEIGHT_UNIT).astype(np.int64)
     n_box = _box_sums(m, half)
     planes = np.full(seed.shape, np.nan)
     idx = np.nonzero(where & (n_box >= MIN_CELLS))
