@@ -42,3 +42,27 @@ def first_count(job: dict) -> None:
     slept: list[float] = []
     cores.time.sleep = slept.append
     Path(job["out"]).write_text(json.dumps({"idle": cores.idle_cores(), "slept": slept}))
+
+
+def reused_pages(job: dict) -> None:
+    """Fill and free a 16 MiB array ``job["times"]`` times; write the page faults that took and
+    the GLIBC_TUNABLES this process was given (see pipeline25d.jobhost.MALLOC_TUNABLES)."""
+    import json
+
+    Path(job["out"]).write_text(json.dumps({"faults": page_faults_of_temporaries(job["times"]),
+                                            "tunables": os.environ.get("GLIBC_TUNABLES", "")}))
+
+
+def page_faults_of_temporaries(times: int) -> int:
+    """Minor page faults of filling and freeing a 16 MiB NumPy array ``times`` more times, after a
+    first one (whose pages are new to the process either way)."""
+    import resource
+
+    import numpy as np
+
+    np.ones(2 << 20)                  # 16 MiB of float64, every page written, freed
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    for _ in range(times):
+        a = np.ones(2 << 20)
+        del a
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before

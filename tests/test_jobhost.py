@@ -234,3 +234,54 @@ def test_a_host_ends_on_sigterm_even_inside_code_that_swallows_exceptions(tmp_pa
     proc.send_signal(signal.SIGTERM)
     assert proc.wait(timeout=30) == 0
     assert not folder.exists()
+
+
+GLIBC = __import__("platform").libc_ver()[0] == "glibc"
+TIMES = 20
+
+
+def faults_in_a_process(env: dict) -> int:
+    """Page faults of a fresh process with ``env`` that fills and frees a 16 MiB array TIMES times
+    after a first one."""
+    code = ("import sys; sys.path.insert(0, %r)\n"
+            "from jobhost_runners import page_faults_of_temporaries\n"
+            "print(page_faults_of_temporaries(%d))\n") % (str(TESTS), TIMES)
+    return int(subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                              check=True).stdout)
+
+
+def test_a_job_s_environment_adds_the_malloc_tunables_and_keeps_the_user_s_own():
+    env = jobhost.job_env({"PATH": "/bin", "GLIBC_TUNABLES": "glibc.malloc.trim_threshold=1:glibc.cpu.x86_ibt=on"})
+    items = env["GLIBC_TUNABLES"].split(":")
+    assert env["PATH"] == "/bin"
+    assert items[:2] == ["glibc.malloc.trim_threshold=1", "glibc.cpu.x86_ibt=on"]      # the user's, as given
+    assert sorted(items[2:]) == ["glibc.malloc.mmap_threshold=33554432", "glibc.malloc.top_pad=67108864"]
+    plain = jobhost.job_env({})["GLIBC_TUNABLES"].split(":")
+    assert dict(item.split("=") for item in plain) == {k: str(v) for k, v in jobhost.MALLOC_TUNABLES.items()}
+
+
+@pytest.mark.skipif(not GLIBC, reason="GLIBC_TUNABLES are glibc's")
+def test_a_job_s_temporaries_reuse_its_pages_where_a_plain_process_faults_them_in_each_time():
+    """The same loop in a process with a job's environment and in one without its tunables: a
+    16 MiB temporary filled and freed 20 times after a first. Without them each one is a fresh
+    mapping, faulted in again (by 4 KiB or, where NumPy asks for them, 2 MiB pages: at least one
+    fault each); with them the first one's pages serve all."""
+    plain = {k: v for k, v in os.environ.items() if k != "GLIBC_TUNABLES"}
+    without, with_ = faults_in_a_process(plain), faults_in_a_process(jobhost.job_env(plain))
+    assert without >= TIMES and with_ * 10 < without, (with_, without)
+
+
+@pytest.mark.skipif(not GLIBC, reason="GLIBC_TUNABLES are glibc's")
+def test_a_hosted_job_runs_with_the_malloc_tunables_and_reuses_its_pages(host, tmp_path):
+    """The host started with them; its fork keeps them (and has them in its environment, for the
+    tools a job starts)."""
+    import json
+
+    out = tmp_path / "faults.json"
+    proc = job_process("jobhost_runners:reused_pages", {"out": str(out), "times": TIMES}, tmp_path)
+    stdout, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 0 and "ran itself" not in stdout, stderr
+    seen = json.loads(out.read_text())
+    assert {f"{k}={v}" for k, v in jobhost.MALLOC_TUNABLES.items()} <= set(seen["tunables"].split(":"))
+    without = faults_in_a_process({k: v for k, v in os.environ.items() if k != "GLIBC_TUNABLES"})
+    assert without >= TIMES and seen["faults"] * 10 < without, (seen["faults"], without)
