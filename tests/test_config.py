@@ -27,7 +27,7 @@ def test_three_keys_run_with_every_default_filled():
                           "max_slope": 30, "max_float_px": 0.5}
     assert cfg["terrain"] == "auto" and cfg["projection"] == "auto"
     assert cfg["ground"] == {"resolution": "auto", "max_object_size": 100, "cloth_resolution": "auto",
-                             "rigidness": 2, "class_threshold": 0.5, "cloth_iterations": 50}
+                             "rigidness": 2, "class_threshold": 0.5, "cloth_iterations": 40}
     assert cfg["warp"] == {"method": "auto", "order": 3}
     assert cfg["objects"] == {"enabled": "auto"}
     assert cfg["heights"] == {"footprints": "auto", "reference": "auto", "max_height": 200, "block_size": 250}
