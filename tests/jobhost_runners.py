@@ -16,6 +16,14 @@ def report(job: dict) -> None:
     sys.exit(job["status"])
 
 
+def exit_handler(job: dict) -> None:
+    """Register an exit handler that writes ``job["out"]``, and print a line left in the buffer."""
+    import atexit
+
+    atexit.register(Path(job["out"]).write_text, "exit handlers ran")
+    sys.stdout.write("printed, not flushed")
+
+
 def wait(job: dict) -> None:
     """Note this process's pid, then wait (as a job does: stop signals remembered) until stopped;
     note how it ended."""

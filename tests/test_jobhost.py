@@ -48,6 +48,20 @@ def test_a_hosted_job_has_its_own_folder_environment_streams_and_status(host, tm
     assert os.stat(os.path.dirname(host)).st_mode & 0o777 == 0o700    # only this user's jobs reach the host
 
 
+def test_a_hosted_job_ends_after_its_exit_handlers_ran_and_its_output_was_flushed(host, tmp_path):
+    """The host's fork ends at once after its job (jobhost.end_now: no teardown of every module),
+    but not before what a process's normal end does for a job: exit handlers, buffered output."""
+    out = tmp_path / "handler.txt"
+    proc = job_process("jobhost_runners:exit_handler", {"out": str(out)}, tmp_path)
+    stdout, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 0, stderr
+    assert stdout == "printed, not flushed"
+    deadline = time.monotonic() + 30           # the fork ends after it has sent the job's status
+    while not out.exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert out.read_text() == "exit handlers ran"
+
+
 def test_a_hosted_job_counts_idle_cores_without_waiting(host, tmp_path):
     """Its first count covers the time since the host's last reading (see cores.mark); a job run
     by its own process marks its start and waits out the rest of cores.SAMPLE_S."""

@@ -68,6 +68,10 @@ def test_stage_timings_count_only_this_configurations_jobs(tmp_path):
         {"scene": (1, 1.0), "lod": (1, 2.0), "warp": (1, 3.0), "render": (1, 4.0), "heights": (4, 7.75)}
     assert got["warp"]["max_rss_mb"] == 710.0                   # the job's process and its largest child
     assert stage_timings(tmp_path)["render"]["jobs"] == 2         # without the filter: every finished job
+    # a log removed between its listing and its reading (Snakemake removes a job's log as the job
+    # starts again: the wms job runs beside the report's) does not count either
+    (tmp_path / "logs" / "wms.log").symlink_to(tmp_path / "logs" / "removed.log")
+    assert "wms" not in stage_timings(tmp_path, current) and stage_timings(tmp_path, current)["scene"]["jobs"] == 1
 
 
 def test_the_heights_jobs_are_read_from_the_blocks_file_and_one_per_block_in_an_older_one(tmp_path):

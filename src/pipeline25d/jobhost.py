@@ -21,9 +21,13 @@ standard streams, working folder, environment and thread settings.
   reaped, so the run's CPU (``RUSAGE_CHILDREN`` of whoever started Snakemake) still holds every job.
   A job's own log has its CPU from the fork on; its start-up (``startup_s``) is then near zero.
 - **The host ends with Snakemake** (``PR_SET_PDEATHSIG``), whatever way Snakemake ends.
-- **Memory kept for reuse.** Every job's process, hosted or not, and the tools it starts run with
-  glibc's malloc told to keep what a job frees (:data:`MALLOC_TUNABLES`): a job's NumPy and GDAL
-  temporaries then reuse pages instead of mapping, faulting in and zeroing fresh ones each time.
+- **Memory kept for reuse.** Every job's process, hosted or not, and the tools it starts keep what
+  they free for their next temporaries (:data:`MALLOC_TUNABLES`), and a job ends without the
+  interpreter's teardown (:func:`end_now`).
+
+Over 400 lines for one job: the two ends of one protocol, the job's process (run isolated and
+stdlib-only, it can import nothing beside it) and the host, whose wire format and environment are
+defined once here.
 """
 
 from __future__ import annotations
@@ -57,12 +61,8 @@ PRELOAD = ("numpy", "osgeo.gdal", "osgeo.gdal_array", "osgeo.osr", "pyproj", "af
            "pipeline25d.publish.report_figures", "pipeline25d.publish.report")
 
 #: glibc's malloc in every job's process (``GLIBC_TUNABLES``, read as a process starts; a fork keeps
-#: them): blocks up to 32 MiB (the most glibc allows) come from the heap, not each from a mapping of
-#: its own that is unmapped when freed, and up to 256 MiB freed at the heap's top stay there. Each of
-#: a job's temporaries (a 1024² tile's RGBA is 4 MiB, a DTM block's float64 up to 17 MiB) then
-#: reuses pages the job has already touched, where it faulted in and zeroed fresh pages before: on
-#: the 3 x 3 bench the run's CPU fell from 77.7-79.1 to 73.4-74.4 s (two runs each), the most in the
-#: web-tile cut and the warp, and its peak RSS rose from 710 to 743 MB
+#: them): blocks up to 32 MiB (glibc's most) from the heap, not a mapping each, and up to 256 MiB freed
+#: at its top kept, so a job's temporaries reuse its pages (docs/running.md: 5 % less CPU on the 3 x 3 bench)
 MALLOC_TUNABLES = {"glibc.malloc.mmap_threshold": 32 << 20, "glibc.malloc.trim_threshold": 256 << 20,
                    "glibc.malloc.top_pad": 64 << 20}
 
@@ -198,7 +198,7 @@ def _host_env() -> dict[str, str]:
 # -- the host ---------------------------------------------------------------------------------
 def serve(path: str, parent: int) -> int:
     """Import :data:`PRELOAD`, listen on ``path`` and fork a child per job until stopped. Returns
-    the exit status: the host's (0) or, in a child, its job's. The host removes ``path``'s folder
+    the host's exit status (0); a child ends with its job's (:func:`end_now`). The host removes ``path``'s folder
     as it ends, however it is stopped (Snakemake killed outright runs no ``onerror``)."""
     host = os.getpid()
     try:
@@ -238,7 +238,7 @@ def _serve(path: str, parent: int) -> int:
             continue
         if os.fork() == 0:
             listener.close()
-            return _child(conn, *request, previous)
+            end_now(_child(conn, *request, previous))
         for fd in request[0]:
             os.close(fd)
         conn.close()
@@ -357,6 +357,20 @@ def _child(conn: socket.socket, fds: list[int], body: bytes, since: tuple) -> in
         except OSError:
             pass
     return status
+
+
+def end_now(status: int) -> None:
+    """End this process with ``status`` once its exit handlers have run (the job's log closed, a
+    KTX2 transcoder stopped) and its streams are flushed, without the interpreter's teardown of
+    every module and object (0.05 CPU-s in a fork of the host that did nothing, more after a job)."""
+    import atexit
+
+    try:
+        atexit._run_exitfuncs()
+        for stream in (sys.stdout, sys.stderr):
+            stream.flush()
+    finally:
+        os._exit(status)
 
 
 def _job_threads() -> None:

@@ -235,4 +235,7 @@ def run(job: Job) -> None:
 if __name__ == "__main__":
     import sys
 
+    from pipeline25d.jobhost import end_now
+
     run_args(sys.argv[1:])
+    end_now(0)                        # done: no teardown of every module before the process ends

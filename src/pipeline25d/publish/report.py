@@ -37,14 +37,17 @@ def stage_timings(results: Path, current=None) -> dict[str, dict]:
     wall seconds summed (start-up and the rule's function), and the largest peak RSS (MB) of a
     job's process and its largest child together; with ``current(path relative to logs/)``, only
     the logs it accepts (see :func:`current_jobs`). A log without a time line (a job still running,
-    or killed) does not count."""
+    or killed; one Snakemake removed as its job started again) does not count."""
     from pipeline25d.core.logsetup import job_logs, read_job_record, wall_seconds
 
     out: dict[str, dict] = {}
     for stage, log in job_logs(results / "logs"):
         if stage in AFTER_TIMINGS or current is not None and not current(log.relative_to(results / "logs")):
             continue
-        rec = read_job_record(log)
+        try:
+            rec = read_job_record(log)
+        except FileNotFoundError:        # gone since it was listed: its job (wms, beside the report) runs again
+            continue
         seconds = wall_seconds(rec)
         if seconds is None:
             continue
