@@ -238,4 +238,5 @@ if __name__ == "__main__":
     from pipeline25d.jobhost import end_now
 
     run_args(sys.argv[1:])
-    end_now(0)                        # done: no teardown of every module before the process ends
+    if sys.getprofile() is None:      # done: no teardown of every module (python -m cProfile: its figures first)
+        end_now(0)

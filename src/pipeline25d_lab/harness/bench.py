@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import resource
 import shutil
@@ -217,10 +218,13 @@ def tms_against_gdal2tiles_default(results: Path, pid: str, work: Path, config: 
     its id map where there is one) with the workers it took in the run (its log's ``workers:``, see
     :func:`pipeline25d.core.cores.job_workers`; else the rule's threads), against ``job_s_in_run``
     (its seconds in the run, from its log): what running beside other jobs cost it. ``cut_s``: the map's
-    cut alone on 1 and on 2 processes, each against gdal2tiles (``speed_up``)."""
+    cut alone on 1 and on 2 processes, each against gdal2tiles (``speed_up``). Each cut runs as the job
+    would, in a process of its own with a job's environment (:func:`pipeline25d.jobhost.job_env`) and
+    the host's modules imported, timed from the call; gdal2tiles runs as a user would, with this
+    process's environment."""
     import shutil
 
-    from pipeline25d.stages.tiles.web import tms
+    from pipeline25d.jobhost import job_env
 
     cog, ids = results / "maps" / f"{pid}.tif", results / "maps" / f"{pid}.ids.tif"
     zooms = sorted(int(z.name) for z in (results / "tms" / pid).iterdir() if z.name.isdigit())
@@ -231,11 +235,18 @@ def tms_against_gdal2tiles_default(results: Path, pid: str, work: Path, config: 
     out = work / "tms-compare"
 
     def timed(source: Path, processes: int, tile_format: str, quality: int) -> float:
+        """Seconds of the cut in a process of its own with a job's environment (its malloc) and the
+        modules a job finds imported (the host's), from the call."""
         shutil.rmtree(out, ignore_errors=True)
-        t0 = time.monotonic()
-        tms(source, zoom, out / "ours", processes=processes, tile_format=tile_format, quality=quality,
-            webp_method=cfg["webp_method"])
-        return time.monotonic() - t0
+        code = ("import importlib, time\nfrom pipeline25d.jobhost import PRELOAD\n"
+                "for name in PRELOAD:\n    importlib.import_module(name)\n"
+                "from pipeline25d.stages.tiles.web import tms\nt0 = time.monotonic()\n"
+                f"tms({str(source)!r}, {zoom!r}, {str(out / 'ours')!r}, processes={processes}, "
+                f"tile_format={tile_format!r}, quality={quality}, webp_method={cfg['webp_method']})\n"
+                "print(time.monotonic() - t0)\n")
+        proc = subprocess.run([sys.executable, "-c", code], env=job_env(os.environ), capture_output=True, text=True,
+                              check=True)
+        return float(proc.stdout.split()[-1])
 
     cut = {n: timed(cog, n, cfg["format"], cfg["quality"]) for n in (1, 2)}
     alone = cut[threads] if threads in cut else timed(cog, threads, cfg["format"], cfg["quality"])
