@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 
 from pipeline25d.stages.terrain.dtm import interpolate_dtm
-from pipeline25d.stages.terrain.gap_planes import KEEP_M, _box_sums, gap_plane_cells, local_planes
+from pipeline25d.stages.terrain.gap_planes import (
+    HEIGHT_UNIT,
+    KEEP_M,
+    _sums_along,
+    gap_plane_cells,
+    local_planes,
+)
 
 RES = 0.5
 SEARCH = 100                                 # cells: half the default largest object (100 m) at 0.5 m
@@ -30,7 +36,24 @@ def test_box_sums_equal_the_sums_of_each_box_cut_at_the_edges(shape, half):
     a = np.random.default_rng(1).integers(-9, 9, shape)
     expected = np.array([[a[max(i - half, 0):i + half + 1, max(j - half, 0):j + half + 1].sum()
                           for j in range(shape[1])] for i in range(shape[0])])
-    np.testing.assert_array_equal(_box_sums(a, half), expected)
+    np.testing.assert_array_equal(_sums_along(_sums_along(a, 0, -half, half), 1, -half, half), expected)
+
+
+def test_local_planes_are_the_least_squares_planes_of_their_boxes_ground():
+    """Against numpy's least squares in float64 over each box's ground cells (heights in whole
+    HEIGHT_UNITs, as the planes sum them), at corners, edges and inside."""
+    rng = np.random.default_rng(3)
+    seed = 30 + rng.normal(0, 1.5, (60, 70)) + np.arange(70) * 0.3
+    seed[rng.random(seed.shape) < 0.5] = np.nan
+    half = 5
+    planes = local_planes(seed, half, np.ones(seed.shape, bool))
+    heights = np.rint(seed / HEIGHT_UNIT) * HEIGHT_UNIT
+    for i, j in [(0, 0), (7, 33), (30, 69), (59, 12), (25, 25), (59, 69)]:
+        r0, c0 = max(i - half, 0), max(j - half, 0)
+        rr, cc = np.nonzero(np.isfinite(seed[r0:i + half + 1, c0:j + half + 1]))
+        rr, cc = rr + r0, cc + c0
+        design = np.column_stack([np.ones(len(rr)), rr - i, cc - j])
+        assert planes[i, j] == pytest.approx(np.linalg.lstsq(design, heights[rr, cc], rcond=None)[0][0], abs=1e-9)
 
 
 def test_a_local_plane_does_not_depend_on_where_the_array_starts():

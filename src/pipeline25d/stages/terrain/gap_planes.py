@@ -56,12 +56,13 @@ def plane_corrected(seed: np.ndarray, filled: np.ndarray, half: int, fill) -> np
     ground = np.isfinite(seed)
     if ground.all() or not ground.any():
         return filled
-    surround = surrounded(ground, half)
+    across = _sums_along(ground.astype(np.int64), 0, -half, half)    # the boxes' ground down each column
+    surround = surrounded(ground, half, across)
     gap = ~ground & np.isfinite(filled) & (surround > 0)      # the others keep the plain fill
     if not gap.any():
         return filled
     border = ground & ndi.binary_dilation(gap, np.ones((3, 3), bool))
-    planes = local_planes(seed, half, border | gap)
+    planes = local_planes(seed, half, border | gap, across)
     misfit = np.where(gap, np.nan, 0.0)                         # only these gaps are filled
     at = border & np.isfinite(planes)
     misfit[at] = (seed - planes)[at]
@@ -81,12 +82,13 @@ def plane_reach(half: int) -> int:
     return 3 * half + 1
 
 
-def surrounded(ground: np.ndarray, half: int) -> np.ndarray:
+def surrounded(ground: np.ndarray, half: int, across: np.ndarray | None = None) -> np.ndarray:
     """Each cell's least share of ``ground`` among the four sides of its (2 ``half`` + 1)² box:
     the ``half`` columns left of it and those right of it (all the box's rows), the ``half``
-    rows above it and those below (all its columns)."""
+    rows above it and those below (all its columns). ``across``: the ground's sums down the
+    columns over the box's rows, where already made."""
     m = ground.astype(np.int64)
-    across = _sums_along(m, 0, -half, half)
+    across = _sums_along(m, 0, -half, half) if across is None else across
     along = _sums_along(m, 1, -half, half)
     sides = (_sums_along(across, 1, -half, -1), _sums_along(across, 1, 1, half),
              _sums_along(along, 0, -half, -1), _sums_along(along, 0, 1, half))
@@ -111,7 +113,7 @@ def _sums_along(a: np.ndarray, axis: int, lo: int, hi: int) -> np.ndarray:
     return prefix[cut(pre + hi + 1)] - prefix[cut(pre + lo)]
 
 
-def local_planes(seed: np.ndarray, half: int, where: np.ndarray) -> np.ndarray:
+def local_planes(seed: np.ndarray, half: int, where: np.ndarray, across: np.ndarray | None = None) -> np.ndarray:
     """At each cell of ``where`` the height of the least-squares plane through the ground cells
     (finite ``seed``) of the (2 ``half`` + 1)² box round it; NaN elsewhere and where the box
     holds fewer than :data:`MIN_CELLS` or they lie on a line.
@@ -119,22 +121,35 @@ def local_planes(seed: np.ndarray, half: int, where: np.ndarray) -> np.ndarray:
     The box sums are exact: heights in units of :data:`HEIGHT_UNIT`, cells as integers, int64.
     A plane then depends on its box alone, bit for bit, wherever the array starts (a running
     float sum carries rounding along a row), so a DTM filled block by block equals the whole
-    grid's and a district's change moves no cell beyond its reach.
+    grid's and a district's change moves no cell beyond its reach. ``across``: the ground's sums
+    down the columns over the box's rows, where already made (:func:`surrounded` uses them too).
     """
     ground = np.isfinite(seed)
     h, w = seed.shape
     r = np.arange(h, dtype=np.int64)[:, None]
     c = np.arange(w, dtype=np.int64)[None, :]
     m = ground.astype(np.int64)
-    z = np.rint(np.where(ground, seed, 0.0) / HEIGHT_UNIT).astype(np.int64)
-    n_box = _box_sums(m, half)
+    across = _sums_along(m, 0, -half, half) if across is None else across
+    n_box = _sums_along(across, 1, -half, half)
     planes = np.full(seed.shape, np.nan)
     idx = np.nonzero(where & (n_box >= MIN_CELLS))
     if not len(idx[0]):
         return planes
     n = n_box[idx]
-    sr, sc, srr, src, scc, tz, trz, tcz = (_box_sums(t, half)[idx] for t in (
-        m * r, m * c, m * r * r, m * r * c, m * c * c, z, z * r, z * c))
+    del n_box
+
+    def box(column_sums: np.ndarray, *factors) -> list[np.ndarray]:
+        """Box sums at ``idx`` of ``column_sums`` (sums down the columns) times each factor: a
+        factor alike all down a column (1, c, c²) comes out of those sums exactly."""
+        return [_sums_along(column_sums * f, 1, -half, half)[idx] for f in factors]
+
+    sc, scc = box(across, c, c * c)
+    sr, src = box(_sums_along(m * r, 0, -half, half), 1, c)
+    srr, = box(_sums_along(m * r * r, 0, -half, half), 1)
+    z = np.rint(np.where(ground, seed, 0.0) / HEIGHT_UNIT).astype(np.int64)
+    tz, tcz = box(_sums_along(z, 0, -half, half), 1, c)
+    trz, = box(_sums_along(z * r, 0, -half, half), 1)
+    del z
     rr, cc = idx[0].astype(np.int64), idx[1].astype(np.int64)
     # moments about the cell itself, exact integers; the plane's value there is the first unknown
     m01, m02 = sr - n * rr, sc - n * cc
@@ -150,9 +165,3 @@ def local_planes(seed: np.ndarray, half: int, where: np.ndarray) -> np.ndarray:
     value[ok] = (c00 * v0 + c01 * v1 + c02 * v2)[ok] / det[ok] * HEIGHT_UNIT
     planes[idx] = value
     return planes
-
-
-def _box_sums(a: np.ndarray, half: int) -> np.ndarray:
-    """Sums of the integer array ``a`` over the (2 ``half`` + 1)² box round each cell (clipped
-    at the edges): exact."""
-    return _sums_along(_sums_along(a, 0, -half, half), 1, -half, half)
