@@ -13,6 +13,7 @@ import logging
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -417,5 +418,10 @@ def test_tiles_are_read_as_they_are_taken(copy, monkeypatch):
     monkeypatch.setattr(osgb, "WORKERS", 1)
     monkeypatch.setattr(osgb, "read_tile", lambda *a, **k: calls.append(a[0].stem) or real(*a, **k))
     tiles = osgb.iter_tiles(copy, 0.5)
-    assert next(tiles).name == "Tile_+000_+000" and len(calls) == 2
+    assert next(tiles).name == "Tile_+000_+000"
+    deadline = time.monotonic() + 30              # the next read is submitted; its thread may not have begun
+    while len(calls) < 2 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    time.sleep(0.2)                               # (and no third read follows it)
+    assert calls == ["Tile_+000_+000", "Tile_+001_+000"]
     assert [t.name for t in tiles] == [f"Tile_+00{k}_+000" for k in (1, 2, 3)] and len(calls) == 4
