@@ -138,18 +138,23 @@ def local_planes(seed: np.ndarray, half: int, where: np.ndarray, across: np.ndar
     n = n_box[idx]
     del n_box
 
-    def box(column_sums: np.ndarray, *factors) -> list[np.ndarray]:
-        """Box sums at ``idx`` of ``column_sums`` (sums down the columns) times each factor: a
-        factor alike all down a column (1, c, c²) comes out of those sums exactly."""
-        return [_sums_along(column_sums * f, 1, -half, half)[idx] for f in factors]
+    def down(a: np.ndarray) -> np.ndarray:
+        return _sums_along(a, 0, -half, half)
 
-    sc, scc = box(across, c, c * c)
-    sr, src = box(_sums_along(m * r, 0, -half, half), 1, c)
-    srr, = box(_sums_along(m * r * r, 0, -half, half), 1)
+    def box(column_sums: np.ndarray) -> np.ndarray:
+        """Box sums at ``idx`` from sums down the columns; a factor alike all down a column (c, c²)
+        comes out of those sums exactly, so m·c's are ``across * c``."""
+        return _sums_along(column_sums, 1, -half, half)[idx]
+
+    sc, scc = box(across * c), box(across * c * c)
+    mr = down(m * r)
+    sr, src = box(mr), box(mr * c)
+    srr = box(down(m * r * r))
     z = np.rint(np.where(ground, seed, 0.0) / HEIGHT_UNIT).astype(np.int64)
-    tz, tcz = box(_sums_along(z, 0, -half, half), 1, c)
-    trz, = box(_sums_along(z * r, 0, -half, half), 1)
-    del z
+    zs = down(z)
+    tz, tcz = box(zs), box(zs * c)
+    trz = box(down(z * r))
+    del z, zs, mr
     rr, cc = idx[0].astype(np.int64), idx[1].astype(np.int64)
     # moments about the cell itself, exact integers; the plane's value there is the first unknown
     m01, m02 = sr - n * rr, sc - n * cc
